@@ -1,0 +1,74 @@
+"""`gesturedb info DB.h5`: a readable summary of a database."""
+from __future__ import annotations
+
+import json
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("info", help="summarise a gesture database")
+    p.add_argument("db", metavar="DB.h5")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--schema", action="store_true", help="print the file schema instead")
+    p.set_defaults(run=run)
+
+
+def summary(db) -> dict:
+    import numpy as np
+
+    recs = db.recordings
+    chunks, clips = db.chunks, db.clips
+    return {
+        "path": db.path,
+        "gesturedb_version": db.gesturedb_version,
+        "fps": db.fps,
+        "frames": db.n_frames,
+        "duration_s": round(db.n_frames / db.fps, 3),
+        "recordings": [{"name": r.name, "speaker": r.speaker, "duration_s": round(r.duration_s, 3),
+                        "frames": r.n_frames, "source_fps": r.source_fps, "mirrored": r.mirrored} for r in recs],
+        "speakers": sorted({r.speaker for r in recs}),
+        "chunks": {"count": len(chunks), "frames": int(np.median(chunks.length)) if len(chunks) else 0},
+        "clips": {"count": len(clips),
+                  "mean_s": round(float(np.mean(clips.length)) / db.fps, 3) if len(clips) else 0.0},
+        "words": len(db.words),
+        "skeleton": {"joints": len(db.joint_names), "root": db.joint_names[0]},
+        "feature_joints": db.feature_joints,
+        "features": {"pose": int(db.h5["frames/pose_features"].shape[1]),
+                     "audio": int(db.h5["frames/audio_features"].shape[1])},
+        "controls": {k: db.control_units[k] for k in db.controls},
+        "masks": db.mask_definitions,
+        "config": db.config,
+    }
+
+
+def run(args) -> int:
+    import gesturedb
+    from gesturedb import schema
+
+    if args.schema:
+        print(schema.describe())
+        return 0
+    with gesturedb.open(args.db) as db:
+        s = summary(db)
+    if args.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    mins, secs = divmod(s["duration_s"], 60)
+    print(f"{s['path']}  (gesturedb {s['gesturedb_version']}, schema {schema.SCHEMA_VERSION})")
+    print(f"  duration     {int(mins)} min {secs:.1f} s  = {s['frames']} frames at {s['fps']:g} fps")
+    print(f"  speakers     {', '.join(s['speakers'])}")
+    print(f"  recordings   {len(s['recordings'])}")
+    for r in s["recordings"]:
+        print(f"    {r['name']:<32} {r['duration_s']:8.2f} s  {r['frames']:7d} frames  (source {r['source_fps']:g} fps"
+              f"{', mirrored' if r['mirrored'] else ''})")
+    print(f"  chunks       {s['chunks']['count']} x {s['chunks']['frames']} frames")
+    print(f"  clips        {s['clips']['count']} word-gap clips, mean {s['clips']['mean_s']:.2f} s;  {s['words']} words")
+    print(f"  skeleton     {s['skeleton']['joints']} joints, root {s['skeleton']['root']}")
+    print(f"  features     pose {s['features']['pose']} values/frame, audio {s['features']['audio']} values/frame")
+    print("  feature joints " + ", ".join(f"{k}={v}" for k, v in s["feature_joints"].items()))
+    if s["controls"]:
+        print("  controls     " + ", ".join(f"{k} [{u}]" for k, u in s["controls"].items()))
+    if s["masks"]:
+        print(f"  masks        {len(s['masks'])}: " + ", ".join(s["masks"]))
+    cfg = s["config"]
+    print("  config       " + ", ".join(f"{k}={cfg[k]}" for k in sorted(cfg)))
+    return 0

@@ -1,0 +1,51 @@
+"""The `gesturedb` command: a thin layer over the package, one module per command.
+
+Every deliberate error (:class:`gesturedb.GestureDBError`) becomes one line on
+stderr and exit status 2; anything else is a bug and keeps its traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: command name -> module in this package defining `add_parser(subparsers)` and `run(args)`
+COMMANDS = {
+    "build": "build",
+    "info": "info",
+    "export": "export",
+    "synth": "synth",
+}
+
+
+def make_parser() -> argparse.ArgumentParser:
+    from gesturedb import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="gesturedb",
+        description="Build gesture databases from speech + motion recordings and synthesize gestures by searching them.",
+    )
+    parser.add_argument("--version", action="version", version=f"gesturedb {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module in COMMANDS.items():
+        importlib.import_module(f"gesturedb.cli.{module}").add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from gesturedb.errors import GestureDBError
+
+    parser = make_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except GestureDBError as exc:
+        print(f"gesturedb {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"gesturedb {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

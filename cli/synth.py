@@ -1,0 +1,72 @@
+"""`gesturedb synth DB.h5 --audio speech.wav [--transcript words.TextGrid] -o out.bvh`"""
+from __future__ import annotations
+
+import os
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "synth",
+        help="synthesize gestures for speech by searching a database",
+        description="Rank-sum motion matching (Habibie et al. 2022): every STEP frames pick the database window "
+        "whose entry pose matches the previous output pose and whose audio matches the speech.",
+    )
+    p.add_argument("db", metavar="DB.h5")
+    p.add_argument("--audio", required=True, metavar="SPEECH.wav")
+    p.add_argument("--transcript", default=None, metavar="WORDS", help="TextGrid/TSV/JSON word timings (for keywords)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.bvh")
+    p.add_argument("--npz", default=None, metavar="OUT.npz", help="also write joint positions (T, J, 3) in metres")
+    p.add_argument("--provenance", default=None, metavar="OUT.json",
+                   help="where every step came from (default: OUT.provenance.json)")
+    p.add_argument("--k", type=int, default=1, help="take the k-th best candidate (default: 1)")
+    p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
+    p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")
+    p.add_argument("--seed", type=int, default=0, help="seed for --init random")
+    p.add_argument("--step", type=int, default=8, help="frames per search step N (default: 8)")
+    p.add_argument("--blend", type=int, default=4, dest="blend_frames",
+                   help="cross-fade frames at window boundaries, 0 = off (default: 4)")
+    p.add_argument("--segments", choices=("chunks", "clips"), default="chunks")
+    p.add_argument("--control", default=None,
+                   help='control schedule, e.g. "0-12: left_wrist_height > p85; 12-: left_wrist_speed < p15"')
+    p.add_argument("--no-keywords", action="store_true", help="ignore keyword sub-databases")
+    p.add_argument("--keywords", default=None, help="comma-separated keywords to use (default: all)")
+    p.add_argument("--exclude", default=None, help="comma-separated recordings to leave out of the search")
+    p.add_argument("--export-fps", type=float, default=None, help="resample the BVH/npz to this frame rate")
+    p.add_argument("--render", default=None, metavar="OUT.mp4", help="also render the result (mp4/gif/png)")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    import numpy as np
+
+    import gesturedb
+    from gesturedb.io.bvh import write_bvh
+    from gesturedb.synth import Searcher
+
+    keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
+    with gesturedb.open(args.db) as db:
+        res = Searcher(db, segments=args.segments).synthesize(
+            args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
+            seed=args.seed, step=args.step, blend_frames=args.blend_frames, control=args.control,
+            keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
+        )
+    motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
+    write_bvh(args.output, motion)
+    prov = args.provenance or os.path.splitext(args.output)[0] + ".provenance.json"
+    res.write_provenance(prov)
+    written = [args.output, prov]
+    if args.npz:
+        np.savez_compressed(args.npz, positions=motion.positions.astype(np.float32), fps=motion.fps,
+                            parents=np.asarray(motion.skeleton.parents), names=np.asarray(motion.skeleton.names))
+        written.append(args.npz)
+    if args.render:
+        from gesturedb.render import render_file
+
+        render_file(args.render, [(res.positions, res.motion.skeleton.parents, "synthesized")],
+                    fps=res.fps, audio=args.audio)
+        written.append(args.render)
+    n_ctl = sum(1 for s in res.steps if s["control"])
+    n_kw = sum(1 for s in res.steps if s["keyword"])
+    print(f"synthesized {res.n_frames} frames ({res.n_frames / res.fps:.2f} s at {res.fps:g} fps) in "
+          f"{len(res.steps)} steps ({n_ctl} controlled, {n_kw} keyword); wrote {', '.join(written)}")
+    return 0

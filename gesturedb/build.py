@@ -1,0 +1,585 @@
+"""Build a gesture database: recordings -> features -> segments -> HDF5.
+
+A recording is a motion file (BVH or SMPL-X npz), a speech WAV and, optionally, a
+transcript (TextGrid, GENEA TSV or JSON) that share a file stem. Each recording
+is processed on its own (in worker processes when ``workers > 1``), then the
+results are concatenated in a fixed order, the audio features are standardised
+with statistics of the whole database, and everything is written through
+:mod:`gesturedb.schema` into a temporary file beside the target that is renamed
+on success. A failed or interrupted build leaves no partial file and any
+existing database untouched; the same inputs and configuration give the same
+HDF5 content.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from gesturedb import schema
+from gesturedb._version import __version__
+from gesturedb.errors import GestureDBError, InputFileError, ParameterError
+
+MOTION_EXTS = (".bvh", ".npz")
+AUDIO_EXTS = (".wav", ".flac")
+TRANSCRIPT_EXTS = (".textgrid", ".tsv", ".json")
+
+
+# --------------------------------------------------------------------------
+# configuration
+# --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """Everything that determines the content of a database.
+
+    Attributes
+    ----------
+    fps : float
+        Database frame rate (Hz); 15 as in Habibie et al. 2022.
+    chunk_frames : int
+        Length of the fixed chunks (the paper's T_match = 64 frames).
+    gap_s : float
+        Word-gap clips split where the pause between words exceeds this (s); 0.4 in GestureMaster.
+    pose_window, pose_stride : int
+        Pose feature = feature joints at frames f, f - stride, ..., f - (window-1)*stride.
+    sample_rate : int
+        Analysis rate for speech (Hz).
+    n_mfcc : int
+        MFCC coefficients (13) + log mean energy.
+    mirror : bool
+        Also add a left/right mirrored copy of every recording (doubles the database).
+    joint_map : dict or None
+        role -> joint name, overriding the name matching (see :mod:`gesturedb.io.joints`).
+    max_mismatch_s : float
+        Largest allowed difference between audio and motion durations (s).
+    speaker : str or None
+        Speaker name for every recording; None infers it from BEAT-style stems
+        (``2_scott_0_1_1`` -> ``scott``) or the folder name.
+    """
+
+    fps: float = 15.0
+    chunk_frames: int = 64
+    gap_s: float = 0.4
+    pose_window: int = 4
+    pose_stride: int = 2
+    sample_rate: int = 16000
+    n_mfcc: int = 13
+    mirror: bool = False
+    joint_map: dict | None = None
+    max_mismatch_s: float = 1.0
+    speaker: str | None = None
+
+    def __post_init__(self):
+        def bad(name, expected):
+            raise ParameterError(f"{name}: expected {expected}, got {getattr(self, name)!r}")
+
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            bad("fps", "a positive number of frames per second")
+        for name in ("chunk_frames", "pose_window", "pose_stride", "sample_rate", "n_mfcc"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
+                bad(name, "a positive integer")
+        if not (self.gap_s > 0):
+            bad("gap_s", "a positive number of seconds")
+        if not (self.max_mismatch_s >= 0):
+            bad("max_mismatch_s", "a non-negative number of seconds")
+        if self.joint_map is not None and not isinstance(self.joint_map, dict):
+            bad("joint_map", "a dict role -> joint name")
+
+    @classmethod
+    def from_kwargs(cls, **config) -> "BuildConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(config) - names)
+        if unknown:
+            raise ParameterError(f"build option(s) {unknown}: not known; options are {sorted(names)}")
+        return cls(**config)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["fps"] = float(d["fps"])
+        return d
+
+
+# --------------------------------------------------------------------------
+# pairing input files
+# --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RecordingSource:
+    """The files of one recording, paired by stem."""
+
+    name: str
+    motion: str
+    audio: str
+    transcript: str | None
+
+
+@dataclass(frozen=True)
+class Skipped:
+    path: str
+    reason: str
+
+
+@dataclass
+class Pairing:
+    recordings: list[RecordingSource] = field(default_factory=list)
+    skipped: list[Skipped] = field(default_factory=list)
+
+    def summary(self) -> str:
+        lines = [f"paired {len(self.recordings)} recording(s):"]
+        for r in self.recordings:
+            t = os.path.basename(r.transcript) if r.transcript else "no transcript: one clip, no words"
+            lines.append(f"  {r.name}: {os.path.basename(r.motion)} + {os.path.basename(r.audio)} + {t}")
+        if self.skipped:
+            lines.append(f"skipped {len(self.skipped)} file(s):")
+            lines += [f"  {s.path}: {s.reason}" for s in self.skipped]
+        return "\n".join(lines)
+
+
+def _kind(path: Path) -> str | None:
+    ext = path.suffix.lower()
+    if ext in MOTION_EXTS:
+        return "motion"
+    if ext in AUDIO_EXTS:
+        return "audio"
+    if ext in TRANSCRIPT_EXTS:
+        return "transcript"
+    return None
+
+
+def pair_inputs(inputs: Iterable[str | os.PathLike], *, recursive: bool = False) -> Pairing:
+    """Pair motion, audio and transcript files by stem.
+
+    Parameters
+    ----------
+    inputs : iterable of paths
+        Files and folders. Folders contribute the files directly inside them
+        (and below them with ``recursive=True``).
+
+    Returns
+    -------
+    Pairing
+        The recordings, sorted by name, and every file that was skipped with the reason.
+    """
+    files: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            it = p.rglob("*") if recursive else p.iterdir()
+            files += sorted(q for q in it if q.is_file())
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise InputFileError(p, "no such file or folder")
+
+    out = Pairing()
+    by_stem: dict[tuple[str, str], dict[str, list[Path]]] = {}
+    for f in files:
+        kind = _kind(f)
+        if kind is None:
+            if f.name.startswith(".") or f.suffix.lower() in (".md", ".txt"):
+                continue
+            out.skipped.append(Skipped(str(f), f"extension {f.suffix!r} is not motion {MOTION_EXTS}, audio {AUDIO_EXTS} or transcript {TRANSCRIPT_EXTS}"))
+            continue
+        # pair within a folder: the same stem in two folders is two recordings
+        by_stem.setdefault((str(f.parent), f.stem), {}).setdefault(kind, []).append(f)
+
+    names_seen: dict[str, str] = {}
+    for (folder, stem), kinds in sorted(by_stem.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        all_files = [str(p) for ps in kinds.values() for p in ps]
+        dup = [k for k, ps in kinds.items() if len(ps) > 1]
+        if dup:
+            for p in all_files:
+                out.skipped.append(Skipped(p, f"stem {stem!r} has several {dup[0]} files ({', '.join(os.path.basename(q) for q in sorted(map(str, kinds[dup[0]])))}): ambiguous"))
+            continue
+        if "motion" not in kinds:
+            for p in all_files:
+                out.skipped.append(Skipped(p, f"no motion file ({'/'.join(MOTION_EXTS)}) with stem {stem!r}"))
+            continue
+        if "audio" not in kinds:
+            for p in all_files:
+                out.skipped.append(Skipped(p, f"no audio file ({'/'.join(AUDIO_EXTS)}) with stem {stem!r}"))
+            continue
+        if stem in names_seen:
+            for p in all_files:
+                out.skipped.append(Skipped(p, f"a recording named {stem!r} was already paired from {names_seen[stem]}"))
+            continue
+        names_seen[stem] = folder
+        tr = kinds.get("transcript")
+        out.recordings.append(
+            RecordingSource(stem, str(kinds["motion"][0]), str(kinds["audio"][0]), str(tr[0]) if tr else None)
+        )
+    return out
+
+
+def infer_speaker(source: RecordingSource) -> str:
+    """Speaker from a BEAT-style stem (``2_scott_0_1_1`` -> ``scott``), else the folder name."""
+    m = re.match(r"^\d+_([A-Za-z]+)_", source.name)
+    if m:
+        return m.group(1).lower()
+    return Path(source.motion).resolve().parent.name
+
+
+# --------------------------------------------------------------------------
+# one recording
+# --------------------------------------------------------------------------
+
+@dataclass
+class RecordingData:
+    """Everything computed from one recording (frame indices local to it)."""
+
+    name: str
+    speaker: str
+    source: RecordingSource
+    source_fps: float
+    mirrored: bool
+    n_frames: int
+    skeleton: object
+    feature_joints: dict
+    pose: np.ndarray            # (n, Dp) float32
+    audio_raw: np.ndarray       # (n, Da) float64, before standardisation
+    positions: np.ndarray       # (n, J, 3)
+    rotations: np.ndarray       # (n, J, 4)
+    root: np.ndarray            # (n, 3)
+    controls: dict
+    chunks: tuple               # (start, length) local
+    clips: dict                 # start, length, word_start, word_end (local), rhythm_audio, rhythm_motion, style
+    words: tuple                # (start_s, end_s, text)
+
+
+def _check_finite(path: str, what: str, arr: np.ndarray) -> None:
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        idx = np.argwhere(bad)[0]
+        raise InputFileError(path, f"{what}: expected finite values, got {arr[tuple(idx)]} at index {tuple(int(i) for i in idx)}")
+
+
+def _features_for(motion, samples, sr, words, cfg: BuildConfig, source: RecordingSource, *, mirrored: bool) -> RecordingData:
+    from gesturedb.features import audio as faudio
+    from gesturedb.features import controls as fcontrols
+    from gesturedb.features import pose as fpose
+    from gesturedb.features import rhythm as frhythm
+    from gesturedb.features import segments as fseg
+    from gesturedb.features import style as fstyle
+    from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
+
+    joints = find_joints(motion.skeleton.names, FEATURE_ROLES + BODY_ROLES, mapping=cfg.joint_map, source=source.motion)
+    positions = motion.positions
+    n = positions.shape[0]
+    _check_finite(source.motion, "joint positions", positions)
+
+    pose = fpose.pose_features(positions, joints=joints, window=cfg.pose_window, stride=cfg.pose_stride)
+    audio_raw = faudio.audio_features(samples, sr, fps=cfg.fps, n_frames=n, n_mfcc=cfg.n_mfcc).astype(np.float64)
+    controls = fcontrols.control_features(positions, joints=joints, fps=cfg.fps)
+
+    c_start, c_len = fseg.fixed_chunks(n, length=cfg.chunk_frames)
+    w_start = np.asarray(words.start_s if words is not None else [], dtype=np.float64)
+    w_end = np.asarray(words.end_s if words is not None else [], dtype=np.float64)
+    clips = fseg.word_gap_clips(w_start, w_end, n_frames=n, fps=cfg.fps, gap_s=cfg.gap_s)
+    speed = frhythm.hand_speed(positions, joints=joints, fps=cfg.fps)
+    rh_audio = np.array(
+        [frhythm.audio_rhythm(w_start[ws:we], start_s=s / cfg.fps, end_s=(s + L) / cfg.fps)
+         for s, L, ws, we in zip(clips.start, clips.length, clips.word_start, clips.word_end)],
+        dtype=np.uint32,
+    )
+    rh_motion = np.array(
+        [frhythm.motion_rhythm(speed, start=s, length=L, fps=cfg.fps) for s, L in zip(clips.start, clips.length)],
+        dtype=np.uint32,
+    )
+    style = fstyle.style_signatures(positions, joints=joints, fps=cfg.fps, starts=clips.start, lengths=clips.length)
+
+    name = source.name + ("~mirror" if mirrored else "")
+    return RecordingData(
+        name=name,
+        speaker=cfg.speaker or infer_speaker(source),
+        source=source,
+        source_fps=0.0,
+        mirrored=mirrored,
+        n_frames=n,
+        skeleton=motion.skeleton,
+        feature_joints={r: motion.skeleton.names[i] for r, i in joints.items()},
+        pose=pose,
+        audio_raw=audio_raw,
+        positions=positions.astype(np.float32),
+        rotations=motion.rotations.astype(np.float32),
+        root=motion.root_positions.astype(np.float32),
+        controls=controls,
+        chunks=(c_start, c_len),
+        clips=dict(start=clips.start, length=clips.length, word_start=clips.word_start, word_end=clips.word_end,
+                   rhythm_audio=rh_audio, rhythm_motion=rh_motion, style=style),
+        words=(w_start, w_end, list(words.text) if words is not None else []),
+    )
+
+
+def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[RecordingData]:
+    """Read one recording and compute all its features (and its mirrored copy).
+
+    Raises :class:`InputFileError` naming the file and field for bad input:
+    unreadable or truncated files, NaN, audio and motion durations that differ by
+    more than ``cfg.max_mismatch_s``.
+    """
+    from gesturedb.io import read_audio, read_motion, read_transcript
+
+    motion = read_motion(source.motion)
+    src_fps = float(motion.fps)
+    motion_dur = motion.rotations.shape[0] / src_fps
+    samples, sr = read_audio(source.audio, sr=cfg.sample_rate)
+    audio_dur = samples.shape[0] / sr
+    if abs(audio_dur - motion_dur) > cfg.max_mismatch_s:
+        raise InputFileError(
+            source.audio,
+            f"duration: expected within {cfg.max_mismatch_s:g} s of the motion "
+            f"({motion_dur:.2f} s in {os.path.basename(source.motion)}), got {audio_dur:.2f} s",
+        )
+    words = read_transcript(source.transcript) if source.transcript else None
+    if words is not None and len(words):
+        keep = np.asarray(words.start_s) < motion_dur
+        if not keep.all():
+            words = words[: int(keep.sum())]
+
+    motion = motion.resample(cfg.fps)
+    out = [_features_for(motion, samples, sr, words, cfg, source, mirrored=False)]
+    if cfg.mirror:
+        out.append(_features_for(motion.mirror(), samples, sr, words, cfg, source, mirrored=True))
+    for d in out:
+        d.source_fps = src_fps
+    return out
+
+
+def _process_star(args):
+    return process_recording(*args)
+
+
+# --------------------------------------------------------------------------
+# assembly and writing
+# --------------------------------------------------------------------------
+
+def _same_skeleton(a, b) -> bool:
+    return (
+        list(a.names) == list(b.names)
+        and np.array_equal(np.asarray(a.parents), np.asarray(b.parents))
+        and np.allclose(np.asarray(a.offsets), np.asarray(b.offsets), atol=1e-6)
+    )
+
+
+def _write(h5, recs: list[RecordingData], cfg: BuildConfig) -> None:
+    from gesturedb.features.audio import audio_deltas
+
+    dims: dict[str, int] = {}
+    starts = np.cumsum([0] + [r.n_frames for r in recs])[:-1]
+    F = int(sum(r.n_frames for r in recs))
+    W = schema.write
+
+    # audio standardisation: cosine distance on raw MFCCs would be dominated by c0 and energy
+    raw = np.concatenate([r.audio_raw for r in recs])
+    mean = raw.mean(axis=0)
+    std = np.maximum(raw.std(axis=0), 1e-6)
+    audio = ((raw - mean) / std).astype(np.float32)
+    deltas = np.concatenate(
+        [audio_deltas(((r.audio_raw - mean) / std).astype(np.float32)) for r in recs]
+    ).astype(np.float32)
+
+    h5.attrs["schema_version"] = schema.SCHEMA_VERSION
+    h5.attrs["gesturedb_version"] = __version__
+    h5.attrs["fps"] = float(cfg.fps)
+    h5.attrs["n_frames"] = F
+    schema.write_json_attr(h5, "config", cfg.to_json())
+    schema.write_json_attr(h5, "feature_joints", recs[0].feature_joints)
+
+    W(h5, "recordings/name", [r.name for r in recs], dims)
+    W(h5, "recordings/speaker", [r.speaker for r in recs], dims)
+    W(h5, "recordings/motion_path", [r.source.motion for r in recs], dims)
+    W(h5, "recordings/audio_path", [r.source.audio for r in recs], dims)
+    W(h5, "recordings/transcript_path", [r.source.transcript or "" for r in recs], dims)
+    W(h5, "recordings/start_frame", starts, dims)
+    W(h5, "recordings/n_frames", [r.n_frames for r in recs], dims)
+    W(h5, "recordings/duration_s", [r.n_frames / cfg.fps for r in recs], dims)
+    W(h5, "recordings/source_fps", [r.source_fps for r in recs], dims)
+    W(h5, "recordings/mirrored", [r.mirrored for r in recs], dims)
+
+    W(h5, "frames/pose_features", np.concatenate([r.pose for r in recs]).astype(np.float32), dims)
+    W(h5, "frames/audio_features", audio, dims)
+    W(h5, "frames/audio_deltas", deltas, dims)
+    W(h5, "frames/joint_positions", np.concatenate([r.positions for r in recs]), dims)
+    W(h5, "frames/local_rotations", np.concatenate([r.rotations for r in recs]), dims)
+    W(h5, "frames/root_positions", np.concatenate([r.root for r in recs]), dims)
+    W(h5, "frames/recording", np.concatenate([np.full(r.n_frames, i, np.int32) for i, r in enumerate(recs)]), dims)
+    W(h5, "audio/mean", mean, dims)
+    W(h5, "audio/std", std, dims)
+
+    sk = recs[0].skeleton
+    W(h5, "skeleton/names", sk.names, dims)
+    W(h5, "skeleton/parents", np.asarray(sk.parents, dtype=np.int64), dims)
+    W(h5, "skeleton/offsets", np.asarray(sk.offsets, dtype=np.float64), dims)
+    W(h5, "skeleton/channel_orders", list(sk.channel_orders), dims)
+    ej = sorted(sk.end_sites)
+    W(h5, "skeleton/end_site_joints", np.asarray(ej, dtype=np.int64), dims)
+    W(h5, "skeleton/end_site_offsets", np.asarray([sk.end_sites[j] for j in ej], dtype=np.float64).reshape(-1, 3), dims)
+
+    W(h5, "chunks/start", np.concatenate([r.chunks[0] + s for r, s in zip(recs, starts)]), dims)
+    W(h5, "chunks/length", np.concatenate([r.chunks[1] for r in recs]), dims)
+    W(h5, "chunks/recording", np.concatenate([np.full(len(r.chunks[0]), i, np.int32) for i, r in enumerate(recs)]), dims)
+
+    word_base = np.cumsum([0] + [len(r.words[0]) for r in recs])[:-1]
+    cat = lambda key: np.concatenate([r.clips[key] for r in recs])  # noqa: E731
+    W(h5, "clips/start", np.concatenate([r.clips["start"] + s for r, s in zip(recs, starts)]), dims)
+    W(h5, "clips/length", cat("length"), dims)
+    W(h5, "clips/recording", np.concatenate([np.full(len(r.clips["start"]), i, np.int32) for i, r in enumerate(recs)]), dims)
+    W(h5, "clips/word_start", np.concatenate([r.clips["word_start"] + b for r, b in zip(recs, word_base)]), dims)
+    W(h5, "clips/word_end", np.concatenate([r.clips["word_end"] + b for r, b in zip(recs, word_base)]), dims)
+    W(h5, "clips/rhythm_audio", cat("rhythm_audio"), dims)
+    W(h5, "clips/rhythm_motion", cat("rhythm_motion"), dims)
+    W(h5, "clips/style", cat("style").astype(np.float32).reshape(-1, 3), dims)
+
+    W(h5, "words/recording", np.concatenate([np.full(len(r.words[0]), i, np.int32) for i, r in enumerate(recs)]), dims)
+    W(h5, "words/start_s", np.concatenate([r.words[0] for r in recs]), dims)
+    W(h5, "words/end_s", np.concatenate([r.words[1] for r in recs]), dims)
+    W(h5, "words/text", [t for r in recs for t in r.words[2]], dims)
+
+    _write_controls_and_masks(h5, recs)
+
+
+def _write_controls_and_masks(h5, recs: list[RecordingData]) -> None:
+    from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
+
+    names = sorted(recs[0].controls)
+    controls = {k: np.concatenate([r.controls[k] for r in recs]).astype(np.float32) for k in names}
+    g = h5.create_group(schema.CONTROLS_GROUP)
+    for k in names:
+        ds = g.create_dataset(k, data=controls[k])
+        ds.attrs["unit"] = CONTROL_UNITS.get(k, "")
+        ds.attrs["doc"] = CONTROL_DOCS.get(k, "")
+    write_default_masks(h5, controls)
+
+
+def write_default_masks(h5, controls: dict[str, np.ndarray]) -> None:
+    """Precompute the 15th/85th-percentile masks of every control feature (Habibie et al. Sec. 4.1)."""
+    from gesturedb import masks
+
+    g = h5.require_group(schema.MASKS_GROUP)
+    for name, res in masks.percentile_masks(controls).items():
+        ds = g.create_dataset(name, data=res.words)
+        ds.attrs["definition"] = res.expr
+        schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
+
+
+def build(
+    inputs: Sequence[str | os.PathLike] | str | os.PathLike,
+    out_path: str | os.PathLike,
+    *,
+    workers: int = 1,
+    recursive: bool = False,
+    progress: bool | Callable = False,
+    **config,
+):
+    """Build a gesture database from recordings and open it.
+
+    Parameters
+    ----------
+    inputs : path or list of paths
+        Files and/or folders; motion, audio and transcript are paired by file stem.
+    out_path : path
+        The HDF5 file to write. Written to a temporary file beside it and renamed
+        on success; an existing file is replaced only then.
+    workers : int
+        Processes used for the per-recording work.
+    progress : bool
+        Show a progress bar (tqdm, on stderr).
+    **config
+        Any field of :class:`BuildConfig` (``fps``, ``chunk_frames``, ``gap_s``, ``mirror``, ...).
+
+    Returns
+    -------
+    gesturedb.database.Database
+        The new database, open for reading. ``db.pairing`` tells what was paired and skipped.
+    """
+    cfg = BuildConfig.from_kwargs(**config)
+    if isinstance(inputs, (str, os.PathLike)):
+        inputs = [inputs]
+    if not isinstance(workers, int) or workers < 1:
+        raise ParameterError(f"workers: expected a positive integer, got {workers!r}")
+    pairing = pair_inputs(inputs, recursive=recursive)
+    if not pairing.recordings:
+        raise ParameterError(
+            "inputs: expected at least one recording (a motion file .bvh/.npz and a .wav with the same stem), "
+            f"found none in {', '.join(map(str, inputs))}" + ("\n" + pairing.summary() if pairing.skipped else "")
+        )
+    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress)
+    for r in recs[1:]:
+        if not _same_skeleton(recs[0].skeleton, r.skeleton):
+            raise InputFileError(
+                r.source.motion,
+                f"skeleton: expected the skeleton of {recs[0].source.motion} ({len(recs[0].skeleton.names)} joints), "
+                f"got a different one ({len(r.skeleton.names)} joints); build one database per skeleton",
+            )
+    write_atomically(out_path, lambda h5: _write(h5, recs, cfg))
+
+    from gesturedb.database import Database
+
+    db = Database(out_path)
+    db.pairing = pairing
+    return db
+
+
+def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress) -> list[RecordingData]:
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(sources), unit="rec", desc="building", disable=None)
+    out: list[RecordingData] = []
+    try:
+        if workers == 1 or len(sources) == 1:
+            for s in sources:
+                out += process_recording(s, cfg)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix_str(s.name)
+        else:
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(max_workers=min(workers, len(sources))) as ex:
+                # map keeps input order, so the database content does not depend on scheduling
+                for s, res in zip(sources, ex.map(_process_star, [(s, cfg) for s in sources])):
+                    out += res
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix_str(s.name)
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
+
+
+def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
+    """Create an HDF5 file by writing a temporary file beside ``out_path`` and renaming it.
+
+    The temporary file is in the same folder so the rename is atomic; it is
+    removed on any failure (including KeyboardInterrupt), so a failed build
+    leaves nothing behind and an existing database untouched.
+    """
+    import h5py
+
+    out_path = os.fspath(out_path)
+    folder = os.path.dirname(os.path.abspath(out_path))
+    if not os.path.isdir(folder):
+        raise ParameterError(f"output: folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(out_path) + ".", suffix=".tmp", dir=folder)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w", track_order=True) as h5:
+            fill(h5)
+        os.replace(tmp, out_path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise

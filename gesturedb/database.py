@@ -1,0 +1,337 @@
+"""Reading a gesture database: what :func:`gesturedb.open` returns.
+
+Arrays are read on first use and kept (a 616k-frame database holds about 240 MB
+of pose features); per-frame arrays come back float32 C-contiguous so they can
+be handed to the search kernel without a copy.
+"""
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from gesturedb import schema
+from gesturedb.errors import InputFileError, ParameterError, SchemaError
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One row of the recordings table."""
+
+    index: int
+    name: str
+    speaker: str
+    start_frame: int
+    n_frames: int
+    duration_s: float
+    source_fps: float
+    mirrored: bool
+    motion_path: str
+    audio_path: str
+    transcript_path: str
+
+    @property
+    def stop_frame(self) -> int:
+        return self.start_frame + self.n_frames
+
+
+@dataclass(frozen=True)
+class Segments:
+    """Segments over database frames: `[start[i], start[i] + length[i])`.
+
+    start, length : ndarray [shape=(M,)], int64, frames
+    recording : ndarray [shape=(M,)], int32, index into the recordings table
+    """
+
+    start: np.ndarray
+    length: np.ndarray
+    recording: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.start.shape[0])
+
+
+@dataclass(frozen=True)
+class Clips(Segments):
+    """Word-gap clips (GestureMaster) with their signatures.
+
+    word_start, word_end : ndarray [shape=(K,)], int64, index range into :attr:`Database.words`
+    rhythm_audio, rhythm_motion : ndarray [shape=(K,)], uint32, bin 0 = least significant bit
+    style : ndarray [shape=(K, 3)], float32: mean hand speed (m/s), radius (m), height (m)
+    """
+
+    word_start: np.ndarray = None
+    word_end: np.ndarray = None
+    rhythm_audio: np.ndarray = None
+    rhythm_motion: np.ndarray = None
+    style: np.ndarray = None
+
+
+@dataclass(frozen=True)
+class WordTable:
+    """Words of all recordings; times relative to their recording (s)."""
+
+    recording: np.ndarray
+    start_s: np.ndarray
+    end_s: np.ndarray
+    text: list
+
+    def __len__(self) -> int:
+        return len(self.text)
+
+
+class Database:
+    """An open gesture database (HDF5, see :mod:`gesturedb.schema`).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    mode : {"r"}
+        Databases are opened read-only; edits (masks, keyword sub-databases)
+        go through :mod:`gesturedb.dbedit`, which rewrites the file atomically.
+    """
+
+    def __init__(self, path, mode: str = "r"):
+        import h5py
+
+        if mode != "r":
+            raise ParameterError(f"mode: expected 'r', got {mode!r} (edit databases through gesturedb.dbedit)")
+        self.path = os.fspath(path)
+        if not os.path.exists(self.path):
+            raise InputFileError(self.path, "no such file")
+        try:
+            self._h5 = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise InputFileError(self.path, f"not an HDF5 file ({exc})") from None
+        try:
+            schema.check_version(self._h5, self.path)
+        except Exception:
+            self._h5.close()
+            raise
+
+    # -- lifetime -------------------------------------------------------------
+    def close(self) -> None:
+        self._h5.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<gesturedb.Database {self.path!r}: {self.n_frames} frames at {self.fps:g} fps, {len(self.recordings)} recordings>"
+
+    # -- scalars --------------------------------------------------------------
+    @property
+    def h5(self):
+        """The underlying read-only :class:`h5py.File`, for callers who want raw access."""
+        return self._h5
+
+    @property
+    def fps(self) -> float:
+        return float(self._h5.attrs["fps"])
+
+    @property
+    def n_frames(self) -> int:
+        return int(self._h5.attrs["n_frames"])
+
+    @functools.cached_property
+    def config(self) -> dict:
+        """The build configuration the database was made with."""
+        return schema.read_json_attr(self._h5, "config", {})
+
+    @functools.cached_property
+    def feature_joints(self) -> dict:
+        """role -> joint name used for the features."""
+        return schema.read_json_attr(self._h5, "feature_joints", {})
+
+    @property
+    def gesturedb_version(self) -> str:
+        return str(self._h5.attrs.get("gesturedb_version", "?"))
+
+    def _read(self, path: str) -> np.ndarray:
+        return schema.read(self._h5, path)
+
+    def _frames(self, path: str) -> np.ndarray:
+        arr = np.ascontiguousarray(self._read(path))
+        if arr.shape[0] != self.n_frames:
+            raise SchemaError(self.path, f"{path}: expected {self.n_frames} frames, got {arr.shape[0]}")
+        arr.setflags(write=False)
+        return arr
+
+    # -- per-frame arrays -----------------------------------------------------
+    @functools.cached_property
+    def pose_features(self) -> np.ndarray:
+        """ndarray [shape=(F, Dp)], float32 C-contiguous, metres (body frame)."""
+        return self._frames("frames/pose_features")
+
+    @functools.cached_property
+    def audio_features(self) -> np.ndarray:
+        """ndarray [shape=(F, 14)], float32: standardised 13 MFCC + log mean energy."""
+        return self._frames("frames/audio_features")
+
+    @functools.cached_property
+    def audio_deltas(self) -> np.ndarray:
+        """ndarray [shape=(F, 14)], float32: first derivative of :attr:`audio_features`."""
+        return self._frames("frames/audio_deltas")
+
+    @functools.cached_property
+    def audio_mean(self) -> np.ndarray:
+        return self._read("audio/mean")
+
+    @functools.cached_property
+    def audio_std(self) -> np.ndarray:
+        return self._read("audio/std")
+
+    @functools.cached_property
+    def joint_positions(self) -> np.ndarray:
+        """ndarray [shape=(F, J, 3)], float32, world metres, y up."""
+        return self._frames("frames/joint_positions")
+
+    @functools.cached_property
+    def local_rotations(self) -> np.ndarray:
+        """ndarray [shape=(F, J, 4)], float32 unit quaternions (w, x, y, z)."""
+        return self._frames("frames/local_rotations")
+
+    @functools.cached_property
+    def root_positions(self) -> np.ndarray:
+        """ndarray [shape=(F, 3)], float32, world metres."""
+        return self._frames("frames/root_positions")
+
+    @functools.cached_property
+    def frame_recording(self) -> np.ndarray:
+        """ndarray [shape=(F,)], int32: recording index of every frame."""
+        return self._frames("frames/recording")
+
+    # -- tables ---------------------------------------------------------------
+    @functools.cached_property
+    def recordings(self) -> list[Recording]:
+        cols = {k: self._read(f"recordings/{k}") for k in (
+            "name", "speaker", "motion_path", "audio_path", "transcript_path",
+            "start_frame", "n_frames", "duration_s", "source_fps", "mirrored")}
+        return [
+            Recording(
+                index=i, name=cols["name"][i], speaker=cols["speaker"][i],
+                start_frame=int(cols["start_frame"][i]), n_frames=int(cols["n_frames"][i]),
+                duration_s=float(cols["duration_s"][i]), source_fps=float(cols["source_fps"][i]),
+                mirrored=bool(cols["mirrored"][i]), motion_path=cols["motion_path"][i],
+                audio_path=cols["audio_path"][i], transcript_path=cols["transcript_path"][i],
+            )
+            for i in range(len(cols["name"]))
+        ]
+
+    def recording(self, name_or_index) -> Recording:
+        """Look a recording up by name or index; the error lists the names there are."""
+        recs = self.recordings
+        if isinstance(name_or_index, (int, np.integer)):
+            if not 0 <= int(name_or_index) < len(recs):
+                raise ParameterError(f"recording: expected an index in [0, {len(recs)}), got {name_or_index}")
+            return recs[int(name_or_index)]
+        for r in recs:
+            if r.name == name_or_index:
+                return r
+        raise ParameterError(
+            f"recording: no recording named {name_or_index!r} in {self.path}; "
+            f"recordings: {', '.join(r.name for r in recs)}"
+        )
+
+    @functools.cached_property
+    def chunks(self) -> Segments:
+        """Fixed-length chunks (default 64 frames), the paper's matching sequences."""
+        return Segments(self._read("chunks/start"), self._read("chunks/length"), self._read("chunks/recording"))
+
+    @property
+    def segments(self) -> Segments:
+        """The default search segments: :attr:`chunks`."""
+        return self.chunks
+
+    @functools.cached_property
+    def clips(self) -> Clips:
+        """Word-gap clips with rhythm and style signatures."""
+        r = self._read
+        return Clips(
+            start=r("clips/start"), length=r("clips/length"), recording=r("clips/recording"),
+            word_start=r("clips/word_start"), word_end=r("clips/word_end"),
+            rhythm_audio=r("clips/rhythm_audio"), rhythm_motion=r("clips/rhythm_motion"),
+            style=r("clips/style"),
+        )
+
+    @functools.cached_property
+    def words(self) -> WordTable:
+        r = self._read
+        return WordTable(r("words/recording"), r("words/start_s"), r("words/end_s"), r("words/text"))
+
+    @functools.cached_property
+    def joint_names(self) -> list[str]:
+        return self._read("skeleton/names")
+
+    @functools.cached_property
+    def skeleton(self):
+        """The :class:`gesturedb.motion.Skeleton` of every recording in the database."""
+        from gesturedb.motion import Skeleton
+
+        end_joints = self._read("skeleton/end_site_joints")
+        end_offsets = self._read("skeleton/end_site_offsets")
+        return Skeleton(
+            names=list(self.joint_names),
+            parents=self._read("skeleton/parents"),
+            offsets=self._read("skeleton/offsets"),
+            channel_orders=self._read("skeleton/channel_orders"),
+            end_sites={int(j): np.asarray(o, dtype=np.float64) for j, o in zip(end_joints, end_offsets)},
+        )
+
+    # -- controls and masks ---------------------------------------------------
+    @functools.cached_property
+    def controls(self) -> dict[str, np.ndarray]:
+        """Per-frame control features: name -> ndarray [shape=(F,)], float32 (units in :attr:`control_units`)."""
+        g = self._h5.get(schema.CONTROLS_GROUP)
+        return {} if g is None else {k: np.asarray(g[k][()], dtype=np.float32) for k in sorted(g)}
+
+    @functools.cached_property
+    def control_units(self) -> dict[str, str]:
+        g = self._h5.get(schema.CONTROLS_GROUP)
+        return {} if g is None else {k: str(g[k].attrs.get("unit", "")) for k in sorted(g)}
+
+    @functools.cached_property
+    def masks(self) -> dict[str, np.ndarray]:
+        """Saved masks: name -> packed uint64 bitset over frames."""
+        g = self._h5.get(schema.MASKS_GROUP)
+        return {} if g is None else {k: np.asarray(g[k][()], dtype=np.uint64) for k in sorted(g)}
+
+    @functools.cached_property
+    def mask_definitions(self) -> dict[str, str]:
+        g = self._h5.get(schema.MASKS_GROUP)
+        return {} if g is None else {k: str(g[k].attrs.get("definition", "")) for k in sorted(g)}
+
+    # -- motion out -----------------------------------------------------------
+    def frame_range(self, recording, start_s: float | None = None, end_s: float | None = None) -> tuple[int, int]:
+        """Global frame range `[a, b)` of a stretch of a recording (times in seconds)."""
+        rec = self.recording(recording)
+        a = 0 if start_s is None else int(round(start_s * self.fps))
+        b = rec.n_frames if end_s is None else int(round(end_s * self.fps))
+        if not (0 <= a < b <= rec.n_frames):
+            raise ParameterError(
+                f"time range: expected 0 <= start < end <= {rec.duration_s:.3f} s for recording {rec.name!r}, "
+                f"got start={start_s}, end={end_s}"
+            )
+        return rec.start_frame + a, rec.start_frame + b
+
+    def motion(self, recording, start_s: float | None = None, end_s: float | None = None):
+        """A stretch of a recording as a :class:`gesturedb.motion.Motion` (for BVH export)."""
+        a, b = self.frame_range(recording, start_s, end_s)
+        return self.motion_from_frames(np.arange(a, b))
+
+    def motion_from_frames(self, frames: np.ndarray):
+        """A :class:`Motion` made of arbitrary database frames (e.g. a synthesis result)."""
+        from gesturedb.motion import Motion
+
+        frames = np.asarray(frames, dtype=np.int64)
+        return Motion(
+            skeleton=self.skeleton,
+            fps=self.fps,
+            rotations=np.asarray(self.local_rotations[frames], dtype=np.float64),
+            root_positions=np.asarray(self.root_positions[frames], dtype=np.float64),
+        )

@@ -1,0 +1,244 @@
+"""The gesture-database file format: every HDF5 dataset, dtype, shape, unit and attribute.
+
+This module is the only place that knows dataset paths. Writers go through
+:func:`write`, which checks dtype and shape against the declaration; readers go
+through :func:`read` and :func:`check_version`.
+
+Symbolic dimensions used in the shapes below:
+
+====  =====================================================================
+F     database frames (all recordings, concatenated, at the database fps)
+J     skeleton joints
+R     recordings (a mirrored copy counts as its own recording)
+C     fixed-length chunks (default 64 frames; the paper's "sequences")
+K     word-gap clips (GestureMaster Sec. 3.1)
+W     words (all recordings)
+E     skeleton End Sites
+Dp    pose-feature size (8 joints x 3 x pose window; 96 by default)
+Da    audio-feature size (13 MFCC + log mean energy = 14)
+B     bitset words over frames, ceil(F / 64)
+S     style-signature size (3: speed m/s, radius m, height m)
+X     control features
+====  =====================================================================
+
+Bump :data:`SCHEMA_VERSION` whenever a dataset changes meaning, dtype or shape.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from gesturedb.errors import SchemaError
+
+SCHEMA_VERSION = 1
+
+#: HDF5 variable-length UTF-8 strings
+STR = "str"
+
+
+@dataclass(frozen=True)
+class Field:
+    """One dataset of the file: its path, dtype, symbolic shape, unit and meaning."""
+
+    path: str
+    dtype: str
+    shape: tuple[str | int, ...]
+    unit: str
+    doc: str
+
+
+FIELDS: tuple[Field, ...] = (
+    # --- recordings table --------------------------------------------------
+    Field("recordings/name", STR, ("R",), "", "recording name (file stem; mirrored copies end in '~mirror')"),
+    Field("recordings/speaker", STR, ("R",), "", "speaker name"),
+    Field("recordings/motion_path", STR, ("R",), "", "source motion file (BVH or SMPL-X npz), as given"),
+    Field("recordings/audio_path", STR, ("R",), "", "source speech WAV"),
+    Field("recordings/transcript_path", STR, ("R",), "", "source transcript ('' if none)"),
+    Field("recordings/start_frame", "int64", ("R",), "frame", "first database frame of the recording"),
+    Field("recordings/n_frames", "int64", ("R",), "frame", "number of database frames"),
+    Field("recordings/duration_s", "float64", ("R",), "s", "n_frames / fps"),
+    Field("recordings/source_fps", "float64", ("R",), "Hz", "frame rate of the source motion"),
+    Field("recordings/mirrored", "bool", ("R",), "", "left/right mirrored copy of another recording"),
+    # --- per-frame arrays --------------------------------------------------
+    Field("frames/pose_features", "float32", ("F", "Dp"), "m",
+          "feature joints in the body frame of the current frame, stacked over the past window"),
+    Field("frames/audio_features", "float32", ("F", "Da"), "1",
+          "13 MFCC + log mean energy per frame, standardised with audio/mean and audio/std"),
+    Field("frames/audio_deltas", "float32", ("F", "Da"), "1/frame",
+          "first time derivative of the standardised audio features (refiner input)"),
+    Field("frames/joint_positions", "float32", ("F", "J", 3), "m", "world joint positions, y up"),
+    Field("frames/local_rotations", "float32", ("F", "J", 4), "1",
+          "local joint rotations as unit quaternions w, x, y, z"),
+    Field("frames/root_positions", "float32", ("F", 3), "m", "world position of the root joint"),
+    Field("frames/recording", "int32", ("F",), "", "index into the recordings table"),
+    # --- audio normalisation ----------------------------------------------
+    Field("audio/mean", "float64", ("Da",), "1", "per-dimension mean of the raw audio features"),
+    Field("audio/std", "float64", ("Da",), "1", "per-dimension standard deviation of the raw audio features"),
+    # --- skeleton ----------------------------------------------------------
+    Field("skeleton/names", STR, ("J",), "", "joint names"),
+    Field("skeleton/parents", "int64", ("J",), "", "parent joint index, -1 for the root"),
+    Field("skeleton/offsets", "float64", ("J", 3), "m", "rest offset of each joint from its parent"),
+    Field("skeleton/channel_orders", STR, ("J",), "", "Euler order of the rotation channels for BVH export"),
+    Field("skeleton/end_site_joints", "int64", ("E",), "", "joints that carry an End Site"),
+    Field("skeleton/end_site_offsets", "float64", ("E", 3), "m", "End Site offsets"),
+    # --- fixed-length chunks (Habibie et al. 2022: T_match = 64) ----------
+    Field("chunks/start", "int64", ("C",), "frame", "first database frame"),
+    Field("chunks/length", "int64", ("C",), "frame", "length in frames (the last chunk of a recording may be shorter)"),
+    Field("chunks/recording", "int32", ("C",), "", "index into the recordings table"),
+    # --- word-gap clips (GestureMaster) ------------------------------------
+    Field("clips/start", "int64", ("K",), "frame", "first database frame"),
+    Field("clips/length", "int64", ("K",), "frame", "length in frames"),
+    Field("clips/recording", "int32", ("K",), "", "index into the recordings table"),
+    Field("clips/word_start", "int64", ("K",), "", "first word of the clip (index into words/)"),
+    Field("clips/word_end", "int64", ("K",), "", "one past the last word of the clip"),
+    Field("clips/rhythm_audio", "uint32", ("K",), "", "32-bit rhythm signature of word onsets (bin 0 = LSB)"),
+    Field("clips/rhythm_motion", "uint32", ("K",), "", "32-bit rhythm signature of hand-speed minima (bin 0 = LSB)"),
+    Field("clips/style", "float32", ("K", "S"), "m/s, m, m", "mean hand speed, radius and height"),
+    # --- words -------------------------------------------------------------
+    Field("words/recording", "int32", ("W",), "", "index into the recordings table"),
+    Field("words/start_s", "float64", ("W",), "s", "word start, relative to the recording"),
+    Field("words/end_s", "float64", ("W",), "s", "word end, relative to the recording"),
+    Field("words/text", STR, ("W",), "", "the word, lower case, no punctuation"),
+)
+
+FIELDS_BY_PATH: dict[str, Field] = {f.path: f for f in FIELDS}
+
+#: Groups whose members are named at run time (one dataset per control feature / mask).
+CONTROLS_GROUP = "controls"  # controls/<name>: float32 (F,), attrs unit, doc
+MASKS_GROUP = "masks"  # masks/<name>: uint64 (B,), attrs definition, thresholds (JSON)
+SUBDB_GROUP = "subdatabases"  # subdatabases/<name>/{start,length,recording} + attrs definition
+
+#: Root attributes (name -> meaning). `config` and `feature_joints` are JSON.
+ROOT_ATTRS = {
+    "schema_version": "int: SCHEMA_VERSION of the writer",
+    "gesturedb_version": "str: package version that wrote the file",
+    "fps": "float: database frame rate (Hz)",
+    "n_frames": "int: F",
+    "config": "JSON: the complete build configuration",
+    "feature_joints": "JSON: role -> joint name used for the features",
+}
+
+
+# --------------------------------------------------------------------------
+# writing and reading
+# --------------------------------------------------------------------------
+
+def _h5py():
+    import h5py  # imported lazily so `import gesturedb` stays light
+
+    return h5py
+
+
+def _np_dtype(dtype: str):
+    if dtype == STR:
+        return _h5py().string_dtype("utf-8")
+    return np.dtype(dtype)
+
+
+def _check_shape(field: Field, arr: np.ndarray, dims: dict[str, int]) -> None:
+    if arr.ndim != len(field.shape):
+        raise SchemaError(
+            "<writing>", f"{field.path}: expected {len(field.shape)} dimensions {field.shape}, got shape {arr.shape}"
+        )
+    for axis, (want, got) in enumerate(zip(field.shape, arr.shape)):
+        if isinstance(want, int):
+            if got != want:
+                raise SchemaError("<writing>", f"{field.path}: axis {axis} expected {want}, got {got}")
+        else:
+            seen = dims.setdefault(want, got)
+            if seen != got:
+                raise SchemaError(
+                    "<writing>",
+                    f"{field.path}: dimension {want} expected {seen} (from another dataset), got {got}",
+                )
+
+
+def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str, Any] | None = None) -> None:
+    """Write one declared dataset, checking its dtype and shape.
+
+    Parameters
+    ----------
+    h5 : h5py.File
+    path : str
+        A path declared in :data:`FIELDS`.
+    data : array-like
+        Converted to the declared dtype only when that is lossless for the kind
+        (ints to ints, floats to floats); anything else is a programming error.
+    dims : dict
+        Symbolic dimension sizes seen so far; filled in and checked across datasets.
+    """
+    field = FIELDS_BY_PATH[path]
+    if field.dtype == STR:
+        arr = np.asarray([str(s) for s in data], dtype=object)
+    else:
+        arr = np.asarray(data)
+        want = np.dtype(field.dtype)
+        if arr.size and arr.dtype.kind != want.kind and not (arr.dtype.kind in "iub" and want.kind in "iub"):
+            raise SchemaError("<writing>", f"{path}: expected {want}, got {arr.dtype}")
+        arr = arr.astype(want, copy=False)
+    _check_shape(field, arr, dims)
+    ds = h5.create_dataset(path, data=arr, dtype=_np_dtype(field.dtype))
+    ds.attrs["unit"] = field.unit
+    ds.attrs["doc"] = field.doc
+    for k, v in (attrs or {}).items():
+        ds.attrs[k] = v
+
+
+def read(h5, path: str) -> np.ndarray:
+    """Read one declared dataset as a numpy array (strings as a list of str)."""
+    field = FIELDS_BY_PATH[path]
+    if path not in h5:
+        raise SchemaError(h5.filename, f"missing dataset {path!r} ({field.doc})")
+    ds = h5[path]
+    if field.dtype == STR:
+        return [s.decode("utf-8") if isinstance(s, bytes) else str(s) for s in ds.asstr()[()]]
+    arr = ds[()]
+    if arr.dtype != np.dtype(field.dtype):
+        raise SchemaError(h5.filename, f"{path}: expected dtype {field.dtype}, got {arr.dtype}")
+    return arr
+
+
+def check_version(h5, filename: str | os.PathLike | None = None) -> int:
+    """Raise :class:`SchemaError` unless the file was written with :data:`SCHEMA_VERSION`."""
+    name = os.fspath(filename) if filename is not None else h5.filename
+    if "schema_version" not in h5.attrs:
+        raise SchemaError(name, "attribute 'schema_version' is missing: not a gesturedb database")
+    got = int(h5.attrs["schema_version"])
+    if got != SCHEMA_VERSION:
+        raise SchemaError(
+            name,
+            f"schema_version: expected {SCHEMA_VERSION}, got {got} "
+            f"(written by gesturedb {h5.attrs.get('gesturedb_version', '?')}); rebuild the database "
+            f"with this version or open it with the version that wrote it",
+        )
+    return got
+
+
+def write_json_attr(obj, name: str, value: Any) -> None:
+    obj.attrs[name] = json.dumps(value, sort_keys=True)
+
+
+def read_json_attr(obj, name: str, default: Any = None) -> Any:
+    if name not in obj.attrs:
+        return default
+    return json.loads(obj.attrs[name])
+
+
+def describe() -> str:
+    """The schema as a Markdown table (used by the README and `gesturedb info --schema`)."""
+    lines = [f"Schema version {SCHEMA_VERSION}.", "", "| dataset | dtype | shape | unit | meaning |", "|---|---|---|---|---|"]
+    for f in FIELDS:
+        shape = "(" + ", ".join(str(s) for s in f.shape) + ("," if len(f.shape) == 1 else "") + ")"
+        lines.append(f"| `{f.path}` | {f.dtype} | {shape} | {f.unit} | {f.doc} |")
+    lines += [
+        f"| `{CONTROLS_GROUP}/<name>` | float32 | (F,) | attr `unit` | per-frame control feature |",
+        f"| `{MASKS_GROUP}/<name>` | uint64 | (B,) | | packed bitset over frames (bit f&63 of word f>>6); attr `definition` |",
+        f"| `{SUBDB_GROUP}/<name>/start,length,recording` | int64/int32 | (n,) | frame | keyword sub-database segments; attr `definition` |",
+        "",
+        "Root attributes: " + "; ".join(f"`{k}` ({v})" for k, v in ROOT_ATTRS.items()) + ".",
+    ]
+    return "\n".join(lines)

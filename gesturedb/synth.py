@@ -1,0 +1,412 @@
+"""Synthesis by motion matching (Habibie et al. 2022, Sec. 3.1) over an open database.
+
+:class:`Searcher` is the convenient face over :mod:`gesturedb.search`: it turns
+speech into query features with the database's own extractor and
+standardisation, picks the initial pose (mean pose or a seeded random frame),
+turns control schedules and keyword sub-databases into per-step bitsets, runs
+the rank-sum search and assembles the chosen windows into a :class:`Motion`.
+
+Window boundaries. The paper copies the chosen windows back to back. Here each
+window is first placed where the previous one ended (its root is moved and
+turned about the vertical so that the window's entry frame coincides with the
+last output frame, as in motion matching for locomotion), then a short
+cross-fade (``blend_frames``, default 4 frames) slerps from the natural
+continuation of the previous window into the new one, so the seam carries no
+step in position or velocity. ``blend_frames=0`` switches the cross-fade off and
+reproduces the paper's back-to-back copy (with root placement).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gesturedb.errors import ParameterError, SearchError
+
+
+@dataclass
+class SynthResult:
+    """A synthesized motion and where every part of it came from.
+
+    Attributes
+    ----------
+    motion : gesturedb.motion.Motion
+        At the database fps, exactly ``n_frames`` long (the length of the speech).
+    source_frames : ndarray [shape=(T,)], int64
+        Database frame copied to each output frame (before blending).
+    boundaries : ndarray, int64
+        Output frames where a new window starts (t = step, 2 step, ...).
+    steps : list of dict
+        Provenance, one entry per search step (see :meth:`Searcher.synthesize`).
+    """
+
+    motion: object
+    source_frames: np.ndarray
+    boundaries: np.ndarray
+    steps: list
+    fps: float
+    audio_path: str | None = None
+    options: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.source_frames.shape[0])
+
+    @property
+    def positions(self) -> np.ndarray:
+        """ndarray [shape=(T, J, 3)], world metres."""
+        return self.motion.positions
+
+    def provenance(self) -> dict:
+        return {
+            "audio": self.audio_path,
+            "fps": self.fps,
+            "n_frames": self.n_frames,
+            "duration_s": self.n_frames / self.fps,
+            "options": self.options,
+            "steps": self.steps,
+        }
+
+    def write_provenance(self, path: str | os.PathLike) -> None:
+        with open(path, "w") as f:
+            json.dump(self.provenance(), f, indent=1)
+
+
+def _yaw_of(q: np.ndarray) -> np.ndarray:
+    """Heading angle (rad, about +y) of the root's forward axis (+z) under rotations q (..., 4)."""
+    from gesturedb import rotations as R
+
+    fwd = R.apply(q, np.broadcast_to(np.array([0.0, 0.0, 1.0]), q.shape[:-1] + (3,)))
+    return np.arctan2(fwd[..., 0], fwd[..., 2])
+
+
+def _yaw_quat(angle: np.ndarray | float) -> np.ndarray:
+    a = np.asarray(angle, dtype=np.float64) / 2
+    return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
+
+
+class Searcher:
+    """Search an open database for new speech.
+
+    Parameters
+    ----------
+    db : gesturedb.database.Database
+    segments : {"chunks", "clips"} or str
+        Which segmentation to search (the paper uses 64-frame chunks).
+    """
+
+    def __init__(self, db, *, segments: str = "chunks"):
+        self.db = db
+        if segments == "chunks":
+            seg = db.chunks
+        elif segments == "clips":
+            seg = db.clips
+        else:
+            raise ParameterError(f"segments: expected 'chunks' or 'clips', got {segments!r}")
+        self.segments_kind = segments
+        self.seg_start = np.ascontiguousarray(seg.start, dtype=np.int64)
+        self.seg_len = np.ascontiguousarray(seg.length, dtype=np.int64)
+        self.seg_recording = np.asarray(seg.recording)
+
+    # -- inputs ---------------------------------------------------------------
+    def query_features(self, samples: np.ndarray, sr: int) -> np.ndarray:
+        """Audio features of new speech, standardised like the database's.
+
+        Returns
+        -------
+        ndarray [shape=(T, 14)], float32, T = the speech duration in database frames.
+        """
+        from gesturedb.features.audio import audio_features, n_frames_for_duration
+
+        T = n_frames_for_duration(samples.shape[0] / sr, self.db.fps)
+        if T < 1:
+            raise ParameterError(f"audio: expected at least one frame ({1 / self.db.fps:.3f} s) of speech, got {samples.shape[0] / sr:.3f} s")
+        n_mfcc = int(self.db.config.get("n_mfcc", 13))
+        raw = audio_features(samples, sr, fps=self.db.fps, n_frames=T, n_mfcc=n_mfcc).astype(np.float64)
+        return ((raw - self.db.audio_mean) / self.db.audio_std).astype(np.float32)
+
+    def initial_pose(self, init: str = "mean", *, seed: int | None = 0) -> np.ndarray:
+        """The first step's previous pose: the database mean pose or a seeded random frame (Sec. 3.1)."""
+        P = self.db.pose_features
+        if init == "mean":
+            return P.mean(axis=0, dtype=np.float64).astype(np.float32)
+        if init == "random":
+            rng = np.random.default_rng(seed)
+            return np.array(P[int(rng.integers(P.shape[0]))], dtype=np.float32)
+        raise ParameterError(f"init: expected 'mean' or 'random', got {init!r}")
+
+    def exclude_recordings(self, names) -> np.ndarray | None:
+        """bool per segment: True for segments of the named recordings (e.g. a query's own recording)."""
+        if not names:
+            return None
+        idx = {self.db.recording(n).index for n in names}
+        # a mirrored copy is the same performance: leave it out too
+        for r in self.db.recordings:
+            if r.name.removesuffix("~mirror") in {self.db.recordings[i].name.removesuffix("~mirror") for i in idx}:
+                idx.add(r.index)
+        return np.isin(self.seg_recording, sorted(idx))
+
+    # -- the search -----------------------------------------------------------
+    def synthesize(
+        self,
+        audio,
+        *,
+        sr: int | None = None,
+        transcript=None,
+        k: int = 1,
+        preselect: str = "pose",
+        init: str = "mean",
+        seed: int | None = 0,
+        step: int = 8,
+        blend_frames: int = 4,
+        control=None,
+        keywords=True,
+        exclude=None,
+    ) -> SynthResult:
+        """Synthesize gestures for speech.
+
+        Parameters
+        ----------
+        audio : path or ndarray [shape=(n,)]
+            A WAV file, or mono samples with ``sr``.
+        transcript : path, Words or None
+            Word timings of the speech; needed for keyword sub-databases.
+        k : int
+            Take the k-th best candidate of each step (1 = best).
+        preselect : {"pose", "audio"}
+        init : {"mean", "random"}
+            Initial previous pose; ``seed`` picks the random frame.
+        step : int
+            N, frames per search step (8).
+        blend_frames : int
+            Cross-fade length at window boundaries (0 = back-to-back copies as in the paper).
+        control : str, list or None
+            A control schedule (``"0-12: left_wrist_height > p85; 12-: slow"``) or one
+            mask expression for the whole synthesis; see :mod:`gesturedb.masks`.
+        keywords : bool or list of str
+            Use keyword sub-databases for the steps that overlap their words
+            (True: all of the database's, False: none, a list: only those).
+        exclude : list of str
+            Recordings whose segments are left out of the search.
+
+        Returns
+        -------
+        SynthResult
+            ``steps[i]`` holds: ``step``, ``out_start``/``out_end`` (output frames),
+            ``time_s``, ``recording``, ``source_start_s``/``source_end_s``, ``segment``,
+            ``segment_start``, ``db_frame``, ``pose_dist``, ``audio_dist``, ``pose_rank``,
+            ``audio_rank``, ``control`` and ``keyword`` (None when unconstrained).
+        """
+        from gesturedb.io.audio import read_audio
+        from gesturedb.search import rank_sum_search
+
+        db = self.db
+        audio_path = None
+        if isinstance(audio, (str, os.PathLike)):
+            audio_path = os.fspath(audio)
+            samples, sr = read_audio(audio_path, sr=int(db.config.get("sample_rate", 16000)))
+        else:
+            if sr is None:
+                raise ParameterError("sr: expected the sample rate of the samples given as audio, got None")
+            samples = np.asarray(audio, dtype=np.float32)
+        if not isinstance(step, (int, np.integer)) or step < 1:
+            raise ParameterError(f"step: expected a positive number of frames, got {step!r}")
+        if not isinstance(blend_frames, (int, np.integer)) or blend_frames < 0:
+            raise ParameterError(f"blend_frames: expected a non-negative number of frames, got {blend_frames!r}")
+        query = self.query_features(samples, sr)
+        T = query.shape[0]
+        if T < step:
+            raise ParameterError(
+                f"audio: expected at least one search step ({step} frames = {step / db.fps:.2f} s), "
+                f"got {T} frames ({T / db.fps:.2f} s){' in ' + audio_path if audio_path else ''}"
+            )
+        if int(self.seg_len.max(initial=0)) < min(step, T) + 1:
+            raise ParameterError(
+                f"database {db.path}: no {self.segments_kind} segment is long enough for a window of "
+                f"{min(step, T)} frames plus its entry frame (longest: {int(self.seg_len.max(initial=0))} frames)"
+            )
+        n_steps = (T + step - 1) // step
+        allowed, labels = self._step_masks(control, transcript, keywords, n_steps=n_steps, step=step, T=T)
+        excl = self.exclude_recordings(exclude)
+        init_pose = self.initial_pose(init, seed=seed)
+        try:
+            res = rank_sum_search(
+                db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
+                step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl,
+            )
+        except SearchError as exc:
+            raise self._explain(exc, labels, control) from None
+
+        source = np.empty(T, dtype=np.int64)
+        steps = []
+        recs = db.recordings
+        for i in range(len(res.segments)):
+            t, g, n = int(res.out_frames[i]), int(res.frames[i]), int(res.lengths[i])
+            source[t:t + n] = np.arange(g, g + n)
+            rec = recs[int(db.frame_recording[g])]
+            label = labels[i] if labels is not None else None
+            steps.append({
+                "step": i,
+                "out_start": t,
+                "out_end": t + n,
+                "time_s": round(t / db.fps, 4),
+                "recording": rec.name,
+                "source_start_s": round((g - rec.start_frame) / db.fps, 4),
+                "source_end_s": round((g + n - rec.start_frame) / db.fps, 4),
+                "segment": int(res.segments[i]),
+                "segment_start": int(res.starts[i]),
+                "db_frame": g,
+                "pose_dist": float(res.pose_dist[i]),
+                "audio_dist": float(res.audio_dist[i]),
+                "pose_rank": int(res.pose_rank[i]),
+                "audio_rank": int(res.audio_rank[i]),
+                "candidates": int(res.n_candidates[i]),
+                "control": label[0] if label else None,
+                "keyword": label[1] if label else None,
+            })
+        starts = np.asarray(res.out_frames, dtype=np.int64)
+        motion = self.assemble(source, starts, blend_frames=blend_frames)
+        options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames,
+                       control=control if isinstance(control, (str, type(None))) else str(control),
+                       keywords=keywords if isinstance(keywords, bool) else list(keywords),
+                       segments=self.segments_kind, database=db.path)
+        return SynthResult(motion=motion, source_frames=source, boundaries=starts[1:], steps=steps,
+                           fps=db.fps, audio_path=audio_path, options=options)
+
+    # -- masks ------------------------------------------------------------------
+    def _step_masks(self, control, transcript, keywords, *, n_steps, step, T):
+        """Per-step allowed bitsets and (control, keyword) labels, or (None, None) when unconstrained."""
+        hooks = []
+        if control:
+            from gesturedb import masks
+
+            # one bare expression applies to the whole synthesis
+            sched = [(0.0, None, control)] if isinstance(control, str) and ":" not in control else control
+            res = masks.schedule_bitsets(
+                sched, controls=self.db.controls, named=self.db.masks, n_steps=n_steps, step=step,
+                fps=self.db.fps, n_out_frames=T, n_frames=self.db.n_frames,
+            )
+            hooks.append(("control", res.bitsets, res.labels))
+        if keywords and transcript is not None:
+            from gesturedb import keywords as kw
+
+            res = kw.keyword_step_masks(self.db, transcript, n_steps=n_steps, step=step, n_out_frames=T,
+                                        only=None if keywords is True else list(keywords))
+            if res is not None:
+                hooks.append(("keyword", *res))
+        if not hooks:
+            return None, None
+        W = (self.db.n_frames + 63) // 64
+        allowed = np.full((n_steps, W), np.uint64(0xFFFFFFFFFFFFFFFF), dtype=np.uint64)
+        labels = [[None, None] for _ in range(n_steps)]
+        for kind, bits, lab in hooks:
+            allowed &= bits
+            for i in range(n_steps):
+                if lab[i] is not None:
+                    labels[i][0 if kind == "control" else 1] = lab[i]
+        return np.ascontiguousarray(allowed), [tuple(x) if any(v is not None for v in x) else None for x in labels]
+
+    def _explain(self, exc: SearchError, labels, control) -> SearchError:
+        """Name the step, its time and the control that emptied it, and suggest a percentile that works."""
+        i = getattr(exc, "step", None)
+        t = getattr(exc, "t", None)
+        if i is None or labels is None or labels[i] is None:
+            return exc
+        ctl, kwd = labels[i]
+        msg = f"step {i} (output frame {t}, t = {t / self.db.fps:.2f} s) has no candidate"
+        if ctl:
+            msg += f" under control {ctl!r}"
+            from gesturedb import masks
+
+            hints = masks.suggest_percentiles(ctl, controls=self.db.controls, named=self.db.masks)
+            if hints:
+                msg += "; " + "; ".join(str(h) for h in hints)
+        if kwd:
+            msg += f" in keyword sub-database {kwd!r}"
+        err = SearchError(msg)
+        err.step, err.t = i, t
+        return err
+
+    # -- assembly ---------------------------------------------------------------
+    def assemble(self, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4):
+        """Copy the chosen database frames into one continuous :class:`Motion`.
+
+        Parameters
+        ----------
+        source : ndarray [shape=(T,)], int64
+            Database frame for every output frame.
+        starts : ndarray, int64
+            Output frame where each window starts (the first is 0).
+        blend_frames : int
+            Cross-fade length after each boundary (0: none).
+        """
+        from gesturedb.motion import Motion
+        from gesturedb import rotations as R
+
+        db = self.db
+        rot = np.asarray(db.local_rotations[source], dtype=np.float64)  # (T, J, 4)
+        root = np.asarray(db.root_positions[source], dtype=np.float64)  # (T, 3)
+        T = source.shape[0]
+        bounds = list(np.asarray(starts, dtype=np.int64)) + [T]
+        frame_rec = db.frame_recording
+
+        def place(g_entry, target_root, target_yaw):
+            """Yaw + horizontal translation taking database frame g_entry onto the target root pose."""
+            q_entry = np.asarray(db.local_rotations[g_entry, 0], dtype=np.float64)
+            dyaw = target_yaw - _yaw_of(q_entry)
+            qy = _yaw_quat(dyaw)
+            p_entry = np.asarray(db.root_positions[g_entry], dtype=np.float64)
+            return qy, p_entry, target_root
+
+        def apply(qy, p_from, p_to, r, q0):
+            d = R.apply(np.broadcast_to(qy, r.shape[:-1] + (4,)), r - p_from)
+            out_r = d + p_to
+            out_r[..., 1] = r[..., 1]  # keep the recorded height: no vertical drift
+            return out_r, R.multiply(np.broadcast_to(qy, q0.shape), q0)
+
+        out_rot = rot.copy()
+        out_root = root.copy()
+        prev_place = None
+        for w in range(len(bounds) - 1):
+            a, b = int(bounds[w]), int(bounds[w + 1])
+            g0 = int(source[a])
+            if w == 0:
+                # first window: the speaker stands at the origin, facing +z
+                place_w = place(g0, np.array([0.0, root[a, 1], 0.0]), 0.0)
+            else:
+                # the window's entry frame g0-1 was matched against the last output pose
+                place_w = place(g0 - 1, out_root[a - 1], _yaw_of(out_rot[a - 1, 0]))
+            out_root[a:b], out_rot[a:b, 0] = apply(*place_w, root[a:b], rot[a:b, 0])
+
+            if prev_place is not None and blend_frames > 0:
+                self._crossfade(out_rot, out_root, source, a, min(blend_frames, b - a), prev_place, apply)
+            prev_place = place_w
+        return Motion(skeleton=db.skeleton, fps=db.fps, rotations=out_rot, root_positions=out_root)
+
+    def _crossfade(self, out_rot, out_root, source, a, n_bl, prev_place, apply) -> None:
+        """Blend output frames [a, a+n_bl) from the previous window's continuation into the new window.
+
+        The continuation is the database frames that follow the previous window's
+        last frame in its recording, placed as that window was; where the
+        recording ends early the blend is shortened.
+        """
+        from gesturedb import rotations as R
+
+        db = self.db
+        g_last = int(source[a - 1])
+        cont = g_last + 1 + np.arange(n_bl)
+        ok = cont < db.n_frames
+        ok[ok] &= db.frame_recording[cont[ok]] == db.frame_recording[g_last]
+        n_bl = n_bl if ok.all() else int(np.argmin(ok))
+        if n_bl == 0:
+            return
+        cont = cont[:n_bl]
+        c_rot = np.asarray(db.local_rotations[cont], dtype=np.float64)
+        c_root, c_rot[:, 0] = apply(*prev_place, np.asarray(db.root_positions[cont], dtype=np.float64), c_rot[:, 0])
+        # smoothstep weights rise from ~0 to ~1 so position and velocity stay continuous
+        x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
+        wgt = x * x * (3 - 2 * x)
+        out_rot[a:a + n_bl] = R.slerp(c_rot, out_rot[a:a + n_bl], wgt)
+        out_root[a:a + n_bl] = (1 - wgt) * c_root + wgt * out_root[a:a + n_bl]

@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Install, then run the whole test suite (unit + end-to-end on ../shared/data).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+# plain `pytest` (not `python -m pytest`): the repository root must not shadow the
+# installed package, whose gesturedb.cli comes from cli/
+exec pytest -q "$@"

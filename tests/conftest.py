@@ -1,0 +1,27 @@
+"""Shared fixtures: the real data lives outside the repository, in ../shared/data."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _data_dir() -> Path:
+    env = os.environ.get("GESTUREDB_DATA")
+    return Path(env) if env else (ROOT.parent / "shared" / "data").resolve()
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    d = _data_dir()
+    if not d.is_dir():
+        pytest.fail(f"real data not found at {d}: set GESTUREDB_DATA")
+    return d
+
+
+@pytest.fixture(scope="session")
+def scott_dir(data_dir) -> Path:
+    return data_dir / "beat2-scott"
