@@ -24,20 +24,18 @@ __all__ = [
     "ParameterError",
     "SchemaError",
     "SearchError",
+    "Database",
     "build",
     "open",
 ]
 
 
+# Bound eagerly: importing the submodule gesturedb.build later would otherwise
+# replace the function `gesturedb.build` with the module of the same name.
+from gesturedb.build import build  # noqa: E402
+from gesturedb.database import Database  # noqa: E402
+
+
 def open(path, mode="r"):  # noqa: A001 - mirrors h5py.File / builtins.open on purpose
     """Open a gesture database; see :class:`gesturedb.database.Database`."""
-    from gesturedb.database import Database
-
     return Database(path, mode=mode)
-
-
-def build(inputs, out_path, **config):
-    """Build a gesture database from recordings; see :func:`gesturedb.build.build`."""
-    from gesturedb.build import build as _build
-
-    return _build(inputs, out_path, **config)

@@ -25,3 +25,21 @@ def data_dir() -> Path:
 @pytest.fixture(scope="session")
 def scott_dir(data_dir) -> Path:
     return data_dir / "beat2-scott"
+
+
+@pytest.fixture(scope="session")
+def scott_db_path(scott_dir, tmp_path_factory) -> Path:
+    """A database built once per test session from the real BEAT2 recording (no mirroring)."""
+    import gesturedb
+
+    out = tmp_path_factory.mktemp("db") / "scott.h5"
+    gesturedb.build([scott_dir], out).close()
+    return out
+
+
+@pytest.fixture()
+def scott_db(scott_db_path):
+    import gesturedb
+
+    with gesturedb.open(scott_db_path) as db:
+        yield db

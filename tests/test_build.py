@@ -1,0 +1,227 @@
+"""Building a database from the real BEAT2 recording, and what a bad input does."""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import wave
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import soundfile as sf
+
+import gesturedb
+from gesturedb import schema
+from gesturedb.build import BuildConfig, pair_inputs
+from gesturedb.errors import InputFileError, ParameterError, SchemaError
+
+STEM = "2_scott_0_1_1"
+
+
+def test_frame_count_matches_duration(scott_db):
+    # 1906 frames at 30 fps = 63.53 s; at 15 fps every other frame
+    assert scott_db.fps == 15.0
+    assert scott_db.n_frames == math.ceil(1906 * 15 / 30)
+    rec = scott_db.recordings[0]
+    assert rec.name == STEM and rec.speaker == "scott" and rec.source_fps == 30.0
+    assert abs(rec.duration_s - 63.5) < 0.1
+
+
+def test_arrays_have_declared_shapes_and_are_search_ready(scott_db):
+    F = scott_db.n_frames
+    for arr, shape in [
+        (scott_db.pose_features, (F, 96)),
+        (scott_db.audio_features, (F, 14)),
+        (scott_db.audio_deltas, (F, 14)),
+        (scott_db.joint_positions, (F, 55, 3)),
+        (scott_db.local_rotations, (F, 55, 4)),
+    ]:
+        assert arr.shape == shape and arr.dtype == np.float32 and arr.flags.c_contiguous
+        assert np.isfinite(arr).all()
+    # standardised audio: zero mean, unit variance over the database
+    np.testing.assert_allclose(scott_db.audio_features.mean(0), 0, atol=1e-4)
+    np.testing.assert_allclose(scott_db.audio_features.std(0), 1, atol=1e-3)
+    np.testing.assert_allclose(np.linalg.norm(scott_db.local_rotations, axis=-1), 1, atol=1e-5)
+    assert scott_db.joint_names[20] == "left_wrist"
+
+
+def test_chunks_tile_the_recording(scott_db):
+    c = scott_db.chunks
+    assert c.start.dtype == np.int64 and c.length.dtype == np.int64
+    assert c.start[0] == 0 and np.all(c.start[1:] == c.start[:-1] + c.length[:-1])
+    assert c.start[-1] + c.length[-1] == scott_db.n_frames
+    assert np.all(c.length[:-1] == 64) and 0 < c.length[-1] <= 64
+
+
+def test_clips_follow_the_word_gaps(scott_db, scott_dir):
+    from gesturedb.io import read_transcript
+
+    words = read_transcript(scott_dir / f"{STEM}.TextGrid")
+    assert len(scott_db.words) == len(words) == 199
+    np.testing.assert_allclose(scott_db.words.start_s, words.start_s)
+    gaps = words.start_s[1:] - words.end_s[:-1]
+    cl = scott_db.clips
+    assert len(cl) == int((gaps > 0.4).sum()) + 1
+    # clips tile the recording and every word is in exactly one clip
+    assert cl.start[0] == 0 and cl.start[-1] + cl.length[-1] == scott_db.n_frames
+    assert np.all(cl.start[1:] == cl.start[:-1] + cl.length[:-1])
+    assert cl.word_start[0] == 0 and cl.word_end[-1] == len(words)
+    assert np.all(cl.word_start[1:] == cl.word_end[:-1])
+    fps = scott_db.fps
+    for k in range(len(cl)):
+        ws, we = cl.word_start[k], cl.word_end[k]
+        # no long gap inside a clip, and its words lie inside it
+        assert np.all(gaps[ws:we - 1] <= 0.4)
+        assert words.start_s[ws] >= cl.start[k] / fps - 1e-9
+        assert words.start_s[we - 1] < (cl.start[k] + cl.length[k]) / fps
+    # audio rhythm: a clip with words has onset bits; signatures differ between clips
+    assert np.all(cl.rhythm_audio != 0) and np.all(cl.rhythm_motion != 0)
+    assert cl.style.shape == (len(cl), 3) and np.all(cl.style[:, 0] > 0.05)
+
+
+def test_build_twice_gives_identical_content(scott_dir, scott_db_path, tmp_path):
+    again = tmp_path / "again.h5"
+    gesturedb.build([scott_dir], again, workers=2).close()
+
+    def content(path):
+        out = {}
+        with h5py.File(path, "r") as h5:
+            h5.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+            out["/attrs"] = {k: (v if not isinstance(v, np.ndarray) else v.tolist()) for k, v in h5.attrs.items()}
+        return out
+
+    a, b = content(scott_db_path), content(again)
+    assert a.keys() == b.keys()
+    for k in a:
+        if isinstance(a[k], np.ndarray):
+            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
+        else:
+            assert a[k] == b[k], k
+
+
+def test_mirror_doubles_the_database(scott_dir, tmp_path):
+    with gesturedb.build([scott_dir], tmp_path / "m.h5", mirror=True) as db:
+        assert [r.name for r in db.recordings] == [STEM, STEM + "~mirror"]
+        assert db.n_frames == 2 * 953
+        a, b = db.recordings
+        left, right = db.joint_names.index("left_wrist"), db.joint_names.index("right_wrist")
+        P = db.joint_positions
+        # the mirrored copy's left wrist is the original right wrist reflected in x
+        np.testing.assert_allclose(P[b.start_frame:b.stop_frame, left, 0], -P[:a.n_frames, right, 0], atol=1e-4)
+        np.testing.assert_allclose(P[b.start_frame:b.stop_frame, left, 1], P[:a.n_frames, right, 1], atol=1e-4)
+        assert len(db.words) == 2 * 199
+
+
+def test_schema_version_mismatch_is_a_clear_error(scott_db_path, tmp_path):
+    bad = tmp_path / "old.h5"
+    shutil.copy(scott_db_path, bad)
+    with h5py.File(bad, "r+") as h5:
+        h5.attrs["schema_version"] = schema.SCHEMA_VERSION + 1
+    with pytest.raises(SchemaError, match=rf"old.h5: schema_version: expected {schema.SCHEMA_VERSION}, got {schema.SCHEMA_VERSION + 1}"):
+        gesturedb.open(bad)
+    with pytest.raises(InputFileError, match="not an HDF5 file"):
+        (tmp_path / "junk.h5").write_bytes(b"not hdf5 at all")
+        gesturedb.open(tmp_path / "junk.h5")
+
+
+def test_pairing_reports_what_it_skipped(scott_dir):
+    p = pair_inputs([scott_dir / "inputs"])
+    assert p.recordings == []
+    reasons = {os.path.basename(s.path): s.reason for s in p.skipped}
+    assert "no motion file" in reasons["2_scott_0_2_2.wav"]
+    p = pair_inputs([scott_dir])
+    assert [r.name for r in p.recordings] == [STEM]
+    assert p.recordings[0].transcript.endswith(".TextGrid")
+
+
+def test_unknown_build_option_lists_the_valid_ones():
+    with pytest.raises(ParameterError, match=r"\['bogus'\]: not known; options are .*'fps'"):
+        BuildConfig.from_kwargs(bogus=1)
+    with pytest.raises(ParameterError, match="fps: expected a positive number"):
+        BuildConfig(fps=0)
+
+
+# --------------------------------------------------------------------------
+# bad input: one clear error naming the file and the field, nothing left behind
+# --------------------------------------------------------------------------
+
+@pytest.fixture()
+def recording(scott_dir, tmp_path):
+    """A writable copy of the real recording in its own folder."""
+    d = tmp_path / "in"
+    d.mkdir()
+    for ext in (".npz", ".wav", ".TextGrid"):
+        shutil.copy(scott_dir / f"{STEM}{ext}", d / f"{STEM}{ext}")
+    return d
+
+
+def _assert_nothing_left(folder: Path, keep=()):
+    left = sorted(p.name for p in folder.iterdir() if p.name not in keep)
+    assert left == [], left
+
+
+def _build_fails(recording, tmp_path, exc, match):
+    out_dir = tmp_path / "out"
+    out_dir.mkdir(exist_ok=True)
+    with pytest.raises(exc, match=match):
+        gesturedb.build([recording], out_dir / "db.h5")
+    _assert_nothing_left(out_dir)
+
+
+def test_nan_in_motion(recording, tmp_path):
+    d = dict(np.load(recording / f"{STEM}.npz", allow_pickle=True))
+    d["poses"] = d["poses"].copy()
+    d["poses"][100, 60] = np.nan
+    np.savez(recording / f"{STEM}.npz", **d)
+    _build_fails(recording, tmp_path, InputFileError, rf"{STEM}.npz: .*poses.*(NaN|nan|finite)")
+
+
+def test_audio_and_motion_lengths_differ(recording, tmp_path):
+    x, sr = sf.read(recording / f"{STEM}.wav", dtype="float32")
+    sf.write(recording / f"{STEM}.wav", x[: sr * 50], sr, subtype="FLOAT")
+    _build_fails(recording, tmp_path, InputFileError, rf"{STEM}.wav: duration: expected within 1 s of the motion \(63.53 s .*\), got 50.00 s")
+
+
+def test_empty_wav(recording, tmp_path):
+    with wave.open(str(recording / f"{STEM}.wav"), "wb") as w:
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(16000)
+    _build_fails(recording, tmp_path, InputFileError, rf"{STEM}.wav: .*(empty|no audio samples|0 samples)")
+
+
+def test_textgrid_without_words_tier(recording, tmp_path):
+    tg = recording / f"{STEM}.TextGrid"
+    tg.write_text(tg.read_text().replace('name = "words"', 'name = "sentences"'))
+    _build_fails(recording, tmp_path, InputFileError, rf"{STEM}.TextGrid: .*words.*sentences")
+
+
+@pytest.mark.parametrize("cut", ["mid-line", "line-boundary"])
+def test_truncated_bvh(data_dir, tmp_path, cut):
+    src = data_dir / "bvh-foreign" / "AV_8Walk_Meredith_HVHA_Rep1.bvh"
+    d = tmp_path / "in"
+    d.mkdir()
+    text = src.read_text()
+    n = int(len(text) * 0.6)
+    if cut == "line-boundary":
+        n = text.rindex("\n", 0, n) + 1
+        match = r"walk.bvh: .*1064.*(637|636)"  # Frames: 1064 promised, 636 or so present
+    else:
+        match = r"walk.bvh: line \d+ \(frame \d+\): expected 72 values \(from CHANNELS\), got \d+"
+    (d / "walk.bvh").write_text(text[:n])
+    sf.write(d / "walk.wav", np.zeros(16000 * 9, np.float32), 16000)
+    _build_fails(d, tmp_path, InputFileError, match)
+
+
+def test_failed_build_keeps_the_existing_database(recording, scott_db_path, tmp_path):
+    out = tmp_path / "keep"
+    out.mkdir()
+    target = out / "db.h5"
+    shutil.copy(scott_db_path, target)
+    before = target.read_bytes()
+    x, sr = sf.read(recording / f"{STEM}.wav", dtype="float32")
+    sf.write(recording / f"{STEM}.wav", x[: sr * 10], sr, subtype="FLOAT")
+    with pytest.raises(InputFileError):
+        gesturedb.build([recording], target)
+    assert target.read_bytes() == before
+    _assert_nothing_left(out, keep=("db.h5",))
