@@ -113,12 +113,18 @@ class BuildConfig:
 
 @dataclass(frozen=True)
 class RecordingSource:
-    """The files of one recording, paired by stem."""
+    """The files of one recording, paired by stem.
+
+    ``span_s`` optionally keeps only ``[start, end)`` seconds of the recording
+    (motion, audio and words alike), e.g. to hold a stretch out for evaluation;
+    word times are then relative to ``start``.
+    """
 
     name: str
     motion: str
     audio: str
     transcript: str | None
+    span_s: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -339,6 +345,8 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
             f"({motion_dur:.2f} s in {os.path.basename(source.motion)}), got {audio_dur:.2f} s",
         )
     words = read_transcript(source.transcript) if source.transcript else None
+    if source.span_s is not None:
+        motion, samples, words, motion_dur = _trim(source, motion, samples, sr, words)
     if words is not None and len(words):
         keep = np.asarray(words.start_s) < motion_dur
         if not keep.all():
@@ -351,6 +359,23 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
     for d in out:
         d.source_fps = src_fps
     return out
+
+
+def _trim(source: RecordingSource, motion, samples, sr, words):
+    """Keep ``source.span_s`` of a recording: motion frames, audio samples and the words that start in it."""
+    a_s, b_s = (float(x) for x in source.span_s)
+    dur = motion.rotations.shape[0] / motion.fps
+    if not (0 <= a_s < b_s <= dur + 1e-6):
+        raise ParameterError(f"span_s of {source.name}: expected 0 <= start < end <= {dur:.3f} s, got {source.span_s}")
+    fa, fb = int(round(a_s * motion.fps)), min(int(round(b_s * motion.fps)), motion.rotations.shape[0])
+    motion = motion[fa:fb]
+    samples = samples[int(round(a_s * sr)): int(round(b_s * sr))]
+    if words is not None:
+        keep = (np.asarray(words.start_s) >= a_s) & (np.asarray(words.start_s) < b_s)
+        kept = words[keep]
+        words = type(kept)(start_s=kept.start_s - a_s, end_s=np.minimum(kept.end_s, b_s) - a_s,
+                           text=kept.text, source=kept.source)
+    return motion, samples, words, (fb - fa) / motion.fps
 
 
 def _process_star(args):
@@ -483,8 +508,9 @@ def build(
 
     Parameters
     ----------
-    inputs : path or list of paths
+    inputs : path or list of paths / RecordingSource
         Files and/or folders; motion, audio and transcript are paired by file stem.
+        :class:`RecordingSource` items are taken as they are (e.g. with a ``span_s``).
     out_path : path
         The HDF5 file to write. Written to a temporary file beside it and renamed
         on success; an existing file is replaced only then.
@@ -505,7 +531,9 @@ def build(
         inputs = [inputs]
     if not isinstance(workers, int) or workers < 1:
         raise ParameterError(f"workers: expected a positive integer, got {workers!r}")
-    pairing = pair_inputs(inputs, recursive=recursive)
+    given = [x for x in inputs if isinstance(x, RecordingSource)]
+    pairing = pair_inputs([x for x in inputs if not isinstance(x, RecordingSource)], recursive=recursive)
+    pairing.recordings = sorted(pairing.recordings + given, key=lambda r: r.name)
     if not pairing.recordings:
         raise ParameterError(
             "inputs: expected at least one recording (a motion file .bvh/.npz and a .wav with the same stem), "
