@@ -228,9 +228,13 @@ class Searcher:
                 f"{min(step, T)} frames plus its entry frame (longest: {int(self.seg_len.max(initial=0))} frames)"
             )
         n_steps = (T + step - 1) // step
+        self._step_bits = None
         allowed, labels = self._step_masks(control, transcript, keywords, n_steps=n_steps, step=step, T=T)
         excl = self.exclude_recordings(exclude)
         init_pose = self.initial_pose(init, seed=seed)
+        # kept only to explain a failed step
+        self._step_len = {i: min(step, T - i * step) for i in range(n_steps)}
+        self._exclude = excl
         try:
             res = rank_sum_search(
                 db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
@@ -296,6 +300,7 @@ class Searcher:
                                         only=None if keywords is True else list(keywords))
             if res is not None:
                 hooks.append(("keyword", *res))
+                self._step_bits = res[0]
         if not hooks:
             return None, None
         W = (self.db.n_frames + 63) // 64
@@ -320,7 +325,17 @@ class Searcher:
             msg += f" under control {ctl!r}"
             from gesturedb import masks
 
-            hints = masks.suggest_percentiles(ctl, controls=self.db.controls, named=self.db.masks)
+            n = self._step_len.get(i, 8)
+            # "has candidates" means a window whose first and last frames are both allowed
+            # (and, on a keyword step, inside the keyword's sub-database)
+            within = self._step_bits[i] if kwd else None
+
+            def accept(words):
+                w = words if within is None else masks.mask_and(words, within)
+                return masks.candidate_counts(w, n_frames=self.db.n_frames, seg_start=self.seg_start,
+                                              seg_len=self.seg_len, n=n, exclude=self._exclude).sum() > 0
+
+            hints = masks.suggest_percentiles(ctl, controls=self.db.controls, named=self.db.masks, accept=accept)
             if hints:
                 msg += "; " + "; ".join(str(h) for h in hints)
         if kwd:

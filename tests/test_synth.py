@@ -1,0 +1,118 @@
+"""End-to-end synthesis on the real BEAT2 database and held-out speech."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from gesturedb.errors import ParameterError, SearchError
+from gesturedb.features.audio import n_frames_for_duration
+from gesturedb.synth import Searcher
+
+HELD_OUT = "inputs/2_scott_0_2_2"
+
+
+@pytest.fixture()
+def speech(scott_dir):
+    return scott_dir / f"{HELD_OUT}.wav"
+
+
+def test_output_is_exactly_as_long_as_the_audio(scott_db, speech):
+    res = Searcher(scott_db).synthesize(speech)
+    dur = sf.info(str(speech)).duration
+    assert res.n_frames == n_frames_for_duration(dur, scott_db.fps)
+    assert res.motion.rotations.shape[0] == res.n_frames
+    assert res.positions.shape == (res.n_frames, 55, 3)
+    assert np.isfinite(res.positions).all()
+    # the last partial window ends exactly at the last frame
+    assert res.steps[-1]["out_end"] == res.n_frames
+    assert [s["out_start"] for s in res.steps] == list(range(0, res.n_frames, 8))
+
+
+def test_provenance_names_where_every_frame_came_from(scott_db, speech, tmp_path):
+    res = Searcher(scott_db).synthesize(speech)
+    rec = scott_db.recordings[0]
+    for s in res.steps:
+        a, b = s["out_start"], s["out_end"]
+        frames = res.source_frames[a:b]
+        # a window is a contiguous stretch of one recording, starting at db_frame
+        assert np.array_equal(frames, np.arange(s["db_frame"], s["db_frame"] + b - a))
+        assert s["recording"] == rec.name
+        assert s["source_start_s"] == pytest.approx((s["db_frame"] - rec.start_frame) / scott_db.fps, abs=1e-3)
+        seg = s["segment"]
+        assert scott_db.chunks.start[seg] + s["segment_start"] == s["db_frame"]
+        assert 1 <= s["segment_start"] <= scott_db.chunks.length[seg] - (b - a)
+        assert 0 <= s["pose_rank"] < s["candidates"] and 0 <= s["audio_rank"] < s["candidates"]
+    path = tmp_path / "p.json"
+    res.write_provenance(path)
+    assert json.loads(path.read_text())["steps"][3] == res.steps[3]
+
+
+def test_without_blend_windows_are_exact_copies(scott_db, speech):
+    res = Searcher(scott_db).synthesize(speech, blend_frames=0)
+    body = np.asarray(scott_db.local_rotations[res.source_frames][:, 1:], dtype=np.float64)
+    np.testing.assert_allclose(res.motion.rotations[:, 1:], body, atol=1e-6)
+
+
+def _seam_jerk(positions, boundaries, fps):
+    """Mean |jerk| of the wrists at window boundaries (frames b-1..b+1)."""
+    p = positions[:, [20, 21]]
+    jerk = np.linalg.norm(np.diff(p, n=3, axis=0), axis=-1).mean(-1) * fps ** 3
+    idx = np.concatenate([boundaries - 2, boundaries - 1, boundaries])
+    idx = idx[(idx >= 0) & (idx < jerk.shape[0])]
+    return jerk[idx].mean()
+
+
+def test_transition_blend_lowers_jerk_at_window_boundaries(scott_db, speech):
+    s = Searcher(scott_db)
+    hard = s.synthesize(speech, blend_frames=0)
+    soft = s.synthesize(speech, blend_frames=4)
+    assert np.array_equal(hard.source_frames, soft.source_frames)  # same search, only the seams differ
+    j_hard = _seam_jerk(hard.positions, hard.boundaries, scott_db.fps)
+    j_soft = _seam_jerk(soft.positions, soft.boundaries, scott_db.fps)
+    assert j_soft < 0.8 * j_hard, (j_soft, j_hard)
+
+
+def test_options_change_the_result_reproducibly(scott_db, speech):
+    s = Searcher(scott_db)
+    base = s.synthesize(speech)
+    k2 = s.synthesize(speech, k=2)
+    assert not np.array_equal(base.source_frames, k2.source_frames)
+    r1 = s.synthesize(speech, init="random", seed=3)
+    r2 = s.synthesize(speech, init="random", seed=3)
+    assert np.array_equal(r1.source_frames, r2.source_frames)
+    audio_pre = s.synthesize(speech, preselect="audio")
+    # audio pre-selection picks windows with audio at least as close on average
+    assert np.mean([x["audio_dist"] for x in audio_pre.steps]) <= np.mean([x["audio_dist"] for x in base.steps]) + 1e-6
+
+
+def test_samples_and_path_give_the_same_result(scott_db, speech):
+    from gesturedb.io import read_audio
+
+    x, sr = read_audio(speech, sr=16000)
+    a = Searcher(scott_db).synthesize(speech)
+    b = Searcher(scott_db).synthesize(x, sr=sr)
+    assert np.array_equal(a.source_frames, b.source_frames)
+
+
+def test_audio_shorter_than_one_step(scott_db):
+    with pytest.raises(ParameterError, match=r"audio: expected at least one search step \(8 frames = 0.53 s\), got 4 frames"):
+        Searcher(scott_db).synthesize(np.zeros(int(16000 * 0.27), np.float32), sr=16000)
+
+
+def test_control_that_leaves_nothing_names_the_step_and_suggests_a_percentile(scott_db, speech):
+    # p100 is the database maximum: nothing is strictly above it
+    with pytest.raises(SearchError) as info:
+        Searcher(scott_db).synthesize(speech, control="1-3: left_wrist_height > p100")
+    msg = str(info.value)
+    assert msg.startswith("step 2 (output frame 16, t = 1.07 s) has no candidate under control "
+                          "'left_wrist_height > p100'"), msg
+    assert "'left_wrist_height > p9" in msg and "instead of" in msg and "would leave" in msg, msg
+    assert info.value.step == 2
+
+
+def test_excluding_every_recording_is_a_clear_error(scott_db, speech):
+    with pytest.raises(SearchError, match=r"step 0 \(output frame t=0\): no candidate window left: .*excluded"):
+        Searcher(scott_db).synthesize(speech, exclude=["2_scott_0_1_1"])
