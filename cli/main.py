@@ -15,6 +15,7 @@ COMMANDS = {
     "info": "info",
     "export": "export",
     "synth": "synth",
+    "keywords": "keywords",
 }
 
 

@@ -604,6 +604,10 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
     try:
         with h5py.File(tmp, "w", track_order=True) as h5:
             fill(h5)
+        # mkstemp makes the file 0600; give it the mode a plain open() would
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, out_path)
     except BaseException:
         try:

@@ -34,6 +34,7 @@ def edit(path: str | os.PathLike):
     os.close(fd)
     try:
         shutil.copyfile(path, tmp)
+        shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
         with h5py.File(tmp, "r+") as h5:
             schema.check_version(h5, path)
             yield h5

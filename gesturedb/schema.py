@@ -237,7 +237,10 @@ def describe() -> str:
     lines += [
         f"| `{CONTROLS_GROUP}/<name>` | float32 | (F,) | attr `unit` | per-frame control feature |",
         f"| `{MASKS_GROUP}/<name>` | uint64 | (B,) | | packed bitset over frames (bit f&63 of word f>>6); attr `definition` |",
-        f"| `{SUBDB_GROUP}/<name>/start,length,recording` | int64/int32 | (n,) | frame | keyword sub-database segments; attr `definition` |",
+        f"| `{SUBDB_GROUP}/<word>/start,length` | int64 | (n,) | frame | keyword sub-database stretches (global frames); attr `definition` (JSON) |",
+        f"| `{SUBDB_GROUP}/<word>/recording` | int32 | (n,) | | recording of each stretch |",
+        f"| `{SUBDB_GROUP}/<word>/word_index` | int64 | (n,) | | the occurrence (index into `words/`) |",
+        f"| `{SUBDB_GROUP}/<word>/mask` | uint64 | (B,) | | union of the stretches as a bitset over frames |",
         "",
         "Root attributes: " + "; ".join(f"`{k}` ({v})" for k, v in ROOT_ATTRS.items()) + ".",
     ]

@@ -1,0 +1,1009 @@
+"""Keyword sub-databases (Habibie et al. 2022, Sec. 4.2).
+
+"Produce a specific body gesture whenever a specific keyword is detected in the
+speech ... the gesture is selected from a separate database containing gestures
+semantically correlated with the keyword." A *sub-database* is named after its
+keyword and holds every stretch of the database where the speaker said that
+word: the word itself, ``before_s`` before it and ``after_s`` after it, clipped
+to its recording. During synthesis, every search step whose output frames
+overlap the keyword in the input transcript may only take windows from those
+stretches (:func:`keyword_step_masks`); the other steps search the whole
+database.
+
+Storage (one group per keyword, the name in lower case)::
+
+    subdatabases/<word>/start       int64  (n,)  first database frame of each stretch
+    subdatabases/<word>/length      int64  (n,)  stretch length, frames
+    subdatabases/<word>/recording   int32  (n,)  index into recordings/
+    subdatabases/<word>/word_index  int64  (n,)  the occurrence's index into words/
+    subdatabases/<word>/mask        uint64 (B,)  union of the stretches as a packed bitset
+                                                 over database frames (bit f & 63 of word f >> 6)
+    attrs: definition (JSON: word, before_s, after_s, matched, found, skipped, removed)
+
+Matching. Words are compared after the project's normalisation
+(:func:`gesturedb.io.transcripts.normalize_word`: lower case, punctuation
+stripped) and as whole words: ``hand`` matches ``Hand,`` but not ``handle``; an
+entry that holds several words (GENEA writes ``"there is"``) matches each of
+them, with the entry's timing.
+
+Times and frames. Database frame ``i`` of a recording covers
+``[i / fps, (i + 1) / fps)`` seconds (as in :mod:`gesturedb.features.audio`), so
+a time interval ``[a, b)`` covers frames ``floor(a * fps)`` to
+``ceil(b * fps) - 1`` and always at least one frame (a zero-length word still
+covers the frame it is said in). The same rule turns the input transcript's
+words into output frames.
+
+Searching. The search allows a window when its first and last frames are in
+the mask (``../shared/spec/search.md``), so where two stretches of one recording
+lie less than a window apart, a window may start in one and end in the next,
+passing through the few frames between them. With the default context (0.5 s
+before, 1 s after) such neighbours are one stretch of speech about the keyword
+anyway.
+
+Edits (:func:`add_keyword`, :func:`remove_occurrence`, :func:`drop_keyword`) go
+through :func:`gesturedb.dbedit.edit`: a failed edit leaves the file as it was.
+:func:`export_keyword` writes a sub-database as a complete database of its own.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from gesturedb import schema
+from gesturedb.errors import ParameterError, SchemaError
+
+__all__ = [
+    "SubDatabase",
+    "WordCount",
+    "Occurrence",
+    "subdatabases",
+    "get_subdatabase",
+    "find_occurrences",
+    "add_keyword",
+    "remove_occurrence",
+    "drop_keyword",
+    "list_words",
+    "show",
+    "export_keyword",
+    "keyword_step_masks",
+    "normalise_word",
+]
+
+#: Datasets of one sub-database: name -> (dtype, unit, meaning). The group layout is
+#: declared here rather than in :data:`gesturedb.schema.FIELDS` because its path
+#: holds a run-time name (the keyword).
+SUBDB_FIELDS: dict[str, tuple[str, str, str]] = {
+    "start": ("int64", "frame", "first database frame of each occurrence stretch"),
+    "length": ("int64", "frame", "length of each occurrence stretch in frames"),
+    "recording": ("int32", "", "index into the recordings table"),
+    "word_index": ("int64", "", "index of the keyword occurrence into words/"),
+    "mask": ("uint64", "", "union of the stretches: packed bitset over database frames (bit f&63 of word f>>6)"),
+}
+
+#: Frames-per-time rounding slack: a word boundary computed as exactly k / fps in
+#: floating point (k an integer) must fall on frame k, not k - 1.
+_EPS_FRAMES = 1e-6
+
+def normalise_word(text: str) -> str:
+    """The project's word normalisation (:func:`gesturedb.io.transcripts.normalize_word`).
+
+    Lower case, punctuation stripped except an apostrophe inside a word,
+    ``""`` for silence markers: ``"Hand,"`` -> ``"hand"``.
+    """
+    from gesturedb.io.transcripts import normalize_word
+
+    return normalize_word(str(text))
+
+
+def _tokens(text: str) -> list[str]:
+    """The whole words of a transcript entry (GENEA keeps ``"there is"`` as one timed entry)."""
+    return normalise_word(text).split()
+
+
+def _keyword_name(word) -> str:
+    """Validate what a caller gave as a keyword and return its sub-database name."""
+    if not isinstance(word, str):
+        raise ParameterError(f"keyword: expected a word (str), got {type(word).__name__} {word!r}")
+    w = normalise_word(word)
+    if not w:
+        raise ParameterError(
+            f"keyword: expected a word with at least one letter or digit (not a silence marker), got {word!r}"
+        )
+    if any(c.isspace() for c in w):
+        raise ParameterError(
+            f"keyword: expected a single word (sub-databases match whole words of the transcript), got {word!r}"
+        )
+    if "/" in w or w == ".":
+        raise ParameterError(f"keyword: expected a word without '/', got {word!r}")
+    return w
+
+
+def _check_seconds(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name}: expected a non-negative number of seconds, got {value!r}") from None
+    if isinstance(value, bool) or not (math.isfinite(v) and v >= 0):
+        raise ParameterError(f"{name}: expected a non-negative number of seconds, got {value!r}")
+    return v
+
+
+def _check_int(name: str, value, minimum: int) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ParameterError(f"{name}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def time_to_frames(start_s, end_s, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Frames covered by time intervals.
+
+    Parameters
+    ----------
+    start_s, end_s : array-like [shape=(n,)], seconds
+    fps : float, Hz
+
+    Returns
+    -------
+    first, stop : ndarray [shape=(n,)], int64, frames
+        Interval ``[start_s, end_s)`` covers frames ``first <= f < stop``, frame
+        ``f`` being ``[f / fps, (f + 1) / fps)``; ``stop >= first + 1`` always.
+        Not clipped to any recording.
+    """
+    s = np.atleast_1d(np.asarray(start_s, dtype=np.float64))
+    e = np.atleast_1d(np.asarray(end_s, dtype=np.float64))
+    first = np.floor(s * fps + _EPS_FRAMES).astype(np.int64)
+    stop = np.ceil(e * fps - _EPS_FRAMES).astype(np.int64)
+    return first, np.maximum(stop, first + 1)
+
+
+# --------------------------------------------------------------------------
+# reading
+# --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SubDatabase:
+    """A keyword sub-database: the stretches of the database around every occurrence of a word.
+
+    Attributes
+    ----------
+    word : str
+        The keyword, lower case (also the group name in the file).
+    start : ndarray [shape=(n,)], int64, frames
+        First global database frame of each occurrence stretch.
+    length : ndarray [shape=(n,)], int64, frames
+    recording : ndarray [shape=(n,)], int32
+        Index into the recordings table.
+    word_index : ndarray [shape=(n,)], int64
+        Index of the occurrence into the database's words table.
+    mask : ndarray [shape=(B,)], uint64
+        Union of the stretches, packed bitset over database frames.
+    definition : dict
+        How it was made: ``word``, ``before_s``, ``after_s``, ``matched`` (the word
+        forms of the words table that matched), ``found`` (occurrences found),
+        ``skipped`` (occurrences outside the motion), ``removed`` (word indices
+        taken out with :func:`remove_occurrence`).
+    """
+
+    word: str
+    start: np.ndarray
+    length: np.ndarray
+    recording: np.ndarray
+    word_index: np.ndarray
+    mask: np.ndarray
+    definition: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.start.shape[0])
+
+    @property
+    def before_s(self) -> float:
+        return float(self.definition.get("before_s", float("nan")))
+
+    @property
+    def after_s(self) -> float:
+        return float(self.definition.get("after_s", float("nan")))
+
+    @property
+    def n_frames(self) -> int:
+        """Frames in the stretches, counting overlapping stretches twice."""
+        return int(self.length.sum())
+
+    def segments(self):
+        """The stretches as :class:`gesturedb.database.Segments` (e.g. to search the sub-database alone)."""
+        from gesturedb.database import Segments
+
+        return Segments(self.start.copy(), self.length.copy(), self.recording.copy())
+
+
+def _read_subdb(g, word: str, n_frames: int, filename: str) -> SubDatabase:
+    from gesturedb import masks
+
+    arrays = {}
+    for name, (dtype, _unit, doc) in SUBDB_FIELDS.items():
+        path = f"{schema.SUBDB_GROUP}/{word}/{name}"
+        if name not in g:
+            raise SchemaError(filename, f"missing dataset {path!r} ({doc})")
+        arr = g[name][()]
+        if arr.dtype != np.dtype(dtype) or arr.ndim != 1:
+            raise SchemaError(filename, f"{path}: expected {dtype} (n,), got {arr.dtype} {arr.shape}")
+        arrays[name] = arr
+    n = arrays["start"].shape[0]
+    for name in ("length", "recording", "word_index"):
+        if arrays[name].shape[0] != n:
+            raise SchemaError(
+                filename,
+                f"{schema.SUBDB_GROUP}/{word}/{name}: expected {n} rows (as start), got {arrays[name].shape[0]}",
+            )
+    nw = masks.n_words(n_frames)
+    if arrays["mask"].shape[0] != nw:
+        raise SchemaError(
+            filename,
+            f"{schema.SUBDB_GROUP}/{word}/mask: expected {nw} uint64 words for {n_frames} frames, "
+            f"got {arrays['mask'].shape[0]}",
+        )
+    return SubDatabase(
+        word=word, start=arrays["start"], length=arrays["length"], recording=arrays["recording"],
+        word_index=arrays["word_index"], mask=arrays["mask"],
+        definition=schema.read_json_attr(g, "definition", {}),
+    )
+
+
+def _read_all(h5, filename: str) -> dict[str, SubDatabase]:
+    g = h5.get(schema.SUBDB_GROUP)
+    if g is None:
+        return {}
+    n_frames = int(h5.attrs["n_frames"])
+    return {w: _read_subdb(g[w], w, n_frames, filename) for w in sorted(g)}
+
+
+def subdatabases(db) -> dict[str, SubDatabase]:
+    """Every keyword sub-database of an open database.
+
+    Parameters
+    ----------
+    db : gesturedb.database.Database
+
+    Returns
+    -------
+    dict of str to SubDatabase
+        Keyword -> sub-database, sorted by keyword. Read from the file on every
+        call (edits replace the file, so reopen the database to see them).
+    """
+    return _read_all(db.h5, db.path)
+
+
+def get_subdatabase(db, word: str) -> SubDatabase:
+    """One sub-database; the error lists the keywords there are and close ones."""
+    w = _keyword_name(word)
+    subs = subdatabases(db)
+    if w not in subs:
+        raise ParameterError(_missing_message(w, list(subs), db.path))
+    return subs[w]
+
+
+def _missing_message(w: str, existing: list[str], path: str) -> str:
+    if not existing:
+        return f"keyword {w!r}: {path} has no keyword sub-databases (add one with `gesturedb keywords {path} add WORD`)"
+    close = difflib.get_close_matches(w, existing, n=3)
+    hint = f"; did you mean {', '.join(map(repr, close))}?" if close else ""
+    return f"keyword {w!r}: no such sub-database in {path}; keywords: {', '.join(existing)}{hint}"
+
+
+# --------------------------------------------------------------------------
+# finding occurrences
+# --------------------------------------------------------------------------
+
+class _Tables(NamedTuple):
+    """What finding occurrences needs from a database (read once, closed after)."""
+
+    path: str
+    fps: float
+    n_frames: int
+    rec_names: list
+    rec_start: np.ndarray
+    rec_n: np.ndarray
+    w_rec: np.ndarray
+    w_start: np.ndarray
+    w_end: np.ndarray
+    w_text: list
+
+
+def _tables(db) -> _Tables:
+    recs = db.recordings
+    w = db.words
+    return _Tables(
+        path=db.path, fps=db.fps, n_frames=db.n_frames,
+        rec_names=[r.name for r in recs],
+        rec_start=np.array([r.start_frame for r in recs], dtype=np.int64),
+        rec_n=np.array([r.n_frames for r in recs], dtype=np.int64),
+        w_rec=np.asarray(w.recording), w_start=np.asarray(w.start_s, dtype=np.float64),
+        w_end=np.asarray(w.end_s, dtype=np.float64), w_text=list(w.text),
+    )
+
+
+def _unknown_word_message(w: str, t: _Tables) -> str:
+    if not t.w_text:
+        return (f"keyword {w!r}: {t.path} has no words (it was built without transcripts), "
+                "so no keyword can be found in it")
+    vocab = Counter(tok for x in t.w_text for tok in _tokens(x))
+    close = difflib.get_close_matches(w, list(vocab), n=5, cutoff=0.6)
+    hint = (f"; close words: {', '.join(f'{c!r} ({vocab[c]}x)' for c in close)}" if close
+            else f"; the most frequent words are {', '.join(repr(x) for x, _ in vocab.most_common(8))}")
+    return f"keyword {w!r}: not among the {len(t.w_text)} words of {t.path}{hint}"
+
+
+def find_occurrences(db, word: str, *, before_s: float = 0.5, after_s: float = 1.0) -> SubDatabase:
+    """Collect every occurrence of a word in a database's words (does not write anything).
+
+    Parameters
+    ----------
+    db : gesturedb.database.Database
+    word : str
+        Matched case-insensitively against whole words of the words table.
+    before_s, after_s : float >= 0, seconds
+        Context kept before the word's start and after its end.
+
+    Returns
+    -------
+    SubDatabase
+        Stretches ``[start - before_s, end + after_s]`` in frames (see the module
+        notes), clipped to the recording, in words-table order. Occurrences that
+        start after the recording's last frame (a transcript longer than the
+        motion) are skipped and counted in ``definition["skipped"]``.
+
+    Raises
+    ------
+    ParameterError
+        The word never occurs; the message suggests close words.
+    """
+    return _occurrences(_tables(db), _keyword_name(word), _check_seconds("before_s", before_s),
+                        _check_seconds("after_s", after_s))
+
+
+def _occurrences(t: _Tables, w: str, before_s: float, after_s: float) -> SubDatabase:
+    idx = np.array([i for i, x in enumerate(t.w_text) if w in _tokens(x)], dtype=np.int64)
+    if idx.size == 0:
+        raise ParameterError(_unknown_word_message(w, t))
+    rec = t.w_rec[idx].astype(np.int64)
+    ws, we = t.w_start[idx], t.w_end[idx]
+    word_first, word_stop = time_to_frames(ws, we, t.fps)
+    ctx_first, ctx_stop = time_to_frames(ws - before_s, we + after_s, t.fps)
+    # the word's own frames are always inside its stretch, whatever the rounding
+    first = np.clip(np.minimum(ctx_first, word_first), 0, None)
+    stop = np.minimum(np.maximum(ctx_stop, word_stop), t.rec_n[rec])
+    keep = word_first < t.rec_n[rec]
+    start = (t.rec_start[rec] + first)[keep].astype(np.int64)
+    length = (stop - first)[keep].astype(np.int64)
+    definition = {
+        "word": w,
+        "before_s": before_s,
+        "after_s": after_s,
+        "matched": sorted({t.w_text[i] for i in idx}),
+        "found": int(idx.size),
+        "skipped": int((~keep).sum()),
+        "removed": [],
+    }
+    if not keep.any():
+        raise ParameterError(
+            f"keyword {w!r}: all {idx.size} occurrence(s) in {t.path} start after the end of the motion of their "
+            "recording, so there is no gesture to keep"
+        )
+    return SubDatabase(
+        word=w, start=start, length=length, recording=rec[keep].astype(np.int32), word_index=idx[keep],
+        mask=_mask_of(start, length, t.n_frames), definition=definition,
+    )
+
+
+def _mask_of(start: np.ndarray, length: np.ndarray, n_frames: int) -> np.ndarray:
+    from gesturedb import masks
+
+    bits = np.zeros(n_frames, dtype=bool)
+    for a, n in zip(start, length):
+        bits[a:a + n] = True
+    return masks.pack_bits(bits)
+
+
+# --------------------------------------------------------------------------
+# editing (atomic, through gesturedb.dbedit)
+# --------------------------------------------------------------------------
+
+def _write_subdb(h5, sub: SubDatabase) -> None:
+    """Create ``subdatabases/<word>/`` (replacing an existing one) in an open writable file."""
+    g = h5.require_group(schema.SUBDB_GROUP)
+    if sub.word in g:
+        del g[sub.word]
+    sg = g.create_group(sub.word)
+    for name, (dtype, unit, doc) in SUBDB_FIELDS.items():
+        ds = sg.create_dataset(name, data=np.ascontiguousarray(getattr(sub, name), dtype=dtype))
+        ds.attrs["unit"] = unit
+        ds.attrs["doc"] = doc
+    schema.write_json_attr(sg, "definition", sub.definition)
+
+
+def _open(db_path):
+    from gesturedb.database import Database
+
+    return Database(db_path)
+
+
+def _check_unchanged(h5, t: _Tables) -> None:
+    # the tables were read from the file before it was copied for the edit
+    if int(h5.attrs["n_frames"]) != t.n_frames or h5["words/text"].shape[0] != len(t.w_text):
+        raise SchemaError(t.path, "the database changed while it was being edited; try again")
+
+
+def add_keyword(db_path, word: str, *, before_s: float = 0.5, after_s: float = 1.0,
+                replace: bool = False) -> SubDatabase:
+    """Create the sub-database of a keyword in a database file (atomic edit).
+
+    Parameters
+    ----------
+    db_path : path
+        A gesture database; rewritten atomically (see :mod:`gesturedb.dbedit`).
+    word : str
+        The keyword; matched case-insensitively against whole words.
+    before_s, after_s : float >= 0, seconds
+        Context kept around each occurrence. The paper does not give one; a
+        gesture's preparation and stroke usually start shortly before or with its
+        word and the stroke and retraction run on after it, hence the defaults
+        0.5 s before and 1.0 s after.
+    replace : bool
+        Rebuild an existing sub-database of the same word (its removed
+        occurrences come back).
+
+    Returns
+    -------
+    SubDatabase
+        What was written.
+
+    Raises
+    ------
+    ParameterError
+        The word never occurs (with close words as suggestions), or its
+        sub-database exists and ``replace`` is false.
+    """
+    from gesturedb.dbedit import edit
+
+    w = _keyword_name(word)
+    before_s = _check_seconds("before_s", before_s)
+    after_s = _check_seconds("after_s", after_s)
+    # every check runs on a read-only view first, so a refused edit never copies the file
+    with _open(db_path) as db:
+        t = _tables(db)
+        existing = subdatabases(db)
+    if w in existing and not replace:
+        raise ParameterError(
+            f"keyword {w!r}: {t.path} already has its sub-database ({len(existing[w])} occurrences, "
+            f"{existing[w].before_s:g} s before, {existing[w].after_s:g} s after); pass replace=True "
+            "(--replace) to rebuild it, or drop it first"
+        )
+    sub = _occurrences(t, w, before_s, after_s)
+    with edit(db_path) as h5:
+        _check_unchanged(h5, t)
+        _write_subdb(h5, sub)
+    return sub
+
+
+def remove_occurrence(db_path, word: str, index: int) -> SubDatabase:
+    """Take one occurrence (an index as listed by :func:`show`) out of a sub-database (atomic edit).
+
+    The mask is recomputed from the remaining stretches and the occurrence's word
+    index is recorded in ``definition["removed"]``. Removing the last occurrence
+    is refused: drop the sub-database instead (an empty one would make every
+    keyword step fail).
+
+    Returns
+    -------
+    SubDatabase
+        The sub-database after the removal.
+    """
+    from gesturedb.dbedit import edit
+
+    with _open(db_path) as db:
+        sub = get_subdatabase(db, word)
+        n_frames = db.n_frames
+        path = db.path
+    n = len(sub)
+    if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
+        raise ParameterError(
+            f"index: expected an occurrence of {sub.word!r} in [0, {n}) (see `gesturedb keywords {path} show "
+            f"{sub.word}`), got {index!r}"
+        )
+    if n == 1:
+        raise ParameterError(
+            f"keyword {sub.word!r}: occurrence {index} is the last one of the sub-database in {path}; "
+            "drop the sub-database instead (`drop WORD`)"
+        )
+    keep = np.arange(n) != int(index)
+    definition = dict(sub.definition)
+    definition["removed"] = list(definition.get("removed", [])) + [int(sub.word_index[index])]
+    new = SubDatabase(
+        word=sub.word, start=sub.start[keep], length=sub.length[keep], recording=sub.recording[keep],
+        word_index=sub.word_index[keep], mask=_mask_of(sub.start[keep], sub.length[keep], n_frames),
+        definition=definition,
+    )
+    with edit(db_path) as h5:
+        if int(h5.attrs["n_frames"]) != n_frames:
+            raise SchemaError(path, "the database changed while it was being edited; try again")
+        _write_subdb(h5, new)
+    return new
+
+
+def drop_keyword(db_path, word: str) -> SubDatabase:
+    """Delete a whole sub-database (atomic edit); returns what was dropped."""
+    from gesturedb.dbedit import edit
+
+    with _open(db_path) as db:
+        sub = get_subdatabase(db, word)
+    with edit(db_path) as h5:
+        g = h5[schema.SUBDB_GROUP]
+        del g[sub.word]
+        if len(g) == 0:
+            del h5[schema.SUBDB_GROUP]
+    return sub
+
+
+# --------------------------------------------------------------------------
+# looking
+# --------------------------------------------------------------------------
+
+class WordCount(NamedTuple):
+    """One row of :func:`list_words`."""
+
+    word: str
+    count: int
+    total_s: float  # summed duration of the spoken word, s
+
+
+class Occurrence(NamedTuple):
+    """One row of :func:`show`."""
+
+    index: int
+    recording: str
+    time_s: float  # word start within its recording, s
+    context: str  # the words around it, the keyword in [brackets]
+
+
+def list_words(db, *, top: int | None = None) -> list[WordCount]:
+    """The database's vocabulary, to choose keywords from.
+
+    Parameters
+    ----------
+    db : gesturedb.database.Database
+    top : int or None
+        Keep only the first ``top`` rows.
+
+    Returns
+    -------
+    list of WordCount
+        ``(word, count, total_s)`` sorted by count (most frequent first), then
+        alphabetically; ``total_s`` is the summed spoken duration of the word (s).
+        An entry holding several words (GENEA's ``"there is"``) counts for each of
+        them, its duration shared equally.
+    """
+    if top is not None:
+        top = _check_int("top", top, 1)
+    w = db.words
+    dur = np.asarray(w.end_s, dtype=np.float64) - np.asarray(w.start_s, dtype=np.float64)
+    count: Counter = Counter()
+    total: dict[str, float] = {}
+    for text, d in zip(w.text, dur):
+        toks = _tokens(text)
+        for k in toks:
+            count[k] += 1
+            total[k] = total.get(k, 0.0) + float(d) / len(toks)
+    rows = sorted((WordCount(k, c, round(total[k], 6)) for k, c in count.items()), key=lambda r: (-r.count, r.word))
+    return rows[:top] if top is not None else rows
+
+
+def _context(t: _Tables, wi: int, n_context: int) -> str:
+    rec = t.w_rec[wi]
+    lo = wi
+    while lo > 0 and wi - lo < n_context and t.w_rec[lo - 1] == rec:
+        lo -= 1
+    hi = wi
+    while hi + 1 < len(t.w_text) and hi - wi < n_context and t.w_rec[hi + 1] == rec:
+        hi += 1
+    parts = [t.w_text[i] if i != wi else f"[{t.w_text[i]}]" for i in range(lo, hi + 1)]
+    return ("... " if lo > 0 and t.w_rec[lo - 1] == rec else "") + " ".join(parts) + (
+        " ..." if hi + 1 < len(t.w_text) and t.w_rec[hi + 1] == rec else "")
+
+
+def show(db, word: str, *, n_context: int = 3) -> list[Occurrence]:
+    """The occurrences of a keyword with the words around them.
+
+    Parameters
+    ----------
+    db : gesturedb.database.Database
+    word : str
+        A keyword with a sub-database: its occurrences, numbered as
+        :func:`remove_occurrence` takes them. Any other word: the occurrences
+        :func:`add_keyword` would collect (raises if the word never occurs).
+    n_context : int
+        Words shown before and after (within the same recording).
+
+    Returns
+    -------
+    list of Occurrence
+        ``(index, recording, time_s, context)``.
+    """
+    n_context = _check_int("n_context", n_context, 0)
+    w = _keyword_name(word)
+    t = _tables(db)
+    subs = subdatabases(db)
+    if w in subs:
+        word_index = subs[w].word_index
+    else:
+        word_index = _occurrences(t, w, 0.0, 0.0).word_index
+    return [
+        Occurrence(i, t.rec_names[int(t.w_rec[wi])], float(t.w_start[wi]), _context(t, int(wi), n_context))
+        for i, wi in enumerate(word_index)
+    ]
+
+
+# --------------------------------------------------------------------------
+# export as a database of its own
+# --------------------------------------------------------------------------
+
+def export_keyword(db_path, word: str, out_path, *, chunk_frames: int | None = None):
+    """Write a sub-database as a complete gesture database file of its own.
+
+    Every occurrence stretch becomes a recording named ``<recording>@<start_s>``
+    (the stretch start within the source recording, 3 decimals; a repeated name
+    gets ``#2``, ``#3``...). The new file follows :mod:`gesturedb.schema`:
+
+    * per-frame arrays, controls and the recording columns are copied from the
+      source frames (pose features keep their source history, so the frames are
+      the same numbers as in the source);
+    * the skeleton, audio mean/std, ``config`` and ``feature_joints`` are copied;
+    * words: those whose start lies in a stretch, times made relative to it and
+      their end clipped to it;
+    * chunks: one per stretch (``chunk_frames=None``) or fixed chunks of
+      ``chunk_frames`` within each stretch;
+    * word-gap clips are recomputed on each stretch's words with the source's
+      ``gap_s``; their rhythm and style signatures are measured on the whole
+      source recording (so a speed minimum right at a stretch edge is still
+      seen, as in a build);
+    * the default percentile masks are recomputed over the new frames
+      (:func:`gesturedb.build.write_default_masks`); other saved masks of the
+      source keep their bits on the copied frames;
+    * the sub-database itself, every stretch whole, so the keyword works in
+      synthesis with the exported file.
+
+    Parameters
+    ----------
+    db_path : path
+        The source database (not modified).
+    word : str
+        A keyword with a sub-database in it.
+    out_path : path
+        The new file, written to a temporary file beside it and renamed.
+    chunk_frames : int or None
+        See above.
+
+    Returns
+    -------
+    gesturedb.database.Database
+        The new database, open for reading.
+    """
+    from gesturedb.build import write_atomically
+    from gesturedb.database import Database
+
+    if chunk_frames is not None:
+        chunk_frames = _check_int("chunk_frames", chunk_frames, 1)
+    out_path = os.fspath(out_path)
+    if os.path.exists(out_path) and os.path.samefile(out_path, db_path):
+        raise ParameterError(f"output: {out_path} is the source database; export to another file")
+    with _open(db_path) as db:
+        sub = get_subdatabase(db, word)
+        plan = _export_plan(db, sub, chunk_frames)
+        write_atomically(out_path, lambda h5: _write_export(h5, db, sub, plan))
+    return Database(out_path)
+
+
+@dataclass
+class _ExportPlan:
+    frames: np.ndarray      # (F',) source frame of every new frame
+    names: list
+    starts: np.ndarray      # (R',) new start frames
+    lengths: np.ndarray     # (R',)
+    src_rec: np.ndarray     # (R',) source recording index
+    src_first: np.ndarray   # (R',) stretch start within the source recording, frames
+    words: list             # per stretch: (source word indices, start_s, end_s, text)
+    keyword_word: np.ndarray  # (R',) index of the occurrence in the new words table
+    chunks: tuple           # (start, length, recording) new
+    clips: dict
+
+
+def _export_plan(db, sub: SubDatabase, chunk_frames: int | None) -> _ExportPlan:
+    from gesturedb.features import rhythm as frhythm
+    from gesturedb.features import segments as fseg
+    from gesturedb.features import style as fstyle
+
+    fps = db.fps
+    recs = db.recordings
+    t = _tables(db)
+    n = len(sub)
+    lengths = sub.length.astype(np.int64)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+    frames = np.concatenate([np.arange(a, a + L, dtype=np.int64) for a, L in zip(sub.start, lengths)])
+    src_rec = sub.recording.astype(np.int64)
+    src_first = sub.start - t.rec_start[src_rec]
+
+    names, seen = [], Counter()
+    for r, a in zip(src_rec, src_first):
+        base = f"{recs[r].name}@{a / fps:.3f}"
+        seen[base] += 1
+        names.append(base if seen[base] == 1 else f"{base}#{seen[base]}")
+
+    w_first, _ = time_to_frames(t.w_start, t.w_end, fps)
+    words, keyword_word, base_w = [], np.empty(n, dtype=np.int64), 0
+    for i in range(n):
+        r, a, L = src_rec[i], int(src_first[i]), int(lengths[i])
+        sel = np.flatnonzero((t.w_rec == r) & (w_first >= a) & (w_first < a + L))
+        s0 = a / fps
+        ws = np.clip(t.w_start[sel] - s0, 0.0, None)
+        we = np.clip(t.w_end[sel] - s0, ws, L / fps)
+        hit = np.flatnonzero(sel == sub.word_index[i])
+        if hit.size != 1:  # the stretch is built around the word's frames, so this is a corrupt file
+            raise SchemaError(db.path, f"{schema.SUBDB_GROUP}/{sub.word}: occurrence {i} (word "
+                              f"{int(sub.word_index[i])}) does not lie inside its stretch")
+        keyword_word[i] = base_w + int(hit[0])
+        words.append((sel, ws, we, [t.w_text[j] for j in sel]))
+        base_w += sel.size
+
+    if chunk_frames is None:
+        chunks = (starts.copy(), lengths.copy(), np.arange(n, dtype=np.int32))
+    else:
+        parts = [fseg.fixed_chunks(int(L), length=chunk_frames) for L in lengths]
+        chunks = (
+            np.concatenate([s + b for (s, _), b in zip(parts, starts)]).astype(np.int64),
+            np.concatenate([ln for _, ln in parts]).astype(np.int64),
+            np.concatenate([np.full(len(s), i, np.int32) for i, (s, _) in enumerate(parts)]),
+        )
+
+    gap_s = float(db.config.get("gap_s", 0.4))
+    names_idx = {name: j for j, name in enumerate(db.joint_names)}
+    joints = {role: names_idx[name] for role, name in db.feature_joints.items() if name in names_idx}
+    pos_cache: dict[int, tuple] = {}
+    cl = {k: [] for k in ("start", "length", "recording", "word_start", "word_end",
+                          "rhythm_audio", "rhythm_motion", "style")}
+    base_w = 0
+    for i in range(n):
+        r, a, L = int(src_rec[i]), int(src_first[i]), int(lengths[i])
+        _, ws, we, _ = words[i]
+        c = fseg.word_gap_clips(ws, we, n_frames=L, fps=fps, gap_s=gap_s)
+        if r not in pos_cache:
+            rec = recs[r]
+            pos = np.asarray(db.joint_positions[rec.start_frame:rec.stop_frame], dtype=np.float64)
+            pos_cache[r] = (pos, frhythm.hand_speed(pos, joints=joints, fps=fps))
+        pos, speed = pos_cache[r]
+        cl["start"].append(c.start + starts[i])
+        cl["length"].append(c.length)
+        cl["recording"].append(np.full(len(c.start), i, np.int32))
+        cl["word_start"].append(c.word_start + base_w)
+        cl["word_end"].append(c.word_end + base_w)
+        cl["rhythm_audio"].append(np.atleast_1d(np.asarray(
+            frhythm.audio_rhythm(ws, start_s=c.start / fps, end_s=(c.start + c.length) / fps), dtype=np.uint32)))
+        cl["rhythm_motion"].append(np.atleast_1d(np.asarray(
+            frhythm.motion_rhythm(speed, start=c.start + a, length=c.length, fps=fps), dtype=np.uint32)))
+        cl["style"].append(fstyle.style_signatures(pos, joints=joints, fps=fps, starts=c.start + a, lengths=c.length))
+        base_w += len(ws)
+    clips = {k: np.concatenate(v) for k, v in cl.items()}
+    return _ExportPlan(frames=frames, names=names, starts=starts, lengths=lengths, src_rec=src_rec,
+                       src_first=src_first, words=words, keyword_word=keyword_word, chunks=chunks, clips=clips)
+
+
+def _write_export(h5, db, sub: SubDatabase, p: _ExportPlan) -> None:
+    from gesturedb import masks
+    from gesturedb._version import __version__
+    from gesturedb.build import write_default_masks
+
+    W = schema.write
+    dims: dict[str, int] = {}
+    recs = db.recordings
+    F = int(p.frames.shape[0])
+    fr = p.frames
+    src = [recs[int(r)] for r in p.src_rec]
+
+    h5.attrs["schema_version"] = schema.SCHEMA_VERSION
+    h5.attrs["gesturedb_version"] = __version__
+    h5.attrs["fps"] = float(db.fps)
+    h5.attrs["n_frames"] = F
+    schema.write_json_attr(h5, "config", db.config)
+    schema.write_json_attr(h5, "feature_joints", db.feature_joints)
+
+    W(h5, "recordings/name", p.names, dims)
+    W(h5, "recordings/speaker", [r.speaker for r in src], dims)
+    W(h5, "recordings/motion_path", [r.motion_path for r in src], dims)
+    W(h5, "recordings/audio_path", [r.audio_path for r in src], dims)
+    W(h5, "recordings/transcript_path", [r.transcript_path for r in src], dims)
+    W(h5, "recordings/start_frame", p.starts, dims)
+    W(h5, "recordings/n_frames", p.lengths, dims)
+    W(h5, "recordings/duration_s", p.lengths / db.fps, dims)
+    W(h5, "recordings/source_fps", np.array([r.source_fps for r in src], dtype=np.float64), dims)
+    W(h5, "recordings/mirrored", np.array([r.mirrored for r in src], dtype=bool), dims)
+
+    W(h5, "frames/pose_features", db.pose_features[fr], dims)
+    W(h5, "frames/audio_features", db.audio_features[fr], dims)
+    W(h5, "frames/audio_deltas", db.audio_deltas[fr], dims)
+    W(h5, "frames/joint_positions", db.joint_positions[fr], dims)
+    W(h5, "frames/local_rotations", db.local_rotations[fr], dims)
+    W(h5, "frames/root_positions", db.root_positions[fr], dims)
+    W(h5, "frames/recording", np.repeat(np.arange(len(p.names), dtype=np.int32), p.lengths), dims)
+    W(h5, "audio/mean", db.audio_mean, dims)
+    W(h5, "audio/std", db.audio_std, dims)
+
+    for path in ("skeleton/names", "skeleton/parents", "skeleton/offsets", "skeleton/channel_orders",
+                 "skeleton/end_site_joints", "skeleton/end_site_offsets"):
+        W(h5, path, schema.read(db.h5, path), dims)
+
+    W(h5, "chunks/start", p.chunks[0], dims)
+    W(h5, "chunks/length", p.chunks[1], dims)
+    W(h5, "chunks/recording", p.chunks[2], dims)
+
+    for key in ("start", "length", "recording", "word_start", "word_end", "rhythm_audio", "rhythm_motion"):
+        W(h5, f"clips/{key}", p.clips[key], dims)
+    W(h5, "clips/style", p.clips["style"].astype(np.float32).reshape(-1, 3), dims)
+
+    W(h5, "words/recording", np.concatenate([np.full(len(w[0]), i, np.int32) for i, w in enumerate(p.words)]), dims)
+    W(h5, "words/start_s", np.concatenate([w[1] for w in p.words]), dims)
+    W(h5, "words/end_s", np.concatenate([w[2] for w in p.words]), dims)
+    W(h5, "words/text", [x for w in p.words for x in w[3]], dims)
+
+    controls = {k: np.ascontiguousarray(v[fr], dtype=np.float32) for k, v in db.controls.items()}
+    if controls:
+        g = h5.create_group(schema.CONTROLS_GROUP)
+        src_g = db.h5[schema.CONTROLS_GROUP]
+        for k, v in controls.items():
+            ds = g.create_dataset(k, data=v)
+            for a in ("unit", "doc"):
+                if a in src_g[k].attrs:
+                    ds.attrs[a] = src_g[k].attrs[a]
+        write_default_masks(h5, controls)
+    src_masks = db.h5.get(schema.MASKS_GROUP)
+    if src_masks is not None:
+        g = h5.require_group(schema.MASKS_GROUP)
+        for name in sorted(src_masks):
+            if name in g:  # a default mask, recomputed above for the new frames
+                continue
+            bits = masks.unpack_bits(np.asarray(src_masks[name][()], dtype=np.uint64), db.n_frames)[fr]
+            ds = g.create_dataset(name, data=masks.pack_bits(bits))
+            for a, v in src_masks[name].attrs.items():
+                ds.attrs[a] = v
+
+    definition = dict(sub.definition)
+    definition["exported_from"] = {"database": os.path.abspath(db.path), "occurrences": len(sub)}
+    _write_subdb(h5, SubDatabase(
+        word=sub.word, start=p.starts, length=p.lengths, recording=np.arange(len(p.names), dtype=np.int32),
+        word_index=p.keyword_word, mask=masks.full_mask(F), definition=definition,
+    ))
+
+
+# --------------------------------------------------------------------------
+# synthesis
+# --------------------------------------------------------------------------
+
+def _read_words(transcript):
+    if isinstance(transcript, (str, os.PathLike)):
+        from gesturedb.io import read_transcript
+
+        transcript = read_transcript(transcript)
+    missing = [a for a in ("start_s", "end_s", "text") if not hasattr(transcript, a)]
+    if missing:
+        raise ParameterError(
+            f"transcript: expected a path or a Words object (start_s, end_s, text), got "
+            f"{type(transcript).__name__} without {', '.join(missing)}"
+        )
+    start = np.asarray(transcript.start_s, dtype=np.float64).reshape(-1)
+    end = np.asarray(transcript.end_s, dtype=np.float64).reshape(-1)
+    text = [_tokens(x) for x in transcript.text]
+    if not (start.shape[0] == end.shape[0] == len(text)):
+        raise ParameterError(
+            f"transcript: expected start_s, end_s and text of equal length, got {start.shape[0]}, "
+            f"{end.shape[0]}, {len(text)}"
+        )
+    return start, end, text
+
+
+def keyword_step_masks(
+    db,
+    transcript,
+    *,
+    n_steps: int,
+    step: int,
+    n_out_frames: int,
+    only: Sequence[str] | None = None,
+):
+    """Per-step allowed bitsets from the keywords of the input speech.
+
+    Parameters
+    ----------
+    db : gesturedb.database.Database
+    transcript : path or Words
+        Word timings of the input speech (TextGrid / GENEA TSV / JSON, read with
+        :func:`gesturedb.io.read_transcript`), or an object with ``start_s``,
+        ``end_s`` (seconds) and ``text``.
+    n_steps : int
+        Search steps, ``ceil(n_out_frames / step)``.
+    step : int >= 1
+        Frames per step; step ``i`` covers output frames
+        ``[i * step, min((i + 1) * step, n_out_frames))``.
+    n_out_frames : int >= 1
+        Length of the output at the database fps.
+    only : list of str or None
+        Use only these keywords (each must have a sub-database).
+
+    Returns
+    -------
+    (bits, labels) or None
+        ``bits`` : ndarray [shape=(n_steps, B)], uint64, C-contiguous: a step whose
+        frames overlap an occurrence of a keyword in the transcript (the word's
+        interval in frames at ``db.fps``, see the module notes) gets that
+        keyword's sub-database mask, every other step all frames.
+        ``labels`` : list of str or None, the keyword of each step.
+        When several keywords overlap one step, the one covering most of its
+        frames wins; on a tie, the one whose covered frames start first, then the
+        alphabetically first. None when no keyword of the database (of
+        ``only``) is said inside the output.
+    """
+    from gesturedb import masks
+
+    step = _check_int("step", step, 1)
+    n_out_frames = _check_int("n_out_frames", n_out_frames, 1)
+    n_steps = _check_int("n_steps", n_steps, 1)
+    want = -(-n_out_frames // step)
+    if n_steps != want:
+        raise ParameterError(
+            f"n_steps: expected ceil(n_out_frames / step) = ceil({n_out_frames} / {step}) = {want}, got {n_steps}"
+        )
+    subs = subdatabases(db)
+    if only is not None:
+        if isinstance(only, str):
+            only = [only]
+        chosen = {}
+        for w in only:
+            k = _keyword_name(w)
+            if k not in subs:
+                raise ParameterError(_missing_message(k, list(subs), db.path))
+            chosen[k] = subs[k]
+        subs = chosen
+    if not subs:
+        return None
+
+    start, end, text = _read_words(transcript)
+    first, stop = time_to_frames(start, end, db.fps)
+    first = np.clip(first, 0, n_out_frames)
+    stop = np.clip(stop, 0, n_out_frames)
+    coverage: dict[str, np.ndarray] = {}
+    for a, b, toks in zip(first, stop, text):
+        for w in toks:
+            if w in subs and b > a:
+                coverage.setdefault(w, np.zeros(n_steps * step, dtype=bool))[a:b] = True
+    if not coverage:
+        return None
+
+    keys = sorted(coverage)
+    cov = np.stack([coverage[k] for k in keys]).reshape(len(keys), n_steps, step)  # (K, n_steps, step)
+    covered = cov.sum(axis=2)  # frames of each step covered by each keyword
+    first_in_step = np.where(cov.any(axis=2), cov.argmax(axis=2), step)
+    # lexsort: last key is primary -> most frames, then earliest frame, then keys order (alphabetical)
+    order = np.lexsort((np.arange(len(keys))[:, None].repeat(n_steps, 1), first_in_step, -covered), axis=0)
+    best = order[0]
+    has = covered.max(axis=0) > 0
+
+    full = masks.full_mask(db.n_frames)
+    bits = np.empty((n_steps, full.shape[0]), dtype=np.uint64)
+    bits[:] = full
+    labels: list[str | None] = [None] * n_steps
+    for i in np.flatnonzero(has):
+        k = keys[int(best[i])]
+        bits[i] = subs[k].mask
+        labels[i] = k
+    return np.ascontiguousarray(bits), labels
