@@ -1,0 +1,68 @@
+"""Speech audio: any WAV (or other libsndfile format) to mono float32 at the analysis rate.
+
+soundfile reads what Python's ``wave`` cannot, notably 32-bit float WAV (format
+tag 3, as in BEAT2) and 24-bit PCM; channels are averaged to mono and soxr
+(high quality) resamples to the requested rate.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import soundfile as sf
+import soxr
+
+from gesturedb.errors import InputFileError, ParameterError
+
+__all__ = ["read_audio"]
+
+
+def read_audio(path, *, sr: int | None = 16000) -> tuple[np.ndarray, int]:
+    """Read speech as mono float32 samples.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        WAV (PCM 16/24/32-bit, 32/64-bit float) or any format libsndfile reads.
+    sr : int or None
+        Output sample rate in Hz (a whole-number float such as 16000.0 is
+        accepted); ``None`` keeps the file's rate.
+
+    Returns
+    -------
+    samples : ndarray [shape=(n,)], float32
+        Mono (the mean of the channels), full scale +-1 for PCM.
+    sr : int
+        Sample rate of ``samples``, Hz.
+
+    Raises
+    ------
+    InputFileError
+        Missing or unreadable file, no samples, or non-finite samples (the
+        message gives the first bad sample and its time). Silence is fine.
+    ParameterError
+        If ``sr`` is not a positive integer.
+    """
+    if sr is not None:
+        integral = isinstance(sr, (int, np.integer)) or \
+            (isinstance(sr, (float, np.floating)) and float(sr).is_integer())
+        if isinstance(sr, bool) or not integral or sr <= 0:
+            raise ParameterError(f"sr: expected a positive integer sample rate in Hz or None; got {sr!r}")
+        sr = int(sr)
+    if not os.path.isfile(path):
+        raise InputFileError(path, "no such file")
+    try:
+        data, sr_file = sf.read(os.fspath(path), dtype="float32", always_2d=True)
+    except (sf.LibsndfileError, RuntimeError, TypeError, ValueError) as exc:
+        raise InputFileError(path, f"cannot read as audio: {exc}") from None
+    if data.shape[0] == 0:
+        raise InputFileError(path, f"no audio samples (0 frames, {data.shape[1]} channel(s) at {sr_file} Hz)")
+    bad = ~np.isfinite(data)
+    if bad.any():
+        i, c = (int(v) for v in np.argwhere(bad)[0])
+        raise InputFileError(path, f"sample {i} (t = {i / sr_file:.3f} s, channel {c}) is not finite: {data[i, c]}")
+    mono = data[:, 0] if data.shape[1] == 1 else data.mean(axis=1, dtype=np.float32)
+    if sr is None or sr == sr_file:
+        return np.ascontiguousarray(mono, dtype=np.float32), int(sr_file)
+    out = soxr.resample(mono, sr_file, sr, quality="HQ")
+    return np.ascontiguousarray(out, dtype=np.float32), sr

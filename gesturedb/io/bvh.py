@@ -1,0 +1,511 @@
+"""BVH (Biovision Hierarchy) motion files: read any skeleton, write it back.
+
+Reading
+    Any hierarchy of ``ROOT``/``JOINT`` blocks with ``End Site`` leaves, any
+    Euler channel order per joint and any frame time. Rotation channels are
+    converted with `gesturedb.rotations.from_euler` (``Zrotation Xrotation
+    Yrotation`` means ``R = Rz @ Rx @ Ry``). The root's position channels give
+    `Motion.root_positions` (a root without them stays at its OFFSET).
+    Position channels on other joints (some exporters write 6 channels on
+    every joint) replace that joint's OFFSET, as in BVH players; a `Motion` has
+    fixed bone lengths, so their mean over the clip is used, with a warning if
+    they actually move.
+
+Units
+    Lengths are converted to metres. ``length_unit_m=None`` infers the unit from
+    the rest skeleton: taller than 3.0 file units (max - min of the rest joint
+    heights) means centimetres (0.01 m per unit), otherwise metres. The factor
+    is kept in `Skeleton.length_unit_m` and `write_bvh` writes back in it.
+
+Writing
+    Joints are written depth first, the root with ``Xposition Yposition
+    Zposition`` and its rotation channels, every other joint with three rotation
+    channels in its `Skeleton.channel_orders` order. A skeleton whose joint
+    order is not depth-first (SMPL-X) reads back with the joints reordered;
+    names, positions and rotations are unchanged.
+"""
+from __future__ import annotations
+
+import io
+import math
+import os
+import re
+import uuid
+import warnings
+
+import numpy as np
+
+from gesturedb import rotations as rot
+from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.motion import Motion, Skeleton
+
+__all__ = ["read_bvh", "write_bvh"]
+
+_CHANNEL_NAMES = {
+    "xposition": ("pos", 0), "yposition": ("pos", 1), "zposition": ("pos", 2),
+    "xrotation": ("rot", "X"), "yrotation": ("rot", "Y"), "zrotation": ("rot", "Z"),
+}
+# Printed frame times have ~6 significant digits (0.008333 for 120 fps): a frame rate
+# this close to a whole number is taken to be that number.
+_FPS_SNAP_REL = 2e-4
+# Rest skeletons taller than this many file units are taken to be in centimetres.
+_CM_THRESHOLD = 3.0
+
+
+class _Joint:
+    __slots__ = ("name", "parent", "offset", "channels", "line", "end_site")
+
+    def __init__(self, name, parent, line):
+        self.name = name
+        self.parent = parent
+        self.offset = None
+        self.channels = None
+        self.line = line
+        self.end_site = None
+
+
+def _tokens(lines, start, stop):
+    """Yield (token, line number) over the hierarchy; ROOT/JOINT names may contain spaces."""
+    for i in range(start, stop):
+        parts = lines[i].split()
+        if not parts:
+            continue
+        key = parts[0].upper()
+        if key in ("ROOT", "JOINT"):
+            rest = lines[i].strip()[len(parts[0]):].strip()
+            brace = rest.endswith("{")
+            name = rest[:-1].strip() if brace else rest
+            yield parts[0], i + 1
+            yield ("\0" + name), i + 1  # marked so a joint called "{" cannot confuse the parser
+            if brace:
+                yield "{", i + 1
+            continue
+        for p in parts:
+            # braces may be glued to other tokens ("{" ... "}" on one line)
+            for piece in re.split(r"([{}])", p):
+                if piece:
+                    yield piece, i + 1
+
+
+def _parse_hierarchy(path, lines, start, stop):
+    toks = list(_tokens(lines, start, stop))
+    pos = 0
+
+    def fail(problem, line=None):
+        where = f"line {line}: " if line else ""
+        raise InputFileError(path, where + problem)
+
+    def take(expect=None, what=None):
+        """Next token; ``expect`` is a token that must come, ``what`` describes what may come."""
+        nonlocal pos
+        if pos >= len(toks):
+            fail(f"HIERARCHY ends early (expected {expect or what or 'more'}; the file may be truncated)", stop)
+        tok, ln = toks[pos]
+        pos += 1
+        if expect is not None and tok.upper() != expect.upper():
+            fail(f"expected {expect!r}, got {tok.lstrip(chr(0))!r}", ln)
+        return tok, ln
+
+    def number(what):
+        tok, ln = take()
+        try:
+            v = float(tok)
+        except ValueError:
+            fail(f"{what}: expected a number, got {tok.lstrip(chr(0))!r}", ln)
+        if not math.isfinite(v):
+            fail(f"{what}: expected a finite number, got {tok!r}", ln)
+        return v
+
+    joints: list[_Joint] = []
+
+    def parse_joint(parent, kw_line):
+        tok, ln = take()
+        if not tok.startswith("\0") or not tok[1:]:
+            fail("ROOT/JOINT: expected a joint name", kw_line)
+        name = tok[1:]
+        if any(j.name == name for j in joints):
+            fail(f"JOINT {name}: the name is used twice", ln)
+        me = len(joints)
+        jt = _Joint(name, parent, ln)
+        joints.append(jt)
+        take("{")
+        while True:
+            tok, ln = take(what="'}', OFFSET, CHANNELS, JOINT or End Site")
+            key = tok.upper()
+            if key == "}":
+                break
+            if key == "OFFSET":
+                jt.offset = [number(f"{name} OFFSET") for _ in range(3)]
+            elif key == "CHANNELS":
+                n_tok, n_ln = take()
+                if not n_tok.isdigit():
+                    fail(f"{name} CHANNELS: expected a channel count, got {n_tok!r}", n_ln)
+                chans = []
+                for _ in range(int(n_tok)):
+                    c, c_ln = take()
+                    if c.lower() not in _CHANNEL_NAMES:
+                        fail(f"{name} CHANNELS: expected X/Y/Z position/rotation channels, got {c!r}", c_ln)
+                    chans.append(c)
+                kinds = [_CHANNEL_NAMES[c.lower()] for c in chans]
+                rots = [a for k, a in kinds if k == "rot"]
+                poss = [a for k, a in kinds if k == "pos"]
+                if len(rots) not in (0, 3) or len(set(rots)) != len(rots) or \
+                        len(poss) not in (0, 3) or len(set(poss)) != len(poss):
+                    fail(f"{name} CHANNELS: expected 0 or 3 distinct rotation and 0 or 3 distinct position "
+                         f"channels, got {' '.join(chans)}", n_ln)
+                jt.channels = chans
+            elif key == "JOINT":
+                parse_joint(me, ln)
+            elif key == "END":
+                take("Site")
+                take("{")
+                take("OFFSET")
+                off = [number(f"{name} End Site OFFSET") for _ in range(3)]
+                take("}")
+                if jt.end_site is not None:
+                    fail(f"{name}: a second End Site (one per joint is supported)", ln)
+                jt.end_site = off
+            else:
+                fail(f"{name}: expected OFFSET, CHANNELS, JOINT, End Site or '}}', got {tok.lstrip(chr(0))!r}", ln)
+        if jt.offset is None:
+            fail(f"{name}: no OFFSET", jt.line)
+        if jt.channels is None:
+            fail(f"{name}: no CHANNELS", jt.line)
+
+    tok, ln = take("HIERARCHY")
+    tok, ln = take("ROOT")
+    parse_joint(-1, ln)
+    if pos < len(toks):
+        tok, ln = toks[pos]
+        fail(f"expected MOTION after the root joint's closing brace, got {tok.lstrip(chr(0))!r} "
+             "(only one ROOT is supported)", ln)
+    return joints
+
+
+_HEADER_RE = {
+    "frames": re.compile(r"^\s*Frames\s*:\s*(\S+)\s*$", re.IGNORECASE),
+    "frame_time": re.compile(r"^\s*Frame\s+Time\s*:\s*(\S+)\s*$", re.IGNORECASE),
+}
+
+
+def _motion_header(path, lines, m_line):
+    """Frames and Frame Time after MOTION; returns (n_frames, frame_time, first data line index)."""
+    i = m_line + 1
+    found = {}
+    for key in ("frames", "frame_time"):
+        while i < len(lines) and not lines[i].strip():
+            i += 1
+        label = "Frames:" if key == "frames" else "Frame Time:"
+        if i >= len(lines):
+            raise InputFileError(path, f"MOTION: no '{label}' line (the file ends after line {len(lines)})")
+        m = _HEADER_RE[key].match(lines[i])
+        if not m:
+            raise InputFileError(path, f"line {i + 1}: expected '{label} <number>', got {lines[i].strip()[:60]!r}")
+        found[key] = (m.group(1), i + 1)
+        i += 1
+    txt, ln = found["frames"]
+    if not txt.isdigit() or int(txt) < 1:
+        raise InputFileError(path, f"line {ln}: Frames: expected a positive integer, got {txt!r}")
+    n_frames = int(txt)
+    txt, ln = found["frame_time"]
+    try:
+        ft = float(txt)
+    except ValueError:
+        ft = float("nan")
+    if not (math.isfinite(ft) and ft > 0):
+        raise InputFileError(path, f"line {ln}: Frame Time: expected a positive number of seconds, got {txt!r}")
+    return n_frames, ft, i
+
+
+def _frame_rate(frame_time: float) -> float:
+    fps = 1.0 / frame_time
+    whole = round(fps)
+    if whole >= 1 and abs(fps - whole) <= _FPS_SNAP_REL * whole:
+        return float(whole)
+    return fps
+
+
+def _channel_labels(joints):
+    labels = []
+    for jt in joints:
+        labels.extend(f"{jt.name} {c}" for c in jt.channels)
+    return labels
+
+
+def _diagnose_frames(path, data_lines, first_line, n_values, labels):
+    """Find the first bad frame line after a fast parse failed; raises InputFileError."""
+    frame = 0
+    for k, line in enumerate(data_lines):
+        parts = line.split()
+        if not parts:
+            continue
+        ln = first_line + k
+        if len(parts) != n_values:
+            raise InputFileError(path, f"line {ln} (frame {frame}): expected {n_values} values (from CHANNELS), "
+                                       f"got {len(parts)}")
+        for c, p in enumerate(parts):
+            try:
+                float(p)
+            except ValueError:
+                raise InputFileError(path, f"line {ln} (frame {frame}), value {c + 1} ({labels[c]}): "
+                                           f"expected a number, got {p[:40]!r}") from None
+        frame += 1
+    raise InputFileError(path, f"line {first_line}: frame data could not be parsed")
+
+
+def _infer_unit(offsets_file: np.ndarray, parents: np.ndarray) -> float:
+    rest = np.empty_like(offsets_file)
+    rest[0] = offsets_file[0]
+    for j in range(1, len(parents)):
+        rest[j] = rest[parents[j]] + offsets_file[j]
+    height = float(rest[:, 1].max() - rest[:, 1].min())
+    return 0.01 if height > _CM_THRESHOLD else 1.0
+
+
+def read_bvh(path, *, length_unit_m: float | None = None) -> Motion:
+    """Read a BVH file into a `Motion` in metres.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    length_unit_m : float or None
+        Metres per file length unit (0.01 for centimetres, 0.0254 for inches).
+        ``None`` infers it: a rest skeleton taller than 3.0 units is taken to be
+        in centimetres, otherwise in metres.
+
+    Returns
+    -------
+    Motion
+        ``rotations (F, J, 4)`` local quaternions, ``root_positions (F, 3)``
+        metres, ``fps = 1 / Frame Time`` (snapped to a whole number when the
+        printed frame time is a rounded ``1 / n``). The skeleton records the
+        Euler order of every joint and ``length_unit_m``.
+
+    Raises
+    ------
+    InputFileError
+        Unreadable file, malformed hierarchy, missing ``MOTION`` / ``Frames`` /
+        ``Frame Time``, fewer or more frame lines than ``Frames:``, a frame line
+        with the wrong number of values, a non-numeric or non-finite value; the
+        message names the line, frame and channel.
+    ParameterError
+        If ``length_unit_m`` is not a positive number.
+    """
+    if length_unit_m is not None:
+        length_unit_m = float(length_unit_m)
+        if not (math.isfinite(length_unit_m) and length_unit_m > 0):
+            raise ParameterError(f"length_unit_m: expected a positive number of metres per unit; got {length_unit_m}")
+    try:
+        with open(path, "r", encoding="utf-8", errors="replace") as f:
+            text = f.read()
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    lines = text.splitlines()
+    m_line = next((i for i, ln in enumerate(lines) if ln.strip().upper() == "MOTION"), None)
+    if m_line is None:
+        raise InputFileError(path, "no MOTION section (expected a line 'MOTION' after the HIERARCHY)")
+    joints = _parse_hierarchy(path, lines, 0, m_line)
+    n_frames, frame_time, first = _motion_header(path, lines, m_line)
+
+    labels = _channel_labels(joints)
+    n_values = len(labels)
+    data_lines = lines[first:]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # loadtxt warns on an empty block; counted below
+            data = np.loadtxt(io.StringIO("\n".join(data_lines)), dtype=np.float64, ndmin=2,
+                              comments=None)
+    except ValueError:
+        _diagnose_frames(path, data_lines, first + 1, n_values, labels)
+    if data.shape[0] == 0:
+        raise InputFileError(path, f"MOTION: Frames: {n_frames} declared but there are no frame lines "
+                                   "(the file is truncated)")
+    if data.shape[1] != n_values:
+        _diagnose_frames(path, data_lines, first + 1, n_values, labels)
+    if data.shape[0] != n_frames:
+        more = "more" if data.shape[0] > n_frames else "fewer"
+        hint = "" if more == "more" else " (the file is truncated)"
+        raise InputFileError(path, f"MOTION: Frames: {n_frames} declared but the file has {data.shape[0]} frame "
+                                   f"lines ({more}){hint}")
+    bad = ~np.isfinite(data)
+    if bad.any():
+        f, c = (int(v) for v in np.argwhere(bad)[0])
+        ln = _line_of_frame(data_lines, f) + first + 1
+        raise InputFileError(path, f"line {ln} (frame {f}), value {c + 1} ({labels[c]}): expected a finite number, "
+                                   f"got {data[f, c]}")
+    return _to_motion(path, joints, data, frame_time, length_unit_m)
+
+
+def _line_of_frame(data_lines, f):
+    seen = -1
+    for k, line in enumerate(data_lines):
+        if line.strip():
+            seen += 1
+            if seen == f:
+                return k
+    return 0
+
+
+def _to_motion(path, joints, data, frame_time, length_unit_m):
+    n_j = len(joints)
+    parents = np.array([jt.parent for jt in joints], dtype=np.int64)
+    offsets = np.array([jt.offset for jt in joints], dtype=np.float64)
+    n_f = data.shape[0]
+
+    col = 0
+    rot_cols = {}  # order -> (joint indices, (n, 3) column indices)
+    orders = []
+    pos_cols = {}
+    for j, jt in enumerate(joints):
+        order = ""
+        rc, pc = [], [None, None, None]
+        for c in jt.channels:
+            kind, axis = _CHANNEL_NAMES[c.lower()]
+            if kind == "rot":
+                order += axis
+                rc.append(col)
+            else:
+                pc[axis] = col
+            col += 1
+        orders.append(order)
+        if order:
+            idx, cols = rot_cols.setdefault(order, ([], []))
+            idx.append(j)
+            cols.append(rc)
+        if pc[0] is not None:
+            pos_cols[j] = pc
+
+    if any(j != 0 for j in pos_cols):
+        # non-root translations replace the OFFSET; a Motion has fixed bones, so take the mean
+        scale_units = max(float(np.ptp(offsets, axis=0).max()), 1e-9)
+        for j, pc in pos_cols.items():
+            if j == 0:
+                continue
+            vals = data[:, pc]
+            offsets[j] = vals.mean(axis=0)
+            spread = float(np.abs(vals - offsets[j]).max())
+            if spread > 1e-3 * scale_units:
+                warnings.warn(f"{os.fspath(path)}: joint {joints[j].name} has position channels that move by up to "
+                              f"{spread:.4g} file units; bone lengths are fixed, so their mean is used",
+                              stacklevel=3)
+
+    unit = _infer_unit(offsets, parents) if length_unit_m is None else length_unit_m
+
+    rotations = np.empty((n_f, n_j, 4))
+    rotations[..., 0] = 1.0
+    rotations[..., 1:] = 0.0
+    for order, (idx, cols) in rot_cols.items():
+        angles = data[:, np.asarray(cols)]  # (F, n, 3)
+        rotations[:, idx] = rot.from_euler(angles, order)
+
+    if 0 in pos_cols:
+        root = data[:, pos_cols[0]] * unit
+    else:
+        root = np.repeat(offsets[:1] * unit, n_f, axis=0)
+
+    ends = {j: np.asarray(jt.end_site, dtype=np.float64) * unit
+            for j, jt in enumerate(joints) if jt.end_site is not None}
+    skel = Skeleton([jt.name for jt in joints], parents, offsets * unit, orders, ends, unit)
+    return Motion(skel, _frame_rate(frame_time), rotations, root)
+
+
+def _fmt(v) -> str:
+    # %.6f keeps 1e-6 file units / degrees, far below the 1e-4 round-trip budget
+    return " ".join(f"{x + 0.0:.6f}" for x in v)
+
+
+def write_bvh(path, motion: Motion, *, length_unit_m: float | None = None) -> None:
+    """Write a `Motion` to a BVH file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file; written to a temporary file in the same folder and
+        renamed, so a failure never leaves half a file.
+    motion : Motion
+    length_unit_m : float or None
+        Metres per written length unit; ``None`` uses
+        ``motion.skeleton.length_unit_m`` (the unit the skeleton was read in).
+
+    Notes
+    -----
+    The root gets ``Xposition Yposition Zposition`` then its rotation
+    channels; every other joint its rotation channels in
+    ``skeleton.channel_orders`` order. A joint with order ``""`` is written
+    with ``CHANNELS 0`` and must not rotate. Angles are printed in degrees,
+    lengths with 6 decimals.
+
+    Raises
+    ------
+    ParameterError
+        Bad ``length_unit_m``, or a rotating joint without rotation channels.
+    InputFileError
+        If the file cannot be written.
+    """
+    if not isinstance(motion, Motion):
+        raise ParameterError(f"motion: expected a Motion; got {type(motion).__name__}")
+    sk = motion.skeleton
+    unit = sk.length_unit_m if length_unit_m is None else float(length_unit_m)
+    if not (math.isfinite(unit) and unit > 0):
+        raise ParameterError(f"length_unit_m: expected a positive number of metres per unit; got {length_unit_m}")
+    inv = 1.0 / unit
+
+    orders = list(sk.channel_orders)
+    if not orders[0]:
+        orders[0] = "ZXY"  # the root always gets 6 channels so it can turn
+    for j, order in enumerate(orders):
+        if not order and rot.angle_between(motion.rotations[:, j], rot.identity()).max() > 1e-6:
+            raise ParameterError(f"joint {sk.names[j]} has no rotation channels (channel order '') but rotates; "
+                                 "set skeleton.channel_orders for it")
+
+    out = ["HIERARCHY"]
+    written = []  # joint indices in file order: the frame columns must follow it
+    children = [[] for _ in range(sk.n_joints)]
+    for j in range(1, sk.n_joints):
+        children[sk.parents[j]].append(j)
+    # depth-first, children in index order; an explicit stack keeps deep chains (fingers) off the recursion limit
+    stack = [(0, 0, False)]
+    while stack:
+        j, depth, closing = stack.pop()
+        ind = "\t" * depth
+        if closing:
+            out.append(ind + "}")
+            continue
+        written.append(j)
+        out.append(f"{ind}{'ROOT' if j == 0 else 'JOINT'} {sk.names[j]}")
+        out.append(ind + "{")
+        out.append(f"{ind}\tOFFSET {_fmt(sk.offsets[j] * inv)}")
+        axes = " ".join(f"{a}rotation" for a in orders[j])
+        if j == 0:
+            out.append(f"{ind}\tCHANNELS 6 Xposition Yposition Zposition {axes}")
+        else:
+            out.append(f"{ind}\tCHANNELS {len(orders[j])} {axes}".rstrip())
+        if j in sk.end_sites:
+            out += [f"{ind}\tEnd Site", f"{ind}\t{{", f"{ind}\t\tOFFSET {_fmt(sk.end_sites[j] * inv)}", f"{ind}\t}}"]
+        stack.append((j, depth, True))
+        for c in reversed(children[j]):
+            stack.append((c, depth + 1, False))
+
+    columns = [motion.root_positions * inv]
+    columns += [rot.to_euler(motion.rotations[:, j], orders[j]) for j in written if orders[j]]
+    data = np.concatenate(columns, axis=1)
+    out += ["MOTION", f"Frames: {motion.n_frames}", f"Frame Time: {1.0 / motion.fps:.10g}"]
+
+    path = os.fspath(path)
+    # a sibling temporary file (opened with "x", so it gets the usual umask permissions)
+    # renamed over the target: a failed write never leaves half a BVH
+    tmp = f"{path}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    try:
+        with open(tmp, "x", encoding="utf-8", newline="\n") as f:
+            f.write("\n".join(out) + "\n")
+            # "+ 0.0" folds -0.0 to 0.0 so untouched channels do not print as -0.000000
+            np.savetxt(f, data + 0.0, fmt="%.6f", delimiter=" ")
+        os.replace(tmp, path)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise InputFileError(path, f"cannot write: {exc.strerror or exc}") from None
+        raise

@@ -1,0 +1,329 @@
+"""Word timings: Praat TextGrid, GENEA TSV and JSON transcripts -> `Words`.
+
+Every reader normalises the text the same way: lower case, punctuation removed
+(an apostrophe inside a word stays: ``don't``), whitespace collapsed. Intervals
+that are then empty or mark silence (``""``, ``<sil>``, ``sil``, ``sp``,
+``spn``) are dropped. An interval holding several words (GENEA writes
+``"there is"``) stays one entry, since its words have no timings of their own.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from gesturedb.errors import InputFileError, ParameterError
+
+__all__ = ["Words", "read_genea_tsv", "read_json_words", "read_textgrid", "read_transcript", "normalize_word"]
+
+_SILENCE = frozenset({"sil", "sp", "spn", "sil>", "<sil>", "<sp>", "<spn>", "<p:>", "#"})
+_PUNCT = re.compile(r"[^\w\s']|_")
+_LOOSE_APOSTROPHE = re.compile(r"(?<!\w)'|'(?!\w)")
+_SPACES = re.compile(r"\s+")
+
+
+def normalize_word(text: str) -> str:
+    """Lower-case ``text`` and strip punctuation; ``""`` for silence markers.
+
+    Parameters
+    ----------
+    text : str
+
+    Returns
+    -------
+    str
+        E.g. ``"Yeah,"`` -> ``"yeah"``, ``"It is-"`` -> ``"it is"``,
+        ``"Don't"`` -> ``"don't"``, ``"<sil>"`` / ``"(?)"`` -> ``""``.
+    """
+    t = text.strip().lower()
+    if t in _SILENCE:
+        return ""
+    t = _PUNCT.sub("", t.replace("\u2019", "'"))
+    t = _LOOSE_APOSTROPHE.sub("", t)
+    t = _SPACES.sub(" ", t).strip()
+    return "" if t in _SILENCE else t
+
+
+@dataclass(eq=False)
+class Words:
+    """Timed words of one recording.
+
+    Parameters
+    ----------
+    start_s, end_s : ndarray [shape=(W,)], float64, seconds
+        Interval of each word; ``start_s <= end_s`` and starts never decrease.
+    text : list of str [length W]
+        Normalised words (see `normalize_word`).
+    source : str or None
+        The file the words came from.
+
+    Raises
+    ------
+    ParameterError
+        On mismatched lengths, non-finite times, an end before its start or
+        starts out of order.
+    """
+
+    start_s: np.ndarray
+    end_s: np.ndarray
+    text: list
+    source: str | None = None
+
+    def __post_init__(self):
+        self.start_s = np.asarray(self.start_s, dtype=np.float64).reshape(-1)
+        self.end_s = np.asarray(self.end_s, dtype=np.float64).reshape(-1)
+        self.text = [str(t) for t in self.text]
+        if self.source is not None:
+            self.source = os.fspath(self.source)
+        problem = _check_times(self.start_s, self.end_s, self.text)
+        if problem:
+            where = f"{self.source}: " if self.source else ""
+            raise ParameterError(f"Words: {where}{problem[1]}")
+
+    def __len__(self) -> int:
+        return len(self.text)
+
+    def __getitem__(self, item) -> "Words":
+        """Words by slice, boolean mask or index array (an int gives a one-word `Words`)."""
+        if isinstance(item, (int, np.integer)):
+            n = len(self)
+            if not -n <= item < n:
+                raise IndexError(f"word {item} out of range for {n} words")
+            item = slice(item % n, item % n + 1)
+        if isinstance(item, slice):
+            return Words(self.start_s[item], self.end_s[item], self.text[item], self.source)
+        idx = np.asarray(item)
+        if idx.dtype == bool:
+            if idx.shape != (len(self),):
+                raise ParameterError(f"Words[mask]: expected a boolean mask of shape ({len(self)},); got {idx.shape}")
+            idx = np.flatnonzero(idx)
+        elif not np.issubdtype(idx.dtype, np.integer) or idx.ndim != 1:
+            raise ParameterError(f"Words[...]: expected a slice, int, boolean mask or 1-d int array; got {item!r}")
+        return Words(self.start_s[idx], self.end_s[idx], [self.text[i] for i in idx], self.source)
+
+    def __iter__(self):
+        """Iterate over ``(start_s, end_s, text)`` tuples."""
+        return iter(zip(self.start_s.tolist(), self.end_s.tolist(), self.text))
+
+    @property
+    def onsets(self) -> np.ndarray:
+        """Word onset times, ``(W,)`` seconds (the same array as `start_s`)."""
+        return self.start_s
+
+    def between(self, t0_s: float, t1_s: float) -> "Words":
+        """The words whose onset lies in ``[t0_s, t1_s)``."""
+        lo, hi = np.searchsorted(self.start_s, [t0_s, t1_s], side="left")
+        return self[int(lo):int(hi)]
+
+
+def _check_times(start, end, text) -> tuple[int, str] | None:
+    """(index of the first bad word, description), or None when the times are fine."""
+    if not (start.shape == end.shape == (len(text),)):
+        return 0, f"start_s, end_s and text must have one entry per word; got {start.shape}, {end.shape}, {len(text)}"
+    bad = ~(np.isfinite(start) & np.isfinite(end))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        return i, f"word {i} ({text[i]!r}): times must be finite; got start {start[i]}, end {end[i]}"
+    bad = end < start
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        return i, f"word {i} ({text[i]!r}): end {end[i]} s is before start {start[i]} s"
+    bad = np.diff(start) < 0
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0]) + 1
+        return i, f"word {i} ({text[i]!r}): starts at {start[i]} s, before word {i - 1} ({text[i - 1]!r}) at " \
+               f"{start[i - 1]} s; expected non-decreasing start times"
+    return None
+
+
+def _build(path, rows) -> Words:
+    """rows: (start, end, raw text, where) -> validated Words; ``where`` names the line/entry for errors."""
+    kept = [(s, e, normalize_word(t), w) for s, e, t, w in rows]
+    kept = [r for r in kept if r[2]]
+    start = np.array([r[0] for r in kept], dtype=np.float64)
+    end = np.array([r[1] for r in kept], dtype=np.float64)
+    text = [r[2] for r in kept]
+    problem = _check_times(start, end, text)
+    if problem:
+        i, msg = problem
+        raise InputFileError(path, f"{kept[i][3]}: {msg}")
+    return Words(start, end, text, os.fspath(path))
+
+
+def read_textgrid(path, *, tier: str = "words") -> Words:
+    """Read the word tier of a Praat TextGrid.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    tier : str
+        Tier name, matched case-insensitively.
+
+    Returns
+    -------
+    Words
+
+    Raises
+    ------
+    InputFileError
+        Unreadable file, no such tier (the message lists the tiers), a point
+        tier, or bad times.
+    """
+    from praatio import textgrid
+    from praatio.utilities import errors as praat_errors
+
+    if not os.path.isfile(path):
+        raise InputFileError(path, "no such file")
+    try:
+        tg = textgrid.openTextgrid(os.fspath(path), includeEmptyIntervals=False, reportingMode="silence")
+    except (praat_errors.PraatioException, ValueError, IndexError, KeyError, UnicodeError, AttributeError,
+            TypeError) as exc:
+        raise InputFileError(path, f"cannot parse as a Praat TextGrid: {type(exc).__name__}: {exc}") from None
+    names = list(tg.tierNames)
+    match = [n for n in names if n.strip().lower() == tier.lower()]
+    if not match:
+        raise InputFileError(path, f"no tier named {tier!r} (case-insensitive); tiers: "
+                                   f"{', '.join(repr(n) for n in names) or 'none'}")
+    t = tg.getTier(match[0])
+    if not isinstance(t, textgrid.IntervalTier):
+        raise InputFileError(path, f"tier {match[0]!r}: expected an interval tier, got a point tier")
+    rows = [(e.start, e.end, e.label, f"tier {match[0]!r} interval {k + 1}") for k, e in enumerate(t.entries)]
+    return _build(path, rows)
+
+
+def _number(path, txt, where, field):
+    try:
+        v = float(txt)
+    except ValueError:
+        raise InputFileError(path, f"{where}: {field}: expected a number of seconds, got {txt!r}") from None
+    if not math.isfinite(v):
+        raise InputFileError(path, f"{where}: {field}: expected a finite number of seconds, got {txt!r}")
+    return v
+
+
+def read_genea_tsv(path) -> Words:
+    """Read a GENEA Challenge transcript: ``start<TAB>end<TAB>word`` per line, no header.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    Words
+
+    Raises
+    ------
+    InputFileError
+        Unreadable file, a line without three fields, a non-numeric time, or
+        bad times; the message names the line.
+    """
+    try:
+        with open(path, "r", encoding="utf-8-sig") as f:
+            lines = f.read().splitlines()
+    except (OSError, UnicodeError) as exc:
+        raise InputFileError(path, f"cannot read as text: {exc}") from None
+    rows = []
+    for k, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        parts = line.split("\t") if "\t" in line else line.split(None, 2)
+        if len(parts) < 3:
+            raise InputFileError(path, f"line {k}: expected start<TAB>end<TAB>word, got {line.strip()[:60]!r}")
+        where = f"line {k}"
+        s = _number(path, parts[0].strip(), where, "start")
+        e = _number(path, parts[1].strip(), where, "end")
+        rows.append((s, e, " ".join(p.strip() for p in parts[2:]), where))
+    return _build(path, rows)
+
+
+_JSON_KEYS = {"start": ("start", "start_s", "begin"), "end": ("end", "end_s", "stop"), "word": ("word", "text")}
+
+
+def read_json_words(path) -> Words:
+    """Read word timings from JSON.
+
+    The file holds ``{"words": [{"start": s, "end": e, "word": w}, ...]}`` or
+    the list alone; ``start_s``/``end_s`` and ``text`` are accepted too.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    Words
+
+    Raises
+    ------
+    InputFileError
+        Invalid JSON, an unexpected layout, a missing key or a bad time; the
+        message names the entry and key.
+    """
+    try:
+        with open(path, "r", encoding="utf-8-sig") as f:
+            doc = json.load(f)
+    except (OSError, UnicodeError) as exc:
+        raise InputFileError(path, f"cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise InputFileError(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
+    items = doc.get("words") if isinstance(doc, dict) else doc
+    if not isinstance(items, list):
+        raise InputFileError(path, "expected {\"words\": [{\"start\": s, \"end\": e, \"word\": w}, ...]} or a list "
+                                   f"of such objects; got {type(doc).__name__}"
+                                   + (f" with keys {', '.join(map(str, doc))}" if isinstance(doc, dict) else ""))
+    rows = []
+    for k, item in enumerate(items):
+        where = f"words[{k}]"
+        if not isinstance(item, dict):
+            raise InputFileError(path, f"{where}: expected an object with start, end and word; got {item!r:.60}")
+        vals = {}
+        for field, keys in _JSON_KEYS.items():
+            key = next((x for x in keys if x in item), None)
+            if key is None:
+                raise InputFileError(path, f"{where}: missing {field!r} (accepted keys: {', '.join(keys)}); "
+                                           f"got keys {', '.join(map(str, item))}")
+            vals[field] = item[key]
+        if not isinstance(vals["word"], str):
+            raise InputFileError(path, f"{where}: word: expected a string, got {vals['word']!r}")
+        for field in ("start", "end"):
+            v = vals[field]
+            if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+                raise InputFileError(path, f"{where}: {field}: expected a number of seconds, got {v!r}")
+            vals[field] = _number(path, str(v), where, field)
+        rows.append((vals["start"], vals["end"], vals["word"], where))
+    return _build(path, rows)
+
+
+_READERS = {".textgrid": read_textgrid, ".tsv": read_genea_tsv, ".json": read_json_words}
+
+
+def read_transcript(path) -> Words:
+    """Read word timings, choosing the reader by extension.
+
+    ``.TextGrid`` -> `read_textgrid` (tier ``words``), ``.tsv`` ->
+    `read_genea_tsv`, ``.json`` -> `read_json_words` (case-insensitive).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    Words
+
+    Raises
+    ------
+    InputFileError
+        Unknown extension or any reader's error.
+    """
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    reader = _READERS.get(ext)
+    if reader is None:
+        raise InputFileError(path, f"unknown transcript extension {ext or '(none)'!r}; expected .TextGrid, .tsv "
+                                   "or .json")
+    return reader(path)

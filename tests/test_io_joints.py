@@ -1,0 +1,139 @@
+"""find_joints across naming schemes, the foreign BVH without fingers, and mapping overrides."""
+from __future__ import annotations
+
+import pytest
+
+from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.io import BODY_ROLES, FEATURE_ROLES, find_joints, read_bvh
+from gesturedb.io.smplx import smplx_skeleton
+
+ALL = FEATURE_ROLES + BODY_ROLES
+
+
+def _named(names, found):
+    return {role: names[j] for role, j in found.items()}
+
+
+def test_smplx_skeleton():
+    names = smplx_skeleton().names
+    got = _named(names, find_joints(names))
+    assert got == {
+        "left_wrist": "left_wrist", "right_wrist": "right_wrist", "left_elbow": "left_elbow",
+        "right_elbow": "right_elbow", "left_index1": "left_index1", "right_index1": "right_index1",
+        "left_pinky1": "left_pinky1", "right_pinky1": "right_pinky1", "root": "pelvis",
+        "left_hip": "left_hip", "right_hip": "right_hip",
+        # SMPL-X: left_shoulder is the shoulder joint (left_collar is the clavicle)
+        "left_shoulder": "left_shoulder", "right_shoulder": "right_shoulder",
+    }
+
+
+def _scheme(left, right, root, spine):
+    """Names for one rig: ``left``/``right`` map part -> joint name."""
+    names = [root, spine] + [left[k] for k in left] + [right[k] for k in right]
+    want = {"root": root}
+    for side, parts in (("left", left), ("right", right)):
+        for role_part in ("wrist", "elbow", "index1", "pinky1", "hip", "shoulder"):
+            want[f"{side}_{role_part}"] = parts[role_part]
+    return names, want
+
+
+def _sides(fmt, parts, distractors=()):
+    left = {k: fmt(v, "Left", "l", "L") for k, v in parts.items()}
+    right = {k: fmt(v, "Right", "r", "R") for k, v in parts.items()}
+    for d in distractors:
+        left[f"x_{d}"] = fmt(d, "Left", "l", "L")
+        right[f"x_{d}"] = fmt(d, "Right", "r", "R")
+    return left, right
+
+
+SCHEMES = {
+    "genea": (lambda v, word, s, S: f"b_{s}_{v}",
+              {"wrist": "wrist", "elbow": "forearm", "index1": "index1", "pinky1": "pinky1", "hip": "upleg",
+               "shoulder": "arm"},
+              ("shoulder", "arm_twist", "wrist_twist", "index2", "thumb0"), "b_root", "b_spine0"),
+    "zeggs": (lambda v, word, s, S: f"{word}{v}",
+              {"wrist": "Hand", "elbow": "ForeArm", "index1": "HandIndex1", "pinky1": "HandPinky1", "hip": "UpLeg",
+               "shoulder": "Arm"},
+              ("Shoulder", "HandIndex2", "HandThumb1", "Leg"), "Hips", "Spine"),
+    "mixamo": (lambda v, word, s, S: f"mixamorig:{word}{v}",
+               {"wrist": "Hand", "elbow": "ForeArm", "index1": "HandIndex1", "pinky1": "HandPinky1",
+                "hip": "UpLeg", "shoulder": "Arm"},
+               ("Shoulder", "HandIndex4", "Leg"), "mixamorig:Hips", "mixamorig:Spine"),
+    "generic": (lambda v, word, s, S: f"{word}{v}",
+                {"wrist": "Wrist", "elbow": "Elbow", "index1": "Index1", "pinky1": "Little1", "hip": "Hip",
+                 "shoulder": "Shoulder"},
+                ("Collar", "Knee"), "Hips", "Chest"),
+    "cmu": (lambda v, word, s, S: f"{S}{v}" if v.endswith("Joint") else f"{word}{v}",
+            {"wrist": "Hand", "elbow": "ForeArm", "index1": "HandIndex1", "pinky1": "HandPinky1", "hip": "UpLeg",
+             "shoulder": "Arm"},
+            ("HipJoint",), "Hips", "LowerBack"),
+    "snake_upper": (lambda v, word, s, S: f"{word.upper()}_{v.upper()}",
+                    {"wrist": "wrist", "elbow": "elbow", "index1": "index_01", "pinky1": "pinky_01", "hip": "thigh",
+                     "shoulder": "upper_arm"},
+                    ("clavicle",), "ROOT", "SPINE_01"),
+    "suffix": (lambda v, word, s, S: f"{v}.{S}",
+               {"wrist": "hand", "elbow": "forearm", "index1": "finger_index_01", "pinky1": "finger_little_01",
+                "hip": "thigh", "shoulder": "upper_arm"},
+               ("shoulder",), "pelvis", "spine"),
+}
+
+
+@pytest.mark.parametrize("scheme", sorted(SCHEMES))
+def test_naming_schemes(scheme):
+    fmt, parts, distractors, root, spine = SCHEMES[scheme]
+    left, right = _sides(fmt, parts, distractors)
+    names, want = _scheme({k: v for k, v in left.items() if not k.startswith("x_")},
+                          {k: v for k, v in right.items() if not k.startswith("x_")}, root, spine)
+    # distractors (clavicles, twist bones, further finger segments) go first, where a sloppy match would land
+    names = [root] + [v for k, v in left.items() if k.startswith("x_")] + \
+        [v for k, v in right.items() if k.startswith("x_")] + names[1:]
+    assert _named(names, find_joints(names)) == want
+
+
+def test_case_and_separators_do_not_matter():
+    names = ["HIPS", "left-hand", "RIGHT_HAND", "Left Fore Arm", "right.forearm"]
+    got = _named(names, find_joints(names, ("root", "left_wrist", "right_wrist", "left_elbow", "right_elbow")))
+    assert got == {"root": "HIPS", "left_wrist": "left-hand", "right_wrist": "RIGHT_HAND",
+                   "left_elbow": "Left Fore Arm", "right_elbow": "right.forearm"}
+
+
+def test_wrist_preferred_over_hand_and_root_falls_back_to_joint_0():
+    names = ["Reference", "LeftWrist", "LeftHand"]
+    assert _named(names, find_joints(names, ("root", "left_wrist"))) == {"root": "Reference", "left_wrist": "LeftWrist"}
+
+
+def test_foreign_bvh_without_fingers(data_dir):
+    path = data_dir / "bvh-foreign" / "AV_8Walk_Meredith_HVHA_Rep1.bvh"
+    names = read_bvh(path).skeleton.names
+    with pytest.raises(InputFileError) as err:
+        find_joints(names, source=path)
+    msg = str(err.value)
+    assert msg.startswith(str(path) + ": no joint found for role(s) left_index1, right_index1, left_pinky1, "
+                                      "right_pinky1")
+    assert "left_wrist=LeftHand" in msg and "left_shoulder=LeftArm" in msg
+    assert all(n in msg for n in names)  # every joint of the file is listed
+    mapping = {"left_index1": "LeftHandThumb1", "right_index1": "RightHandThumb1",
+               "left_pinky1": "LeftHand_End", "right_pinky1": "RightHand_End"}
+    got = _named(names, find_joints(names, mapping=mapping, source=path))
+    assert got["left_index1"] == "LeftHandThumb1" and got["right_pinky1"] == "RightHand_End"
+    assert got["left_wrist"] == "LeftHand" and got["root"] == "Hips" and got["left_hip"] == "LeftUpLeg"
+    # only the roles asked for are needed
+    assert set(find_joints(names, BODY_ROLES)) == set(BODY_ROLES)
+
+
+def test_mapping_overrides_a_match_and_is_checked():
+    names = smplx_skeleton().names
+    got = find_joints(names, ("left_wrist",), mapping={"left_wrist": "left_index1"})
+    assert got == {"left_wrist": names.index("left_index1")}
+    with pytest.raises(ParameterError, match=r"mapping\['left_wrist'\]: no joint named 'LeftHand'; joints: pelvis"):
+        find_joints(names, mapping={"left_wrist": "LeftHand"})
+    with pytest.raises(ParameterError, match="roles: unknown 'left_thumb'; known roles: left_wrist"):
+        find_joints(names, ("left_thumb",))
+    with pytest.raises(ParameterError, match="roles: unknown 'nose'"):
+        find_joints(names, mapping={"nose": "head"})
+
+
+def test_missing_role_without_source_is_a_parameter_error():
+    want = r"no joint found for role\(s\) right_wrist \(found: left_wrist=LeftHand\); the skeleton has 2 joints: Hips"
+    with pytest.raises(ParameterError, match=want):
+        find_joints(["Hips", "LeftHand"], ("left_wrist", "right_wrist"))
