@@ -355,7 +355,17 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
     motion = motion.resample(cfg.fps)
     out = [_features_for(motion, samples, sr, words, cfg, source, mirrored=False)]
     if cfg.mirror:
-        out.append(_features_for(motion.mirror(), samples, sr, words, cfg, source, mirrored=True))
+        mirrored = motion.mirror()
+        if not mirrored.skeleton.same_as(motion.skeleton, atol_m=0.01 * motion.skeleton.scale()):
+            raise InputFileError(
+                source.motion,
+                "mirror: expected a left/right symmetric skeleton (bone offsets equal within 1% of its size "
+                "after swapping sides), got an asymmetric one; build without mirroring",
+            )
+        # a nearly symmetric skeleton keeps the original bones, so one skeleton serves the whole database
+        mirrored = type(motion)(skeleton=motion.skeleton, fps=motion.fps, rotations=mirrored.rotations,
+                                root_positions=mirrored.root_positions)
+        out.append(_features_for(mirrored, samples, sr, words, cfg, source, mirrored=True))
     for d in out:
         d.source_fps = src_fps
     return out
@@ -387,11 +397,7 @@ def _process_star(args):
 # --------------------------------------------------------------------------
 
 def _same_skeleton(a, b) -> bool:
-    return (
-        list(a.names) == list(b.names)
-        and np.array_equal(np.asarray(a.parents), np.asarray(b.parents))
-        and np.allclose(np.asarray(a.offsets), np.asarray(b.offsets), atol=1e-6)
-    )
+    return a.same_as(b, atol_m=1e-6) and float(a.length_unit_m) == float(b.length_unit_m)
 
 
 def _write(h5, recs: list[RecordingData], cfg: BuildConfig) -> None:
@@ -447,6 +453,8 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig) -> None:
     ej = sorted(sk.end_sites)
     W(h5, "skeleton/end_site_joints", np.asarray(ej, dtype=np.int64), dims)
     W(h5, "skeleton/end_site_offsets", np.asarray([sk.end_sites[j] for j in ej], dtype=np.float64).reshape(-1, 3), dims)
+    # metres per length unit of the source files, so export writes BVH back in those units
+    h5["skeleton"].attrs["length_unit_m"] = float(getattr(sk, "length_unit_m", 1.0))
 
     W(h5, "chunks/start", np.concatenate([r.chunks[0] + s for r, s in zip(recs, starts)]), dims)
     W(h5, "chunks/length", np.concatenate([r.chunks[1] for r in recs]), dims)

@@ -281,6 +281,7 @@ class Database:
             offsets=self._read("skeleton/offsets"),
             channel_orders=self._read("skeleton/channel_orders"),
             end_sites={int(j): np.asarray(o, dtype=np.float64) for j, o in zip(end_joints, end_offsets)},
+            length_unit_m=float(self._h5["skeleton"].attrs.get("length_unit_m", 1.0)),
         )
 
     # -- controls and masks ---------------------------------------------------

@@ -120,6 +120,7 @@ ROOT_ATTRS = {
     "n_frames": "int: F",
     "config": "JSON: the complete build configuration",
     "feature_joints": "JSON: role -> joint name used for the features",
+    "skeleton/length_unit_m": "float (attribute of the skeleton group): metres per length unit of the source files",
 }
 
 

@@ -75,6 +75,16 @@ def test_bad_inputs_exit_2_with_one_line(scott_dir, data_dir, tmp_path, capsys):
                           "left_pinky1": "LeftHand_End", "right_pinky1": "RightHand_End"})
     code, out, err = run(capsys, "build", d, "-o", tmp_path / "w.h5", "-q", "--joint-map", mapping)
     assert code == 0, err
+    # a database from a centimetre BVH exports back in the source's units
+    code, out, err = run(capsys, "export", tmp_path / "w.h5", "--recording", "walk", "--start", 1, "--end", 2,
+                         "-o", tmp_path / "walk_out.bvh")
+    assert code == 0, err
+    from gesturedb.io import read_bvh
+
+    src, back = read_bvh(d / "walk.bvh"), read_bvh(tmp_path / "walk_out.bvh")
+    assert back.skeleton.length_unit_m == src.skeleton.length_unit_m == 0.01
+    np.testing.assert_allclose(back.skeleton.offsets, src.skeleton.offsets, atol=1e-6)
+    np.testing.assert_allclose(back.positions[0], src.resample(15.0).positions[15], atol=1e-4)
 
     code, out, err = run(capsys, "info", tmp_path / "missing.h5")
     assert code == 2 and "missing.h5: no such file" in err
