@@ -57,6 +57,8 @@ setup(
         "praatio>=6.0",      # Praat TextGrid reader
         "tqdm>=4.60",        # progress bars on long builds
         "pyvista>=0.43",     # offscreen skeleton rendering
+        "vtk>=9.4",          # renders offscreen through EGL (needs libegl1, libegl-mesa0, libgl1-mesa-dri)
+        "pillow>=10.1",      # sized built-in font for captions
         "imageio>=2.30",
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report

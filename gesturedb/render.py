@@ -856,3 +856,17 @@ def render_contact_sheet(path, panels, *, n=8, fps=30.0, size=(320, 360), style=
         sheet = np.concatenate([np.concatenate(r, axis=1) for r in rows], axis=0)
     iio.imwrite(path, sheet)
     return path
+
+
+def render_file(path, panels, *, fps, audio=None, sr=None, captions=None, **kwargs):
+    """Render panels to whatever ``path`` names: ``.mp4`` / ``.gif`` video or a ``.png`` contact sheet.
+
+    Parameters are those of :func:`render_video`; for ``.png`` only ``panels``
+    and ``fps`` are used (plus ``n``, the number of frames, in ``kwargs``).
+    """
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if ext in (".mp4", ".gif"):
+        return render_video(path, panels, fps=fps, audio=audio, sr=sr, captions=captions, **kwargs)
+    if ext == ".png":
+        return render_contact_sheet(path, panels, fps=fps, n=kwargs.get("n", 8))
+    raise ParameterError(f"render output {os.fspath(path)!r}: expected a .mp4, .gif or .png file name, got {ext or 'no extension'!r}")

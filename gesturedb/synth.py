@@ -6,14 +6,15 @@ standardisation, picks the initial pose (mean pose or a seeded random frame),
 turns control schedules and keyword sub-databases into per-step bitsets, runs
 the rank-sum search and assembles the chosen windows into a :class:`Motion`.
 
-Window boundaries. The paper copies the chosen windows back to back. Here each
-window is first placed where the previous one ended (its root is moved and
-turned about the vertical so that the window's entry frame coincides with the
-last output frame, as in motion matching for locomotion), then a short
-cross-fade (``blend_frames``, default 4 frames) slerps from the natural
-continuation of the previous window into the new one, so the seam carries no
-step in position or velocity. ``blend_frames=0`` switches the cross-fade off and
-reproduces the paper's back-to-back copy (with root placement).
+Window boundaries. The paper copies the chosen windows back to back. Here
+every frame keeps the placement of its own recording, normalised once so that
+each recording's mean floor position is the origin and its mean heading +z
+(chaining windows onto each other's heading would integrate the source's small
+turns into a slow spin), and a short cross-fade (``blend_frames``, default 4
+frames) slerps from the natural continuation of the previous window into the
+new one, so the seam carries no step in position or velocity.
+``blend_frames=0`` switches the cross-fade off: back-to-back copies as in the
+paper.
 """
 from __future__ import annotations
 
@@ -345,8 +346,43 @@ class Searcher:
         return err
 
     # -- assembly ---------------------------------------------------------------
+    def _placement(self):
+        """Per-recording yaw (rad) and horizontal centre (m) that put each recording at the origin facing +z.
+
+        Windows are copied in the placement of their own recording, normalised
+        once: chaining every window onto the previous one's heading would
+        accumulate the small turns of the source material into a slow spin.
+        """
+        if getattr(self, "_place_cache", None) is None:
+            db = self.db
+            rec = db.frame_recording
+            yaw = _yaw_of(np.asarray(db.local_rotations[:, 0], dtype=np.float64))
+            root = np.asarray(db.root_positions, dtype=np.float64)
+            n = len(db.recordings)
+            # circular mean of the heading, arithmetic mean of the floor position
+            mean_yaw = np.arctan2(np.bincount(rec, np.sin(yaw), n), np.bincount(rec, np.cos(yaw), n))
+            centre = np.stack([np.bincount(rec, root[:, 0], n), np.zeros(n), np.bincount(rec, root[:, 2], n)], 1)
+            centre /= np.maximum(np.bincount(rec, minlength=n), 1)[:, None]
+            self._place_cache = (mean_yaw, centre)
+        return self._place_cache
+
+    def _placed(self, frames: np.ndarray):
+        """Local rotations (n, J, 4) and root positions (n, 3) of database frames, normalised per recording."""
+        from gesturedb import rotations as R
+
+        db = self.db
+        mean_yaw, centre = self._placement()
+        rec = db.frame_recording[frames]
+        rot = np.asarray(db.local_rotations[frames], dtype=np.float64)
+        root = np.asarray(db.root_positions[frames], dtype=np.float64)
+        q = _yaw_quat(-mean_yaw[rec])
+        root = R.apply(q, root - centre[rec]) + np.array([0.0, 1.0, 0.0]) * centre[rec]
+        root[:, 1] = np.asarray(db.root_positions[frames, 1], dtype=np.float64)
+        rot[:, 0] = R.multiply(q, rot[:, 0])
+        return rot, root
+
     def assemble(self, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4):
-        """Copy the chosen database frames into one continuous :class:`Motion`.
+        """Copy the chosen database frames into one :class:`Motion`.
 
         Parameters
         ----------
@@ -355,73 +391,39 @@ class Searcher:
         starts : ndarray, int64
             Output frame where each window starts (the first is 0).
         blend_frames : int
-            Cross-fade length after each boundary (0: none).
+            Cross-fade length after each boundary (0: windows back to back, as in the paper).
+
+        Notes
+        -----
+        Every frame keeps the placement of its recording, normalised so each
+        recording's mean floor position is the origin and its mean heading +z.
+        After each boundary, ``blend_frames`` frames are slerped (rotations) and
+        lerped (root) from the previous window's natural continuation in its
+        recording into the new window, with smoothstep weights, so neither
+        position nor velocity jumps at the seam.
         """
+        from gesturedb import rotations as R
         from gesturedb.motion import Motion
-        from gesturedb import rotations as R
 
         db = self.db
-        rot = np.asarray(db.local_rotations[source], dtype=np.float64)  # (T, J, 4)
-        root = np.asarray(db.root_positions[source], dtype=np.float64)  # (T, 3)
+        source = np.asarray(source, dtype=np.int64)
         T = source.shape[0]
-        bounds = list(np.asarray(starts, dtype=np.int64)) + [T]
-        frame_rec = db.frame_recording
-
-        def place(g_entry, target_root, target_yaw):
-            """Yaw + horizontal translation taking database frame g_entry onto the target root pose."""
-            q_entry = np.asarray(db.local_rotations[g_entry, 0], dtype=np.float64)
-            dyaw = target_yaw - _yaw_of(q_entry)
-            qy = _yaw_quat(dyaw)
-            p_entry = np.asarray(db.root_positions[g_entry], dtype=np.float64)
-            return qy, p_entry, target_root
-
-        def apply(qy, p_from, p_to, r, q0):
-            d = R.apply(np.broadcast_to(qy, r.shape[:-1] + (4,)), r - p_from)
-            out_r = d + p_to
-            out_r[..., 1] = r[..., 1]  # keep the recorded height: no vertical drift
-            return out_r, R.multiply(np.broadcast_to(qy, q0.shape), q0)
-
-        out_rot = rot.copy()
-        out_root = root.copy()
-        prev_place = None
-        for w in range(len(bounds) - 1):
-            a, b = int(bounds[w]), int(bounds[w + 1])
-            g0 = int(source[a])
-            if w == 0:
-                # first window: the speaker stands at the origin, facing +z
-                place_w = place(g0, np.array([0.0, root[a, 1], 0.0]), 0.0)
-            else:
-                # the window's entry frame g0-1 was matched against the last output pose
-                place_w = place(g0 - 1, out_root[a - 1], _yaw_of(out_rot[a - 1, 0]))
-            out_root[a:b], out_rot[a:b, 0] = apply(*place_w, root[a:b], rot[a:b, 0])
-
-            if prev_place is not None and blend_frames > 0:
-                self._crossfade(out_rot, out_root, source, a, min(blend_frames, b - a), prev_place, apply)
-            prev_place = place_w
-        return Motion(skeleton=db.skeleton, fps=db.fps, rotations=out_rot, root_positions=out_root)
-
-    def _crossfade(self, out_rot, out_root, source, a, n_bl, prev_place, apply) -> None:
-        """Blend output frames [a, a+n_bl) from the previous window's continuation into the new window.
-
-        The continuation is the database frames that follow the previous window's
-        last frame in its recording, placed as that window was; where the
-        recording ends early the blend is shortened.
-        """
-        from gesturedb import rotations as R
-
-        db = self.db
-        g_last = int(source[a - 1])
-        cont = g_last + 1 + np.arange(n_bl)
-        ok = cont < db.n_frames
-        ok[ok] &= db.frame_recording[cont[ok]] == db.frame_recording[g_last]
-        n_bl = n_bl if ok.all() else int(np.argmin(ok))
-        if n_bl == 0:
-            return
-        cont = cont[:n_bl]
-        c_rot = np.asarray(db.local_rotations[cont], dtype=np.float64)
-        c_root, c_rot[:, 0] = apply(*prev_place, np.asarray(db.root_positions[cont], dtype=np.float64), c_rot[:, 0])
-        # smoothstep weights rise from ~0 to ~1 so position and velocity stay continuous
-        x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
-        wgt = x * x * (3 - 2 * x)
-        out_rot[a:a + n_bl] = R.slerp(c_rot, out_rot[a:a + n_bl], wgt)
-        out_root[a:a + n_bl] = (1 - wgt) * c_root + wgt * out_root[a:a + n_bl]
+        rot, root = self._placed(source)
+        if blend_frames > 0:
+            for a, b in zip(starts[1:], list(starts[2:]) + [T]):
+                a, b = int(a), int(b)
+                n_bl = min(blend_frames, b - a)
+                g_last = int(source[a - 1])
+                cont = g_last + 1 + np.arange(n_bl)
+                # the continuation must exist in the same recording; shorten the blend where it ends
+                ok = (cont < db.n_frames)
+                ok[ok] &= db.frame_recording[cont[ok]] == db.frame_recording[g_last]
+                n_bl = n_bl if ok.all() else int(np.argmin(ok))
+                if n_bl == 0:
+                    continue
+                c_rot, c_root = self._placed(cont[:n_bl])
+                x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
+                w = x * x * (3 - 2 * x)
+                rot[a:a + n_bl] = R.slerp(c_rot, rot[a:a + n_bl], w)
+                root[a:a + n_bl] = (1 - w) * c_root + w * root[a:a + n_bl]
+        return Motion(skeleton=db.skeleton, fps=db.fps, rotations=rot, root_positions=root)

@@ -116,3 +116,18 @@ def test_control_that_leaves_nothing_names_the_step_and_suggests_a_percentile(sc
 def test_excluding_every_recording_is_a_clear_error(scott_db, speech):
     with pytest.raises(SearchError, match=r"step 0 \(output frame t=0\): no candidate window left: .*excluded"):
         Searcher(scott_db).synthesize(speech, exclude=["2_scott_0_1_1"])
+
+
+def test_speaker_keeps_facing_forward_and_stays_in_place(scott_db, scott_dir):
+    """Windows keep their recording's normalised placement: no heading or position drift over a minute."""
+    from gesturedb.features.body import body_frame
+    from gesturedb.io.joints import find_joints
+
+    res = Searcher(scott_db).synthesize(scott_dir / "inputs/2_scott_0_4_4.wav")
+    joints = find_joints(scott_db.joint_names)
+    _, rot = body_frame(res.positions, joints=joints)
+    forward = rot[:, :, 2]  # columns: left, up, forward
+    heading_deg = np.degrees(np.arctan2(forward[:, 0], forward[:, 2]))
+    assert np.abs(heading_deg).max() < 45, np.abs(heading_deg).max()
+    root_xz = res.motion.root_positions[:, [0, 2]]
+    assert np.linalg.norm(root_xz, axis=1).max() < 0.5
