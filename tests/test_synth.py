@@ -129,5 +129,8 @@ def test_speaker_keeps_facing_forward_and_stays_in_place(scott_db, scott_dir):
     forward = rot[:, :, 2]  # columns: left, up, forward
     heading_deg = np.degrees(np.arctan2(forward[:, 0], forward[:, 2]))
     assert np.abs(heading_deg).max() < 45, np.abs(heading_deg).max()
-    root_xz = res.motion.root_positions[:, [0, 2]]
-    assert np.linalg.norm(root_xz, axis=1).max() < 0.5
+    # never further from the origin than the recording ever is from its own mean position
+    db_xz = scott_db.root_positions[:, [0, 2]].astype(np.float64)
+    db_reach = np.linalg.norm(db_xz - db_xz.mean(0), axis=1).max()
+    out_reach = np.linalg.norm(res.motion.root_positions[:, [0, 2]], axis=1).max()
+    assert out_reach <= db_reach + 0.01, (out_reach, db_reach)
