@@ -16,6 +16,7 @@ COMMANDS = {
     "export": "export",
     "synth": "synth",
     "keywords": "keywords",
+    "masks": "masks",
 }
 
 

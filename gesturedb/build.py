@@ -283,7 +283,8 @@ def _features_for(motion, samples, sr, words, cfg: BuildConfig, source: Recordin
 
     pose = fpose.pose_features(positions, joints=joints, window=cfg.pose_window, stride=cfg.pose_stride)
     audio_raw = faudio.audio_features(samples, sr, fps=cfg.fps, n_frames=n, n_mfcc=cfg.n_mfcc).astype(np.float64)
-    controls = fcontrols.control_features(positions, joints=joints, fps=cfg.fps)
+    # from the positions exactly as stored (float32), so recomputing them from the file gives the same bits
+    controls = fcontrols.control_features(positions.astype(np.float32).astype(np.float64), joints=joints, fps=cfg.fps)
 
     c_start, c_len = fseg.fixed_chunks(n, length=cfg.chunk_frames)
     w_start = np.asarray(words.start_s if words is not None else [], dtype=np.float64)

@@ -43,3 +43,86 @@ def edit(path: str | os.PathLike):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> list[str]:
+    """(Re)compute the per-frame control features of a database from its stored joint positions.
+
+    For databases built before a control feature existed, or after changing
+    its definition. Each recording is processed on its own (no speed across
+    recording boundaries); the 15th/85th-percentile masks are recomputed.
+
+    Returns
+    -------
+    list of str
+        The control features now in the file.
+    """
+    import numpy as np
+
+    from gesturedb.build import write_default_masks
+    from gesturedb.database import Database
+    from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS, control_features
+    from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
+
+    with Database(path) as db:
+        names = db.joint_names
+        joints = find_joints(names, FEATURE_ROLES + BODY_ROLES,
+                             mapping={r: n for r, n in db.feature_joints.items()}, source=db.path)
+        parts = [control_features(np.asarray(db.joint_positions[r.start_frame:r.stop_frame], dtype=np.float64),
+                                  joints=joints, fps=db.fps) for r in db.recordings]
+    controls = {k: np.concatenate([p[k] for p in parts]).astype(np.float32) for k in sorted(parts[0])}
+    with edit(path) as h5:
+        g = h5.require_group(schema.CONTROLS_GROUP)
+        for k, v in controls.items():
+            if k in g:
+                if not replace:
+                    continue
+                del g[k]
+            ds = g.create_dataset(k, data=v)
+            ds.attrs["unit"] = CONTROL_UNITS.get(k, "")
+            ds.attrs["doc"] = CONTROL_DOCS.get(k, "")
+        masks = h5.require_group(schema.MASKS_GROUP)
+        for k in [k for k in masks if k.endswith(("_high", "_low")) and k.rsplit("_", 1)[0] in controls]:
+            del masks[k]
+        write_default_masks(h5, {k: g[k][()] for k in sorted(g)})
+    return sorted(controls)
+
+
+def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = False):
+    """Compile a mask expression against a database and save it under ``name`` with its definition.
+
+    Returns the :class:`gesturedb.masks.MaskResult` (frames allowed, resolved thresholds).
+    """
+    from gesturedb import masks
+    from gesturedb.database import Database
+    from gesturedb.errors import ParameterError
+
+    with Database(path) as db:
+        if name in db.masks and not replace:
+            raise ParameterError(f"mask {name!r} already exists in {db.path} "
+                                 f"(definition {db.mask_definitions[name]!r}); pass replace=True to overwrite")
+        # the named mask is stored as its own definition's result; other saved masks may be referenced
+        others = {k: v for k, v in db.masks.items() if k != name}
+        res = masks.compile_mask(expr, controls=db.controls, named=others, n_frames=db.n_frames)
+    if res.n_set == 0:
+        raise ParameterError(f"mask {name!r} = {expr!r} allows no frame of {path}: {res.describe()}")
+    with edit(path) as h5:
+        g = h5.require_group(schema.MASKS_GROUP)
+        if name in g:
+            del g[name]
+        ds = g.create_dataset(name, data=res.words)
+        ds.attrs["definition"] = expr
+        schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
+    return res
+
+
+def remove_mask(path: str | os.PathLike, name: str) -> None:
+    """Delete a saved mask."""
+    from gesturedb.database import Database
+    from gesturedb.errors import ParameterError
+
+    with Database(path) as db:
+        if name not in db.masks:
+            raise ParameterError(f"mask {name!r}: no such mask in {db.path}; masks: {', '.join(db.masks) or 'none'}")
+    with edit(path) as h5:
+        del h5[schema.MASKS_GROUP][name]

@@ -1,0 +1,47 @@
+"""`gesturedb masks DB.h5 list|add NAME EXPR|remove NAME|controls`: saved control masks."""
+from __future__ import annotations
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("masks", help="list, save or remove control masks; recompute control features",
+                       description="Masks restrict the search to database frames that satisfy an expression over "
+                       "the control features, e.g. 'left_wrist_height > p85 and not fast'.")
+    p.add_argument("db", metavar="DB.h5")
+    ops = p.add_subparsers(dest="op", metavar="OP", required=True)
+    ops.add_parser("list", help="masks and control features with their definitions")
+    a = ops.add_parser("add", help="save a mask expression under a name")
+    a.add_argument("name")
+    a.add_argument("expr")
+    a.add_argument("--replace", action="store_true")
+    r = ops.add_parser("remove", help="delete a saved mask")
+    r.add_argument("name")
+    ops.add_parser("controls", help="recompute the control features from the stored joint positions")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    import numpy as np
+
+    import gesturedb
+    from gesturedb import dbedit, masks
+
+    if args.op == "add":
+        res = dbedit.save_mask(args.db, args.name, args.expr, replace=args.replace)
+        print(f"saved {args.name}: {res.describe()}")
+    elif args.op == "remove":
+        dbedit.remove_mask(args.db, args.name)
+        print(f"removed {args.name}")
+    elif args.op == "controls":
+        names = dbedit.add_control_features(args.db)
+        print(f"control features: {', '.join(names)}")
+    else:
+        with gesturedb.open(args.db) as db:
+            print(f"control features of {db.path} ({db.n_frames} frames):")
+            for k, v in db.controls.items():
+                p15, p50, p85 = (float(x) for x in np.percentile(v, [15, 50, 85]))
+                print(f"  {k:<22} [{db.control_units[k]:>3}]  p15 {p15:8.3f}  p50 {p50:8.3f}  p85 {p85:8.3f}")
+            print("masks:")
+            for k, w in db.masks.items():
+                n = int(masks.count_bits(w))
+                print(f"  {k:<28} {100 * n / db.n_frames:5.1f}%  {db.mask_definitions[k]}")
+    return 0
