@@ -17,6 +17,8 @@ COMMANDS = {
     "synth": "synth",
     "keywords": "keywords",
     "masks": "masks",
+    "eval": "eval",
+    "render": "render",
 }
 
 
