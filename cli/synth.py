@@ -25,6 +25,8 @@ def add_parser(sub) -> None:
     p.add_argument("--step", type=int, default=8, help="frames per search step N (default: 8)")
     p.add_argument("--blend", type=int, default=4, dest="blend_frames",
                    help="cross-fade frames at window boundaries, 0 = off (default: 4)")
+    p.add_argument("--no-smooth", action="store_true",
+                   help="no Savitzky-Golay smoothing (window 7, order 2) of the result")
     p.add_argument("--segments", choices=("chunks", "clips"), default="chunks")
     p.add_argument("--control", default=None,
                    help='control schedule, e.g. "0-12: left_wrist_height > p85; 12-: left_wrist_speed < p15"')
@@ -47,7 +49,8 @@ def run(args) -> int:
     with gesturedb.open(args.db) as db:
         res = Searcher(db, segments=args.segments).synthesize(
             args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
-            seed=args.seed, step=args.step, blend_frames=args.blend_frames, control=args.control,
+            seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
+            control=args.control,
             keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
         )
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)

@@ -162,6 +162,7 @@ class Searcher:
         seed: int | None = 0,
         step: int = 8,
         blend_frames: int = 4,
+        smooth: bool = True,
         control=None,
         keywords=True,
         exclude=None,
@@ -183,6 +184,8 @@ class Searcher:
             N, frames per search step (8).
         blend_frames : int
             Cross-fade length at window boundaries (0 = back-to-back copies as in the paper).
+        smooth : bool
+            Savitzky-Golay smoothing of the result (GestureMaster); off to get exact database frames.
         control : str, list or None
             A control schedule (``"0-12: left_wrist_height > p85; 12-: slow"``) or one
             mask expression for the whole synthesis; see :mod:`gesturedb.masks`.
@@ -272,8 +275,8 @@ class Searcher:
                 "keyword": label[1] if label else None,
             })
         starts = np.asarray(res.out_frames, dtype=np.int64)
-        motion = self.assemble(source, starts, blend_frames=blend_frames)
-        options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames,
+        motion = self.assemble(source, starts, blend_frames=blend_frames, smooth=smooth)
+        options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames, smooth=smooth,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        segments=self.segments_kind, database=db.path)
@@ -381,7 +384,7 @@ class Searcher:
         rot[:, 0] = R.multiply(q, rot[:, 0])
         return rot, root
 
-    def assemble(self, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4):
+    def assemble(self, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4, smooth: bool = True):
         """Copy the chosen database frames into one :class:`Motion`.
 
         Parameters
@@ -392,6 +395,9 @@ class Searcher:
             Output frame where each window starts (the first is 0).
         blend_frames : int
             Cross-fade length after each boundary (0: windows back to back, as in the paper).
+        smooth : bool
+            Savitzky-Golay filter (window 7, order 2) over the rotations and root,
+            as GestureMaster (Sec. 4.2) smooths its output.
 
         Notes
         -----
@@ -426,4 +432,25 @@ class Searcher:
                 w = x * x * (3 - 2 * x)
                 rot[a:a + n_bl] = R.slerp(c_rot, rot[a:a + n_bl], w)
                 root[a:a + n_bl] = (1 - w) * c_root + w * root[a:a + n_bl]
+        if smooth:
+            rot, root = savgol_smooth(rot, root)
         return Motion(skeleton=db.skeleton, fps=db.fps, rotations=rot, root_positions=root)
+
+
+def savgol_smooth(rotations: np.ndarray, root: np.ndarray, *, window: int = 7, order: int = 2):
+    """Savitzky-Golay smoothing of local rotations (T, J, 4) and root positions (T, 3) over time.
+
+    Quaternions are first made continuous in time (q and -q are one rotation),
+    filtered component-wise and renormalised: for the small angles between
+    neighbouring frames this is close to filtering on the rotation manifold.
+    Sequences shorter than the window are returned unchanged.
+    """
+    from scipy.signal import savgol_filter
+
+    from gesturedb import rotations as R
+
+    if rotations.shape[0] < window:
+        return rotations, root
+    q = savgol_filter(R.make_continuous(rotations, axis=0), window, order, axis=0)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return q, savgol_filter(root, window, order, axis=0)

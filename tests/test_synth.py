@@ -51,7 +51,7 @@ def test_provenance_names_where_every_frame_came_from(scott_db, speech, tmp_path
 
 
 def test_without_blend_windows_are_exact_copies(scott_db, speech):
-    res = Searcher(scott_db).synthesize(speech, blend_frames=0)
+    res = Searcher(scott_db).synthesize(speech, blend_frames=0, smooth=False)
     body = np.asarray(scott_db.local_rotations[res.source_frames][:, 1:], dtype=np.float64)
     np.testing.assert_allclose(res.motion.rotations[:, 1:], body, atol=1e-6)
 
@@ -67,12 +67,28 @@ def _seam_jerk(positions, boundaries, fps):
 
 def test_transition_blend_lowers_jerk_at_window_boundaries(scott_db, speech):
     s = Searcher(scott_db)
-    hard = s.synthesize(speech, blend_frames=0)
-    soft = s.synthesize(speech, blend_frames=4)
+    hard = s.synthesize(speech, blend_frames=0, smooth=False)
+    soft = s.synthesize(speech, blend_frames=4, smooth=False)
     assert np.array_equal(hard.source_frames, soft.source_frames)  # same search, only the seams differ
     j_hard = _seam_jerk(hard.positions, hard.boundaries, scott_db.fps)
     j_soft = _seam_jerk(soft.positions, soft.boundaries, scott_db.fps)
     assert j_soft < 0.8 * j_hard, (j_soft, j_hard)
+    smoothed = s.synthesize(speech, blend_frames=4)
+    assert _seam_jerk(smoothed.positions, smoothed.boundaries, scott_db.fps) < j_soft
+
+
+def test_smoothing_brings_jerk_to_the_level_of_the_recording(scott_db, speech):
+    """Whole-output jerk of the arms: blended + smoothed output is within 50% of the captured motion's."""
+    from gesturedb.metrics import average_jerk
+
+    arms = [i for i, n in enumerate(scott_db.joint_names) if n.startswith(("left_", "right_")) and
+            any(k in n for k in ("shoulder", "elbow", "wrist", "index", "pinky"))]
+    db_jerk = average_jerk(scott_db.joint_positions.astype(np.float64), fps=scott_db.fps, joints=arms)
+    out = Searcher(scott_db).synthesize(speech)
+    raw = Searcher(scott_db).synthesize(speech, blend_frames=0, smooth=False)
+    j = average_jerk(out.positions, fps=scott_db.fps, joints=arms)
+    assert j < average_jerk(raw.positions, fps=scott_db.fps, joints=arms) / 2
+    assert 0.5 * db_jerk < j < 1.5 * db_jerk, (j, db_jerk)
 
 
 def test_options_change_the_result_reproducibly(scott_db, speech):
@@ -133,4 +149,4 @@ def test_speaker_keeps_facing_forward_and_stays_in_place(scott_db, scott_dir):
     db_xz = scott_db.root_positions[:, [0, 2]].astype(np.float64)
     db_reach = np.linalg.norm(db_xz - db_xz.mean(0), axis=1).max()
     out_reach = np.linalg.norm(res.motion.root_positions[:, [0, 2]], axis=1).max()
-    assert out_reach <= db_reach + 0.01, (out_reach, db_reach)
+    assert out_reach <= db_reach + 0.03, (out_reach, db_reach)  # Savitzky-Golay may overshoot by a few cm
