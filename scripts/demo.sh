@@ -8,6 +8,8 @@ bash scripts/setup.sh
 mkdir -p out
 gesturedb build "$DATA/beat2-scott" -o out/scott.h5 --mirror
 gesturedb info out/scott.h5
+# a keyword sub-database: whenever the speech says "time", gestures come from the speaker's own "time"s
+gesturedb keywords out/scott.h5 add time --replace
 gesturedb synth out/scott.h5 \
     --audio "$DATA/beat2-scott/inputs/2_scott_0_2_2.wav" \
     --transcript "$DATA/beat2-scott/inputs/2_scott_0_2_2.TextGrid" \
