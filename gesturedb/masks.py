@@ -445,17 +445,9 @@ HIGH_PERCENTILE = 85.0
 LOW_PERCENTILE = 15.0
 """Percentile below which ``<feature>_low`` holds."""
 
-CONTROL_UNITS: dict[str, str] = {
-    "left_wrist_height": "m",
-    "right_wrist_height": "m",
-    "left_wrist_speed": "m/s",
-    "right_wrist_speed": "m/s",
-    "left_hand_radius": "m",
-    "right_hand_radius": "m",
-    "height_asymmetry": "m",
-    "mirror_distance": "m",
-}
-"""Base unit of each known control feature; values in expressions convert to it."""
+# One definition of the control features' units: the module that computes them.
+# (features/controls.py is plain numpy, so masks stays importable without the readers.)
+from gesturedb.features.controls import CONTROL_UNITS  # noqa: E402
 
 # Features not listed above get a unit from their name, so a new control feature
 # named like the others works with units without touching this module.
