@@ -424,7 +424,7 @@ def test_expression_errors_point_at_the_column(abc, expr, message, column):
 
 def test_unknown_names_list_the_known_ones(abc):
     _, controls, _ = abc
-    with pytest.raises(ParameterError, match=r"known features: height_asymmetry, left_hand_radius, left_wrist_height"):
+    with pytest.raises(ParameterError, match=r"known features: hand_distance, hand_speed, height_asymmetry, left_hand_radius, left_wrist_forward, left_wrist_height"):
         M.compile_mask("nonsense > 3", controls=controls)
     with pytest.raises(ParameterError, match=r"known names: .*left_wrist_fast.*symmetric"):
         M.compile_mask("nonsense", controls=controls)
