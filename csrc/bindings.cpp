@@ -1,0 +1,378 @@
+// The only file that includes pybind11: checks, pointers, outputs, GIL.
+//
+// gesturedb/search.py validates every argument with messages for users; the
+// checks here are the backstop that keeps C++ from reading out of bounds if
+// _core is called directly. Arrays are taken with .noconvert(): a float64 or
+// non-contiguous database is refused, never silently copied (it is hundreds
+// of megabytes). Outputs are allocated before the GIL is released, and only
+// pure C++ runs without it.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "kernels.h"
+#include "search.h"
+
+namespace py = pybind11;
+using namespace gesturedb;
+
+namespace {
+
+using F32 = py::array_t<float, py::array::c_style>;
+using I64 = py::array_t<int64_t, py::array::c_style>;
+using U64 = py::array_t<uint64_t, py::array::c_style>;
+using Bool = py::array_t<bool, py::array::c_style>;
+using U16 = py::array_t<uint16_t, py::array::c_style>;
+
+std::string shape_str(const py::array& a) {
+    std::string s = "(";
+    for (py::ssize_t i = 0; i < a.ndim(); ++i) {
+        if (i) s += ", ";
+        s += std::to_string(a.shape(i));
+    }
+    if (a.ndim() == 1) s += ",";
+    return s + ")";
+}
+
+void require_ndim(const py::array& a, int ndim, const char* name) {
+    if (a.ndim() != ndim)
+        throw std::invalid_argument(std::string(name) + ": expected " + std::to_string(ndim) +
+                                    "-d array; got shape " + shape_str(a));
+}
+
+Span2<const float> span2(const F32& a, const char* name) {
+    require_ndim(a, 2, name);
+    return {a.data(), int64_t(a.shape(0)), int64_t(a.shape(1))};
+}
+
+Database make_db(const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+                 const std::optional<U16>& pose_f16 = std::nullopt) {
+    Database db;
+    db.pose = span2(pose, "pose");
+    if (pose_f16) {
+        require_ndim(*pose_f16, 2, "pose_f16");
+        db.pose_f16 = {pose_f16->data(), int64_t(pose_f16->shape(0)), int64_t(pose_f16->shape(1))};
+    }
+    db.audio = span2(audio, "audio");
+    require_ndim(seg_start, 1, "seg_start");
+    require_ndim(seg_len, 1, "seg_len");
+    db.seg_start = {seg_start.data(), int64_t(seg_start.shape(0))};
+    db.seg_len = {seg_len.data(), int64_t(seg_len.shape(0))};
+    check_database(db);
+    return db;
+}
+
+Preselect parse_preselect(const std::string& s) {
+    if (s == "pose") return Preselect::Pose;
+    if (s == "audio") return Preselect::Audio;
+    throw std::invalid_argument("preselect: expected 'pose' or 'audio'; got '" + s + "'");
+}
+
+void check_vector(const F32& v, int64_t len, const char* name) {
+    require_ndim(v, 1, name);
+    if (v.shape(0) != len)
+        throw std::invalid_argument(std::string(name) + ": expected " + std::to_string(len) +
+                                    " values; got " + std::to_string(v.shape(0)));
+}
+
+const bool* exclude_ptr(const std::optional<Bool>& exclude, int64_t M) {
+    if (!exclude) return nullptr;
+    require_ndim(*exclude, 1, "exclude");
+    if (exclude->shape(0) != M)
+        throw std::invalid_argument("exclude: expected " + std::to_string(M) + " entries; got " +
+                                    std::to_string(exclude->shape(0)));
+    return exclude->data();
+}
+
+AllowedSchedule make_allowed(const std::optional<U64>& allowed, const Database& db, bool allow_2d) {
+    AllowedSchedule s;
+    if (!allowed) return s;
+    const int64_t words = (db.n_frames() + 63) / 64;
+    const U64& a = *allowed;
+    if (a.ndim() == 1 || (allow_2d && a.ndim() == 2)) {
+        const int64_t cols = a.shape(a.ndim() - 1);
+        if (cols != words)
+            throw std::invalid_argument("allowed: expected " + std::to_string(words) +
+                                        " uint64 words per bitset; got shape " + shape_str(a));
+        s.words = a.data();
+        s.n_words = words;
+        s.per_step = a.ndim() == 2;
+        s.n_rows = a.ndim() == 2 ? a.shape(0) : 1;
+        return s;
+    }
+    throw std::invalid_argument(std::string("allowed: expected ") + (allow_2d ? "1-d or 2-d" : "1-d") +
+                                " uint64 array; got shape " + shape_str(a));
+}
+
+// Output arrays of a search, allocated with the GIL held.
+struct SearchArrays {
+    I64 segment, start, frame, length, out_frame;
+    py::array_t<double> pose_dist, audio_dist;
+    I64 pose_rank, audio_rank, n_candidates;
+
+    explicit SearchArrays(int64_t S)
+        : segment(S), start(S), frame(S), length(S), out_frame(S), pose_dist(S), audio_dist(S),
+          pose_rank(S), audio_rank(S), n_candidates(S) {}
+
+    SearchOutput view(int64_t offset = 0) {
+        return {segment.mutable_data() + offset,    start.mutable_data() + offset,
+                frame.mutable_data() + offset,      length.mutable_data() + offset,
+                out_frame.mutable_data() + offset,  pose_dist.mutable_data() + offset,
+                audio_dist.mutable_data() + offset, pose_rank.mutable_data() + offset,
+                audio_rank.mutable_data() + offset, n_candidates.mutable_data() + offset};
+    }
+
+    py::dict to_dict() const {
+        py::dict d;
+        d["segments"] = segment;
+        d["starts"] = start;
+        d["frames"] = frame;
+        d["lengths"] = length;
+        d["out_frames"] = out_frame;
+        d["pose_dist"] = pose_dist;
+        d["audio_dist"] = audio_dist;
+        d["pose_rank"] = pose_rank;
+        d["audio_rank"] = audio_rank;
+        d["n_candidates"] = n_candidates;
+        return d;
+    }
+};
+
+py::dict step_result_dict(const StepResult& r) {
+    py::dict d;
+    d["found"] = r.found;
+    d["segment"] = r.segment;
+    d["start"] = r.start;
+    d["frame"] = r.frame;
+    d["length"] = r.length;
+    d["pose_dist"] = r.pose_dist;
+    d["audio_dist"] = r.audio_dist;
+    d["pose_rank"] = r.pose_rank;
+    d["audio_rank"] = r.audio_rank;
+    d["n_candidates"] = r.n_candidates;
+    return d;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_core, m) {
+    m.doc() = "gesturedb C++ core: SIMD rank-sum motion-matching search (see gesturedb.search)";
+    // choose the kernel table now so that a bad GESTUREDB_SIMD fails the import
+    active_kernels();
+
+    m.def("kernels", []() {
+        const char* names[8];
+        const int n = available_isas(names, 8);
+        std::vector<std::string> out(names, names + std::min(n, 8));
+        return out;
+    }, "Instruction sets this build and CPU can run, narrowest first.");
+    m.def("get_simd", []() { return std::string(active_kernels().isa); },
+          "The instruction set the next search will use.");
+    m.def("set_simd", [](const std::string& isa) { set_simd(isa.c_str()); }, py::arg("isa"),
+          "Switch the instruction set for subsequent searches ('scalar', 'avx2', 'avx512').");
+    m.def("default_threads", &default_threads, "Threads used when a call passes threads <= 0.");
+
+    // --- raw kernels, for tests and benchmarks --------------------------------
+    m.def("l2sq_rows_f32", [](const F32& rows, const F32& v, const std::string& isa) {
+        const Kernels& k = kernels_for(isa.c_str());
+        const Span2<const float> r = span2(rows, "rows");
+        check_vector(v, r.cols, "v");
+        py::array_t<float> out(r.rows);
+        float* o = out.mutable_data();
+        {
+            py::gil_scoped_release release;
+            k.l2sq_rows_f32(r.data, r.rows, r.cols, v.data(), o);
+        }
+        return out;
+    }, py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
+       "out[r] = ||rows[r] - v||^2 with the kernel of one instruction set.");
+
+    m.def("l2sq_rows_f16", [](const U16& rows, const F32& v, const std::string& isa) {
+        const Kernels& k = kernels_for(isa.c_str());
+        require_ndim(rows, 2, "rows");
+        const int64_t R = rows.shape(0), D = rows.shape(1);
+        check_vector(v, D, "v");
+        py::array_t<float> d(R);
+        float* pd = d.mutable_data();
+        {
+            py::gil_scoped_release release;
+            k.l2sq_rows_f16(rows.data(), R, D, v.data(), pd);
+        }
+        return d;
+    }, py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
+       "||h - v||^2 per row of binary16 bit patterns h, with one instruction set.");
+
+    m.def("cosdots_f32", [](const F32& audio, const F32& q, const std::string& isa) {
+        const Kernels& k = kernels_for(isa.c_str());
+        const Span2<const float> a = span2(audio, "audio");
+        const Span2<const float> qs = span2(q, "q");
+        if (qs.cols != a.cols || qs.rows < 1 || qs.rows > a.rows)
+            throw std::invalid_argument("q: expected (n, " + std::to_string(a.cols) + ") with 1 <= n <= " +
+                                        std::to_string(a.rows) + "; got " + shape_str(q));
+        const int64_t n_win = a.rows - qs.rows + 1;
+        py::array_t<float> qa(n_win), aa(n_win);
+        float *pqa = qa.mutable_data(), *paa = aa.mutable_data();
+        {
+            py::gil_scoped_release release;
+            k.cosdots_f32(a.data, n_win, a.cols, qs.rows * qs.cols, qs.data, pqa, paa);
+        }
+        return py::make_tuple(qa, aa);
+    }, py::arg("audio").noconvert(), py::arg("q").noconvert(), py::arg("isa"),
+       "(<q, w>, <w, w>) for every window w of len(q) frames of audio (flattened).");
+
+    m.def("stream_sum_f32", [](const F32& a, int threads) {
+        const float* p = a.data();
+        const int64_t n = int64_t(a.size());
+        double s;
+        {
+            py::gil_scoped_release release;
+            s = stream_sum_f32(p, n, threads);
+        }
+        return s;
+    }, py::arg("a").noconvert(), py::arg("threads") = 0,
+       "Sum of a float32 array read once by `threads` threads: the memory-bandwidth\n"
+       "floor of any kernel that must read the same bytes (benchmarks/bench_search.py).");
+
+    // --- search -------------------------------------------------------------
+    m.def("step", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+                     const F32& prev, const F32& query, int64_t k, const std::string& preselect,
+                     const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
+                     int threads, const std::optional<U16>& pose_f16) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16);
+        check_vector(prev, db.pose.cols, "prev_pose");
+        const Span2<const float> q = span2(query, "query_audio");
+        if (q.cols != db.audio.cols || q.rows < 1)
+            throw std::invalid_argument("query_audio: expected (n >= 1, " + std::to_string(db.audio.cols) +
+                                        "); got " + shape_str(query));
+        if (k < 1) throw std::invalid_argument("k: expected >= 1; got " + std::to_string(k));
+        StepOptions opt;
+        opt.k = k;
+        opt.preselect = parse_preselect(preselect);
+        opt.allowed = make_allowed(allowed, db, false).at(0);
+        opt.exclude = exclude_ptr(exclude, db.n_segments());
+        const Kernels& kern = active_kernels();
+        StepResult r;
+        {
+            py::gil_scoped_release release;
+            StepEngine engine(kern, db, threads <= 0 ? default_threads() : threads);
+            r = engine.step(prev.data(), q.data, q.rows, opt);
+        }
+        return step_result_dict(r);
+    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+       py::arg("seg_len").noconvert(), py::arg("prev").noconvert(), py::arg("query").noconvert(),
+       py::arg("k"), py::arg("preselect"), py::arg("allowed").noconvert().none(true),
+       py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
+       py::arg("pose_f16").noconvert().none(true) = py::none(),
+       "One rank-sum step (use gesturedb.search.rank_sum_step, which validates).");
+
+    m.def("search", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+                       const F32& query, const F32& init_pose, int64_t window, int64_t k,
+                       const std::string& preselect, const std::optional<U64>& allowed,
+                       const std::optional<Bool>& exclude, int threads,
+                       const std::optional<U16>& pose_f16) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16);
+        check_vector(init_pose, db.pose.cols, "init_pose");
+        const Span2<const float> q = span2(query, "query_audio");
+        if (window < 1) throw std::invalid_argument("step: expected >= 1; got " + std::to_string(window));
+        const int64_t S = q.rows >= 1 ? (q.rows + window - 1) / window : 0;
+        const AllowedSchedule sched = make_allowed(allowed, db, true);
+        const bool* ex = exclude_ptr(exclude, db.n_segments());
+        const Preselect pre = parse_preselect(preselect);
+        const Kernels& kern = active_kernels();
+        SearchArrays out(S);
+        SearchOutput view = out.view();
+        int64_t failed;
+        {
+            py::gil_scoped_release release;
+            failed = rank_sum_search(kern, db, q, init_pose.data(), window, k, pre, sched, ex, view,
+                                     threads);
+        }
+        return py::make_tuple(out.to_dict(), failed);
+    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+       py::arg("seg_len").noconvert(), py::arg("query").noconvert(), py::arg("init_pose").noconvert(),
+       py::arg("window"), py::arg("k"), py::arg("preselect"),
+       py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
+       py::arg("threads") = 0, py::arg("pose_f16").noconvert().none(true) = py::none(),
+       "A whole search -> (dict of (S,) arrays, failed step or -1) "
+       "(use gesturedb.search.rank_sum_search, which validates).");
+
+    m.def("search_batch", [](const F32& pose, const F32& audio, const I64& seg_start,
+                             const I64& seg_len, const std::vector<F32>& queries,
+                             const F32& init_poses, int64_t window, const I64& k,
+                             const std::string& preselect, const std::optional<U64>& allowed,
+                             const std::optional<Bool>& exclude, int threads,
+                             const std::string& method, const std::optional<U16>& pose_f16) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16);
+        const int64_t Q = int64_t(queries.size());
+        BatchMethod bm;
+        if (method == "auto") bm = BatchMethod::Auto;
+        else if (method == "blocked") bm = BatchMethod::Blocked;
+        else if (method == "per_query") bm = BatchMethod::PerQuery;
+        else throw std::invalid_argument("method: expected 'auto', 'blocked' or 'per_query'; got '" + method + "'");
+        const Span2<const float> init = span2(init_poses, "init_poses");
+        if (init.rows != Q || init.cols != db.pose.cols)
+            throw std::invalid_argument("init_poses: expected (" + std::to_string(Q) + ", " +
+                                        std::to_string(db.pose.cols) + "); got " + shape_str(init_poses));
+        require_ndim(k, 1, "k");
+        if (k.shape(0) != Q)
+            throw std::invalid_argument("k: expected " + std::to_string(Q) + " values; got " +
+                                        std::to_string(k.shape(0)));
+        if (window < 1) throw std::invalid_argument("step: expected >= 1; got " + std::to_string(window));
+        const AllowedSchedule sched = make_allowed(allowed, db, true);
+        const Preselect pre = parse_preselect(preselect);
+        const int64_t M = db.n_segments();
+        const bool* ex = nullptr;
+        bool ex_per_query = false;
+        if (exclude) {
+            const Bool& e = *exclude;
+            if (e.ndim() == 1 && e.shape(0) == M) {
+                ex = e.data();
+            } else if (e.ndim() == 2 && e.shape(0) == Q && e.shape(1) == M) {
+                ex = e.data();
+                ex_per_query = true;
+            } else {
+                throw std::invalid_argument("exclude: expected (" + std::to_string(M) + ",) or (" +
+                                            std::to_string(Q) + ", " + std::to_string(M) + "); got " +
+                                            shape_str(e));
+            }
+        }
+        std::vector<BatchQuery> batch(Q);
+        I64 offsets(Q + 1);
+        int64_t* off = offsets.mutable_data();
+        off[0] = 0;
+        for (int64_t i = 0; i < Q; ++i) {
+            batch[i].audio = span2(queries[i], "queries[i]");
+            const int64_t T = batch[i].audio.rows;
+            off[i + 1] = off[i] + (T >= 1 ? (T + window - 1) / window : 0);
+        }
+        SearchArrays out(off[Q]);
+        const int64_t* kp = k.data();
+        for (int64_t i = 0; i < Q; ++i) {
+            batch[i].init_pose = init.row(i);
+            batch[i].k = kp[i];
+            batch[i].exclude = ex == nullptr ? nullptr : (ex_per_query ? ex + i * M : ex);
+            batch[i].out = out.view(off[i]);
+        }
+        const Kernels& kern = active_kernels();
+        I64 failed(Q);
+        {
+            py::gil_scoped_release release;
+            rank_sum_search_batch(kern, db, batch, window, pre, sched, threads, bm);
+        }
+        int64_t* f = failed.mutable_data();
+        for (int64_t i = 0; i < Q; ++i) f[i] = batch[i].failed_step;
+        return py::make_tuple(out.to_dict(), offsets, failed);
+    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+       py::arg("seg_len").noconvert(), py::arg("queries").noconvert(), py::arg("init_poses").noconvert(),
+       py::arg("window"), py::arg("k").noconvert(), py::arg("preselect"),
+       py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
+       py::arg("threads") = 0, py::arg("method") = "auto",
+       py::arg("pose_f16").noconvert().none(true) = py::none(),
+       "Many searches -> (dict of concatenated arrays, offsets (Q+1,), failed step per query) "
+       "(use gesturedb.search.rank_sum_search_batch, which validates).");
+}

@@ -1,0 +1,132 @@
+// Distance kernels of the rank-sum search, one table per instruction set.
+//
+// Every ISA implements the same functions with the same contract; the scalar
+// versions (kernels_scalar.cpp) are plain loops written to be read and are the
+// oracle the SIMD versions are tested against. Names follow <op>_<dtype>_<isa>.
+//
+// Determinism contract (the search relies on it for its tie rules and for
+// "batched equals one-by-one"): within one ISA, the value computed for a row or
+// a window depends only on the values in it, never on its address, its position
+// in the batch or the batch size. Two bit-identical frames therefore always
+// get bit-identical distances, so duplicated data produces exact ties.
+#pragma once
+
+#include <cstdint>
+
+namespace gesturedb {
+
+// Squared Euclidean distance of each row to one vector:
+//   out[r] = sum_j (rows[r * dim + j] - v[j])^2        for r in [0, n_rows)
+// rows: (n_rows, dim) row-major, v: (dim,), out: (n_rows,).
+using L2sqRowsFn = void (*)(const float* rows, int64_t n_rows, int64_t dim,
+                            const float* v, float* out);
+
+// Dot products of sliding windows with one query window:
+//   a_w = base + w * stride  (len contiguous values)  for w in [0, n_win)
+//   qa[w] = <q, a_w>,  aa[w] = <a_w, a_w>
+// Windows may overlap (stride < len): an audio window of n frames of Da values
+// starting at frame g is the n * Da floats at audio + g * Da.
+using CosDotsFn = void (*)(const float* base, int64_t n_win, int64_t stride,
+                           int64_t len, const float* q, float* qa, float* aa);
+
+// Half-precision rows, for the optional pose filter of a single-query step:
+//   d[r] = sum_j (h[r][j] - v[j])^2
+// with h = rows (IEEE binary16 bit patterns, (n_rows, dim)) converted exactly to
+// float32. Only a filter (see half_filter in search.cpp): any summation order
+// is fine, the caller's bound covers float32 rounding of any order.
+using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
+                               float* d);
+
+// --- batched search -------------------------------------------------------
+// The batch evaluates many queries against the same rows at once. It uses the
+// functions below only as a *filter*: a blocked dot product (GEMM-like, much
+// faster per candidate but with a different rounding) gives approximate
+// distances with a rigorous error bound, and every candidate that could still
+// be the minimum is then recomputed with l2sq_rows_f32 / cosdots_f32 above. So
+// the batch returns bit-identical results to one query at a time.
+
+// Panel width: the number of queries in a block is padded to a multiple of this.
+constexpr int64_t kQueryPanel = 64;
+
+// out[r * qp + j] = sum_p base[r * stride + p] * x[j][p]
+//   r < n_rows (rows may overlap: stride < len for audio windows), j < qp,
+//   qp a multiple of kQueryPanel. The queries x are packed in panels of 64:
+//   x[j][p] = xt[(j / 64) * len * 64 + p * 64 + j % 64], so one panel is a
+//   contiguous (len, 64) block that stays in L1 while the rows stream past
+//   (a (len, qp) layout would map every row of the panel to the same few L1
+//   sets once qp * 4 bytes is a multiple of 1 KiB).
+using DotsBlockFn = void (*)(const float* base, int64_t n_rows, int64_t stride, int64_t len,
+                             const float* xt, int64_t qp, float* out);
+
+// Bound filters over a block c (n_rows, qp) from DotsBlockFn, vectorised across
+// the qp queries. For each row r with ok[r] != 0 (ok may be null: all rows):
+//   pose  (l2filter):  d = nrow[r] + nq[j] - 2 c[r][j],   b = eps * (rrow[r] + rq[j])^2
+//                      (nrow = |row|^2, rrow = |row|, nq = |x|^2, rq = |x|)
+//   audio (cosfilter): d = 1 - c[r][j] * rrow[r] * rq[j], b = eps
+//                      (rrow = 1/|window| or 0, rq = 1/|q| or 0: zero norms give d = 1)
+// minhi[j] (in/out, start at +inf) becomes min(minhi[j], d + b) over the rows,
+// or NaN for good once any d + b is not finite (the caller then falls back to
+// the exact scan). keep (n_rows, qp / 64) uint64 words, overwritten: bit (r, j)
+// is set iff d - b <= minhi[j] after this block.
+using FilterFn = void (*)(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
+                          const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
+                          float eps, float* minhi, uint64_t* keep);
+
+struct Kernels {
+    const char* isa;      // "scalar", "avx2", "avx512"
+    L2sqRowsFn l2sq_rows_f32;
+    CosDotsFn cosdots_f32;
+    DotsBlockFn dots_block_f32;
+    FilterFn l2filter_f32;
+    FilterFn cosfilter_f32;
+    L2sqRowsF16Fn l2sq_rows_f16;
+};
+
+// --- per-ISA implementations (declared here, defined in kernels_<isa>.cpp) --
+void l2sq_rows_f32_scalar(const float*, int64_t, int64_t, const float*, float*);
+void cosdots_f32_scalar(const float*, int64_t, int64_t, int64_t, const float*, float*, float*);
+void dots_block_f32_scalar(const float*, int64_t, int64_t, int64_t, const float*, int64_t, float*);
+void l2filter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
+                         const float*, const float*, float, float*, uint64_t*);
+void cosfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
+                          const float*, const float*, float, float*, uint64_t*);
+void l2sq_rows_f16_scalar(const uint16_t*, int64_t, int64_t, const float*, float*);
+
+#if defined(__x86_64__) || defined(_M_X64)
+#define GESTUREDB_X86 1
+void l2sq_rows_f32_avx2(const float*, int64_t, int64_t, const float*, float*);
+void cosdots_f32_avx2(const float*, int64_t, int64_t, int64_t, const float*, float*, float*);
+void dots_block_f32_avx2(const float*, int64_t, int64_t, int64_t, const float*, int64_t, float*);
+void l2filter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
+                       const float*, const float*, float, float*, uint64_t*);
+void cosfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
+                        const float*, const float*, float, float*, uint64_t*);
+void l2sq_rows_f16_avx2(const uint16_t*, int64_t, int64_t, const float*, float*);
+void l2sq_rows_f32_avx512(const float*, int64_t, int64_t, const float*, float*);
+void cosdots_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, float*, float*);
+void dots_block_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, int64_t, float*);
+void l2filter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
+                         const float*, const float*, float, float*, uint64_t*);
+void cosfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
+                          const float*, const float*, float, float*, uint64_t*);
+void l2sq_rows_f16_avx512(const uint16_t*, int64_t, int64_t, const float*, float*);
+#endif
+
+// --- dispatch (dispatch.cpp) ------------------------------------------------
+// The table in use. Chosen once from the CPU (cpuid + xgetbv), overridden by the
+// environment variable GESTUREDB_SIMD=scalar|avx2|avx512 at load time and by
+// set_simd() at run time. A search reads it once at entry and uses that table
+// throughout, so switching mid-search in another thread never mixes ISAs.
+const Kernels& active_kernels();
+
+// The table for one ISA name; throws std::invalid_argument naming the ISAs this
+// build and CPU can run if `isa` is unknown or unsupported here.
+const Kernels& kernels_for(const char* isa);
+
+// Names this build and CPU can run, narrowest first ("scalar" always).
+int available_isas(const char** names, int capacity);
+
+// Switch the active table; throws like kernels_for.
+void set_simd(const char* isa);
+
+}  // namespace gesturedb

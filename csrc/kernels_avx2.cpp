@@ -1,0 +1,226 @@
+// AVX2 + FMA kernels: 8 float lanes, vector loop + scalar tail.
+//
+// Compiled with per-function target attributes (not -mavx2 for the file) so the
+// rest of the extension keeps baseline x86-64 code and runs on any CPU; these
+// functions are only called after dispatch.cpp has seen AVX2 and FMA in cpuid
+// and the OS saving YMM state in xgetbv.
+#include "kernels.h"
+
+#ifdef GESTUREDB_X86
+#include <immintrin.h>
+
+#include <cstring>
+#include <limits>
+
+#define GDB_AVX2 __attribute__((target("avx2,fma")))
+
+namespace gesturedb {
+namespace {
+
+GDB_AVX2 inline float hsum256(__m256 v) {
+    __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+    s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    s = _mm_add_ss(s, _mm_movehdup_ps(s));
+    return _mm_cvtss_f32(s);
+}
+
+}  // namespace
+
+GDB_AVX2 void l2sq_rows_f32_avx2(const float* rows, int64_t n_rows, int64_t dim,
+                                 const float* v, float* out) {
+    for (int64_t r = 0; r < n_rows; ++r) {
+        const float* row = rows + r * dim;
+        // two accumulators hide the FMA latency on long rows
+        __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
+        int64_t j = 0;
+        for (; j + 16 <= dim; j += 16) {
+            const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(row + j), _mm256_loadu_ps(v + j));
+            const __m256 d1 = _mm256_sub_ps(_mm256_loadu_ps(row + j + 8), _mm256_loadu_ps(v + j + 8));
+            acc0 = _mm256_fmadd_ps(d0, d0, acc0);
+            acc1 = _mm256_fmadd_ps(d1, d1, acc1);
+        }
+        if (j + 8 <= dim) {
+            const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(row + j), _mm256_loadu_ps(v + j));
+            acc0 = _mm256_fmadd_ps(d0, d0, acc0);
+            j += 8;
+        }
+        float s = hsum256(_mm256_add_ps(acc0, acc1));
+        for (; j < dim; ++j) {
+            const float d = row[j] - v[j];
+            s += d * d;
+        }
+        out[r] = s;
+    }
+}
+
+GDB_AVX2 void cosdots_f32_avx2(const float* base, int64_t n_win, int64_t stride,
+                               int64_t len, const float* q, float* qa, float* aa) {
+    for (int64_t w = 0; w < n_win; ++w) {
+        const float* a = base + w * stride;
+        __m256 dot0 = _mm256_setzero_ps(), dot1 = _mm256_setzero_ps();
+        __m256 nrm0 = _mm256_setzero_ps(), nrm1 = _mm256_setzero_ps();
+        int64_t j = 0;
+        for (; j + 16 <= len; j += 16) {
+            const __m256 a0 = _mm256_loadu_ps(a + j), a1 = _mm256_loadu_ps(a + j + 8);
+            dot0 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j), a0, dot0);
+            dot1 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j + 8), a1, dot1);
+            nrm0 = _mm256_fmadd_ps(a0, a0, nrm0);
+            nrm1 = _mm256_fmadd_ps(a1, a1, nrm1);
+        }
+        if (j + 8 <= len) {
+            const __m256 a0 = _mm256_loadu_ps(a + j);
+            dot0 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j), a0, dot0);
+            nrm0 = _mm256_fmadd_ps(a0, a0, nrm0);
+            j += 8;
+        }
+        float d = hsum256(_mm256_add_ps(dot0, dot1));
+        float n = hsum256(_mm256_add_ps(nrm0, nrm1));
+        for (; j < len; ++j) {
+            d += q[j] * a[j];
+            n += a[j] * a[j];
+        }
+        qa[w] = d;
+        aa[w] = n;
+    }
+}
+
+// --- batched-search filter ---------------------------------------------------
+
+namespace {
+
+// NR rows x 16 queries: 2 * NR accumulators (12 for NR = 6) plus two query
+// vectors and one broadcast fit the 16 YMM registers.
+template <int NR>
+GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t len,
+                                    const float* panel, int64_t qp, float* out) {
+    __m256 acc[NR][2];
+    for (int i = 0; i < NR; ++i) acc[i][0] = acc[i][1] = _mm256_setzero_ps();
+    for (int64_t p = 0; p < len; ++p) {
+        const float* x = panel + p * 64;
+        const __m256 x0 = _mm256_loadu_ps(x), x1 = _mm256_loadu_ps(x + 8);
+        for (int i = 0; i < NR; ++i) {
+            const __m256 b = _mm256_broadcast_ss(base + i * stride + p);
+            acc[i][0] = _mm256_fmadd_ps(b, x0, acc[i][0]);
+            acc[i][1] = _mm256_fmadd_ps(b, x1, acc[i][1]);
+        }
+    }
+    for (int i = 0; i < NR; ++i) {
+        _mm256_storeu_ps(out + i * qp, acc[i][0]);
+        _mm256_storeu_ps(out + i * qp + 8, acc[i][1]);
+    }
+}
+
+}  // namespace
+
+GDB_AVX2 void dots_block_f32_avx2(const float* base, int64_t n_rows, int64_t stride, int64_t len,
+                                  const float* xt, int64_t qp, float* out) {
+    constexpr int NR = 6;
+    for (int64_t j0 = 0; j0 < qp; j0 += 16) {
+        // 16 lanes of the 64-lane panel that holds query j0
+        const float* panel = xt + (j0 / 64) * 64 * len + (j0 % 64);
+        int64_t r = 0;
+        for (; r + NR <= n_rows; r += NR)
+            dots_tile_avx2<NR>(base + r * stride, stride, len, panel, qp, out + r * qp + j0);
+        const float* b = base + r * stride;
+        float* o = out + r * qp + j0;
+        switch (n_rows - r) {
+            case 5: dots_tile_avx2<5>(b, stride, len, panel, qp, o); break;
+            case 4: dots_tile_avx2<4>(b, stride, len, panel, qp, o); break;
+            case 3: dots_tile_avx2<3>(b, stride, len, panel, qp, o); break;
+            case 2: dots_tile_avx2<2>(b, stride, len, panel, qp, o); break;
+            case 1: dots_tile_avx2<1>(b, stride, len, panel, qp, o); break;
+            default: break;
+        }
+    }
+}
+
+namespace {
+
+template <class Dist>
+GDB_AVX2 inline void filter_avx2(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi,
+                                 uint64_t* keep, Dist dist) {
+    const __m256 inf = _mm256_set1_ps(std::numeric_limits<float>::infinity());
+    const __m256 nan = _mm256_set1_ps(std::numeric_limits<float>::quiet_NaN());
+    for (int64_t r = 0; r < n_rows; ++r) {
+        if (ok != nullptr && !ok[r]) continue;
+        for (int64_t j = 0; j < qp; j += 8) {
+            __m256 d, b;
+            dist(r, j, d, b);
+            const __m256 hi = _mm256_add_ps(d, b);
+            const __m256 mh = _mm256_loadu_ps(minhi + j);
+            // not finite (NaN or inf) now or before: the lane is marked NaN for good
+            const __m256 bad = _mm256_or_ps(_mm256_cmp_ps(hi, inf, _CMP_NLT_UQ),
+                                            _mm256_cmp_ps(mh, mh, _CMP_UNORD_Q));
+            _mm256_storeu_ps(minhi + j, _mm256_blendv_ps(_mm256_min_ps(hi, mh), nan, bad));
+        }
+    }
+    const int64_t words = qp / 64;
+    std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
+    for (int64_t r = 0; r < n_rows; ++r) {
+        if (ok != nullptr && !ok[r]) continue;
+        for (int64_t j = 0; j < qp; j += 8) {
+            __m256 d, b;
+            dist(r, j, d, b);
+            const __m256 k = _mm256_cmp_ps(_mm256_sub_ps(d, b), _mm256_loadu_ps(minhi + j), _CMP_LE_OQ);
+            keep[r * words + j / 64] |= uint64_t(unsigned(_mm256_movemask_ps(k))) << (j % 64);
+        }
+    }
+}
+
+}  // namespace
+
+GDB_AVX2 void l2filter_f32_avx2(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
+                                const float* rrow, const uint8_t* ok, const float* nq,
+                                const float* rq, float eps, float* minhi, uint64_t* keep) {
+    const __m256 two = _mm256_set1_ps(2.0f), e = _mm256_set1_ps(eps);
+    filter_avx2(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m256& d, __m256& b) GDB_AVX2 {
+        const __m256 cc = _mm256_loadu_ps(c + r * qp + j);
+        d = _mm256_fnmadd_ps(two, cc, _mm256_add_ps(_mm256_set1_ps(nrow[r]), _mm256_loadu_ps(nq + j)));
+        const __m256 s = _mm256_add_ps(_mm256_set1_ps(rrow[r]), _mm256_loadu_ps(rq + j));
+        b = _mm256_mul_ps(e, _mm256_mul_ps(s, s));
+    });
+}
+
+GDB_AVX2 void cosfilter_f32_avx2(const float* c, int64_t n_rows, int64_t qp, const float*,
+                                 const float* rrow, const uint8_t* ok, const float*,
+                                 const float* rq, float eps, float* minhi, uint64_t* keep) {
+    const __m256 one = _mm256_set1_ps(1.0f), e = _mm256_set1_ps(eps);
+    filter_avx2(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m256& d, __m256& b) GDB_AVX2 {
+        const __m256 cc = _mm256_loadu_ps(c + r * qp + j);
+        const __m256 scale = _mm256_mul_ps(_mm256_set1_ps(rrow[r]), _mm256_loadu_ps(rq + j));
+        d = _mm256_fnmadd_ps(cc, scale, one);
+        b = e;
+    });
+}
+
+// --- half-precision pose filter ----------------------------------------------
+
+__attribute__((target("avx2,fma,f16c"))) void l2sq_rows_f16_avx2(
+    const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v, float* d) {
+    for (int64_t r = 0; r < n_rows; ++r) {
+        const uint16_t* row = rows + r * dim;
+        // fetch ahead: the rows are streamed (3 cache lines for 96 halves)
+        const char* ahead = reinterpret_cast<const char*>(row + 16 * dim);
+        for (int64_t b = 0; b < dim * 2; b += 64) _mm_prefetch(ahead + b, _MM_HINT_T0);
+        __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
+        int64_t j = 0;
+        for (; j + 16 <= dim; j += 16) {
+            const __m256 h0 = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(row + j)));
+            const __m256 h1 = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(row + j + 8)));
+            const __m256 e0 = _mm256_sub_ps(h0, _mm256_loadu_ps(v + j));
+            const __m256 e1 = _mm256_sub_ps(h1, _mm256_loadu_ps(v + j + 8));
+            acc0 = _mm256_fmadd_ps(e0, e0, acc0);
+            acc1 = _mm256_fmadd_ps(e1, e1, acc1);
+        }
+        float a = hsum256(_mm256_add_ps(acc0, acc1));
+        for (; j < dim; ++j) {
+            const float e = _cvtsh_ss(row[j]) - v[j];
+            a += e * e;
+        }
+        d[r] = a;
+    }
+}
+
+}  // namespace gesturedb
+
+#endif  // GESTUREDB_X86

@@ -1,0 +1,148 @@
+// Scalar kernels: the reference every SIMD kernel is checked against.
+//
+// Accumulate in double: these loops are the oracle for the float32 SIMD paths,
+// so they should carry as little rounding of their own as possible. Products of
+// two floats are exact in double, leaving only the (tiny) summation error.
+#include "kernels.h"
+
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+namespace gesturedb {
+
+void l2sq_rows_f32_scalar(const float* rows, int64_t n_rows, int64_t dim,
+                          const float* v, float* out) {
+    for (int64_t r = 0; r < n_rows; ++r) {
+        const float* row = rows + r * dim;
+        double acc = 0.0;
+        for (int64_t j = 0; j < dim; ++j) {
+            const double d = double(row[j]) - double(v[j]);
+            acc += d * d;
+        }
+        out[r] = float(acc);
+    }
+}
+
+void cosdots_f32_scalar(const float* base, int64_t n_win, int64_t stride,
+                        int64_t len, const float* q, float* qa, float* aa) {
+    for (int64_t w = 0; w < n_win; ++w) {
+        const float* a = base + w * stride;
+        double dot = 0.0, norm = 0.0;
+        for (int64_t j = 0; j < len; ++j) {
+            dot += double(q[j]) * double(a[j]);
+            norm += double(a[j]) * double(a[j]);
+        }
+        qa[w] = float(dot);
+        aa[w] = float(norm);
+    }
+}
+
+// --- batched-search filter --------------------------------------------------
+// These are only ever a filter (see kernels.h), so float accumulation is fine;
+// the scalar versions define the semantics the SIMD ones are tested against.
+
+void dots_block_f32_scalar(const float* base, int64_t n_rows, int64_t stride, int64_t len,
+                           const float* xt, int64_t qp, float* out) {
+    for (int64_t r = 0; r < n_rows; ++r) {
+        const float* row = base + r * stride;
+        float* o = out + r * qp;
+        for (int64_t j = 0; j < qp; ++j) o[j] = 0.0f;
+        for (int64_t p = 0; p < len; ++p) {
+            const float b = row[p];
+            for (int64_t j = 0; j < qp; ++j) o[j] += b * xt[(j / 64) * len * 64 + p * 64 + j % 64];
+        }
+    }
+}
+
+namespace {
+
+// shared by both filters: d and b for lane j of row r are given by `dist`
+template <class Dist>
+void filter_scalar(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi, uint64_t* keep,
+                   Dist dist) {
+    const float inf = std::numeric_limits<float>::infinity();
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    for (int64_t r = 0; r < n_rows; ++r) {
+        if (ok != nullptr && !ok[r]) continue;
+        for (int64_t j = 0; j < qp; ++j) {
+            float d, b;
+            dist(r, j, d, b);
+            const float hi = d + b;
+            if (!(hi < inf) || minhi[j] != minhi[j]) {
+                minhi[j] = nan;  // non-finite: the caller scans this query exactly
+            } else if (hi < minhi[j]) {
+                minhi[j] = hi;
+            }
+        }
+    }
+    const int64_t words = qp / 64;
+    std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
+    for (int64_t r = 0; r < n_rows; ++r) {
+        if (ok != nullptr && !ok[r]) continue;
+        for (int64_t j = 0; j < qp; ++j) {
+            float d, b;
+            dist(r, j, d, b);
+            if (d - b <= minhi[j]) keep[r * words + j / 64] |= uint64_t(1) << (j % 64);
+        }
+    }
+}
+
+}  // namespace
+
+void l2filter_f32_scalar(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
+                         const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
+                         float eps, float* minhi, uint64_t* keep) {
+    filter_scalar(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, float& d, float& b) {
+        d = nrow[r] + nq[j] - 2.0f * c[r * qp + j];
+        const float s = rrow[r] + rq[j];
+        b = eps * (s * s);
+    });
+}
+
+void cosfilter_f32_scalar(const float* c, int64_t n_rows, int64_t qp, const float* /*nrow*/,
+                          const float* rrow, const uint8_t* ok, const float* /*nq*/,
+                          const float* rq, float eps, float* minhi, uint64_t* keep) {
+    filter_scalar(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, float& d, float& b) {
+        d = 1.0f - c[r * qp + j] * rrow[r] * rq[j];
+        b = eps;
+    });
+}
+
+// --- half-precision pose filter ----------------------------------------------
+
+namespace {
+
+// IEEE binary16 -> float32, exact (every half is representable as a float).
+float half_to_float(uint16_t h) {
+    const uint32_t sign = uint32_t(h & 0x8000u) << 16;
+    const uint32_t exp = (h >> 10) & 0x1Fu;
+    const uint32_t man = h & 0x3FFu;
+    float f;
+    if (exp == 0) {
+        f = std::ldexp(float(man), -24);  // zero or subnormal: man * 2^-24
+        return sign ? -f : f;
+    }
+    uint32_t bits;
+    if (exp == 0x1F) bits = sign | 0x7F800000u | (man << 13);  // inf or NaN
+    else bits = sign | ((exp + 112u) << 23) | (man << 13);
+    std::memcpy(&f, &bits, sizeof f);
+    return f;
+}
+
+}  // namespace
+
+void l2sq_rows_f16_scalar(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
+                          float* d) {
+    for (int64_t r = 0; r < n_rows; ++r) {
+        const uint16_t* row = rows + r * dim;
+        double acc = 0.0;
+        for (int64_t j = 0; j < dim; ++j) {
+            const double e = double(half_to_float(row[j])) - double(v[j]);
+            acc += e * e;
+        }
+        d[r] = float(acc);
+    }
+}
+
+}  // namespace gesturedb

@@ -1,0 +1,1046 @@
+// Rank-sum step, search loop and batch (spec: ../shared/spec/search.md).
+//
+// A step (spec steps 1-5) is split in three stages:
+//   pre-selection  per segment, the allowed candidate with the smallest
+//                  pose (or audio) distance and then its other distance;
+//   ranking        ranks of the survivors by each distance (radix sort, ties by
+//                  segment index), R = rp + ra, the k-th by (R, rp, m);
+//   continuation   prev = P[g + n - 1] for the next step.
+// The single-query path streams the database once per step. The batch runs many
+// queries through the same stages and replaces the per-candidate distances of
+// the pre-selection with a blocked dot product used as a bounded filter (see
+// kernels.h), recomputing exactly every candidate that could still win; it
+// therefore returns exactly what the single-query path returns.
+#include "search.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstring>
+#include <exception>
+#include <limits>
+#include <mutex>
+#include <numeric>
+#include <stdexcept>
+#include <string>
+#include <system_error>
+#include <thread>
+
+namespace gesturedb {
+namespace {
+
+// ---------------------------------------------------------------------------
+// Threads: hnswlib's ParallelFor pattern. Tasks are handed out through an
+// atomic counter; the first exception is kept, the other workers stop taking
+// tasks, and it is rethrown on the calling thread after every worker joined.
+template <class Fn>
+void parallel_for(int64_t n_tasks, int threads, Fn&& fn) {
+    if (n_tasks <= 0) return;
+    threads = int(std::min<int64_t>(std::max(threads, 1), n_tasks));
+    if (threads == 1) {
+        for (int64_t i = 0; i < n_tasks; ++i) fn(i, 0);
+        return;
+    }
+    std::atomic<int64_t> next{0};
+    std::atomic<bool> stop{false};
+    std::exception_ptr first;
+    std::mutex first_mutex;
+    auto worker = [&](int tid) {
+        while (!stop.load(std::memory_order_relaxed)) {
+            const int64_t i = next.fetch_add(1, std::memory_order_relaxed);
+            if (i >= n_tasks) break;
+            try {
+                fn(i, tid);
+            } catch (...) {
+                std::lock_guard<std::mutex> lock(first_mutex);
+                if (!first) first = std::current_exception();
+                stop.store(true, std::memory_order_relaxed);
+            }
+        }
+    };
+    std::vector<std::thread> pool;
+    pool.reserve(threads - 1);
+    try {
+        for (int t = 1; t < threads; ++t) pool.emplace_back(worker, t);
+    } catch (const std::system_error&) {
+        // the OS refused another thread: the ones that started (and this one)
+        // still drain every task, only slower
+    }
+    worker(0);
+    for (auto& th : pool) th.join();
+    if (first) std::rethrow_exception(first);
+}
+
+// Orders with NaN after every number (and NaNs equal to each other), so a
+// non-finite feature can never break a sort's ordering; a NaN distance simply
+// loses every comparison against a real one.
+template <class T>
+inline bool nan_last_less(T a, T b) {
+    return a < b || (b != b && a == a);
+}
+
+// Cosine distance from the float32 dot products, finished in double.
+// Spec: da = 1 - <q,a> / (|q| |a|), and 1 when either norm is 0.
+inline double cosine_distance(float qa, float qq, float aa) {
+    if (qq == 0.0f || aa == 0.0f) return 1.0;
+    return 1.0 - double(qa) / std::sqrt(double(qq) * double(aa));
+}
+
+// Bits f .. f+63 of a packed bitset (bits past the end read as 0).
+inline uint64_t bits64(const BitsetView& b, int64_t f) {
+    const int64_t w = f >> 6;
+    const int sh = int(f & 63);
+    const uint64_t lo = (w < b.n_words) ? b.words[w] : 0;
+    if (sh == 0) return lo;
+    const uint64_t hi = (w + 1 < b.n_words) ? b.words[w + 1] : 0;
+    return (lo >> sh) | (hi << (64 - sh));
+}
+
+// Calls fn(i0, i1) for each maximal run [i0, i1) of candidates i in [0, count)
+// whose window [first + i, first + i + last_off] has both its first and its last
+// frame allowed (spec step 1: only those two frames are checked).
+template <class Fn>
+void for_each_allowed_run(const BitsetView& allowed, int64_t first, int64_t count,
+                          int64_t last_off, Fn&& fn) {
+    if (count <= 0) return;
+    if (allowed.all()) {
+        fn(int64_t(0), count);
+        return;
+    }
+    int64_t run_start = -1;
+    for (int64_t base = 0; base < count; base += 64) {
+        const int64_t lim = std::min<int64_t>(64, count - base);
+        uint64_t ok = bits64(allowed, first + base) & bits64(allowed, first + base + last_off);
+        if (lim < 64) ok &= (uint64_t(1) << lim) - 1;
+        int64_t i = 0;
+        while (i < lim) {
+            if (run_start < 0) {
+                const uint64_t rest = ok >> i;
+                if (rest == 0) break;
+                i += __builtin_ctzll(rest);
+                run_start = base + i;
+            } else {
+                const uint64_t rest = (~ok) >> i;
+                if (rest == 0) break;  // the run continues into the next word
+                i += __builtin_ctzll(rest);
+                fn(run_start, base + i);
+                run_start = -1;
+            }
+        }
+    }
+    if (run_start >= 0) fn(run_start, count);
+}
+
+// Order-preserving unsigned keys for the radix sort: -0 and +0 are equal (as
+// they compare), every NaN sorts last and equal to the others, like nan_last_less.
+inline uint32_t order_key(float x) {
+    x += 0.0f;  // -0 -> +0
+    if (x != x) return ~uint32_t(0);
+    uint32_t u;
+    std::memcpy(&u, &x, sizeof u);
+    return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+inline uint64_t order_key(double x) {
+    x += 0.0;
+    if (x != x) return ~uint64_t(0);
+    uint64_t u;
+    std::memcpy(&u, &x, sizeof u);
+    return (u & 0x8000000000000000ull) ? ~u : (u | 0x8000000000000000ull);
+}
+
+// Stable LSD radix sort of the indices 0..K-1 by key: equal keys keep index
+// order, which is exactly "ties broken by segment index" when the indices
+// follow the segments. 11-bit digits; passes whose digit is the same for every
+// key are skipped (the high digits of distances usually are).
+template <class Key>
+void radix_order(const Key* key, int32_t K, std::vector<int32_t>& ord, std::vector<int32_t>& tmp,
+                 std::vector<uint32_t>& hist) {
+    constexpr int kBits = 11;
+    constexpr uint32_t kBuckets = 1u << kBits;
+    constexpr int kPasses = int((8 * sizeof(Key) + kBits - 1) / kBits);
+    ord.resize(K);
+    tmp.resize(K);
+    std::iota(ord.begin(), ord.end(), 0);
+    if (K <= 1) return;
+    hist.assign(size_t(kPasses) * kBuckets, 0);
+    for (int32_t i = 0; i < K; ++i)
+        for (int p = 0; p < kPasses; ++p) ++hist[p * kBuckets + ((key[i] >> (p * kBits)) & (kBuckets - 1))];
+    for (int p = 0; p < kPasses; ++p) {
+        uint32_t* h = &hist[p * kBuckets];
+        if (h[(key[0] >> (p * kBits)) & (kBuckets - 1)] == uint32_t(K)) continue;
+        uint32_t sum = 0;
+        for (uint32_t b = 0; b < kBuckets; ++b) {
+            const uint32_t c = h[b];
+            h[b] = sum;
+            sum += c;
+        }
+        for (int32_t i = 0; i < K; ++i) {
+            const int32_t idx = ord[i];
+            tmp[h[(key[idx] >> (p * kBits)) & (kBuckets - 1)]++] = idx;
+        }
+        ord.swap(tmp);
+    }
+}
+
+// Below this many values per step the thread start-up costs more than it saves.
+constexpr int64_t kMinParallelWork = int64_t(1) << 17;
+
+}  // namespace
+
+// ---------------------------------------------------------------------------
+int default_threads() {
+    const unsigned n = std::thread::hardware_concurrency();
+    return n == 0 ? 1 : int(n);
+}
+
+double stream_sum_f32(const float* data, int64_t n, int threads) {
+    if (threads <= 0) threads = default_threads();
+    // blocks of 1 MiB handed out dynamically; 16 independent partial sums per
+    // block keep the adds off the critical path so the loop is bound by memory
+    constexpr int64_t block = int64_t(1) << 18;
+    const int64_t n_blocks = (n + block - 1) / block;
+    std::vector<double> partial(n_blocks, 0.0);
+    parallel_for(n_blocks, threads, [&](int64_t b, int) {
+        const float* p = data + b * block;
+        const int64_t len = std::min(block, n - b * block);
+        float acc[16] = {0};
+        int64_t i = 0;
+        for (; i + 16 <= len; i += 16)
+            for (int j = 0; j < 16; ++j) acc[j] += p[i + j];
+        double s = 0.0;
+        for (; i < len; ++i) s += p[i];
+        for (int j = 0; j < 16; ++j) s += acc[j];
+        partial[b] = s;
+    });
+    double s = 0.0;
+    for (double x : partial) s += x;
+    return s;
+}
+
+void check_database(const Database& db) {
+    const int64_t F = db.pose.rows;
+    if (db.audio.rows != F) {
+        throw std::invalid_argument("audio: expected " + std::to_string(F) +
+                                    " rows like pose; got " + std::to_string(db.audio.rows));
+    }
+    if (db.pose.cols < 1 || db.audio.cols < 1) {
+        throw std::invalid_argument("pose/audio: expected at least one feature column");
+    }
+    if (db.seg_len.size != db.seg_start.size) {
+        throw std::invalid_argument("seg_len: expected " + std::to_string(db.seg_start.size) +
+                                    " entries like seg_start; got " +
+                                    std::to_string(db.seg_len.size));
+    }
+    if (F > int64_t(std::numeric_limits<int32_t>::max()) || db.seg_start.size > int64_t(std::numeric_limits<int32_t>::max())) {
+        throw std::invalid_argument("database: expected fewer than 2^31 frames and segments");
+    }
+    if (db.pose_f16.data != nullptr && (db.pose_f16.rows != F || db.pose_f16.cols != db.pose.cols)) {
+        throw std::invalid_argument("pose_f16: expected the shape of pose (" + std::to_string(F) + ", " +
+                                    std::to_string(db.pose.cols) + "); got (" +
+                                    std::to_string(db.pose_f16.rows) + ", " +
+                                    std::to_string(db.pose_f16.cols) + ")");
+    }
+    for (int64_t m = 0; m < db.seg_start.size; ++m) {
+        const int64_t s = db.seg_start[m], L = db.seg_len[m];
+        if (s < 0 || L < 0 || s > F || L > F - s) {
+            throw std::invalid_argument("segment " + std::to_string(m) + ": expected [start, start+len) inside [0, " +
+                                        std::to_string(F) + "); got start " + std::to_string(s) +
+                                        ", len " + std::to_string(L));
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Pre-selection results of one query at one step, indexed by segment.
+struct Selection {
+    int64_t* s;    // chosen offset, or -1 when the segment has no allowed candidate
+    float* dp;     // its pose distance
+    double* da;    // its audio distance
+};
+
+// Spec steps 4-5 over a Selection.
+//
+// Only the first k segments in (R, rp) order matter, and R = rp + ra >= L for
+// every segment outside the L best by dp or outside the L best by da. So the
+// ranker first ranks just those two top-L lists (a partial selection, O(K)):
+// if the k-th of the segments in both lists has R < L, no other segment can
+// come before it and the answer is exact. Otherwise (or when the last segment
+// is asked for) it ranks everything with the radix sort. With independent
+// ranks about L^2 / K segments land in both lists, so L = 256 almost always
+// settles k <= 15 for K ~ 10^4 in a fraction of the full ranking's time.
+class Ranker {
+public:
+    static constexpr int32_t kTop = 256;
+
+    StepResult rank(const Database& db, const Selection& sel, int64_t n, int64_t k) {
+        const int64_t M = db.n_segments();
+        cand_.clear();
+        for (int64_t m = 0; m < M; ++m)
+            if (sel.s[m] >= 0) cand_.push_back(int32_t(m));
+        StepResult r;
+        const int32_t K = int32_t(cand_.size());
+        r.n_candidates = K;
+        if (K == 0) return r;
+        // cand_ is in segment order, so ordering by (key, position) breaks ties by m
+        kdp_.resize(K);
+        kda_.resize(K);
+        for (int32_t i = 0; i < K; ++i) {
+            kdp_[i] = order_key(sel.dp[cand_[i]]);
+            kda_[i] = order_key(sel.da[cand_[i]]);
+        }
+        int32_t c = -1;
+        int64_t rp = 0, ra = 0;
+        if (k < K && 2 * kTop < K && top_lists(K, k, c, rp, ra)) {
+            // settled from the top lists
+        } else {
+            full(K, k, c, rp, ra);
+        }
+        const int64_t m = cand_[c];
+        r.found = true;
+        r.segment = m;
+        r.start = sel.s[m];
+        r.frame = db.seg_start[m] + sel.s[m];
+        r.length = n;
+        r.pose_dist = double(sel.dp[m]);
+        r.audio_dist = sel.da[m];
+        r.pose_rank = rp;
+        r.audio_rank = ra;
+        return r;
+    }
+
+private:
+    bool top_lists(int32_t K, int64_t k, int32_t& c, int64_t& rp_out, int64_t& ra_out) {
+        // (key, position) pairs are unique, so partial selection is exact
+        pdp_.resize(K);
+        pda_.resize(K);
+        for (int32_t i = 0; i < K; ++i) {
+            pdp_[i] = (uint64_t(kdp_[i]) << 32) | uint32_t(i);
+            pda_[i] = {kda_[i], i};
+        }
+        std::nth_element(pdp_.begin(), pdp_.begin() + (kTop - 1), pdp_.end());
+        std::sort(pdp_.begin(), pdp_.begin() + kTop);
+        std::nth_element(pda_.begin(), pda_.begin() + (kTop - 1), pda_.end());
+        std::sort(pda_.begin(), pda_.begin() + kTop);
+        rp_.assign(K, -1);
+        for (int32_t r = 0; r < kTop; ++r) rp_[int32_t(pdp_[r] & 0xFFFFFFFFu)] = r;
+        known_.clear();
+        for (int32_t r = 0; r < kTop; ++r) {
+            const int32_t i = pda_[r].second;
+            if (rp_[i] >= 0) known_.push_back((uint64_t(uint32_t(rp_[i] + r)) << 32) | uint32_t(rp_[i]));
+        }
+        if (int64_t(known_.size()) < k) return false;
+        std::nth_element(known_.begin(), known_.begin() + (k - 1), known_.end());
+        const uint64_t key = known_[k - 1];
+        if ((key >> 32) >= uint64_t(kTop)) return false;
+        const int32_t rp = int32_t(key & 0xFFFFFFFFu);
+        c = int32_t(pdp_[rp] & 0xFFFFFFFFu);
+        rp_out = rp;
+        ra_out = int64_t(key >> 32) - rp;
+        return true;
+    }
+
+    void full(int32_t K, int64_t k, int32_t& c, int64_t& rp_out, int64_t& ra_out) {
+        rp_.resize(K);
+        ra_.resize(K);
+        radix_order(kdp_.data(), K, ord_dp_, tmp_, hist_);
+        for (int32_t i = 0; i < K; ++i) rp_[ord_dp_[i]] = i;
+        radix_order(kda_.data(), K, ord_da_, tmp_, hist_);
+        for (int32_t i = 0; i < K; ++i) ra_[ord_da_[i]] = i;
+        // (R, rp) is unique (rp is a permutation), so it orders every candidate
+        rkey_.resize(K);
+        for (int32_t i = 0; i < K; ++i)
+            rkey_[i] = (uint64_t(uint32_t(rp_[i] + ra_[i])) << 32) | uint32_t(rp_[i]);
+        const int64_t kk = std::min<int64_t>(k, K) - 1;
+        std::nth_element(rkey_.begin(), rkey_.begin() + kk, rkey_.end());
+        c = ord_dp_[int32_t(rkey_[kk] & 0xFFFFFFFFu)];
+        rp_out = rp_[c];
+        ra_out = ra_[c];
+    }
+
+    std::vector<int32_t> cand_, ord_dp_, ord_da_, tmp_, rp_, ra_;
+    std::vector<uint32_t> kdp_, hist_;
+    std::vector<uint64_t> kda_, rkey_, pdp_, known_;
+    std::vector<std::pair<uint64_t, int32_t>> pda_;
+};
+
+// One query's step inputs as the pre-selection sees them.
+struct QueryStep {
+    const float* prev;   // (Dp,)
+    const float* q;      // (n * Da,)
+    float qq;            // <q, q> from cosdots_f32, as every path computes it
+    int64_t n;
+};
+
+inline float query_norm2(const Kernels& kern, const float* q, int64_t len) {
+    float qa = 0.0f, qq = 0.0f;
+    kern.cosdots_f32(q, 1, 0, len, q, &qa, &qq);
+    return qq;
+}
+
+// Spec steps 1-3, first half: the allowed candidate of segment m with the
+// smallest pre-selection distance, ties to the smallest s. scratch_a/b hold
+// one value per candidate. Returns the candidate index i (s = i + 1) or -1 and
+// writes the pre-selection distance into sel.
+int64_t preselect_exact(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
+                        Preselect pre, const BitsetView& allowed, float* scratch_a,
+                        float* scratch_b, Selection& sel) {
+    const int64_t n = qs.n;
+    const int64_t n_cand = db.seg_len[m] - n;  // s = 1 .. seg_len - n
+    if (n_cand < 1) return -1;
+    const int64_t seg0 = db.seg_start[m];
+    const int64_t Dp = db.pose.cols, Da = db.audio.cols;
+    int64_t best = -1;
+    if (pre == Preselect::Pose) {
+        float best_dp = 0.0f;
+        for_each_allowed_run(allowed, seg0 + 1, n_cand, n - 1, [&](int64_t i0, int64_t i1) {
+            // the entry frame of candidate i is g - 1 = seg0 + i
+            kern.l2sq_rows_f32(db.pose.row(seg0 + i0), i1 - i0, Dp, qs.prev, scratch_a);
+            for (int64_t i = i0; i < i1; ++i) {
+                const float d = scratch_a[i - i0];
+                // strict: an equal distance later in the segment never wins
+                if (best < 0 || nan_last_less(d, best_dp)) {
+                    best = i;
+                    best_dp = d;
+                }
+            }
+        });
+        if (best >= 0) sel.dp[m] = best_dp;
+    } else {
+        double best_da = 0.0;
+        for_each_allowed_run(allowed, seg0 + 1, n_cand, n - 1, [&](int64_t i0, int64_t i1) {
+            // the window of candidate i starts at g = seg0 + 1 + i
+            kern.cosdots_f32(db.audio.row(seg0 + 1 + i0), i1 - i0, Da, n * Da, qs.q, scratch_a,
+                             scratch_b);
+            for (int64_t i = i0; i < i1; ++i) {
+                const double d = cosine_distance(scratch_a[i - i0], qs.qq, scratch_b[i - i0]);
+                if (best < 0 || nan_last_less(d, best_da)) {
+                    best = i;
+                    best_da = d;
+                }
+            }
+        });
+        if (best >= 0) sel.da[m] = best_da;
+    }
+    return best;
+}
+
+// Spec steps 1-3, second half: the other distance of the pre-selected candidate.
+inline void complete_other(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
+                           Preselect pre, Selection& sel) {
+    const int64_t g = db.seg_start[m] + sel.s[m];
+    if (pre == Preselect::Pose) {
+        float qa = 0.0f, aa = 0.0f;
+        kern.cosdots_f32(db.audio.row(g), 1, db.audio.cols, qs.n * db.audio.cols, qs.q, &qa, &aa);
+        sel.da[m] = cosine_distance(qa, qs.qq, aa);
+    } else {
+        kern.l2sq_rows_f32(db.pose.row(g - 1), 1, db.pose.cols, qs.prev, &sel.dp[m]);
+    }
+}
+
+inline void prefetch_bytes(const void* p, int64_t bytes) {
+    const char* c = static_cast<const char*>(p);
+    for (int64_t off = 0; off < bytes; off += 64) __builtin_prefetch(c + off);
+}
+
+// The rows complete_other will read for segment m: fetched ahead because the
+// pre-selected candidates are scattered and each would otherwise be a cache miss.
+inline void prefetch_other(const Database& db, int64_t m, const QueryStep& qs, Preselect pre,
+                           const Selection& sel) {
+    if (sel.s[m] < 0) return;
+    const int64_t g = db.seg_start[m] + sel.s[m];
+    if (pre == Preselect::Pose) prefetch_bytes(db.audio.row(g), qs.n * db.audio.cols * int64_t(sizeof(float)));
+    else prefetch_bytes(db.pose.row(g - 1), db.pose.cols * int64_t(sizeof(float)));
+}
+
+// Pose pre-selection of segment m through the half-precision copy of pose.
+//
+// With h = binary16(p) (round to nearest), every element obeys
+// |h - p| <= c1 |h| + c2 (c1 = 2^-11 / (1 - 2^-11) relative, c2 = 2^-25 absolute
+// in the subnormal range), so ||h - p|| <= c1 ||h|| + c2 sqrt(Dp)
+// <= c1 (||h - x|| + ||x||) + c2 sqrt(Dp). With eta = ||h - x|| and
+// K = c1 ||x|| + c2 sqrt(Dp), the triangle inequality puts ||p - x|| in
+// [(1 - c1) eta - K, (1 + c1) eta + K]. Both float32 sums (this filter's and the
+// exact kernel's) are within a relative g of their real values. The candidate j
+// with the smallest filtered distance dmin has an exact float32 distance of at
+// most U = (1+g) ((1 + c1) sqrt(dmin / (1-g)) + K)^2; candidate i can only reach
+// U, i.e. tie with or beat j, if its filtered distance is at most
+// T = (1+g) ((sqrt(U / (1-g)) + K) / (1 - c1))^2. Those are kept (ascending);
+// every other one is strictly worse than j in the exact float32 distance, so
+// the exact minimum over the kept ones, ties to the smallest s, is the answer.
+// The bound needs no norm of the rows, so the filter reads each half once.
+// Appends the kept candidates to `kept`. Returns false when some value is not
+// finite (an overflowing half, a NaN): the bound says nothing then and the
+// caller scans the segment exactly.
+bool half_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
+                 double x_norm, const BitsetView& allowed, float* dh, std::vector<int32_t>& kept) {
+    const int64_t n_cand = db.seg_len[m] - qs.n;
+    if (n_cand < 1) return true;
+    const int64_t seg0 = db.seg_start[m], Dp = db.pose.cols;
+    const float inf = std::numeric_limits<float>::infinity();
+    float dmin = inf;
+    int bad = 0;
+    bool any = false;
+    for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
+        any = true;
+        kern.l2sq_rows_f16(db.pose_f16.row(seg0 + i0), i1 - i0, Dp, qs.prev, dh + i0);
+        // branch-free so the compiler vectorises it (minps has these semantics)
+        for (int64_t i = i0; i < i1; ++i) {
+            const float d = dh[i];
+            bad |= !(d < inf);
+            dmin = d < dmin ? d : dmin;
+        }
+    });
+    if (!any) return true;
+    if (bad || !(x_norm < std::numeric_limits<double>::infinity())) return false;
+    const double g = 2.0 * double(Dp + 4) * std::ldexp(1.0, -24);
+    const double c1 = std::ldexp(1.0, -11) / (1.0 - std::ldexp(1.0, -11));
+    const double c2 = std::ldexp(1.0, -25);
+    const double K = c1 * x_norm * (1.0 + 1e-12) + c2 * std::sqrt(double(Dp));
+    const double r = (1.0 + c1) * std::sqrt(double(dmin) / (1.0 - g)) + K;
+    const double U = (1.0 + g) * r * r;
+    const double t = (std::sqrt(U / (1.0 - g)) + K) / (1.0 - c1);
+    const double T = (1.0 + g) * t * t * (1.0 + 1e-12);  // and the rounding of these lines
+    // the float at or above T, so the test below can stay in float
+    float Tf = float(T);
+    if (double(Tf) < T) Tf = std::nextafter(Tf, inf);
+    for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
+        for (int64_t i = i0; i < i1; ++i)
+            if (dh[i] <= Tf) kept.push_back(int32_t(i));
+    });
+    return true;
+}
+
+// The exact pose pre-selection over the kept candidates [first, last) of half_filter.
+int64_t argmin_kept(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
+                    const int32_t* first, const int32_t* last, Selection& sel) {
+    const int64_t seg0 = db.seg_start[m];
+    int64_t best = -1;
+    float best_dp = 0.0f;
+    for (const int32_t* it = first; it != last; ++it) {
+        float d;
+        kern.l2sq_rows_f32(db.pose.row(seg0 + *it), 1, db.pose.cols, qs.prev, &d);
+        if (best < 0 || nan_last_less(d, best_dp)) {
+            best = *it;
+            best_dp = d;
+        }
+    }
+    if (best >= 0) sel.dp[m] = best_dp;
+    return best;
+}
+
+// ---------------------------------------------------------------------------
+struct StepEngine::Impl {
+    const Kernels& kern;
+    const Database& db;
+    int threads;
+    int64_t max_len = 0;
+    std::vector<int64_t> chunk_begin;  // segment chunks of similar frame counts
+
+    std::vector<int64_t> sel_s;
+    std::vector<float> sel_dp;
+    std::vector<double> sel_da;
+    std::vector<std::vector<float>> scratch_a, scratch_b;  // per thread, one value per candidate
+    // per thread: the half filter's kept candidates of a chunk, by segment
+    std::vector<std::vector<int32_t>> kept_flat;
+    std::vector<std::vector<int64_t>> kept_off;
+    Ranker ranker;
+
+    Impl(const Kernels& k, const Database& d, int t) : kern(k), db(d), threads(std::max(t, 1)) {
+        const int64_t M = db.n_segments();
+        for (int64_t m = 0; m < M; ++m) max_len = std::max(max_len, db.seg_len[m]);
+        sel_s.assign(M, -1);
+        sel_dp.assign(M, 0.0f);
+        sel_da.assign(M, 0.0);
+        scratch_a.assign(threads, std::vector<float>(std::max<int64_t>(max_len, 1)));
+        scratch_b.assign(threads, std::vector<float>(std::max<int64_t>(max_len, 1)));
+        kept_flat.assign(threads, {});
+        kept_off.assign(threads, {});
+        // about 8 chunks per thread so that dynamic scheduling evens out masks
+        // that make some segments much cheaper than others
+        int64_t total = 0;
+        for (int64_t m = 0; m < M; ++m) total += db.seg_len[m];
+        const int64_t n_chunks = threads > 1 ? int64_t(threads) * 8 : 1;
+        const int64_t per_chunk = std::max<int64_t>(1, (total + n_chunks - 1) / n_chunks);
+        chunk_begin.push_back(0);
+        int64_t acc = 0;
+        for (int64_t m = 0; m < M; ++m) {
+            acc += db.seg_len[m];
+            if (acc >= per_chunk && m + 1 < M) {
+                chunk_begin.push_back(m + 1);
+                acc = 0;
+            }
+        }
+        chunk_begin.push_back(M);
+    }
+
+    StepResult step(const float* prev, const float* q, int64_t n, const StepOptions& opt) {
+        const QueryStep qs{prev, q, query_norm2(kern, q, n * db.audio.cols), n};
+        Selection sel{sel_s.data(), sel_dp.data(), sel_da.data()};
+        const int64_t n_chunks = int64_t(chunk_begin.size()) - 1;
+        const int64_t work =
+            db.n_frames() * (opt.preselect == Preselect::Pose ? db.pose.cols : 2 * n * db.audio.cols);
+        const int use_threads = (threads > 1 && work >= kMinParallelWork) ? threads : 1;
+        const bool half = db.pose_f16.data != nullptr && opt.preselect == Preselect::Pose;
+        double x_norm = 0.0;  // ||prev||, for the half filter's bound
+        if (half) {
+            for (int64_t j = 0; j < db.pose.cols; ++j) x_norm += double(prev[j]) * double(prev[j]);
+            x_norm = std::sqrt(x_norm);
+        }
+        parallel_for(n_chunks, use_threads, [&](int64_t c, int tid) {
+            const int64_t m0 = chunk_begin[c], m1 = chunk_begin[c + 1];
+            float* sa = scratch_a[tid].data();
+            float* sb = scratch_b[tid].data();
+            // Pass 1 streams the chunk's candidates (exact pre-selection, or
+            // with the half filter the few rows per segment that may win);
+            // pass 2 reads those rows in float32, pass 3 the row or window of
+            // each pre-selected candidate for its other distance. The scattered
+            // reads of passes 2 and 3 are prefetched a few segments ahead.
+            // (Measured: interleaving them with the stream instead, as a
+            // software pipeline, made a 8.7 ms step 10.0 ms: they compete with
+            // the stream for the line-fill buffers.)
+            std::vector<int32_t>& kept = kept_flat[tid];
+            std::vector<int64_t>& off = kept_off[tid];
+            kept.clear();
+            off.assign(m1 - m0 + 1, 0);
+            for (int64_t m = m0; m < m1; ++m) {
+                sel.s[m] = -1;
+                off[m - m0] = int64_t(kept.size());
+                if (opt.exclude != nullptr && opt.exclude[m]) continue;
+                if (half) {
+                    const size_t before = kept.size();
+                    if (half_filter(kern, db, m, qs, x_norm, opt.allowed, sa, kept)) continue;
+                    kept.resize(before);  // not finite: this segment is scanned exactly
+                }
+                const int64_t i = preselect_exact(kern, db, m, qs, opt.preselect, opt.allowed, sa, sb, sel);
+                sel.s[m] = i < 0 ? -1 : i + 1;
+            }
+            off[m1 - m0] = int64_t(kept.size());
+            constexpr int64_t kAhead = 6;
+            if (half) {
+                auto prefetch_kept = [&](int64_t m) {
+                    for (int64_t j = off[m - m0]; j < off[m - m0 + 1]; ++j)
+                        prefetch_bytes(db.pose.row(db.seg_start[m] + kept[j]), db.pose.cols * int64_t(sizeof(float)));
+                };
+                for (int64_t m = m0; m < std::min(m1, m0 + kAhead); ++m) prefetch_kept(m);
+                for (int64_t m = m0; m < m1; ++m) {
+                    if (m + kAhead < m1) prefetch_kept(m + kAhead);
+                    if (off[m - m0] == off[m - m0 + 1]) continue;  // scanned exactly or no candidate
+                    const int64_t i = argmin_kept(kern, db, m, qs, kept.data() + off[m - m0],
+                                                  kept.data() + off[m - m0 + 1], sel);
+                    sel.s[m] = i < 0 ? -1 : i + 1;
+                }
+            }
+            for (int64_t m = m0; m < std::min(m1, m0 + kAhead); ++m) prefetch_other(db, m, qs, opt.preselect, sel);
+            for (int64_t m = m0; m < m1; ++m) {
+                if (m + kAhead < m1) prefetch_other(db, m + kAhead, qs, opt.preselect, sel);
+                if (sel.s[m] >= 0) complete_other(kern, db, m, qs, opt.preselect, sel);
+            }
+        });
+        return ranker.rank(db, sel, n, opt.k);
+    }
+};
+
+StepEngine::StepEngine(const Kernels& kernels, const Database& db, int threads)
+    : impl_(new Impl(kernels, db, threads)) {}
+StepEngine::~StepEngine() = default;
+
+StepResult StepEngine::step(const float* prev, const float* query, int64_t n,
+                            const StepOptions& opt) {
+    if (n < 1) throw std::invalid_argument("step: window length must be >= 1");
+    return impl_->step(prev, query, n, opt);
+}
+
+// ---------------------------------------------------------------------------
+namespace {
+
+void write_step(const SearchOutput& out, int64_t i, int64_t t, const StepResult& r) {
+    out.segment[i] = r.segment;
+    out.start[i] = r.start;
+    out.frame[i] = r.frame;
+    out.length[i] = r.length;
+    out.out_frame[i] = t;
+    out.pose_dist[i] = r.pose_dist;
+    out.audio_dist[i] = r.audio_dist;
+    out.pose_rank[i] = r.pose_rank;
+    out.audio_rank[i] = r.audio_rank;
+    out.n_candidates[i] = r.n_candidates;
+}
+
+int64_t n_steps(int64_t T, int64_t window) { return (T + window - 1) / window; }
+
+int64_t run_search(StepEngine& engine, const Database& db, Span2<const float> query,
+                   const float* init_pose, int64_t window, int64_t k, Preselect preselect,
+                   const AllowedSchedule& allowed, const bool* exclude, const SearchOutput& out) {
+    const int64_t T = query.rows;
+    const float* prev = init_pose;
+    StepOptions opt;
+    opt.k = k;
+    opt.preselect = preselect;
+    opt.exclude = exclude;
+    for (int64_t i = 0; i < n_steps(T, window); ++i) {
+        const int64_t t = i * window;
+        const int64_t n = std::min(window, T - t);  // the last window may be partial
+        opt.allowed = allowed.at(i);
+        const StepResult r = engine.step(prev, query.row(t), n, opt);
+        if (!r.found) return i;
+        write_step(out, i, t, r);
+        // the next window continues from the last frame this one copies
+        prev = db.pose.row(r.frame + n - 1);
+    }
+    return -1;
+}
+
+void check_search_args(const Database& db, Span2<const float> query, int64_t window, int64_t k,
+                       const AllowedSchedule& allowed) {
+    if (query.cols != db.audio.cols)
+        throw std::invalid_argument("query: expected " + std::to_string(db.audio.cols) +
+                                    " audio columns; got " + std::to_string(query.cols));
+    if (query.rows < 1) throw std::invalid_argument("query: expected at least one frame");
+    if (window < 1) throw std::invalid_argument("step: expected >= 1");
+    if (k < 1) throw std::invalid_argument("k: expected >= 1");
+    if (allowed.words != nullptr) {
+        if (allowed.n_words != (db.n_frames() + 63) / 64)
+            throw std::invalid_argument("allowed: wrong number of words");
+        if (allowed.per_step && allowed.n_rows != n_steps(query.rows, window))
+            throw std::invalid_argument("allowed: expected " + std::to_string(n_steps(query.rows, window)) +
+                                        " rows (one per step); got " + std::to_string(allowed.n_rows));
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Blocked batch: a block of queries advances step by step together. At each
+// step the queries whose window is full (n = N) form the lanes of a panel; per
+// segment one blocked dot product gives every lane's approximate distance to
+// every candidate, the bound filter keeps the candidates that could still be
+// the lane's minimum, and those are recomputed with the exact kernels in
+// ascending s. Queries in their last, partial window take the single path.
+class BlockedBatch {
+public:
+    static constexpr int64_t kRowTile = 128;  // candidates per dot-product call
+
+    BlockedBatch(const Kernels& kern, const Database& db, int64_t window, Preselect pre,
+                 const AllowedSchedule& allowed, int threads)
+        : kern_(kern), db_(db), N_(window), pre_(pre), allowed_(allowed) {
+        const int64_t F = db.n_frames(), Dp = db.pose.cols, Da = db.audio.cols;
+        // per-row quantities of the filter (they only widen or narrow the
+        // bound, never decide: any rounding here is covered by eps)
+        const int64_t n_rows = pre == Preselect::Pose ? F : std::max<int64_t>(F - N_ + 1, 0);
+        nrow_.assign(std::max<int64_t>(n_rows, 1), 0.0f);
+        rrow_.assign(std::max<int64_t>(n_rows, 1), 0.0f);
+        const int64_t chunk = 1 << 14;
+        parallel_for((n_rows + chunk - 1) / chunk, threads, [&](int64_t c, int) {
+            const int64_t r0 = c * chunk, r1 = std::min(n_rows, r0 + chunk);
+            if (pre == Preselect::Pose) {
+                const std::vector<float> zero(Dp, 0.0f);
+                kern_.l2sq_rows_f32(db.pose.row(r0), r1 - r0, Dp, zero.data(), &nrow_[r0]);
+                for (int64_t r = r0; r < r1; ++r) rrow_[r] = std::sqrt(nrow_[r]);
+            } else {
+                std::vector<float> zero(N_ * Da, 0.0f), qa(r1 - r0);
+                kern_.cosdots_f32(db.audio.row(r0), r1 - r0, Da, N_ * Da, zero.data(), qa.data(), &nrow_[r0]);
+                for (int64_t r = r0; r < r1; ++r) rrow_[r] = nrow_[r] > 0.0f ? 1.0f / std::sqrt(nrow_[r]) : 0.0f;
+            }
+        });
+        // Error bound (see kernels.h): a float32 dot product of L terms is off
+        // by at most gamma_L = L u / (1 - L u) times the sum of |terms|, u = 2^-24.
+        // Pose: the filter's |row|^2 + |x|^2 - 2<row, x> and the exact kernel's
+        // sum of squared differences each stay within ~gamma_{Dp+4} (|row| + |x|)^2
+        // of the true distance; audio: both cosines within ~3 gamma_{n Da + 4}.
+        // A factor 4 on top covers the rounding of the bound's own arithmetic.
+        const double u = std::ldexp(1.0, -24);
+        const int64_t L = pre == Preselect::Pose ? Dp : N_ * Da;
+        const double gamma = double(L + 8) * u / (1.0 - double(L + 8) * u);
+        eps_ = float(pre == Preselect::Pose ? 8.0 * gamma : 16.0 * gamma);
+    }
+
+    // Runs every query of the block through all its steps.
+    void run(BatchQuery* const* block, int64_t nq) {
+        const int64_t M = db_.n_segments();
+        const int64_t Dp = db_.pose.cols, Da = db_.audio.cols;
+        const int64_t len = pre_ == Preselect::Pose ? Dp : N_ * Da;
+        const int64_t qp = (nq + kQueryPanel - 1) / kQueryPanel * kQueryPanel;
+        const int64_t words = qp / 64;
+        std::vector<const float*> prev(nq);
+        std::vector<int64_t> S(nq);
+        int64_t max_steps = 0;
+        for (int64_t i = 0; i < nq; ++i) {
+            prev[i] = block[i]->init_pose;
+            S[i] = n_steps(block[i]->audio.rows, N_);
+            block[i]->failed_step = -1;
+            max_steps = std::max(max_steps, S[i]);
+        }
+        std::vector<int64_t> sel_s(size_t(nq) * M);
+        std::vector<float> sel_dp(size_t(nq) * M);
+        std::vector<double> sel_da(size_t(nq) * M);
+        std::vector<float> xt(size_t(len) * qp), nx(qp), rx(qp), minhi(qp), qq(qp);
+        std::vector<float> c(size_t(kRowTile) * qp);
+        std::vector<uint64_t> keep(size_t(kRowTile) * words);
+        std::vector<uint8_t> ok(std::max<int64_t>(1, max_seg_len()));
+        std::vector<float> scratch_a(ok.size()), scratch_b(ok.size());
+        std::vector<int64_t> best(qp);
+        std::vector<float> best_dp(qp);
+        std::vector<double> best_da(qp);
+        std::vector<int64_t> lanes;  // lane -> index in block
+        std::vector<QueryStep> lane_step(qp);
+        std::unique_ptr<StepEngine> single;  // partial windows
+        Ranker ranker;
+
+        for (int64_t step = 0; step < max_steps; ++step) {
+            const int64_t t = step * N_;
+            const BitsetView allowed = allowed_.at(step);
+            lanes.clear();
+            for (int64_t i = 0; i < nq; ++i) {
+                if (step >= S[i] || block[i]->failed_step >= 0) continue;
+                const int64_t n = std::min(N_, block[i]->audio.rows - t);
+                if (n == N_) {
+                    lanes.push_back(i);
+                    continue;
+                }
+                // the last, partial window of this query: one exact step
+                if (!single) single.reset(new StepEngine(kern_, db_, 1));
+                StepOptions opt;
+                opt.k = block[i]->k;
+                opt.preselect = pre_;
+                opt.allowed = allowed;
+                opt.exclude = block[i]->exclude;
+                const StepResult r = single->step(prev[i], block[i]->audio.row(t), n, opt);
+                finish(block[i], step, t, r, prev[i]);
+            }
+            const int64_t nl = int64_t(lanes.size());
+            if (nl == 0) continue;
+
+            // the panel: one column per lane (padding lanes are zero and ignored)
+            std::fill(xt.begin(), xt.end(), 0.0f);
+            std::fill(nx.begin(), nx.end(), 0.0f);
+            std::fill(rx.begin(), rx.end(), 0.0f);
+            for (int64_t l = 0; l < nl; ++l) {
+                const BatchQuery* bq = block[lanes[l]];
+                QueryStep& ls = lane_step[l];
+                ls.prev = prev[lanes[l]];
+                ls.q = bq->audio.row(t);
+                ls.n = N_;
+                ls.qq = query_norm2(kern_, ls.q, N_ * Da);
+                const float* col = pre_ == Preselect::Pose ? ls.prev : ls.q;
+                float* panel = &xt[(l / 64) * 64 * len + (l % 64)];
+                for (int64_t p = 0; p < len; ++p) panel[p * 64] = col[p];
+                if (pre_ == Preselect::Pose) {
+                    double s = 0.0;
+                    for (int64_t p = 0; p < Dp; ++p) s += double(col[p]) * col[p];
+                    nx[l] = float(s);
+                    rx[l] = float(std::sqrt(s));
+                } else {
+                    rx[l] = ls.qq > 0.0f ? 1.0f / std::sqrt(ls.qq) : 0.0f;
+                }
+            }
+
+            for (int64_t l = 0; l < nl; ++l)
+                std::fill(&sel_s[lanes[l] * M], &sel_s[lanes[l] * M] + M, int64_t(-1));
+            for (int64_t m = 0; m < M; ++m) {
+                const int64_t n_cand = db_.seg_len[m] - N_;
+                const int64_t seg0 = db_.seg_start[m];
+                if (m + 1 < M) prefetch_other_rows(m + 1);
+                if (n_cand < 1) continue;
+                bool any = false;
+                const uint8_t* okp = nullptr;
+                if (allowed.all()) {
+                    any = true;
+                } else {
+                    std::fill(ok.begin(), ok.begin() + n_cand, uint8_t(0));
+                    for_each_allowed_run(allowed, seg0 + 1, n_cand, N_ - 1, [&](int64_t i0, int64_t i1) {
+                        std::fill(ok.begin() + i0, ok.begin() + i1, uint8_t(1));
+                        any = true;
+                    });
+                    okp = ok.data();
+                }
+                if (!any) continue;
+                bool all_excluded = true;
+                for (int64_t l = 0; l < nl; ++l) {
+                    const bool* ex = block[lanes[l]]->exclude;
+                    if (ex == nullptr || !ex[m]) {
+                        all_excluded = false;
+                        break;
+                    }
+                }
+                if (all_excluded) continue;
+
+                std::fill(minhi.begin(), minhi.end(), std::numeric_limits<float>::infinity());
+                std::fill(best.begin(), best.begin() + nl, int64_t(-1));
+                for (int64_t i0 = 0; i0 < n_cand; i0 += kRowTile) {
+                    const int64_t nr = std::min(kRowTile, n_cand - i0);
+                    if (pre_ == Preselect::Pose) {
+                        // rows are the entry frames g - 1 = seg0 + i
+                        kern_.dots_block_f32(db_.pose.row(seg0 + i0), nr, Dp, Dp, xt.data(), qp, c.data());
+                        kern_.l2filter_f32(c.data(), nr, qp, &nrow_[seg0 + i0], &rrow_[seg0 + i0],
+                                           okp ? okp + i0 : nullptr, nx.data(), rx.data(), eps_,
+                                           minhi.data(), keep.data());
+                    } else {
+                        // rows are the windows starting at g = seg0 + 1 + i
+                        kern_.dots_block_f32(db_.audio.row(seg0 + 1 + i0), nr, Da, len, xt.data(), qp, c.data());
+                        kern_.cosfilter_f32(c.data(), nr, qp, nullptr, &rrow_[seg0 + 1 + i0],
+                                            okp ? okp + i0 : nullptr, nullptr, rx.data(), eps_,
+                                            minhi.data(), keep.data());
+                    }
+                    // exact values of the kept candidates, in ascending s per lane
+                    for (int64_t r = 0; r < nr; ++r) {
+                        for (int64_t w = 0; w < words; ++w) {
+                            uint64_t bits = keep[r * words + w];
+                            while (bits) {
+                                const int64_t l = w * 64 + __builtin_ctzll(bits);
+                                bits &= bits - 1;
+                                if (l >= nl) break;
+                                const bool* ex = block[lanes[l]]->exclude;
+                                if (ex != nullptr && ex[m]) continue;
+                                exact_update(m, i0 + r, lane_step[l], l, best, best_dp, best_da);
+                            }
+                        }
+                    }
+                }
+                for (int64_t l = 0; l < nl; ++l) {
+                    const int64_t qi = lanes[l];
+                    const bool* ex = block[qi]->exclude;
+                    if (ex != nullptr && ex[m]) continue;
+                    Selection sel{&sel_s[qi * M], &sel_dp[qi * M], &sel_da[qi * M]};
+                    int64_t b;
+                    if (!(minhi[l] < std::numeric_limits<float>::infinity())) {
+                        // a non-finite approximate distance: the bound says
+                        // nothing, so this lane scans the segment exactly
+                        b = preselect_exact(kern_, db_, m, lane_step[l], pre_, allowed,
+                                            scratch_a.data(), scratch_b.data(), sel);
+                    } else {
+                        b = best[l];
+                        if (pre_ == Preselect::Pose) sel.dp[m] = best_dp[l];
+                        else sel.da[m] = best_da[l];
+                    }
+                    if (b < 0) continue;
+                    sel.s[m] = b + 1;
+                    complete_other(kern_, db_, m, lane_step[l], pre_, sel);
+                }
+            }
+            for (int64_t l = 0; l < nl; ++l) {
+                const int64_t qi = lanes[l];
+                Selection sel{&sel_s[qi * M], &sel_dp[qi * M], &sel_da[qi * M]};
+                const StepResult r = ranker.rank(db_, sel, N_, block[qi]->k);
+                finish(block[qi], step, t, r, prev[qi]);
+            }
+        }
+    }
+
+private:
+    // The winners' other distance reads rows the dot products did not touch
+    // (audio windows in pose mode, entry poses in audio mode), one per lane at
+    // scattered offsets; fetching the next segment's rows while this one is
+    // filtered turns those cache misses into hits.
+    void prefetch_other_rows(int64_t m) const {
+        const int64_t n_cand = db_.seg_len[m] - N_;
+        if (n_cand < 1) return;
+        const char *p0, *p1;
+        if (pre_ == Preselect::Pose) {
+            p0 = reinterpret_cast<const char*>(db_.audio.row(db_.seg_start[m] + 1));
+            p1 = reinterpret_cast<const char*>(db_.audio.row(db_.seg_start[m] + 1 + n_cand + N_));
+        } else {
+            p0 = reinterpret_cast<const char*>(db_.pose.row(db_.seg_start[m]));
+            p1 = reinterpret_cast<const char*>(db_.pose.row(db_.seg_start[m] + n_cand));
+        }
+        for (const char* p = p0; p < p1; p += 64) __builtin_prefetch(p);
+    }
+
+    int64_t max_seg_len() const {
+        int64_t mx = 0;
+        for (int64_t m = 0; m < db_.n_segments(); ++m) mx = std::max(mx, db_.seg_len[m]);
+        return mx;
+    }
+
+    // The exact distance of candidate i of segment m for one lane, folded into
+    // the lane's running minimum (strict: ties keep the smaller s).
+    void exact_update(int64_t m, int64_t i, const QueryStep& qs, int64_t l, std::vector<int64_t>& best,
+                      std::vector<float>& best_dp, std::vector<double>& best_da) const {
+        const int64_t seg0 = db_.seg_start[m];
+        if (pre_ == Preselect::Pose) {
+            float d;
+            kern_.l2sq_rows_f32(db_.pose.row(seg0 + i), 1, db_.pose.cols, qs.prev, &d);
+            if (best[l] < 0 || nan_last_less(d, best_dp[l])) {
+                best[l] = i;
+                best_dp[l] = d;
+            }
+        } else {
+            float qa, aa;
+            kern_.cosdots_f32(db_.audio.row(seg0 + 1 + i), 1, db_.audio.cols, qs.n * db_.audio.cols,
+                              qs.q, &qa, &aa);
+            const double d = cosine_distance(qa, qs.qq, aa);
+            if (best[l] < 0 || nan_last_less(d, best_da[l])) {
+                best[l] = i;
+                best_da[l] = d;
+            }
+        }
+    }
+
+    void finish(BatchQuery* bq, int64_t step, int64_t t, const StepResult& r, const float*& prev) const {
+        if (!r.found) {
+            bq->failed_step = step;
+            return;
+        }
+        write_step(bq->out, step, t, r);
+        prev = db_.pose.row(r.frame + r.length - 1);
+    }
+
+    const Kernels& kern_;
+    const Database& db_;
+    int64_t N_;
+    Preselect pre_;
+    AllowedSchedule allowed_;
+    std::vector<float> nrow_, rrow_;
+    float eps_;
+};
+
+}  // namespace
+
+int64_t rank_sum_search(const Kernels& kernels, const Database& db, Span2<const float> query,
+                        const float* init_pose, int64_t window, int64_t k, Preselect preselect,
+                        const AllowedSchedule& allowed, const bool* exclude,
+                        const SearchOutput& out, int threads) {
+    check_search_args(db, query, window, k, allowed);
+    StepEngine engine(kernels, db, threads <= 0 ? default_threads() : threads);
+    return run_search(engine, db, query, init_pose, window, k, preselect, allowed, exclude, out);
+}
+
+void rank_sum_search_batch(const Kernels& kernels, const Database& db,
+                           std::vector<BatchQuery>& queries, int64_t window, Preselect preselect,
+                           const AllowedSchedule& allowed, int threads, BatchMethod method) {
+    for (auto& q : queries) check_search_args(db, q.audio, window, q.k, allowed);
+    if (threads <= 0) threads = default_threads();
+    const int64_t Q = int64_t(queries.size());
+    if (Q == 0) return;
+    if (method == BatchMethod::Auto) {
+        // the blocked filter pays off once a panel holds enough queries to
+        // share each candidate row; the scalar table has no fast block kernel
+        const bool scalar = std::strcmp(kernels.isa, "scalar") == 0;
+        method = (!scalar && Q >= 16) ? BatchMethod::Blocked : BatchMethod::PerQuery;
+    }
+    if (method == BatchMethod::PerQuery) {
+        threads = int(std::min<int64_t>(threads, Q));
+        // one engine per worker, each single-threaded: parallel over queries only
+        std::vector<std::unique_ptr<StepEngine>> engines(threads);
+        for (auto& e : engines) e.reset(new StepEngine(kernels, db, 1));
+        parallel_for(Q, threads, [&](int64_t i, int tid) {
+            BatchQuery& q = queries[i];
+            q.failed_step = run_search(*engines[tid], db, q.audio, q.init_pose, window, q.k,
+                                       preselect, allowed, q.exclude, q.out);
+        });
+        return;
+    }
+    BlockedBatch batch(kernels, db, window, preselect, allowed, threads);
+    // blocks of up to 256 queries, at least one block per thread, and at most
+    // ~64 MB of per-segment pre-selection state (20 bytes per query and segment)
+    // per block, so a database of many short segments does not exhaust memory
+    const int64_t by_memory = std::max<int64_t>(16, (int64_t(64) << 20) / (20 * std::max<int64_t>(1, db.n_segments())));
+    const int64_t per_block =
+        std::max<int64_t>(1, std::min({int64_t(256), by_memory, (Q + threads - 1) / threads}));
+    const int64_t n_blocks = (Q + per_block - 1) / per_block;
+    std::vector<BatchQuery*> ptrs(Q);
+    for (int64_t i = 0; i < Q; ++i) ptrs[i] = &queries[i];
+    parallel_for(n_blocks, threads, [&](int64_t b, int) {
+        const int64_t i0 = b * per_block, i1 = std::min(Q, i0 + per_block);
+        batch.run(ptrs.data() + i0, i1 - i0);
+    });
+}
+
+}  // namespace gesturedb

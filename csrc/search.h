@@ -1,0 +1,145 @@
+// The rank-sum motion-matching search (Habibie et al. 2022, Sec. 3.1) over
+// spans. Knows nothing of Python; the exact semantics are in
+// ../shared/spec/search.md and summarised at each step below.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "kernels.h"
+#include "span.h"
+
+namespace gesturedb {
+
+enum class Preselect { Pose = 0, Audio = 1 };
+
+struct Database {
+    Span2<const float> pose;          // (F, Dp) pose feature per frame
+    Span2<const float> audio;         // (F, Da) audio feature per frame
+    Span1<const int64_t> seg_start;   // (M,) first global frame of each segment
+    Span1<const int64_t> seg_len;     // (M,) frames in each segment
+    // Optional (F, Dp) binary16 copy of pose (round-to-nearest), data null when
+    // absent. Pose pre-selection then streams these half-size rows and bounds
+    // the distance each row can have in float32; only rows that may still be a
+    // segment's minimum are read in float32. Results do not change.
+    Span2<const uint16_t> pose_f16;
+
+    int64_t n_frames() const { return pose.rows; }
+    int64_t n_segments() const { return seg_start.size; }
+};
+
+// Throws std::invalid_argument when the shapes disagree or a segment reaches
+// outside [0, F). The Python layer checks the same things with friendlier
+// messages; this is the backstop that keeps the C++ from reading out of bounds.
+void check_database(const Database& db);
+
+struct StepOptions {
+    int64_t k = 1;                        // 1-based rank of the choice
+    Preselect preselect = Preselect::Pose;
+    BitsetView allowed;                   // empty view: every frame allowed
+    const bool* exclude = nullptr;        // (M,) true = segment excluded; may be null
+};
+
+struct StepResult {
+    bool found = false;
+    int64_t segment = -1;    // m
+    int64_t start = -1;      // s, offset of the window in the segment (>= 1)
+    int64_t frame = -1;      // g = seg_start[m] + s, first global frame of the window
+    int64_t length = 0;      // n, frames in the window
+    double pose_dist = 0.0;  // ||P[g-1] - prev||^2
+    double audio_dist = 0.0; // 1 - cos(query window, audio window)
+    int64_t pose_rank = -1;  // rp, 0-based
+    int64_t audio_rank = -1; // ra, 0-based
+    int64_t n_candidates = 0;  // segments left after pre-selection
+};
+
+// Output arrays of one search, each (S,) with S = ceil(T / window).
+struct SearchOutput {
+    int64_t* segment;
+    int64_t* start;
+    int64_t* frame;
+    int64_t* length;
+    int64_t* out_frame;
+    double* pose_dist;
+    double* audio_dist;
+    int64_t* pose_rank;
+    int64_t* audio_rank;
+    int64_t* n_candidates;
+};
+
+// `allowed` for a whole search: nothing, one bitset for every step, or one
+// bitset per step (a control schedule, rows = number of steps).
+struct AllowedSchedule {
+    const uint64_t* words = nullptr;
+    int64_t n_words = 0;
+    int64_t n_rows = 0;     // 0: no mask; 1 with per_step false: shared
+    bool per_step = false;
+
+    BitsetView at(int64_t step) const {
+        if (words == nullptr) return {};
+        return {per_step ? words + step * n_words : words, n_words};
+    }
+};
+
+// Evaluates steps against one database. Holds the per-segment pre-selection
+// results and per-thread scratch so that a whole search allocates once.
+class StepEngine {
+public:
+    // threads: worker threads for one step (parallel over segments); 1 runs
+    // everything on the calling thread.
+    StepEngine(const Kernels& kernels, const Database& db, int threads);
+    ~StepEngine();
+    StepEngine(const StepEngine&) = delete;
+    StepEngine& operator=(const StepEngine&) = delete;
+
+    // One step: prev (Dp,), query window (n, Da) contiguous, 1 <= n.
+    StepResult step(const float* prev, const float* query, int64_t n, const StepOptions& opt);
+
+private:
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
+
+// A whole search of query (T, Da) from init_pose (Dp,), steps at t = 0, N, 2N...
+// Returns -1 on success, else the index of the step that found no candidate
+// (entries from that step on are left unwritten).
+int64_t rank_sum_search(const Kernels& kernels, const Database& db,
+                        Span2<const float> query, const float* init_pose, int64_t window,
+                        int64_t k, Preselect preselect, const AllowedSchedule& allowed,
+                        const bool* exclude, const SearchOutput& out, int threads);
+
+// One query of a batch: its own audio, initial pose, k, exclusion row and outputs.
+struct BatchQuery {
+    Span2<const float> audio;    // (T_i, Da)
+    const float* init_pose;      // (Dp,)
+    int64_t k;
+    const bool* exclude;         // (M,) or null
+    SearchOutput out;            // (S_i,) each
+    int64_t failed_step = -1;    // written: -1 or the failing step
+};
+
+// How a batch is evaluated; every method returns exactly what rank_sum_search
+// returns for each query alone.
+enum class BatchMethod {
+    Auto,      // Blocked when the ISA has block kernels and there are >= 16 queries
+    Blocked,   // blocks of queries share each candidate row (blocked dot product
+               // as a bounded filter, exact recomputation of what it keeps)
+    PerQuery,  // each query runs the single-query path
+};
+
+// Runs every query exactly as rank_sum_search would, in parallel over blocks of
+// queries (one level of parallelism: nothing inside a block is threaded).
+void rank_sum_search_batch(const Kernels& kernels, const Database& db,
+                           std::vector<BatchQuery>& queries, int64_t window,
+                           Preselect preselect, const AllowedSchedule& allowed, int threads,
+                           BatchMethod method = BatchMethod::Auto);
+
+// Sum of n floats, read once in parallel: a streaming read at memory bandwidth,
+// the floor against which the benchmark measures the step.
+double stream_sum_f32(const float* data, int64_t n, int threads);
+
+// Number of worker threads to use when the caller passes threads <= 0.
+int default_threads();
+
+}  // namespace gesturedb

@@ -1,0 +1,189 @@
+"""SIMD distance kernels against the scalar oracle, and the oracle against float64 numpy.
+
+Sizes are the awkward ones {1, 3, 7, 8, 9, 15, 16, 17, 31, 33, 64, 96, 100}:
+every combination of full vectors and tails for 8 and 16 lanes.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+try:
+    from gesturedb import _core
+except ImportError:  # pragma: no cover
+    pytest.skip("gesturedb._core is not built", allow_module_level=True)
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZES = [1, 3, 7, 8, 9, 15, 16, 17, 31, 33, 64, 96, 100]
+ISAS = _core.kernels()
+SIMD = [i for i in ISAS if i != "scalar"]
+
+
+def rows_and_vec(rng, n_rows, dim):
+    rows = rng.standard_normal((n_rows, dim)).astype(np.float32)
+    v = rng.standard_normal(dim).astype(np.float32)
+    return rows, v
+
+
+def windows(a, n):
+    """(W, n * Da) float64 copies of every n-frame window of a (F, Da)."""
+    return np.lib.stride_tricks.sliding_window_view(a, (n, a.shape[1]))[:, 0].reshape(
+        a.shape[0] - n + 1, -1).astype(np.float64)
+
+
+def test_scalar_always_available_and_dispatch_default():
+    assert ISAS[0] == "scalar"
+    assert _core.get_simd() in ISAS
+
+
+@pytest.mark.parametrize("dim", SIZES)
+def test_l2sq_scalar_vs_float64(dim):
+    rng = np.random.default_rng(dim)
+    rows, v = rows_and_vec(rng, 37, dim)
+    want = ((rows.astype(np.float64) - v.astype(np.float64)) ** 2).sum(axis=1)
+    got = _core.l2sq_rows_f32(rows, v, "scalar")
+    assert got.dtype == np.float32
+    # the scalar path accumulates in double: only the final rounding to float32
+    np.testing.assert_allclose(got, want, rtol=2 ** -23, atol=0)
+
+
+@pytest.mark.parametrize("isa", SIMD)
+@pytest.mark.parametrize("dim", SIZES)
+def test_l2sq_simd_vs_scalar(isa, dim):
+    rng = np.random.default_rng(100 + dim)
+    rows, v = rows_and_vec(rng, 41, dim)
+    ref = _core.l2sq_rows_f32(rows, v, "scalar").astype(np.float64)
+    got = _core.l2sq_rows_f32(rows, v, isa).astype(np.float64)
+    # float32 accumulation of dim positive terms: relative error <= ~dim * 2^-24
+    np.testing.assert_allclose(got, ref, rtol=(dim + 4) * 2.0 ** -24, atol=0)
+
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_l2sq_exact_on_integers(isa):
+    """Integer features: every float32 partial sum is exact, so all ISAs agree bit for bit."""
+    rng = np.random.default_rng(5)
+    for dim in SIZES:
+        rows = rng.integers(-8, 9, size=(19, dim)).astype(np.float32)
+        v = rng.integers(-8, 9, size=dim).astype(np.float32)
+        want = ((rows.astype(np.int64) - v.astype(np.int64)) ** 2).sum(axis=1)
+        np.testing.assert_array_equal(_core.l2sq_rows_f32(rows, v, isa), want.astype(np.float32))
+
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_l2sq_depends_only_on_row_values(isa):
+    """Determinism contract: a row gets the same bits wherever it sits and however many rows go along."""
+    rng = np.random.default_rng(6)
+    for dim in SIZES:
+        rows, v = rows_and_vec(rng, 50, dim)
+        rows[31] = rows[4]
+        full = _core.l2sq_rows_f32(rows, v, isa)
+        assert full[31] == full[4]
+        for lo in (0, 3, 4):
+            part = _core.l2sq_rows_f32(np.ascontiguousarray(rows[lo:lo + 5]), v, isa)
+            np.testing.assert_array_equal(part, full[lo:lo + 5])
+
+
+@pytest.mark.parametrize("da", SIZES)
+def test_cosdots_scalar_vs_float64(da):
+    rng = np.random.default_rng(200 + da)
+    a = rng.standard_normal((40, da)).astype(np.float32)
+    for n in (1, 3, 8):
+        q = rng.standard_normal((n, da)).astype(np.float32)
+        qa, aa = _core.cosdots_f32(a, q, "scalar")
+        w = windows(a, n)
+        np.testing.assert_allclose(qa, w @ q.astype(np.float64).ravel(), rtol=2 ** -23, atol=1e-6)
+        np.testing.assert_allclose(aa, (w * w).sum(axis=1), rtol=2 ** -23, atol=0)
+
+
+@pytest.mark.parametrize("isa", SIMD)
+@pytest.mark.parametrize("da", SIZES)
+def test_cosdots_simd_vs_scalar(isa, da):
+    rng = np.random.default_rng(300 + da)
+    a = rng.standard_normal((45, da)).astype(np.float32)
+    for n in (1, 2, 8):
+        q = rng.standard_normal((n, da)).astype(np.float32)
+        length = n * da
+        qa0, aa0 = _core.cosdots_f32(a, q, "scalar")
+        qa1, aa1 = _core.cosdots_f32(a, q, isa)
+        # dot products can cancel: bound the error by the sum of |terms|
+        w = windows(a, n)
+        scale = np.abs(w) @ np.abs(q.astype(np.float64).ravel())
+        tol = (length + 4) * 2.0 ** -24 * scale
+        assert np.all(np.abs(qa1.astype(np.float64) - qa0) <= tol)
+        np.testing.assert_allclose(aa1, aa0, rtol=(length + 4) * 2.0 ** -24, atol=0)
+
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_cosdots_depends_only_on_window_values(isa):
+    rng = np.random.default_rng(7)
+    a = rng.standard_normal((60, 14)).astype(np.float32)
+    a[40:48] = a[3:11]  # the window at 40 duplicates the one at 3
+    q = rng.standard_normal((8, 14)).astype(np.float32)
+    qa, aa = _core.cosdots_f32(a, q, isa)
+    assert qa[40] == qa[3] and aa[40] == aa[3]
+    qa2, aa2 = _core.cosdots_f32(np.ascontiguousarray(a[3:20]), q, isa)
+    np.testing.assert_array_equal(qa2, qa[3:13])
+    np.testing.assert_array_equal(aa2, aa[3:13])
+
+
+def test_kernel_rejects_bad_input():
+    rows = np.ones((4, 5), np.float32)
+    with pytest.raises(TypeError):
+        _core.l2sq_rows_f32(rows.astype(np.float64), np.ones(5, np.float32), "scalar")
+    with pytest.raises(ValueError, match="v: expected 5 values; got 4"):
+        _core.l2sq_rows_f32(rows, np.ones(4, np.float32), "scalar")
+    with pytest.raises(ValueError, match="simd: expected one of"):
+        _core.l2sq_rows_f32(rows, np.ones(5, np.float32), "neon")
+
+
+def test_stream_sum_matches_numpy():
+    a = np.random.default_rng(8).standard_normal((1000, 333)).astype(np.float32)
+    np.testing.assert_allclose(_core.stream_sum_f32(a, 2), a.astype(np.float64).sum(), rtol=1e-5, atol=1e-2)
+
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_env_override_selects_isa(isa):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, GESTUREDB_SIMD=isa)
+    out = subprocess.run([sys.executable, "-c", "from gesturedb import _core; print(_core.get_simd())"],
+                         env=env, capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == isa
+
+
+def test_env_override_rejects_unknown_isa():
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, GESTUREDB_SIMD="sse9")
+    out = subprocess.run([sys.executable, "-c", "from gesturedb import _core"], env=env, cwd=ROOT,
+                         capture_output=True, text=True)
+    assert out.returncode != 0
+    assert "GESTUREDB_SIMD: expected one of scalar" in out.stderr and "got 'sse9'" in out.stderr
+
+
+@pytest.mark.parametrize("isa", ISAS)
+@pytest.mark.parametrize("dim", SIZES)
+def test_l2sq_f16_vs_float64(isa, dim):
+    """The half-precision filter kernel: binary16 rows converted exactly, float32 sums."""
+    rng = np.random.default_rng(400 + dim)
+    h = (rng.standard_normal((23, dim)) * 3).astype(np.float16)
+    h[0, 0] = np.float16(6e-8)   # a subnormal half
+    h[1, :] = np.float16(60000)  # near the top of the range
+    v = rng.standard_normal(dim).astype(np.float32)
+    want = ((h.astype(np.float64) - v.astype(np.float64)) ** 2).sum(axis=1)
+    got = _core.l2sq_rows_f16(h.view(np.uint16), v, isa)
+    np.testing.assert_allclose(got, want, rtol=(dim + 4) * 2.0 ** -23, atol=0)
+
+
+def test_l2sq_f16_non_finite():
+    h = np.array([[np.inf, 1.0], [np.nan, 0.0], [1.0, 2.0]], np.float16)
+    v = np.zeros(2, np.float32)
+    for isa in ISAS:
+        got = _core.l2sq_rows_f16(h.view(np.uint16), v, isa)
+        assert got[0] == np.inf and np.isnan(got[1]) and got[2] == 5.0
