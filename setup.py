@@ -56,6 +56,7 @@ setup(
         "librosa>=0.10",     # MFCC and onset strength
         "praatio>=6.0",      # Praat TextGrid reader
         "tqdm>=4.60",        # progress bars on long builds
+        "threadpoolctl>=3",  # one BLAS thread per build worker process
         "pyvista>=0.43",     # offscreen skeleton rendering
         "vtk>=9.4",          # renders offscreen through EGL (needs libegl1, libegl-mesa0, libgl1-mesa-dri)
         "pillow>=10.1",      # sized built-in font for captions
