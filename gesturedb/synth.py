@@ -96,10 +96,20 @@ class Searcher:
     db : gesturedb.database.Database
     segments : {"chunks", "clips"} or str
         Which segmentation to search (the paper uses 64-frame chunks).
+    half_precision : bool
+        Stream a half-precision copy of the pose features in pose steps
+        (:class:`gesturedb.search.HalfPose`): identical results, about 30%
+        faster searches on large databases, for 0.4 s and 2 bytes per value
+        spent once (616k frames). Worth it when one Searcher runs many syntheses.
     """
 
-    def __init__(self, db, *, segments: str = "chunks"):
+    def __init__(self, db, *, segments: str = "chunks", half_precision: bool = False):
         self.db = db
+        self._half = None
+        if half_precision:
+            from gesturedb.search import HalfPose
+
+            self._half = HalfPose(db.pose_features)
         if segments == "chunks":
             seg = db.chunks
         elif segments == "clips":
@@ -242,7 +252,7 @@ class Searcher:
         try:
             res = rank_sum_search(
                 db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
-                step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl,
+                step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl, pose_f16=self._half,
             )
         except SearchError as exc:
             raise self._explain(exc, labels, control) from None

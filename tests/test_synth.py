@@ -104,6 +104,13 @@ def test_options_change_the_result_reproducibly(scott_db, speech):
     assert np.mean([x["audio_dist"] for x in audio_pre.steps]) <= np.mean([x["audio_dist"] for x in base.steps]) + 1e-6
 
 
+def test_half_precision_searcher_gives_the_same_result(scott_db, speech):
+    a = Searcher(scott_db).synthesize(speech, control="0-20: left_wrist_height > p60")
+    b = Searcher(scott_db, half_precision=True).synthesize(speech, control="0-20: left_wrist_height > p60")
+    assert np.array_equal(a.source_frames, b.source_frames)
+    assert [s["pose_dist"] for s in a.steps] == [s["pose_dist"] for s in b.steps]
+
+
 def test_samples_and_path_give_the_same_result(scott_db, speech):
     from gesturedb.io import read_audio
 
