@@ -307,6 +307,13 @@ class Database:
         g = self._h5.get(schema.MASKS_GROUP)
         return {} if g is None else {k: str(g[k].attrs.get("definition", "")) for k in sorted(g)}
 
+    # -- search ---------------------------------------------------------------
+    def searcher(self, **options):
+        """A :class:`gesturedb.synth.Searcher` over this database (``segments``, ``half_precision``)."""
+        from gesturedb.synth import Searcher
+
+        return Searcher(self, **options)
+
     # -- motion out -----------------------------------------------------------
     def frame_range(self, recording, start_s: float | None = None, end_s: float | None = None) -> tuple[int, int]:
         """Global frame range `[a, b)` of a stretch of a recording (times in seconds)."""

@@ -20,7 +20,7 @@ def speech(scott_dir):
 
 
 def test_output_is_exactly_as_long_as_the_audio(scott_db, speech):
-    res = Searcher(scott_db).synthesize(speech)
+    res = scott_db.searcher().synthesize(speech)
     dur = sf.info(str(speech)).duration
     assert res.n_frames == n_frames_for_duration(dur, scott_db.fps)
     assert res.motion.rotations.shape[0] == res.n_frames
