@@ -291,15 +291,11 @@ def _features_for(motion, samples, sr, words, cfg: BuildConfig, source: Recordin
     w_end = np.asarray(words.end_s if words is not None else [], dtype=np.float64)
     clips = fseg.word_gap_clips(w_start, w_end, n_frames=n, fps=cfg.fps, gap_s=cfg.gap_s)
     speed = frhythm.hand_speed(positions, joints=joints, fps=cfg.fps)
-    rh_audio = np.array(
-        [frhythm.audio_rhythm(w_start[ws:we], start_s=s / cfg.fps, end_s=(s + L) / cfg.fps)
-         for s, L, ws, we in zip(clips.start, clips.length, clips.word_start, clips.word_end)],
-        dtype=np.uint32,
-    )
-    rh_motion = np.array(
-        [frhythm.motion_rhythm(speed, start=s, length=L, fps=cfg.fps) for s, L in zip(clips.start, clips.length)],
-        dtype=np.uint32,
-    )
+    # clips tile the recording, so the onsets inside a clip's span are exactly its words
+    rh_audio = np.atleast_1d(frhythm.audio_rhythm(
+        w_start, start_s=clips.start / cfg.fps, end_s=(clips.start + clips.length) / cfg.fps)).astype(np.uint32)
+    rh_motion = np.atleast_1d(frhythm.motion_rhythm(
+        speed, start=clips.start, length=clips.length, fps=cfg.fps)).astype(np.uint32)
     style = fstyle.style_signatures(positions, joints=joints, fps=cfg.fps, starts=clips.start, lengths=clips.length)
 
     name = source.name + ("~mirror" if mirrored else "")
