@@ -82,12 +82,17 @@ def main() -> int:
     w = read_transcript(src.transcript)
     t_res = median_time(lambda: m.resample(cfg.fps), args.repeat)
     m15 = m.resample(cfg.fps)
-    t_feat = median_time(lambda: _features_for(m15, x, sr, w, cfg, src, mirrored=False), args.repeat)
+    from gesturedb.features.audio import audio_features
+
+    t_audio = median_time(lambda: audio_features(x, sr, fps=cfg.fps, n_frames=m15.n_frames), args.repeat)
+    a15 = audio_features(x, sr, fps=cfg.fps, n_frames=m15.n_frames).astype(np.float64)
+    t_feat = median_time(lambda: _features_for(m15, a15, w, cfg, src, mirrored=False, source_fps=30.0), args.repeat)
     t_proc = median_time(lambda: process_recording(src, cfg), args.repeat)
     print("\nstages of one recording (median):")
-    for name, t in [("read", t_read), ("resample to 15 fps", t_res), ("features+segments+signatures", t_feat),
+    for name, t in [("read", t_read), ("resample to 15 fps", t_res), ("audio features (MFCC)", t_audio),
+                    ("motion features+segments+signatures", t_feat),
                     ("process_recording (all)", t_proc)]:
-        print(f"  {name:<32} {t * 1e3:8.1f} ms   {t / t_read:6.2f} x read")
+        print(f"  {name:<36} {t * 1e3:8.1f} ms   {t / t_read:6.2f} x read")
 
     print("\nwhole builds (median; HDF5 write included):")
     print(f"  {'config':<28} {'wall s':>8} {'rec-s/s':>9} {'x read floor':>13}")

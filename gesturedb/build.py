@@ -267,8 +267,9 @@ def _check_finite(path: str, what: str, arr: np.ndarray) -> None:
         raise InputFileError(path, f"{what}: expected finite values, got {arr[tuple(idx)]} at index {tuple(int(i) for i in idx)}")
 
 
-def _features_for(motion, samples, sr, words, cfg: BuildConfig, source: RecordingSource, *, mirrored: bool) -> RecordingData:
-    from gesturedb.features import audio as faudio
+def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingSource, *,
+                  mirrored: bool, source_fps: float) -> RecordingData:
+    """Features, segments and signatures of one (possibly mirrored) motion with its audio features."""
     from gesturedb.features import controls as fcontrols
     from gesturedb.features import pose as fpose
     from gesturedb.features import rhythm as frhythm
@@ -282,7 +283,6 @@ def _features_for(motion, samples, sr, words, cfg: BuildConfig, source: Recordin
     _check_finite(source.motion, "joint positions", positions)
 
     pose = fpose.pose_features(positions, joints=joints, window=cfg.pose_window, stride=cfg.pose_stride)
-    audio_raw = faudio.audio_features(samples, sr, fps=cfg.fps, n_frames=n, n_mfcc=cfg.n_mfcc).astype(np.float64)
     # from the positions exactly as stored (float32), so recomputing them from the file gives the same bits
     controls = fcontrols.control_features(positions.astype(np.float32).astype(np.float64), joints=joints, fps=cfg.fps)
 
@@ -303,7 +303,7 @@ def _features_for(motion, samples, sr, words, cfg: BuildConfig, source: Recordin
         name=name,
         speaker=cfg.speaker or infer_speaker(source),
         source=source,
-        source_fps=0.0,
+        source_fps=source_fps,
         mirrored=mirrored,
         n_frames=n,
         skeleton=motion.skeleton,
@@ -349,8 +349,12 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
         if not keep.all():
             words = words[: int(keep.sum())]
 
+    from gesturedb.features.audio import audio_features
+
     motion = motion.resample(cfg.fps)
-    out = [_features_for(motion, samples, sr, words, cfg, source, mirrored=False)]
+    # one audio analysis serves the recording and its mirrored copy
+    audio_raw = audio_features(samples, sr, fps=cfg.fps, n_frames=motion.n_frames, n_mfcc=cfg.n_mfcc).astype(np.float64)
+    out = [_features_for(motion, audio_raw, words, cfg, source, mirrored=False, source_fps=src_fps)]
     if cfg.mirror:
         mirrored = motion.mirror()
         if not mirrored.skeleton.same_as(motion.skeleton, atol_m=0.01 * motion.skeleton.scale()):
@@ -362,9 +366,7 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
         # a nearly symmetric skeleton keeps the original bones, so one skeleton serves the whole database
         mirrored = type(motion)(skeleton=motion.skeleton, fps=motion.fps, rotations=mirrored.rotations,
                                 root_positions=mirrored.root_positions)
-        out.append(_features_for(mirrored, samples, sr, words, cfg, source, mirrored=True))
-    for d in out:
-        d.source_fps = src_fps
+        out.append(_features_for(mirrored, audio_raw, words, cfg, source, mirrored=True, source_fps=src_fps))
     return out
 
 
