@@ -242,20 +242,16 @@ class Searcher:
                 f"{min(step, T)} frames plus its entry frame (longest: {int(self.seg_len.max(initial=0))} frames)"
             )
         n_steps = (T + step - 1) // step
-        self._step_bits = None
-        allowed, labels = self._step_masks(control, transcript, keywords, n_steps=n_steps, step=step, T=T)
+        allowed, labels, keyword_bits = self._step_masks(control, transcript, keywords, n_steps=n_steps, step=step, T=T)
         excl = self.exclude_recordings(exclude)
         init_pose = self.initial_pose(init, seed=seed)
-        # kept only to explain a failed step
-        self._step_len = {i: min(step, T - i * step) for i in range(n_steps)}
-        self._exclude = excl
         try:
             res = rank_sum_search(
                 db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
                 step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl, pose_f16=self._half,
             )
         except SearchError as exc:
-            raise self._explain(exc, labels, control) from None
+            raise self._explain(exc, labels, keyword_bits=keyword_bits, exclude=excl, step=step, T=T) from None
 
         source = np.empty(T, dtype=np.int64)
         steps = []
@@ -295,11 +291,12 @@ class Searcher:
 
     # -- masks ------------------------------------------------------------------
     def _step_masks(self, control, transcript, keywords, *, n_steps, step, T):
-        """Per-step allowed bitsets and (control, keyword) labels, or (None, None) when unconstrained."""
-        hooks = []
-        if control:
-            from gesturedb import masks
+        """Per-step allowed bitsets, (control, keyword) labels and the keyword bitsets; Nones when unconstrained."""
+        from gesturedb import masks
 
+        hooks = []
+        keyword_bits = None
+        if control:
             # one bare expression applies to the whole synthesis
             sched = [(0.0, None, control)] if isinstance(control, str) and ":" not in control else control
             res = masks.schedule_bitsets(
@@ -314,20 +311,20 @@ class Searcher:
                                         only=None if keywords is True else list(keywords))
             if res is not None:
                 hooks.append(("keyword", *res))
-                self._step_bits = res[0]
+                keyword_bits = res[0]
         if not hooks:
-            return None, None
-        W = (self.db.n_frames + 63) // 64
-        allowed = np.full((n_steps, W), np.uint64(0xFFFFFFFFFFFFFFFF), dtype=np.uint64)
+            return None, None, None
+        allowed = np.tile(masks.full_mask(self.db.n_frames), (n_steps, 1))
         labels = [[None, None] for _ in range(n_steps)]
         for kind, bits, lab in hooks:
             allowed &= bits
             for i in range(n_steps):
                 if lab[i] is not None:
                     labels[i][0 if kind == "control" else 1] = lab[i]
-        return np.ascontiguousarray(allowed), [tuple(x) if any(v is not None for v in x) else None for x in labels]
+        labels = [tuple(x) if any(v is not None for v in x) else None for x in labels]
+        return np.ascontiguousarray(allowed), labels, keyword_bits
 
-    def _explain(self, exc: SearchError, labels, control) -> SearchError:
+    def _explain(self, exc: SearchError, labels, *, keyword_bits, exclude, step, T) -> SearchError:
         """Name the step, its time and the control that emptied it, and suggest a percentile that works."""
         i = getattr(exc, "step", None)
         t = getattr(exc, "t", None)
@@ -339,15 +336,15 @@ class Searcher:
             msg += f" under control {ctl!r}"
             from gesturedb import masks
 
-            n = self._step_len.get(i, 8)
+            n = min(step, T - i * step)
             # "has candidates" means a window whose first and last frames are both allowed
             # (and, on a keyword step, inside the keyword's sub-database)
-            within = self._step_bits[i] if kwd else None
+            within = keyword_bits[i] if kwd else None
 
             def accept(words):
                 w = words if within is None else masks.mask_and(words, within)
                 return masks.candidate_counts(w, n_frames=self.db.n_frames, seg_start=self.seg_start,
-                                              seg_len=self.seg_len, n=n, exclude=self._exclude).sum() > 0
+                                              seg_len=self.seg_len, n=n, exclude=exclude).sum() > 0
 
             hints = masks.suggest_percentiles(ctl, controls=self.db.controls, named=self.db.masks, accept=accept)
             if hints:
