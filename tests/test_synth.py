@@ -157,3 +157,15 @@ def test_speaker_keeps_facing_forward_and_stays_in_place(scott_db, scott_dir):
     db_reach = np.linalg.norm(db_xz - db_xz.mean(0), axis=1).max()
     out_reach = np.linalg.norm(res.motion.root_positions[:, [0, 2]], axis=1).max()
     assert out_reach <= db_reach + 0.03, (out_reach, db_reach)  # Savitzky-Golay may overshoot by a few cm
+
+
+def test_database_without_a_long_enough_segment(scott_dir, tmp_path, speech):
+    import gesturedb
+
+    # 8-frame chunks cannot hold an 8-frame window plus its entry frame
+    with gesturedb.build([scott_dir], tmp_path / "short.h5", chunk_frames=8) as db:
+        with pytest.raises(ParameterError, match=r"short.h5: no chunks segment is long enough for a window of 8 frames "
+                                                 r"plus its entry frame \(longest: 8 frames\)"):
+            db.searcher().synthesize(speech)
+        # the word-gap clips of the same database are long enough
+        assert db.searcher(segments="clips").synthesize(speech).n_frames > 0
