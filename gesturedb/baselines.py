@@ -94,8 +94,9 @@ class WindowChoice:
     @property
     def source_frames(self) -> np.ndarray:
         """ndarray [shape=(T,)], int64: database frame copied to each output frame."""
-        offsets = np.arange(self.n_frames, dtype=np.int64) - np.repeat(self.out_frames, self.lengths)
-        return np.repeat(self.frames, self.lengths) + offsets
+        from gesturedb.search import window_frame_map
+
+        return window_frame_map(self.frames, self.out_frames, self.lengths, self.n_frames)
 
     @property
     def boundaries(self) -> np.ndarray:

@@ -158,8 +158,7 @@ class SearchResult:
         ndarray [shape=(T,)], int64
             ``out[t]`` is the global database frame placed at output frame ``t``.
         """
-        offsets = np.arange(self.n_frames, dtype=np.int64) - np.repeat(self.out_frames, self.lengths)
-        return np.repeat(self.frames, self.lengths) + offsets
+        return window_frame_map(self.frames, self.out_frames, self.lengths, self.n_frames)
 
     def step(self, i: int) -> StepResult:
         """Step ``i`` as a :class:`StepResult`."""
@@ -175,6 +174,24 @@ class SearchResult:
             rank=int(self.pose_rank[i] + self.audio_rank[i]),
             n_candidates=int(self.n_candidates[i]),
         )
+
+
+def window_frame_map(frames, out_frames, lengths, n_frames: int) -> np.ndarray:
+    """Database frame placed at each output frame, from windows copied back to back.
+
+    Parameters
+    ----------
+    frames, out_frames, lengths : ndarray [shape=(S,)], int64
+        First database frame, first output frame and length of each window.
+    n_frames : int
+        T, the output length (``out_frames[-1] + lengths[-1]``).
+
+    Returns
+    -------
+    ndarray [shape=(T,)], int64
+    """
+    offsets = np.arange(n_frames, dtype=np.int64) - np.repeat(out_frames, lengths)
+    return np.repeat(frames, lengths) + offsets
 
 
 class HalfPose:

@@ -253,12 +253,11 @@ class Searcher:
         except SearchError as exc:
             raise self._explain(exc, labels, keyword_bits=keyword_bits, exclude=excl, step=step, T=T) from None
 
-        source = np.empty(T, dtype=np.int64)
+        source = res.frame_map()
         steps = []
         recs = db.recordings
         for i in range(len(res.segments)):
             t, g, n = int(res.out_frames[i]), int(res.frames[i]), int(res.lengths[i])
-            source[t:t + n] = np.arange(g, g + n)
             rec = recs[int(db.frame_recording[g])]
             label = labels[i] if labels is not None else None
             steps.append({
