@@ -41,7 +41,10 @@ setup(
     version=_version(),
     description="Database-driven, controllable co-speech gesture synthesis",
     python_requires=">=3.10",
-    packages=["gesturedb", "gesturedb.io", "gesturedb.features", "gesturedb.cli"],
+    packages=[
+        "gesturedb", "gesturedb.io", "gesturedb.features", "gesturedb.db", "gesturedb.control",
+        "gesturedb.synth", "gesturedb.eval", "gesturedb.cli",
+    ],
     # cli/ lives at the top of the repository to keep the command line visibly
     # thin and separate, but installs as gesturedb.cli.
     package_dir={"gesturedb.cli": "cli"},
@@ -64,6 +67,9 @@ setup(
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report
     ],
-    extras_require={"test": ["pytest>=7"]},
+    extras_require={
+        # import-linter: the layers contract of .importlinter (stages import only the stages below them)
+        "test": ["pytest>=7", "import-linter>=2.0"],
+    },
     entry_points={"console_scripts": ["gesturedb=gesturedb.cli.main:main"]},
 )

@@ -55,7 +55,7 @@ def main() -> int:
     args = ap.parse_args()
 
     import gesturedb
-    from gesturedb.build import BuildConfig, RecordingSource, _features_for, process_recording
+    from gesturedb.db.build import BuildConfig, RecordingSource, _features_for, process_recording
     from gesturedb.io import read_audio, read_motion, read_transcript
 
     base = DATA / "beat2-scott" / STEM

@@ -47,7 +47,7 @@ def _joint_map(text):
 
 
 def run(args) -> int:
-    from gesturedb.build import build, pair_inputs
+    from gesturedb.db.build import build, pair_inputs
 
     if not args.quiet:
         print(pair_inputs(args.inputs, recursive=args.recursive).summary(), file=sys.stderr)

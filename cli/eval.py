@@ -97,8 +97,8 @@ def _search_kwargs(args) -> dict:
 
 def run_controls(args) -> int:
     import gesturedb
-    from gesturedb.evaluate import evaluate_controls
-    from gesturedb.report import write_controls_report
+    from gesturedb.eval.evaluate import evaluate_controls
+    from gesturedb.eval.report import write_controls_report
 
     with gesturedb.open(args.db) as db:
         rep = evaluate_controls(
@@ -123,7 +123,7 @@ def _beside(audio: str) -> str | None:
 
 def run_motion(args) -> int:
     from gesturedb.errors import ParameterError
-    from gesturedb.evaluate import SYSTEMS, evaluate_holdout, evaluate_inputs
+    from gesturedb.eval.evaluate import SYSTEMS, evaluate_holdout, evaluate_inputs
 
     systems = None
     if args.systems:

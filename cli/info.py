@@ -42,7 +42,7 @@ def summary(db) -> dict:
 
 def run(args) -> int:
     import gesturedb
-    from gesturedb import schema
+    from gesturedb.db import schema
 
     if args.schema:
         print(schema.describe())

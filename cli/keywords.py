@@ -54,7 +54,7 @@ def _fmt_sub(sub, fps: float) -> str:
 
 def _list(args) -> int:
     import gesturedb
-    from gesturedb import keywords as kw
+    from gesturedb.db import keywords as kw
 
     with gesturedb.open(args.db) as db:
         subs = kw.subdatabases(db)
@@ -80,7 +80,7 @@ def _list(args) -> int:
 
 def _show(args) -> int:
     import gesturedb
-    from gesturedb import keywords as kw
+    from gesturedb.db import keywords as kw
 
     with gesturedb.open(args.db) as db:
         subs = kw.subdatabases(db)
@@ -98,7 +98,8 @@ def _show(args) -> int:
 
 
 def run(args) -> int:
-    from gesturedb import keywords as kw
+    from gesturedb.db import keywords as kw
+    from gesturedb.db.export import export_keyword
 
     if args.action == "list":
         return _list(args)
@@ -119,7 +120,7 @@ def run(args) -> int:
         print(f"dropped {sub.word!r} ({len(sub)} occurrence(s)) from {args.db}")
         return 0
     if args.action == "export":
-        with kw.export_keyword(args.db, args.word, args.output, chunk_frames=args.chunk_frames) as out:
+        with export_keyword(args.db, args.word, args.output, chunk_frames=args.chunk_frames) as out:
             print(f"wrote {args.output}: {len(out.recordings)} recording(s), {out.n_frames} frames "
                   f"({out.n_frames / out.fps:.1f} s at {out.fps:g} fps), {len(out.words)} words")
         return 0

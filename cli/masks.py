@@ -23,7 +23,8 @@ def run(args) -> int:
     import numpy as np
 
     import gesturedb
-    from gesturedb import dbedit, masks
+    from gesturedb import control as masks
+    from gesturedb.db import edit as dbedit
 
     if args.op == "add":
         res = dbedit.save_mask(args.db, args.name, args.expr, replace=args.replace)

@@ -32,10 +32,10 @@ __all__ = [
 
 # Bound eagerly: importing the submodule gesturedb.build later would otherwise
 # replace the function `gesturedb.build` with the module of the same name.
-from gesturedb.build import build  # noqa: E402
-from gesturedb.database import Database  # noqa: E402
+from gesturedb.db.build import build  # noqa: E402
+from gesturedb.db.database import Database  # noqa: E402
 
 
 def open(path, mode="r"):  # noqa: A001 - mirrors h5py.File / builtins.open on purpose
-    """Open a gesture database; see :class:`gesturedb.database.Database`."""
+    """Open a gesture database; see :class:`gesturedb.db.database.Database`."""
     return Database(path, mode=mode)

@@ -12,6 +12,11 @@ See ``docs/rendering.md`` for what the machine needs.
 
 Coordinates: metres, y up, the speaker facing +z. Images are uint8 RGB
 ``(h, w, 3)``, row 0 at the top.
+
+Length: over the package's 800-line mark on purpose. Frames, videos and contact
+sheets share one VTK pipeline (:class:`SkeletonRenderer`), one camera fit and one
+set of panel and caption checks; split in two, each half would import the
+other's private helpers.
 """
 from __future__ import annotations
 

@@ -23,7 +23,7 @@ Terms used throughout (shapes in brackets):
   ``n`` frames starting at global frame ``g = seg_start[m] + s``; its entry frame
   ``g - 1`` is the frame compared with the previous pose.
 - ``allowed``: packed bitset over database frames, uint64 words, bit ``f & 63``
-  of word ``f >> 6`` (see :mod:`gesturedb.masks`); a window is allowed iff its
+  of word ``f >> 6`` (see :mod:`gesturedb.control`); a window is allowed iff its
   first and last frame are.
 
 Non-finite database features are not checked (that would read the whole
@@ -58,7 +58,7 @@ PRESELECT = ("pose", "audio")
 
 def _core():
     try:
-        from gesturedb import _core as core
+        import gesturedb._core as core
     except ImportError as exc:  # pragma: no cover - depends on the build
         raise ImportError(
             "gesturedb._core is not built: run `python setup.py build_ext --inplace` "

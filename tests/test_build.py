@@ -13,8 +13,8 @@ import pytest
 import soundfile as sf
 
 import gesturedb
-from gesturedb import schema
-from gesturedb.build import BuildConfig, pair_inputs
+from gesturedb.db import schema
+from gesturedb.db.build import BuildConfig, pair_inputs
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
 
 STEM = "2_scott_0_1_1"

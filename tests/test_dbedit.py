@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import gesturedb
-from gesturedb import dbedit, masks
+from gesturedb import control as masks
+from gesturedb.db import edit as dbedit
 from gesturedb.cli.main import main
 from gesturedb.errors import ParameterError
 from gesturedb.synth import Searcher

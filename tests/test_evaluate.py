@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import gesturedb
-from gesturedb import baselines as B
-from gesturedb import evaluate as E
+from gesturedb.eval import baselines as B
+from gesturedb.eval import evaluate as E
 from gesturedb.errors import ParameterError, SearchError
 
 
@@ -279,7 +279,7 @@ def test_holdout_has_every_system_and_the_ground_truth(holdout, scott_dir):
 
 
 def test_holdout_metrics_cross_check_the_metric_functions(holdout):
-    from gesturedb import metrics as M
+    from gesturedb.eval import metrics as M
 
     ev = holdout
     inp = ev.inputs[0]
@@ -321,7 +321,7 @@ def test_evaluate_inputs_without_ground_truth(mdb, scott_dir):
     assert np.isnan(row["random"]["speed_hellinger_gt"]) and row["random"]["speed_hellinger_db"] > 0
     assert "H(speed) vs GT" not in ev.to_text() and "H(speed) vs DB" in ev.to_text()
     ref = ev.reference_row()
-    from gesturedb import metrics as M
+    from gesturedb.eval import metrics as M
 
     joints = np.asarray(ev.settings["joints"])
     parts = [E.metric_positions(mdb.joint_positions[r.start_frame:r.stop_frame], ev.root) for r in mdb.recordings]
@@ -334,7 +334,7 @@ def test_evaluate_inputs_without_ground_truth(mdb, scott_dir):
 
 
 def test_holdout_split_errors(scott_dir):
-    from gesturedb.build import RecordingSource
+    from gesturedb.db.build import RecordingSource
 
     src = RecordingSource("r", "m.npz", "a.wav", None)
     parts = E.holdout_split(src, 10.0, 20.0, 63.5)

@@ -1,4 +1,4 @@
-"""Keyword sub-databases (gesturedb.keywords, cli/keywords.py).
+"""Keyword sub-databases (gesturedb.db.keywords, cli/keywords.py).
 
 Hand-made databases (recordings + words only) pin the stretch arithmetic, the
 whole-word matching and the per-step choice against brute force in exact
@@ -18,8 +18,10 @@ import numpy as np
 import pytest
 
 import gesturedb
-from gesturedb import keywords as kw
-from gesturedb import masks, schema
+from gesturedb.db import keywords as kw
+from gesturedb.db.export import export_keyword
+from gesturedb import control as masks
+from gesturedb.db import schema
 from gesturedb.errors import GestureDBError, ParameterError
 from gesturedb.io.transcripts import Words, read_transcript
 
@@ -512,7 +514,7 @@ def test_failed_edit_leaves_file_byte_identical(db_copy, monkeypatch):
 
 
 def test_export_real(db_copy, tmp_path):
-    from gesturedb.dbedit import edit
+    from gesturedb.db.edit import edit
     from gesturedb.features import rhythm, style
 
     kw.add_keyword(db_copy, "time", before_s=0.5, after_s=1.0)
@@ -525,7 +527,7 @@ def test_export_real(db_copy, tmp_path):
         ds.attrs["definition"] = "hand-picked"
     out = tmp_path / "time.h5"
     sha = _sha(db_copy)
-    with kw.export_keyword(db_copy, "time", out) as ex, gesturedb.open(db_copy) as src:
+    with export_keyword(db_copy, "time", out) as ex, gesturedb.open(db_copy) as src:
         sub = kw.subdatabases(src)["time"]
         n = len(sub)
         assert len(ex.recordings) == n and ex.n_frames == int(sub.length.sum())
@@ -603,15 +605,15 @@ def test_export_real(db_copy, tmp_path):
     assert _sha(db_copy) == sha  # the source is not modified
 
     # fixed chunks within each occurrence
-    with kw.export_keyword(db_copy, "like", tmp_path / "like.h5", chunk_frames=8) as ex:
+    with export_keyword(db_copy, "like", tmp_path / "like.h5", chunk_frames=8) as ex:
         for i, r in enumerate(ex.recordings):
             sel = ex.chunks.recording == i
             assert ex.chunks.start[sel][0] == r.start_frame
             assert np.all(ex.chunks.length[sel][:-1] == 8) and ex.chunks.length[sel].sum() == r.n_frames
     with pytest.raises(ParameterError, match=r"output: .* is the source database"):
-        kw.export_keyword(db_copy, "time", db_copy)
+        export_keyword(db_copy, "time", db_copy)
     with pytest.raises(ParameterError, match=r"keyword 'hand': no such sub-database .*keywords: like, time"):
-        kw.export_keyword(db_copy, "hand", tmp_path / "hand.h5")
+        export_keyword(db_copy, "hand", tmp_path / "hand.h5")
     assert not (tmp_path / "hand.h5").exists()
 
 

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from gesturedb import masks as M
+from gesturedb import control as M
 from gesturedb.errors import ParameterError
 
 SIZES = [1, 5, 63, 64, 65, 127, 128, 129, 1000]

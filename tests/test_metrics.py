@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from gesturedb import metrics as M
+from gesturedb.eval import metrics as M
 from gesturedb.errors import ParameterError
 
 FPS = 30.0

@@ -7,13 +7,13 @@ import h5py
 import numpy as np
 import pytest
 
-from gesturedb import schema
+from gesturedb.db import schema
 from gesturedb.errors import SchemaError
 
 
 def test_readme_schema_table_is_current():
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    assert schema.describe() in readme, "regenerate the README table from gesturedb.schema.describe()"
+    assert schema.describe() in readme, "regenerate the README table from gesturedb.db.schema.describe()"
 
 
 def test_write_checks_dtype_and_shapes_across_datasets(tmp_path):

@@ -20,7 +20,7 @@ def speech(scott_dir):
 
 
 def test_output_is_exactly_as_long_as_the_audio(scott_db, speech):
-    res = scott_db.searcher().synthesize(speech)
+    res = Searcher(scott_db).synthesize(speech)
     dur = sf.info(str(speech)).duration
     assert res.n_frames == n_frames_for_duration(dur, scott_db.fps)
     assert res.motion.rotations.shape[0] == res.n_frames
@@ -79,7 +79,7 @@ def test_transition_blend_lowers_jerk_at_window_boundaries(scott_db, speech):
 
 def test_smoothing_brings_jerk_to_the_level_of_the_recording(scott_db, speech):
     """Whole-output jerk of the arms: blended + smoothed output is within 50% of the captured motion's."""
-    from gesturedb.metrics import average_jerk
+    from gesturedb.eval.metrics import average_jerk
 
     arms = [i for i, n in enumerate(scott_db.joint_names) if n.startswith(("left_", "right_")) and
             any(k in n for k in ("shoulder", "elbow", "wrist", "index", "pinky"))]
@@ -166,6 +166,6 @@ def test_database_without_a_long_enough_segment(scott_dir, tmp_path, speech):
     with gesturedb.build([scott_dir], tmp_path / "short.h5", chunk_frames=8) as db:
         with pytest.raises(ParameterError, match=r"short.h5: no chunks segment is long enough for a window of 8 frames "
                                                  r"plus its entry frame \(longest: 8 frames\)"):
-            db.searcher().synthesize(speech)
+            Searcher(db).synthesize(speech)
         # the word-gap clips of the same database are long enough
-        assert db.searcher(segments="clips").synthesize(speech).n_frames > 0
+        assert Searcher(db, segments="clips").synthesize(speech).n_frames > 0

@@ -5,7 +5,7 @@ transcript (TextGrid, GENEA TSV or JSON) that share a file stem. Each recording
 is processed on its own (in worker processes when ``workers > 1``), then the
 results are concatenated in a fixed order, the audio features are standardised
 with statistics of the whole database, and everything is written through
-:mod:`gesturedb.schema` into a temporary file beside the target that is renamed
+:mod:`gesturedb.db.schema` into a temporary file beside the target that is renamed
 on success. A failed or interrupted build leaves no partial file and any
 existing database untouched; the same inputs and configuration give the same
 HDF5 content.
@@ -15,16 +15,16 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from gesturedb import schema
+from gesturedb.db import schema
 from gesturedb._version import __version__
-from gesturedb.errors import GestureDBError, InputFileError, ParameterError
+from gesturedb.db.storage import write_atomically
+from gesturedb.errors import InputFileError, ParameterError
 
 MOTION_EXTS = (".bvh", ".npz")
 AUDIO_EXTS = (".wav", ".flac")
@@ -505,10 +505,10 @@ def _write_controls_and_masks(h5, recs: list[RecordingData]) -> None:
 
 def write_default_masks(h5, controls: dict[str, np.ndarray]) -> None:
     """Precompute the 15th/85th-percentile masks of every control feature (Habibie et al. Sec. 4.1)."""
-    from gesturedb import masks
+    from gesturedb import control
 
     g = h5.require_group(schema.MASKS_GROUP)
-    for name, res in masks.percentile_masks(controls).items():
+    for name, res in control.percentile_masks(controls).items():
         ds = g.create_dataset(name, data=res.words)
         ds.attrs["definition"] = res.expr
         schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
@@ -542,7 +542,7 @@ def build(
 
     Returns
     -------
-    gesturedb.database.Database
+    gesturedb.db.database.Database
         The new database, open for reading. ``db.pairing`` tells what was paired and skipped.
     """
     cfg = BuildConfig.from_kwargs(**config)
@@ -568,7 +568,7 @@ def build(
             )
     write_atomically(out_path, lambda h5: _write(h5, recs, cfg))
 
-    from gesturedb.database import Database
+    from gesturedb.db.database import Database
 
     db = Database(out_path)
     db.pairing = pairing
@@ -604,34 +604,3 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
         if bar is not None:
             bar.close()
     return out
-
-
-def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
-    """Create an HDF5 file by writing a temporary file beside ``out_path`` and renaming it.
-
-    The temporary file is in the same folder so the rename is atomic; it is
-    removed on any failure (including KeyboardInterrupt), so a failed build
-    leaves nothing behind and an existing database untouched.
-    """
-    import h5py
-
-    out_path = os.fspath(out_path)
-    folder = os.path.dirname(os.path.abspath(out_path))
-    if not os.path.isdir(folder):
-        raise ParameterError(f"output: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(out_path) + ".", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w", track_order=True) as h5:
-            fill(h5)
-        # mkstemp makes the file 0600; give it the mode a plain open() would
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, out_path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise

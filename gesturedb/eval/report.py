@@ -1,6 +1,6 @@
 """Evaluation reports a person can look at: plots (matplotlib), renders and one HTML page.
 
-:func:`write_motion_report` turns a :class:`gesturedb.evaluate.MotionEvaluation`
+:func:`write_motion_report` turns a :class:`gesturedb.eval.evaluate.MotionEvaluation`
 into a folder::
 
     metrics.json        every number, per input, the mean over inputs, the settings
@@ -61,7 +61,7 @@ def _plt():
 
 
 def _label(name: str) -> str:
-    from gesturedb.evaluate import SYSTEM_LABELS
+    from gesturedb.eval.common import SYSTEM_LABELS
 
     return SYSTEM_LABELS.get(name, name)
 
@@ -81,7 +81,7 @@ def plot_speed_histograms(path, counts: dict, edges: np.ndarray, *, reference: n
     Parameters
     ----------
     counts : dict name -> ndarray [shape=(n_bins,)]
-        Speed histogram counts (``gesturedb.metrics.speed_histogram``).
+        Speed histogram counts (``gesturedb.eval.metrics.speed_histogram``).
     edges : ndarray [shape=(n_bins + 1,)], m/s
     reference : ndarray [shape=(n_bins,)], optional
         The database's histogram, drawn grey and dashed.
@@ -168,7 +168,7 @@ def plot_metric_summary(path, rows: dict, *, reference: dict | None = None) -> P
     Parameters
     ----------
     rows : dict name -> dict
-        Metric rows of :func:`gesturedb.evaluate.system_metrics`.
+        Metric rows of :func:`gesturedb.eval.evaluate.system_metrics`.
     reference : dict, optional
         The database reference row.
     """
@@ -210,7 +210,7 @@ def plot_controls(path, report) -> Path:
 
     Parameters
     ----------
-    report : gesturedb.evaluate.ControlsReport
+    report : gesturedb.eval.evaluate.ControlsReport
     """
     plt = _plt()
     rows = report.rows
@@ -264,7 +264,7 @@ def render_comparison(out_dir, inp, *, parents, root: int, index: int = 0, video
     -------
     list of Path
     """
-    from gesturedb.evaluate import _centred
+    from gesturedb.eval.common import _centred
     from gesturedb.render import render_contact_sheet, render_video
 
     out_dir = Path(out_dir)
@@ -317,7 +317,7 @@ _METRIC_DOCS = (
 
 
 def _html_table(ev, rows: dict) -> str:
-    from gesturedb.evaluate import _fmt
+    from gesturedb.eval.common import _fmt
 
     cols = ev.columns(rows)
     head = "<tr><th>system</th>" + "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in cols) + "</tr>"
@@ -416,7 +416,7 @@ def write_motion_report(ev, out_dir, *, render: bool = True, video: str | None =
 
     Parameters
     ----------
-    ev : gesturedb.evaluate.MotionEvaluation
+    ev : gesturedb.eval.evaluate.MotionEvaluation
     render : bool
         Render contact sheets (every input) and a video (first input only: video
         is the slow part, about 40 ms per panel and frame).
@@ -465,7 +465,7 @@ def write_controls_report(report, *, json_path=None, md_path=None, plot_path=Non
 
     Parameters
     ----------
-    report : gesturedb.evaluate.ControlsReport
+    report : gesturedb.eval.evaluate.ControlsReport
     json_path, md_path, plot_path : path, optional
 
     Returns

@@ -18,74 +18,13 @@ paper.
 """
 from __future__ import annotations
 
-import json
 import os
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from gesturedb.errors import ParameterError, SearchError
-
-
-@dataclass
-class SynthResult:
-    """A synthesized motion and where every part of it came from.
-
-    Attributes
-    ----------
-    motion : gesturedb.motion.Motion
-        At the database fps, exactly ``n_frames`` long (the length of the speech).
-    source_frames : ndarray [shape=(T,)], int64
-        Database frame copied to each output frame (before blending).
-    boundaries : ndarray, int64
-        Output frames where a new window starts (t = step, 2 step, ...).
-    steps : list of dict
-        Provenance, one entry per search step (see :meth:`Searcher.synthesize`).
-    """
-
-    motion: object
-    source_frames: np.ndarray
-    boundaries: np.ndarray
-    steps: list
-    fps: float
-    audio_path: str | None = None
-    options: dict = field(default_factory=dict)
-
-    @property
-    def n_frames(self) -> int:
-        return int(self.source_frames.shape[0])
-
-    @property
-    def positions(self) -> np.ndarray:
-        """ndarray [shape=(T, J, 3)], world metres."""
-        return self.motion.positions
-
-    def provenance(self) -> dict:
-        return {
-            "audio": self.audio_path,
-            "fps": self.fps,
-            "n_frames": self.n_frames,
-            "duration_s": self.n_frames / self.fps,
-            "options": self.options,
-            "steps": self.steps,
-        }
-
-    def write_provenance(self, path: str | os.PathLike) -> None:
-        with open(path, "w") as f:
-            json.dump(self.provenance(), f, indent=1)
-
-
-def _yaw_of(q: np.ndarray) -> np.ndarray:
-    """Heading angle (rad, about +y) of the root's forward axis (+z) under rotations q (..., 4)."""
-    from gesturedb import rotations as R
-
-    fwd = R.apply(q, np.broadcast_to(np.array([0.0, 0.0, 1.0]), q.shape[:-1] + (3,)))
-    return np.arctan2(fwd[..., 0], fwd[..., 2])
-
-
-def _yaw_quat(angle: np.ndarray | float) -> np.ndarray:
-    a = np.asarray(angle, dtype=np.float64) / 2
-    return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
+from gesturedb.synth.assemble import assemble_frames
+from gesturedb.synth.result import SynthResult
 
 
 class Searcher:
@@ -93,7 +32,7 @@ class Searcher:
 
     Parameters
     ----------
-    db : gesturedb.database.Database
+    db : gesturedb.db.database.Database
     segments : {"chunks", "clips"} or str
         Which segmentation to search (the paper uses 64-frame chunks).
     half_precision : bool
@@ -198,7 +137,7 @@ class Searcher:
             Savitzky-Golay smoothing of the result (GestureMaster); off to get exact database frames.
         control : str, list or None
             A control schedule (``"0-12: left_wrist_height > p85; 12-: slow"``) or one
-            mask expression for the whole synthesis; see :mod:`gesturedb.masks`.
+            mask expression for the whole synthesis; see :mod:`gesturedb.control`.
         keywords : bool or list of str
             Use keyword sub-databases for the steps that overlap their words
             (True: all of the database's, False: none, a list: only those).
@@ -291,20 +230,20 @@ class Searcher:
     # -- masks ------------------------------------------------------------------
     def _step_masks(self, control, transcript, keywords, *, n_steps, step, T):
         """Per-step allowed bitsets, (control, keyword) labels and the keyword bitsets; Nones when unconstrained."""
-        from gesturedb import masks
+        from gesturedb.control import full_mask, schedule_bitsets
 
         hooks = []
         keyword_bits = None
         if control:
             # one bare expression applies to the whole synthesis
             sched = [(0.0, None, control)] if isinstance(control, str) and ":" not in control else control
-            res = masks.schedule_bitsets(
+            res = schedule_bitsets(
                 sched, controls=self.db.controls, named=self.db.masks, n_steps=n_steps, step=step,
                 fps=self.db.fps, n_out_frames=T, n_frames=self.db.n_frames,
             )
             hooks.append(("control", res.bitsets, res.labels))
         if keywords and transcript is not None:
-            from gesturedb import keywords as kw
+            from gesturedb.db import keywords as kw
 
             res = kw.keyword_step_masks(self.db, transcript, n_steps=n_steps, step=step, n_out_frames=T,
                                         only=None if keywords is True else list(keywords))
@@ -313,7 +252,7 @@ class Searcher:
                 keyword_bits = res[0]
         if not hooks:
             return None, None, None
-        allowed = np.tile(masks.full_mask(self.db.n_frames), (n_steps, 1))
+        allowed = np.tile(full_mask(self.db.n_frames), (n_steps, 1))
         labels = [[None, None] for _ in range(n_steps)]
         for kind, bits, lab in hooks:
             allowed &= bits
@@ -333,7 +272,7 @@ class Searcher:
         msg = f"step {i} (output frame {t}, t = {t / self.db.fps:.2f} s) has no candidate"
         if ctl:
             msg += f" under control {ctl!r}"
-            from gesturedb import masks
+            from gesturedb.control import candidate_counts, mask_and, suggest_percentiles
 
             n = min(step, T - i * step)
             # "has candidates" means a window whose first and last frames are both allowed
@@ -341,11 +280,11 @@ class Searcher:
             within = keyword_bits[i] if kwd else None
 
             def accept(words):
-                w = words if within is None else masks.mask_and(words, within)
-                return masks.candidate_counts(w, n_frames=self.db.n_frames, seg_start=self.seg_start,
+                w = words if within is None else mask_and(words, within)
+                return candidate_counts(w, n_frames=self.db.n_frames, seg_start=self.seg_start,
                                               seg_len=self.seg_len, n=n, exclude=exclude).sum() > 0
 
-            hints = masks.suggest_percentiles(ctl, controls=self.db.controls, named=self.db.masks, accept=accept)
+            hints = suggest_percentiles(ctl, controls=self.db.controls, named=self.db.masks, accept=accept)
             if hints:
                 msg += "; " + "; ".join(str(h) for h in hints)
         if kwd:
@@ -355,108 +294,6 @@ class Searcher:
         return err
 
     # -- assembly ---------------------------------------------------------------
-    def _placement(self):
-        """Per-recording yaw (rad) and horizontal centre (m) that put each recording at the origin facing +z.
-
-        Windows are copied in the placement of their own recording, normalised
-        once: chaining every window onto the previous one's heading would
-        accumulate the small turns of the source material into a slow spin.
-        """
-        if getattr(self, "_place_cache", None) is None:
-            db = self.db
-            rec = db.frame_recording
-            yaw = _yaw_of(np.asarray(db.local_rotations[:, 0], dtype=np.float64))
-            root = np.asarray(db.root_positions, dtype=np.float64)
-            n = len(db.recordings)
-            # circular mean of the heading, arithmetic mean of the floor position
-            mean_yaw = np.arctan2(np.bincount(rec, np.sin(yaw), n), np.bincount(rec, np.cos(yaw), n))
-            centre = np.stack([np.bincount(rec, root[:, 0], n), np.zeros(n), np.bincount(rec, root[:, 2], n)], 1)
-            centre /= np.maximum(np.bincount(rec, minlength=n), 1)[:, None]
-            self._place_cache = (mean_yaw, centre)
-        return self._place_cache
-
-    def _placed(self, frames: np.ndarray):
-        """Local rotations (n, J, 4) and root positions (n, 3) of database frames, normalised per recording."""
-        from gesturedb import rotations as R
-
-        db = self.db
-        mean_yaw, centre = self._placement()
-        rec = db.frame_recording[frames]
-        rot = np.asarray(db.local_rotations[frames], dtype=np.float64)
-        root = np.asarray(db.root_positions[frames], dtype=np.float64)
-        q = _yaw_quat(-mean_yaw[rec])
-        root = R.apply(q, root - centre[rec]) + np.array([0.0, 1.0, 0.0]) * centre[rec]
-        root[:, 1] = np.asarray(db.root_positions[frames, 1], dtype=np.float64)
-        rot[:, 0] = R.multiply(q, rot[:, 0])
-        return rot, root
-
     def assemble(self, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4, smooth: bool = True):
-        """Copy the chosen database frames into one :class:`Motion`.
-
-        Parameters
-        ----------
-        source : ndarray [shape=(T,)], int64
-            Database frame for every output frame.
-        starts : ndarray, int64
-            Output frame where each window starts (the first is 0).
-        blend_frames : int
-            Cross-fade length after each boundary (0: windows back to back, as in the paper).
-        smooth : bool
-            Savitzky-Golay filter (window 7, order 2) over the rotations and root,
-            as GestureMaster (Sec. 4.2) smooths its output.
-
-        Notes
-        -----
-        Every frame keeps the placement of its recording, normalised so each
-        recording's mean floor position is the origin and its mean heading +z.
-        After each boundary, ``blend_frames`` frames are slerped (rotations) and
-        lerped (root) from the previous window's natural continuation in its
-        recording into the new window, with smoothstep weights, so neither
-        position nor velocity jumps at the seam.
-        """
-        from gesturedb import rotations as R
-        from gesturedb.motion import Motion
-
-        db = self.db
-        source = np.asarray(source, dtype=np.int64)
-        T = source.shape[0]
-        rot, root = self._placed(source)
-        if blend_frames > 0:
-            for a, b in zip(starts[1:], list(starts[2:]) + [T]):
-                a, b = int(a), int(b)
-                n_bl = min(blend_frames, b - a)
-                g_last = int(source[a - 1])
-                cont = g_last + 1 + np.arange(n_bl)
-                # the continuation must exist in the same recording; shorten the blend where it ends
-                ok = (cont < db.n_frames)
-                ok[ok] &= db.frame_recording[cont[ok]] == db.frame_recording[g_last]
-                n_bl = n_bl if ok.all() else int(np.argmin(ok))
-                if n_bl == 0:
-                    continue
-                c_rot, c_root = self._placed(cont[:n_bl])
-                x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
-                w = x * x * (3 - 2 * x)
-                rot[a:a + n_bl] = R.slerp(c_rot, rot[a:a + n_bl], w)
-                root[a:a + n_bl] = (1 - w) * c_root + w * root[a:a + n_bl]
-        if smooth:
-            rot, root = savgol_smooth(rot, root)
-        return Motion(skeleton=db.skeleton, fps=db.fps, rotations=rot, root_positions=root)
-
-
-def savgol_smooth(rotations: np.ndarray, root: np.ndarray, *, window: int = 7, order: int = 2):
-    """Savitzky-Golay smoothing of local rotations (T, J, 4) and root positions (T, 3) over time.
-
-    Quaternions are first made continuous in time (q and -q are one rotation),
-    filtered component-wise and renormalised: for the small angles between
-    neighbouring frames this is close to filtering on the rotation manifold.
-    Sequences shorter than the window are returned unchanged.
-    """
-    from scipy.signal import savgol_filter
-
-    from gesturedb import rotations as R
-
-    if rotations.shape[0] < window:
-        return rotations, root
-    q = savgol_filter(R.make_continuous(rotations, axis=0), window, order, axis=0)
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    return q, savgol_filter(root, window, order, axis=0)
+        """Copy the chosen database frames into one Motion; see :func:`gesturedb.synth.assemble.assemble_frames`."""
+        return assemble_frames(self.db, source, starts, blend_frames=blend_frames, smooth=smooth)

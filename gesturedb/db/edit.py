@@ -1,48 +1,13 @@
-"""Atomic edits of an existing database (saved masks, control features, keyword sub-databases).
+"""Edits of an existing database: saved masks and control features.
 
-The file is copied to a temporary file beside it, the copy is edited, and the
-copy is renamed over the original only when the edit succeeded: an error or an
-interruption leaves the database exactly as it was.
+Every edit goes through :func:`gesturedb.db.storage.edit` (copy, edit, rename).
 """
 from __future__ import annotations
 
-import contextlib
 import os
-import shutil
-import tempfile
 
-from gesturedb import schema
-from gesturedb.errors import InputFileError
-
-
-@contextlib.contextmanager
-def edit(path: str | os.PathLike):
-    """Yield a writable :class:`h5py.File` on a copy of ``path``; replace ``path`` on success.
-
-    Examples
-    --------
-    >>> with edit("scott.h5") as h5:                      # doctest: +SKIP
-    ...     h5["masks"].create_dataset("calm", data=bits)
-    """
-    import h5py
-
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise InputFileError(path, "no such file")
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
-        shutil.copyfile(path, tmp)
-        shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
-        with h5py.File(tmp, "r+") as h5:
-            schema.check_version(h5, path)
-            yield h5
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+from gesturedb.db import schema
+from gesturedb.db.storage import edit
 
 
 def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> list[str]:
@@ -59,8 +24,8 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
     """
     import numpy as np
 
-    from gesturedb.build import write_default_masks
-    from gesturedb.database import Database
+    from gesturedb.db.build import write_default_masks
+    from gesturedb.db.database import Database
     from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS, control_features
     from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
 
@@ -91,10 +56,10 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
 def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = False):
     """Compile a mask expression against a database and save it under ``name`` with its definition.
 
-    Returns the :class:`gesturedb.masks.MaskResult` (frames allowed, resolved thresholds).
+    Returns the :class:`gesturedb.control.MaskResult` (frames allowed, resolved thresholds).
     """
-    from gesturedb import masks
-    from gesturedb.database import Database
+    from gesturedb import control
+    from gesturedb.db.database import Database
     from gesturedb.errors import ParameterError
 
     with Database(path) as db:
@@ -103,7 +68,7 @@ def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = 
                                  f"(definition {db.mask_definitions[name]!r}); pass replace=True to overwrite")
         # the named mask is stored as its own definition's result; other saved masks may be referenced
         others = {k: v for k, v in db.masks.items() if k != name}
-        res = masks.compile_mask(expr, controls=db.controls, named=others, n_frames=db.n_frames)
+        res = control.compile_mask(expr, controls=db.controls, named=others, n_frames=db.n_frames)
     if res.n_set == 0:
         raise ParameterError(f"mask {name!r} = {expr!r} allows no frame of {path}: {res.describe()}")
     with edit(path) as h5:
@@ -118,7 +83,7 @@ def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = 
 
 def remove_mask(path: str | os.PathLike, name: str) -> None:
     """Delete a saved mask."""
-    from gesturedb.database import Database
+    from gesturedb.db.database import Database
     from gesturedb.errors import ParameterError
 
     with Database(path) as db:

@@ -26,9 +26,9 @@ Two evaluations, both on real speech and a real database:
 
 :func:`evaluate_holdout` / :func:`evaluate_inputs`
     Synthesize the same speech with every system of :data:`SYSTEMS` (ground
-    truth when there is one, the three baselines of :mod:`gesturedb.baselines`,
+    truth when there is one, the three baselines of :mod:`gesturedb.eval.baselines`,
     and the rank-sum search with pose and with audio pre-selection) and
-    measure each with :mod:`gesturedb.metrics`, always next to the reference
+    measure each with :mod:`gesturedb.eval.metrics`, always next to the reference
     computed by the same code. :func:`evaluate_holdout` holds a stretch of a
     recording out of the database and compares with its motion capture;
     :func:`evaluate_inputs` uses new speech with no motion and compares with
@@ -53,13 +53,15 @@ from typing import Any, Sequence
 import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError, SearchError
+from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is where callers look)
+    SYSTEM_LABELS, SYSTEMS, _centred, _fmt, _read_samples, _stats, feature_joint_indices,
+    json_clean, metric_positions, upper_body_joints,
+)
+from gesturedb.eval.controls import (  # noqa: F401
+    DEFAULT_MIN_STD_RATIO, TABLE2_CASES, ControlCase, ControlRow, ControlsReport, evaluate_controls,
+)
 
 __all__ = [
-    "ControlCase",
-    "TABLE2_CASES",
-    "ControlRow",
-    "ControlsReport",
-    "evaluate_controls",
     "SYSTEMS",
     "SYSTEM_LABELS",
     "METRIC_COLUMNS",
@@ -78,460 +80,7 @@ __all__ = [
     "json_clean",
 ]
 
-#: Default share of the unconstrained standard deviation a controlled synthesis must keep.
-DEFAULT_MIN_STD_RATIO = 0.3
 
-
-# ==================================================================== helpers
-def feature_joint_indices(db) -> dict[str, int]:
-    """role -> joint index of the database's feature joints (``db.feature_joints`` holds names)."""
-    names = list(db.joint_names)
-    out = {}
-    for role, name in db.feature_joints.items():
-        if name not in names:
-            raise InputFileError(db.path, f"feature_joints: role {role!r} names joint {name!r}, which the skeleton lacks")
-        out[role] = names.index(name)
-    return out
-
-
-def upper_body_joints(parents: Sequence[int], *, root: int, hips: Sequence[int]) -> np.ndarray:
-    """Every joint except the root and the subtrees below the hips.
-
-    Parameters
-    ----------
-    parents : sequence of int [length J]
-        Parent of each joint (-1 for the root), parents before children.
-    root : int
-    hips : sequence of int
-        The joints that start the legs (``left_hip``, ``right_hip``).
-
-    Returns
-    -------
-    ndarray [shape=(K,)], int64, ascending
-    """
-    parents = np.asarray(parents, dtype=np.int64)
-    leg = np.zeros(parents.shape[0], dtype=bool)
-    leg[list(hips)] = True
-    for j in range(parents.shape[0]):  # parents come first, so one pass marks whole subtrees
-        if parents[j] >= 0 and leg[parents[j]]:
-            leg[j] = True
-    keep = ~leg
-    keep[root] = False
-    return np.flatnonzero(keep)
-
-
-def metric_positions(positions: np.ndarray, root: int) -> np.ndarray:
-    """Joint positions with the root's horizontal (x, z) position removed in every frame.
-
-    Parameters
-    ----------
-    positions : ndarray [shape=(T, J, 3)], metres
-    root : int
-
-    Returns
-    -------
-    ndarray [shape=(T, J, 3)], float64, metres; heights unchanged.
-    """
-    pos = np.array(positions, dtype=np.float64)
-    pos[:, :, 0] -= pos[:, root:root + 1, 0]
-    pos[:, :, 2] -= pos[:, root:root + 1, 2]
-    return pos
-
-
-def _centred(positions: np.ndarray, root: int) -> np.ndarray:
-    """For display: move the root's horizontal position at frame 0 to the origin."""
-    pos = np.array(positions, dtype=np.float64)
-    pos[:, :, [0, 2]] -= pos[0, root, [0, 2]]
-    return pos
-
-
-def json_clean(v):
-    """Plain JSON types: numpy scalars to Python, NaN/inf to None, recursively through dicts and lists."""
-    if isinstance(v, (np.floating, np.integer, np.bool_)):
-        v = v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, dict):
-        return {k: json_clean(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [json_clean(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return json_clean(v.tolist())
-    return v
-
-
-def _stats(x: np.ndarray) -> tuple[float, float]:
-    x = np.asarray(x, dtype=np.float64)
-    return float(x.mean()), float(x.std())
-
-
-def _fmt(v, spec: str) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    return format(v, spec)
-
-
-def _read_samples(db, audio, sr):
-    from gesturedb.io.audio import read_audio
-
-    rate = int(db.config.get("sample_rate", 16000))
-    if isinstance(audio, (str, os.PathLike)):
-        y, r = read_audio(audio, sr=rate)
-        return y, r, os.fspath(audio)
-    if sr is None:
-        raise ParameterError("sr: expected the sample rate of the samples given as audio, got None")
-    y = np.asarray(audio, dtype=np.float32)
-    if y.ndim != 1 or y.size == 0:
-        raise ParameterError(f"audio: expected mono samples (n,), got shape {y.shape}")
-    if int(sr) != rate:
-        import soxr
-
-        y = soxr.resample(y, int(sr), rate).astype(np.float32)
-    return y, rate, None
-
-
-# ==================================================================== controls (Table 2)
-@dataclass(frozen=True)
-class ControlCase:
-    """One row of Table 2: a control and the variable it should move.
-
-    Attributes
-    ----------
-    name : str
-        Row label (``"wrist high"``).
-    feature : str
-        Control feature measured on the output (a key of ``db.controls``).
-    expr : str
-        Mask expression handed to the search (``"left_wrist_height > p85"``).
-    direction : int
-        +1 when the control should raise the feature, -1 when it should lower it.
-    """
-
-    name: str
-    feature: str
-    expr: str
-    direction: int
-
-
-#: The six controls of Habibie et al. 2022, Table 2, in the paper's order.
-TABLE2_CASES: tuple[ControlCase, ...] = (
-    ControlCase("wrist high", "left_wrist_height", "left_wrist_height > p85", +1),
-    ControlCase("wrist low", "left_wrist_height", "left_wrist_height < p15", -1),
-    ControlCase("wrist fast", "left_wrist_speed", "left_wrist_speed > p85", +1),
-    ControlCase("wrist slow", "left_wrist_speed", "left_wrist_speed < p15", -1),
-    ControlCase("asymmetric", "height_asymmetry", "height_asymmetry > p85", +1),
-    ControlCase("symmetric", "height_asymmetry", "height_asymmetry < p15", -1),
-)
-
-_OPS = {"<": np.less, "<=": np.less_equal, ">": np.greater, ">=": np.greater_equal}
-
-# metres -> centimetres for display, like the paper
-_DISPLAY = {"m": ("cm", 100.0), "m/s": ("cm/s", 100.0)}
-
-
-@dataclass
-class ControlRow:
-    """One evaluated control. Values in the feature's unit (m or m/s); ``scale`` converts to ``display_unit``.
-
-    ``status`` is ``"PASS"`` (both checks hold), ``"FAIL"`` (a check failed) or
-    ``"EMPTY"`` (the search found no candidate for some step: ``error`` says which).
-    """
-
-    case: ControlCase
-    unit: str
-    display_unit: str
-    scale: float
-    threshold: float
-    db_frames_allowed: int
-    db_fraction: float
-    db_mean: float
-    db_std: float
-    allowed_mean: float
-    allowed_std: float
-    mean: float = float("nan")
-    std: float = float("nan")
-    free_mean: float = float("nan")
-    free_std: float = float("nan")
-    in_range: float = float("nan")
-    free_in_range: float = float("nan")
-    min_candidates: int | None = None
-    n_steps: int = 0
-    direction_ok: bool = False
-    no_freeze_ok: bool = False
-    std_ratio: float = float("nan")
-    std_ratio_unconstrained: float = float("nan")
-    std_ratio_allowed: float = float("nan")
-    status: str = "EMPTY"
-    error: str | None = None
-
-    def to_dict(self) -> dict:
-        s = self.scale
-        return {
-            "control": self.case.name,
-            "expression": self.case.expr,
-            "feature": self.case.feature,
-            "direction": "higher" if self.case.direction > 0 else "lower",
-            "unit": self.display_unit,
-            "threshold": self.threshold * s,
-            "mean": self.mean * s,
-            "std": self.std * s,
-            "unconstrained_mean": self.free_mean * s,
-            "unconstrained_std": self.free_std * s,
-            "database_mean": self.db_mean * s,
-            "database_std": self.db_std * s,
-            "allowed_frames_mean": self.allowed_mean * s,
-            "allowed_frames_std": self.allowed_std * s,
-            "in_range_fraction": self.in_range,
-            "unconstrained_in_range_fraction": self.free_in_range,
-            "database_frames_allowed": self.db_frames_allowed,
-            "database_fraction_allowed": self.db_fraction,
-            "steps": self.n_steps,
-            "min_candidates_per_step": self.min_candidates,
-            "std_ratio": self.std_ratio,
-            "std_ratio_unconstrained": self.std_ratio_unconstrained,
-            "std_ratio_allowed": self.std_ratio_allowed,
-            "direction_ok": self.direction_ok,
-            "no_freeze_ok": self.no_freeze_ok,
-            "status": self.status,
-            "error": self.error,
-        }
-
-
-@dataclass
-class ControlsReport:
-    """Result of :func:`evaluate_controls`.
-
-    Attributes
-    ----------
-    rows : list of ControlRow
-    unconstrained : dict feature -> (mean, std)
-        Of the unconstrained synthesis, feature units.
-    series : dict
-        ``"unconstrained"``: feature -> ndarray (T,), and case name -> ndarray (T,)
-        (the controlled feature over the output frames; absent for EMPTY rows),
-        for plots.
-    """
-
-    database: str
-    audio: str | None
-    fps: float
-    n_frames: int
-    settings: dict
-    rows: list
-    unconstrained: dict
-    series: dict = field(default_factory=dict, repr=False)
-
-    @property
-    def passed(self) -> bool:
-        return all(r.status == "PASS" for r in self.rows)
-
-    def to_dict(self) -> dict:
-        """Everything as plain JSON types (NaN and inf become None)."""
-        return json_clean({
-            "database": self.database,
-            "audio": self.audio,
-            "fps": self.fps,
-            "n_frames": self.n_frames,
-            "duration_s": self.n_frames / self.fps,
-            "settings": self.settings,
-            "unconstrained": {k: {"mean": m, "std": s} for k, (m, s) in self.unconstrained.items()},
-            "rows": [r.to_dict() for r in self.rows],
-            "passed": self.passed,
-        })
-
-    def _cells(self):
-        head = ["control", "mask", "threshold", "controlled mean ± std", "unconstrained mean ± std",
-                "allowed DB frames mean ± std", "in range (ctl / free)", "direction", "no freeze", "status"]
-        body = []
-        for r in self.rows:
-            s, u = r.scale, r.display_unit
-            ok = lambda b: "ok" if b else "FAIL"  # noqa: E731
-            body.append([
-                r.case.name,
-                r.case.expr,
-                f"{r.threshold * s:.1f} {u}",
-                f"{_fmt(r.mean * s, '.1f')} ± {_fmt(r.std * s, '.1f')} {u}",
-                f"{_fmt(r.free_mean * s, '.1f')} ± {_fmt(r.free_std * s, '.1f')} {u}",
-                f"{_fmt(r.allowed_mean * s, '.1f')} ± {_fmt(r.allowed_std * s, '.1f')} {u} ({r.db_frames_allowed})",
-                f"{_fmt(100 * r.in_range, '.0f')}% / {_fmt(100 * r.free_in_range, '.0f')}%",
-                ok(r.direction_ok) if r.status != "EMPTY" else "-",
-                (ok(r.no_freeze_ok) + f" ({_fmt(r.std_ratio, '.2f')})") if r.status != "EMPTY" else "-",
-                r.status,
-            ])
-        return head, body
-
-    def _title(self) -> str:
-        aud = os.path.basename(self.audio) if self.audio else "speech"
-        return (f"Controlled synthesis (Habibie et al. 2022, Table 2): {aud}, "
-                f"{self.n_frames / self.fps:.1f} s at {self.fps:g} fps; database {os.path.basename(self.database)}")
-
-    def _notes(self) -> list[str]:
-        notes = [
-            f"threshold = the mask's percentile resolved on the database; mean ± std over the "
-            f"{self.n_frames} synthesized frames, recomputed on the output joint positions",
-            "direction: controlled mean past the unconstrained mean in the requested direction",
-            f"no freeze: controlled std >= {self.settings['min_std_ratio']:g} x the std of the "
-            + ("database frames the mask allows" if self.settings["freeze_reference"] == "allowed"
-               else "unconstrained synthesis") + " (ratio in brackets)",
-        ]
-        for r in self.rows:
-            if r.error:
-                notes.append(f"{r.case.name}: {r.error}")
-        return notes
-
-    def to_text(self) -> str:
-        head, body = self._cells()
-        widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
-        line = lambda cells: "  ".join(c.ljust(w) for c, w in zip(cells, widths)).rstrip()  # noqa: E731
-        out = [self._title(), "", line(head), line(["-" * w for w in widths])]
-        out += [line(b) for b in body]
-        out += [""] + self._notes()
-        out.append("all checks passed" if self.passed else
-                   "FAILED: " + ", ".join(f"{r.case.name} ({r.status})" for r in self.rows if r.status != "PASS"))
-        return "\n".join(out)
-
-    def to_markdown(self) -> str:
-        head, body = self._cells()
-        out = [f"### {self._title()}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        out += ["| " + " | ".join(c.replace("|", "\\|") for c in b) + " |" for b in body]
-        out += [""] + [f"- {n}" for n in self._notes()]
-        return "\n".join(out) + "\n"
-
-
-def evaluate_controls(
-    db,
-    audio,
-    *,
-    sr: int | None = None,
-    cases: Sequence[ControlCase] = TABLE2_CASES,
-    k: int = 1,
-    preselect: str = "pose",
-    init: str = "mean",
-    seed: int | None = 0,
-    step: int = 8,
-    blend_frames: int = 4,
-    segments: str = "chunks",
-    exclude=None,
-    min_std_ratio: float = DEFAULT_MIN_STD_RATIO,
-    freeze_reference: str = "allowed",
-) -> ControlsReport:
-    """Reproduce Table 2 of Habibie et al. 2022 on one speech input.
-
-    Parameters
-    ----------
-    db : gesturedb.database.Database
-    audio : path or ndarray [shape=(n,)]
-        Speech (a WAV file, or mono samples with ``sr``).
-    cases : sequence of ControlCase
-        Controls to evaluate (default: the paper's six).
-    k, preselect, init, seed, step, blend_frames, segments, exclude
-        Search settings, the same for the unconstrained and every controlled
-        synthesis (see :meth:`gesturedb.synth.Searcher.synthesize`).
-    min_std_ratio : float
-        The no-freeze check: controlled std >= ``min_std_ratio`` x the reference std.
-    freeze_reference : {"allowed", "unconstrained"}
-        Reference std of the no-freeze check: the database frames the mask
-        allows, or the unconstrained synthesis.
-
-    Returns
-    -------
-    ControlsReport
-        A control whose mask leaves some step without a candidate gets status
-        ``"EMPTY"`` and the search's explanation in ``error``; the others get
-        ``"PASS"`` or ``"FAIL"``.
-    """
-    from gesturedb import masks
-    from gesturedb.features.controls import control_features
-    from gesturedb.synth import Searcher
-
-    if not (isinstance(min_std_ratio, (int, float)) and 0 <= min_std_ratio):
-        raise ParameterError(f"min_std_ratio: expected a number >= 0, got {min_std_ratio!r}")
-    if freeze_reference not in ("allowed", "unconstrained"):
-        raise ParameterError(f"freeze_reference: expected 'allowed' or 'unconstrained', got {freeze_reference!r}")
-    cases = list(cases)
-    if not cases:
-        raise ParameterError("cases: expected at least one ControlCase")
-    missing = sorted({c.feature for c in cases} - set(db.controls))
-    if missing:
-        raise InputFileError(db.path, f"controls: expected control features {missing}; the database has {sorted(db.controls)}")
-
-    samples, rate, audio_path = _read_samples(db, audio, sr)
-    joints = feature_joint_indices(db)
-    searcher = Searcher(db, segments=segments)
-    opts = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames,
-                keywords=False, exclude=exclude)
-
-    def measure(res) -> dict[str, np.ndarray]:
-        return control_features(res.positions, joints=joints, fps=db.fps)
-
-    free = searcher.synthesize(samples, sr=rate, **opts)
-    free_c = measure(free)
-    feats = sorted({c.feature for c in cases})
-    unconstrained = {f: _stats(free_c[f]) for f in feats}
-    series: dict[str, Any] = {"unconstrained": {f: free_c[f].astype(np.float64) for f in feats}}
-
-    rows = []
-    for case in cases:
-        compiled = masks.compile_mask(case.expr, controls=db.controls, named=db.masks)
-        cmp = [c for c in compiled.comparisons if c.feature == case.feature]
-        if len(cmp) != 1:
-            raise ParameterError(f"cases: {case.name!r}: expected one comparison on {case.feature} in {case.expr!r}, "
-                                 f"got {len(cmp)}")
-        thr = float(cmp[0].threshold)
-        op = cmp[0].op
-        unit = db.control_units.get(case.feature, "") or (cmp[0].unit or "")
-        disp, scale = _DISPLAY.get(unit, (unit, 1.0))
-        vals_db = np.asarray(db.controls[case.feature], dtype=np.float64)
-        allowed = vals_db[compiled.bits()]
-        am, ast = _stats(allowed) if allowed.size else (float("nan"), float("nan"))
-        row = ControlRow(case=case, unit=unit, display_unit=disp, scale=scale, threshold=thr,
-                         db_frames_allowed=int(compiled.n_set), db_fraction=float(compiled.fraction),
-                         db_mean=float(vals_db.mean()), db_std=float(vals_db.std()),
-                         allowed_mean=am, allowed_std=ast)
-        fm, fs = unconstrained[case.feature]
-        row.free_mean, row.free_std = fm, fs
-        row.free_in_range = float(np.mean(_OPS[op](free_c[case.feature].astype(np.float64), thr)))
-        try:
-            res = searcher.synthesize(samples, sr=rate, control=case.expr, **opts)
-        except SearchError as exc:
-            row.status, row.error = "EMPTY", f"no synthesis: {exc}"
-            rows.append(row)
-            continue
-        v = measure(res)[case.feature].astype(np.float64)
-        series[case.name] = v
-        row.mean, row.std = _stats(v)
-        row.in_range = float(np.mean(_OPS[op](v, thr)))
-        row.n_steps = len(res.steps)
-        row.min_candidates = int(min(s["candidates"] for s in res.steps))
-        row.direction_ok = bool((row.mean - fm) * case.direction > 0)
-        ratio = lambda ref: row.std / ref if ref > 0 else float("inf")  # noqa: E731
-        row.std_ratio_unconstrained = ratio(fs)
-        row.std_ratio_allowed = ratio(ast)
-        ref_std = ast if freeze_reference == "allowed" else fs
-        row.std_ratio = ratio(ref_std)
-        row.no_freeze_ok = bool(row.std >= min_std_ratio * ref_std)
-        row.status = "PASS" if row.direction_ok and row.no_freeze_ok else "FAIL"
-        rows.append(row)
-
-    settings = dict(opts, segments=segments, min_std_ratio=float(min_std_ratio), freeze_reference=freeze_reference,
-                    exclude=exclude)
-    return ControlsReport(database=db.path, audio=audio_path, fps=db.fps, n_frames=free.n_frames,
-                          settings=settings, rows=rows, unconstrained=unconstrained, series=series)
-
-
-# ==================================================================== systems and metrics
-#: Systems of the objective evaluation, in table order.
-SYSTEMS = ("ground_truth", "random", "pose_only", "audio_only", "ranksum_pose", "ranksum_audio")
-
-SYSTEM_LABELS = {
-    "reference": "database motion (reference)",
-    "ground_truth": "ground truth",
-    "random": "random windows (mismatched audio)",
-    "pose_only": "pose-only matching",
-    "audio_only": "audio-only matching",
-    "ranksum_pose": "rank-sum, pose pre-selection",
-    "ranksum_audio": "rank-sum, audio pre-selection",
-}
 
 #: (key, column header, format) of the metrics table.
 METRIC_COLUMNS = (
@@ -593,7 +142,7 @@ def synthesize_systems(
 ) -> dict[str, SystemOutput]:
     """Motion of every system for the same speech.
 
-    Baselines choose windows with :mod:`gesturedb.baselines` and are assembled
+    Baselines choose windows with :mod:`gesturedb.eval.baselines` and are assembled
     with :meth:`Searcher.assemble` (same root placement and ``blend_frames``
     cross-fade as the rank-sum search), so the systems differ only in the
     windows they choose. The random baseline uses ``seed``; pose-only starts
@@ -616,7 +165,7 @@ def synthesize_systems(
     dict name -> SystemOutput, all with the same number of frames
         (the shorter of the speech and the ground truth).
     """
-    from gesturedb import baselines as B
+    from gesturedb.eval import baselines as B
     from gesturedb.synth import Searcher
 
     unknown = [s for s in systems if s not in SYSTEMS]
@@ -664,7 +213,7 @@ def synthesize_systems(
 
 
 def _speed_counts(pos, *, fps, joints, bin_width_m_s=0.01, max_speed_m_s=2.0):
-    from gesturedb.metrics import speed_histogram
+    from gesturedb.eval.metrics import speed_histogram
 
     return speed_histogram(pos, fps=fps, joints=joints, bin_width_m_s=bin_width_m_s, max_speed_m_s=max_speed_m_s)
 
@@ -682,7 +231,7 @@ def database_reference(db, *, joints: np.ndarray, root: int) -> dict:
         the database's speech is not the input's) plus ``"speed_counts"`` and
         ``"speed_edges"`` for the Hellinger distances.
     """
-    from gesturedb import metrics as M
+    from gesturedb.eval import metrics as M
 
     fps = db.fps
     jerk = acc = div = 0.0
@@ -750,7 +299,7 @@ def system_metrics(
     names: Sequence[str],
     reference_counts: np.ndarray | None = None,
 ) -> tuple[dict[str, dict], dict[str, np.ndarray]]:
-    """:func:`gesturedb.metrics.motion_report` for every system, flattened to one row each.
+    """:func:`gesturedb.eval.metrics.motion_report` for every system, flattened to one row each.
 
     The ground truth (when in ``outputs``) is passed to every report, so its row
     comes from the same code; its seam numbers are measured at the systems'
@@ -768,7 +317,7 @@ def system_metrics(
     speed_counts : dict name -> ndarray (n_bins,)
         Speed histograms (0.01 m/s bins up to 2 m/s) for plots.
     """
-    from gesturedb import metrics as M
+    from gesturedb.eval import metrics as M
 
     abeats = M.audio_beats(samples, sr=sr)
     pos = {n: metric_positions(o.positions, root) for n, o in outputs.items()}
@@ -926,9 +475,9 @@ class MotionEvaluation:
     def write(self, out_dir, *, render: bool = True, video: str | None = "mp4", video_seconds: float | None = None) -> list[Path]:
         """Write ``metrics.json``, ``metrics.txt``, plots, renders and ``index.html`` into ``out_dir``.
 
-        See :func:`gesturedb.report.write_motion_report`.
+        See :func:`gesturedb.eval.report.write_motion_report`.
         """
-        from gesturedb.report import write_motion_report
+        from gesturedb.eval.report import write_motion_report
 
         return write_motion_report(self, out_dir, render=render, video=video, video_seconds=video_seconds)
 
@@ -949,7 +498,7 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
 
 
 def _common(db, opts, controls, control_audio):
-    from gesturedb import masks
+    from gesturedb import control
 
     fj = feature_joint_indices(db)
     for role in ("root", "left_hip", "right_hip"):
@@ -961,8 +510,8 @@ def _common(db, opts, controls, control_audio):
     if "left_wrist_height" not in db.controls:
         raise InputFileError(db.path, f"controls: expected 'left_wrist_height', got {sorted(db.controls)}")
     lwh = np.asarray(db.controls["left_wrist_height"], dtype=np.float64)
-    thresholds = {"left_wrist_height": {"p15": masks.percentile_threshold(lwh, 15.0),
-                                        "p85": masks.percentile_threshold(lwh, 85.0)}}
+    thresholds = {"left_wrist_height": {"p15": control.percentile_threshold(lwh, 15.0),
+                                        "p85": control.percentile_threshold(lwh, 85.0)}}
     ctl = None
     if controls:
         ctl = evaluate_controls(db, control_audio[0], sr=control_audio[1],
@@ -1047,7 +596,7 @@ def holdout_split(source, start_s: float, end_s: float, duration_s: float):
 
     Parameters
     ----------
-    source : gesturedb.build.RecordingSource
+    source : gesturedb.db.build.RecordingSource
     start_s, end_s : float
         The held-out stretch, seconds (``end_s`` is clipped to the recording).
     duration_s : float
@@ -1122,7 +671,7 @@ def evaluate_holdout(
     systems, controls, k, init, seed, step, blend_frames, segments, keywords
         As in :func:`evaluate_inputs`; ``"ground_truth"`` is the held-out motion capture.
     build_options : dict, optional
-        Further :class:`gesturedb.build.BuildConfig` fields.
+        Further :class:`gesturedb.db.build.BuildConfig` fields.
 
     Returns
     -------
@@ -1134,7 +683,7 @@ def evaluate_holdout(
     import tempfile
 
     import gesturedb
-    from gesturedb.build import pair_inputs
+    from gesturedb.db.build import pair_inputs
     from gesturedb.io import read_motion, read_transcript
     from gesturedb.io.audio import read_audio
 

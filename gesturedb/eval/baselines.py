@@ -23,7 +23,7 @@ Only the rule that picks the candidate differs:
 
 Each returns a :class:`WindowChoice` (the chosen first frames per step and the
 database frame of every output frame); the evaluation turns it into motion with
-:meth:`gesturedb.synth.Searcher.assemble`, the same root placement and
+:meth:`gesturedb.synth.matching.Searcher.assemble`, the same root placement and
 cross-fade the real search gets, so the systems differ only in what they choose.
 
 Distances use the search's definitions and are computed in float64; ties go to

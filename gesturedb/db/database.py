@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gesturedb import schema
+from gesturedb.db import schema
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
 
 
@@ -83,21 +83,21 @@ class WordTable:
 
 
 class Database:
-    """An open gesture database (HDF5, see :mod:`gesturedb.schema`).
+    """An open gesture database (HDF5, see :mod:`gesturedb.db.schema`).
 
     Parameters
     ----------
     path : str or os.PathLike
     mode : {"r"}
         Databases are opened read-only; edits (masks, keyword sub-databases)
-        go through :mod:`gesturedb.dbedit`, which rewrites the file atomically.
+        go through :mod:`gesturedb.db.storage`, which rewrites the file atomically.
     """
 
     def __init__(self, path, mode: str = "r"):
         import h5py
 
         if mode != "r":
-            raise ParameterError(f"mode: expected 'r', got {mode!r} (edit databases through gesturedb.dbedit)")
+            raise ParameterError(f"mode: expected 'r', got {mode!r} (edit databases through gesturedb.db.storage)")
         self.path = os.fspath(path)
         if not os.path.exists(self.path):
             raise InputFileError(self.path, "no such file")
@@ -306,13 +306,6 @@ class Database:
     def mask_definitions(self) -> dict[str, str]:
         g = self._h5.get(schema.MASKS_GROUP)
         return {} if g is None else {k: str(g[k].attrs.get("definition", "")) for k in sorted(g)}
-
-    # -- search ---------------------------------------------------------------
-    def searcher(self, **options):
-        """A :class:`gesturedb.synth.Searcher` over this database (``segments``, ``half_precision``)."""
-        from gesturedb.synth import Searcher
-
-        return Searcher(self, **options)
 
     # -- motion out -----------------------------------------------------------
     def frame_range(self, recording, start_s: float | None = None, end_s: float | None = None) -> tuple[int, int]:

@@ -41,8 +41,8 @@ before, 1 s after) such neighbours are one stretch of speech about the keyword
 anyway.
 
 Edits (:func:`add_keyword`, :func:`remove_occurrence`, :func:`drop_keyword`) go
-through :func:`gesturedb.dbedit.edit`: a failed edit leaves the file as it was.
-:func:`export_keyword` writes a sub-database as a complete database of its own.
+through :func:`gesturedb.db.edit.edit`: a failed edit leaves the file as it was.
+:func:`gesturedb.db.export.export_keyword` writes a sub-database as a complete database of its own.
 """
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from gesturedb import schema
+from gesturedb.db import schema
 from gesturedb.errors import ParameterError, SchemaError
 
 __all__ = [
@@ -70,13 +70,12 @@ __all__ = [
     "drop_keyword",
     "list_words",
     "show",
-    "export_keyword",
     "keyword_step_masks",
     "normalise_word",
 ]
 
 #: Datasets of one sub-database: name -> (dtype, unit, meaning). The group layout is
-#: declared here rather than in :data:`gesturedb.schema.FIELDS` because its path
+#: declared here rather than in :data:`gesturedb.db.schema.FIELDS` because its path
 #: holds a run-time name (the keyword).
 SUBDB_FIELDS: dict[str, tuple[str, str, str]] = {
     "start": ("int64", "frame", "first database frame of each occurrence stretch"),
@@ -215,14 +214,14 @@ class SubDatabase:
         return int(self.length.sum())
 
     def segments(self):
-        """The stretches as :class:`gesturedb.database.Segments` (e.g. to search the sub-database alone)."""
-        from gesturedb.database import Segments
+        """The stretches as :class:`gesturedb.db.database.Segments` (e.g. to search the sub-database alone)."""
+        from gesturedb.db.database import Segments
 
         return Segments(self.start.copy(), self.length.copy(), self.recording.copy())
 
 
 def _read_subdb(g, word: str, n_frames: int, filename: str) -> SubDatabase:
-    from gesturedb import masks
+    from gesturedb import control
 
     arrays = {}
     for name, (dtype, _unit, doc) in SUBDB_FIELDS.items():
@@ -240,7 +239,7 @@ def _read_subdb(g, word: str, n_frames: int, filename: str) -> SubDatabase:
                 filename,
                 f"{schema.SUBDB_GROUP}/{word}/{name}: expected {n} rows (as start), got {arrays[name].shape[0]}",
             )
-    nw = masks.n_words(n_frames)
+    nw = control.n_words(n_frames)
     if arrays["mask"].shape[0] != nw:
         raise SchemaError(
             filename,
@@ -267,7 +266,7 @@ def subdatabases(db) -> dict[str, SubDatabase]:
 
     Parameters
     ----------
-    db : gesturedb.database.Database
+    db : gesturedb.db.database.Database
 
     Returns
     -------
@@ -343,7 +342,7 @@ def find_occurrences(db, word: str, *, before_s: float = 0.5, after_s: float = 1
 
     Parameters
     ----------
-    db : gesturedb.database.Database
+    db : gesturedb.db.database.Database
     word : str
         Matched case-insensitively against whole words of the words table.
     before_s, after_s : float >= 0, seconds
@@ -401,16 +400,16 @@ def _occurrences(t: _Tables, w: str, before_s: float, after_s: float) -> SubData
 
 
 def _mask_of(start: np.ndarray, length: np.ndarray, n_frames: int) -> np.ndarray:
-    from gesturedb import masks
+    from gesturedb import control
 
     bits = np.zeros(n_frames, dtype=bool)
     for a, n in zip(start, length):
         bits[a:a + n] = True
-    return masks.pack_bits(bits)
+    return control.pack_bits(bits)
 
 
 # --------------------------------------------------------------------------
-# editing (atomic, through gesturedb.dbedit)
+# editing (atomic, through gesturedb.db.storage)
 # --------------------------------------------------------------------------
 
 def _write_subdb(h5, sub: SubDatabase) -> None:
@@ -427,7 +426,7 @@ def _write_subdb(h5, sub: SubDatabase) -> None:
 
 
 def _open(db_path):
-    from gesturedb.database import Database
+    from gesturedb.db.database import Database
 
     return Database(db_path)
 
@@ -445,7 +444,7 @@ def add_keyword(db_path, word: str, *, before_s: float = 0.5, after_s: float = 1
     Parameters
     ----------
     db_path : path
-        A gesture database; rewritten atomically (see :mod:`gesturedb.dbedit`).
+        A gesture database; rewritten atomically (see :mod:`gesturedb.db.storage`).
     word : str
         The keyword; matched case-insensitively against whole words.
     before_s, after_s : float >= 0, seconds
@@ -468,7 +467,7 @@ def add_keyword(db_path, word: str, *, before_s: float = 0.5, after_s: float = 1
         The word never occurs (with close words as suggestions), or its
         sub-database exists and ``replace`` is false.
     """
-    from gesturedb.dbedit import edit
+    from gesturedb.db.storage import edit
 
     w = _keyword_name(word)
     before_s = _check_seconds("before_s", before_s)
@@ -503,7 +502,7 @@ def remove_occurrence(db_path, word: str, index: int) -> SubDatabase:
     SubDatabase
         The sub-database after the removal.
     """
-    from gesturedb.dbedit import edit
+    from gesturedb.db.storage import edit
 
     with _open(db_path) as db:
         sub = get_subdatabase(db, word)
@@ -537,7 +536,7 @@ def remove_occurrence(db_path, word: str, index: int) -> SubDatabase:
 
 def drop_keyword(db_path, word: str) -> SubDatabase:
     """Delete a whole sub-database (atomic edit); returns what was dropped."""
-    from gesturedb.dbedit import edit
+    from gesturedb.db.storage import edit
 
     with _open(db_path) as db:
         sub = get_subdatabase(db, word)
@@ -575,7 +574,7 @@ def list_words(db, *, top: int | None = None) -> list[WordCount]:
 
     Parameters
     ----------
-    db : gesturedb.database.Database
+    db : gesturedb.db.database.Database
     top : int or None
         Keep only the first ``top`` rows.
 
@@ -620,7 +619,7 @@ def show(db, word: str, *, n_context: int = 3) -> list[Occurrence]:
 
     Parameters
     ----------
-    db : gesturedb.database.Database
+    db : gesturedb.db.database.Database
     word : str
         A keyword with a sub-database: its occurrences, numbered as
         :func:`remove_occurrence` takes them. Any other word: the occurrences
@@ -646,244 +645,6 @@ def show(db, word: str, *, n_context: int = 3) -> list[Occurrence]:
         for i, wi in enumerate(word_index)
     ]
 
-
-# --------------------------------------------------------------------------
-# export as a database of its own
-# --------------------------------------------------------------------------
-
-def export_keyword(db_path, word: str, out_path, *, chunk_frames: int | None = None):
-    """Write a sub-database as a complete gesture database file of its own.
-
-    Every occurrence stretch becomes a recording named ``<recording>@<start_s>``
-    (the stretch start within the source recording, 3 decimals; a repeated name
-    gets ``#2``, ``#3``...). The new file follows :mod:`gesturedb.schema`:
-
-    * per-frame arrays, controls and the recording columns are copied from the
-      source frames (pose features keep their source history, so the frames are
-      the same numbers as in the source);
-    * the skeleton, audio mean/std, ``config`` and ``feature_joints`` are copied;
-    * words: those whose start lies in a stretch, times made relative to it and
-      their end clipped to it;
-    * chunks: one per stretch (``chunk_frames=None``) or fixed chunks of
-      ``chunk_frames`` within each stretch;
-    * word-gap clips are recomputed on each stretch's words with the source's
-      ``gap_s``; their rhythm and style signatures are measured on the whole
-      source recording (so a speed minimum right at a stretch edge is still
-      seen, as in a build);
-    * the default percentile masks are recomputed over the new frames
-      (:func:`gesturedb.build.write_default_masks`); other saved masks of the
-      source keep their bits on the copied frames;
-    * the sub-database itself, every stretch whole, so the keyword works in
-      synthesis with the exported file.
-
-    Parameters
-    ----------
-    db_path : path
-        The source database (not modified).
-    word : str
-        A keyword with a sub-database in it.
-    out_path : path
-        The new file, written to a temporary file beside it and renamed.
-    chunk_frames : int or None
-        See above.
-
-    Returns
-    -------
-    gesturedb.database.Database
-        The new database, open for reading.
-    """
-    from gesturedb.build import write_atomically
-    from gesturedb.database import Database
-
-    if chunk_frames is not None:
-        chunk_frames = _check_int("chunk_frames", chunk_frames, 1)
-    out_path = os.fspath(out_path)
-    if os.path.exists(out_path) and os.path.samefile(out_path, db_path):
-        raise ParameterError(f"output: {out_path} is the source database; export to another file")
-    with _open(db_path) as db:
-        sub = get_subdatabase(db, word)
-        plan = _export_plan(db, sub, chunk_frames)
-        write_atomically(out_path, lambda h5: _write_export(h5, db, sub, plan))
-    return Database(out_path)
-
-
-@dataclass
-class _ExportPlan:
-    frames: np.ndarray      # (F',) source frame of every new frame
-    names: list
-    starts: np.ndarray      # (R',) new start frames
-    lengths: np.ndarray     # (R',)
-    src_rec: np.ndarray     # (R',) source recording index
-    src_first: np.ndarray   # (R',) stretch start within the source recording, frames
-    words: list             # per stretch: (source word indices, start_s, end_s, text)
-    keyword_word: np.ndarray  # (R',) index of the occurrence in the new words table
-    chunks: tuple           # (start, length, recording) new
-    clips: dict
-
-
-def _export_plan(db, sub: SubDatabase, chunk_frames: int | None) -> _ExportPlan:
-    from gesturedb.features import rhythm as frhythm
-    from gesturedb.features import segments as fseg
-    from gesturedb.features import style as fstyle
-
-    fps = db.fps
-    recs = db.recordings
-    t = _tables(db)
-    n = len(sub)
-    lengths = sub.length.astype(np.int64)
-    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
-    frames = np.concatenate([np.arange(a, a + L, dtype=np.int64) for a, L in zip(sub.start, lengths)])
-    src_rec = sub.recording.astype(np.int64)
-    src_first = sub.start - t.rec_start[src_rec]
-
-    names, seen = [], Counter()
-    for r, a in zip(src_rec, src_first):
-        base = f"{recs[r].name}@{a / fps:.3f}"
-        seen[base] += 1
-        names.append(base if seen[base] == 1 else f"{base}#{seen[base]}")
-
-    w_first, _ = time_to_frames(t.w_start, t.w_end, fps)
-    words, keyword_word, base_w = [], np.empty(n, dtype=np.int64), 0
-    for i in range(n):
-        r, a, L = src_rec[i], int(src_first[i]), int(lengths[i])
-        sel = np.flatnonzero((t.w_rec == r) & (w_first >= a) & (w_first < a + L))
-        s0 = a / fps
-        ws = np.clip(t.w_start[sel] - s0, 0.0, None)
-        we = np.clip(t.w_end[sel] - s0, ws, L / fps)
-        hit = np.flatnonzero(sel == sub.word_index[i])
-        if hit.size != 1:  # the stretch is built around the word's frames, so this is a corrupt file
-            raise SchemaError(db.path, f"{schema.SUBDB_GROUP}/{sub.word}: occurrence {i} (word "
-                              f"{int(sub.word_index[i])}) does not lie inside its stretch")
-        keyword_word[i] = base_w + int(hit[0])
-        words.append((sel, ws, we, [t.w_text[j] for j in sel]))
-        base_w += sel.size
-
-    if chunk_frames is None:
-        chunks = (starts.copy(), lengths.copy(), np.arange(n, dtype=np.int32))
-    else:
-        parts = [fseg.fixed_chunks(int(L), length=chunk_frames) for L in lengths]
-        chunks = (
-            np.concatenate([s + b for (s, _), b in zip(parts, starts)]).astype(np.int64),
-            np.concatenate([ln for _, ln in parts]).astype(np.int64),
-            np.concatenate([np.full(len(s), i, np.int32) for i, (s, _) in enumerate(parts)]),
-        )
-
-    gap_s = float(db.config.get("gap_s", 0.4))
-    names_idx = {name: j for j, name in enumerate(db.joint_names)}
-    joints = {role: names_idx[name] for role, name in db.feature_joints.items() if name in names_idx}
-    pos_cache: dict[int, tuple] = {}
-    cl = {k: [] for k in ("start", "length", "recording", "word_start", "word_end",
-                          "rhythm_audio", "rhythm_motion", "style")}
-    base_w = 0
-    for i in range(n):
-        r, a, L = int(src_rec[i]), int(src_first[i]), int(lengths[i])
-        _, ws, we, _ = words[i]
-        c = fseg.word_gap_clips(ws, we, n_frames=L, fps=fps, gap_s=gap_s)
-        if r not in pos_cache:
-            rec = recs[r]
-            pos = np.asarray(db.joint_positions[rec.start_frame:rec.stop_frame], dtype=np.float64)
-            pos_cache[r] = (pos, frhythm.hand_speed(pos, joints=joints, fps=fps))
-        pos, speed = pos_cache[r]
-        cl["start"].append(c.start + starts[i])
-        cl["length"].append(c.length)
-        cl["recording"].append(np.full(len(c.start), i, np.int32))
-        cl["word_start"].append(c.word_start + base_w)
-        cl["word_end"].append(c.word_end + base_w)
-        cl["rhythm_audio"].append(np.atleast_1d(np.asarray(
-            frhythm.audio_rhythm(ws, start_s=c.start / fps, end_s=(c.start + c.length) / fps), dtype=np.uint32)))
-        cl["rhythm_motion"].append(np.atleast_1d(np.asarray(
-            frhythm.motion_rhythm(speed, start=c.start + a, length=c.length, fps=fps), dtype=np.uint32)))
-        cl["style"].append(fstyle.style_signatures(pos, joints=joints, fps=fps, starts=c.start + a, lengths=c.length))
-        base_w += len(ws)
-    clips = {k: np.concatenate(v) for k, v in cl.items()}
-    return _ExportPlan(frames=frames, names=names, starts=starts, lengths=lengths, src_rec=src_rec,
-                       src_first=src_first, words=words, keyword_word=keyword_word, chunks=chunks, clips=clips)
-
-
-def _write_export(h5, db, sub: SubDatabase, p: _ExportPlan) -> None:
-    from gesturedb import masks
-    from gesturedb._version import __version__
-    from gesturedb.build import write_default_masks
-
-    W = schema.write
-    dims: dict[str, int] = {}
-    recs = db.recordings
-    F = int(p.frames.shape[0])
-    fr = p.frames
-    src = [recs[int(r)] for r in p.src_rec]
-
-    h5.attrs["schema_version"] = schema.SCHEMA_VERSION
-    h5.attrs["gesturedb_version"] = __version__
-    h5.attrs["fps"] = float(db.fps)
-    h5.attrs["n_frames"] = F
-    schema.write_json_attr(h5, "config", db.config)
-    schema.write_json_attr(h5, "feature_joints", db.feature_joints)
-
-    W(h5, "recordings/name", p.names, dims)
-    W(h5, "recordings/speaker", [r.speaker for r in src], dims)
-    W(h5, "recordings/motion_path", [r.motion_path for r in src], dims)
-    W(h5, "recordings/audio_path", [r.audio_path for r in src], dims)
-    W(h5, "recordings/transcript_path", [r.transcript_path for r in src], dims)
-    W(h5, "recordings/start_frame", p.starts, dims)
-    W(h5, "recordings/n_frames", p.lengths, dims)
-    W(h5, "recordings/duration_s", p.lengths / db.fps, dims)
-    W(h5, "recordings/source_fps", np.array([r.source_fps for r in src], dtype=np.float64), dims)
-    W(h5, "recordings/mirrored", np.array([r.mirrored for r in src], dtype=bool), dims)
-
-    W(h5, "frames/pose_features", db.pose_features[fr], dims)
-    W(h5, "frames/audio_features", db.audio_features[fr], dims)
-    W(h5, "frames/audio_deltas", db.audio_deltas[fr], dims)
-    W(h5, "frames/joint_positions", db.joint_positions[fr], dims)
-    W(h5, "frames/local_rotations", db.local_rotations[fr], dims)
-    W(h5, "frames/root_positions", db.root_positions[fr], dims)
-    W(h5, "frames/recording", np.repeat(np.arange(len(p.names), dtype=np.int32), p.lengths), dims)
-    W(h5, "audio/mean", db.audio_mean, dims)
-    W(h5, "audio/std", db.audio_std, dims)
-
-    for path in ("skeleton/names", "skeleton/parents", "skeleton/offsets", "skeleton/channel_orders",
-                 "skeleton/end_site_joints", "skeleton/end_site_offsets"):
-        W(h5, path, schema.read(db.h5, path), dims)
-
-    W(h5, "chunks/start", p.chunks[0], dims)
-    W(h5, "chunks/length", p.chunks[1], dims)
-    W(h5, "chunks/recording", p.chunks[2], dims)
-
-    for key in ("start", "length", "recording", "word_start", "word_end", "rhythm_audio", "rhythm_motion"):
-        W(h5, f"clips/{key}", p.clips[key], dims)
-    W(h5, "clips/style", p.clips["style"].astype(np.float32).reshape(-1, 3), dims)
-
-    W(h5, "words/recording", np.concatenate([np.full(len(w[0]), i, np.int32) for i, w in enumerate(p.words)]), dims)
-    W(h5, "words/start_s", np.concatenate([w[1] for w in p.words]), dims)
-    W(h5, "words/end_s", np.concatenate([w[2] for w in p.words]), dims)
-    W(h5, "words/text", [x for w in p.words for x in w[3]], dims)
-
-    controls = {k: np.ascontiguousarray(v[fr], dtype=np.float32) for k, v in db.controls.items()}
-    if controls:
-        g = h5.create_group(schema.CONTROLS_GROUP)
-        src_g = db.h5[schema.CONTROLS_GROUP]
-        for k, v in controls.items():
-            ds = g.create_dataset(k, data=v)
-            for a in ("unit", "doc"):
-                if a in src_g[k].attrs:
-                    ds.attrs[a] = src_g[k].attrs[a]
-        write_default_masks(h5, controls)
-    src_masks = db.h5.get(schema.MASKS_GROUP)
-    if src_masks is not None:
-        g = h5.require_group(schema.MASKS_GROUP)
-        for name in sorted(src_masks):
-            if name in g:  # a default mask, recomputed above for the new frames
-                continue
-            bits = masks.unpack_bits(np.asarray(src_masks[name][()], dtype=np.uint64), db.n_frames)[fr]
-            ds = g.create_dataset(name, data=masks.pack_bits(bits))
-            for a, v in src_masks[name].attrs.items():
-                ds.attrs[a] = v
-
-    definition = dict(sub.definition)
-    definition["exported_from"] = {"database": os.path.abspath(db.path), "occurrences": len(sub)}
-    _write_subdb(h5, SubDatabase(
-        word=sub.word, start=p.starts, length=p.lengths, recording=np.arange(len(p.names), dtype=np.int32),
-        word_index=p.keyword_word, mask=masks.full_mask(F), definition=definition,
-    ))
 
 
 # --------------------------------------------------------------------------
@@ -925,7 +686,7 @@ def keyword_step_masks(
 
     Parameters
     ----------
-    db : gesturedb.database.Database
+    db : gesturedb.db.database.Database
     transcript : path or Words
         Word timings of the input speech (TextGrid / GENEA TSV / JSON, read with
         :func:`gesturedb.io.read_transcript`), or an object with ``start_s``,
@@ -953,7 +714,7 @@ def keyword_step_masks(
         alphabetically first. None when no keyword of the database (of
         ``only``) is said inside the output.
     """
-    from gesturedb import masks
+    from gesturedb import control
 
     step = _check_int("step", step, 1)
     n_out_frames = _check_int("n_out_frames", n_out_frames, 1)
@@ -998,7 +759,7 @@ def keyword_step_masks(
     best = order[0]
     has = covered.max(axis=0) > 0
 
-    full = masks.full_mask(db.n_frames)
+    full = control.full_mask(db.n_frames)
     bits = np.empty((n_steps, full.shape[0]), dtype=np.uint64)
     bits[:] = full
     labels: list[str | None] = [None] * n_steps

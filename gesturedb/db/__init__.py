@@ -1,0 +1,12 @@
+"""The gesture database: its schema, build, reading, atomic storage and edits.
+
+=================  ==========================================================
+``schema``         every dataset, dtype, shape, unit and ``SCHEMA_VERSION``
+``storage``        temp file + rename for every write; ``edit`` for changes
+``build``          recordings -> features -> HDF5
+``database``       :class:`Database`, what :func:`gesturedb.open` returns
+``edit``           saved masks and control features of an existing file
+``keywords``       keyword sub-databases (stored in the file)
+``export``         a keyword sub-database as a database file of its own
+=================  ==========================================================
+"""

@@ -1,0 +1,56 @@
+"""What a synthesis returns: the motion and where every part of it came from (provenance)."""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class SynthResult:
+    """A synthesized motion and where every part of it came from.
+
+    Attributes
+    ----------
+    motion : gesturedb.motion.Motion
+        At the database fps, exactly ``n_frames`` long (the length of the speech).
+    source_frames : ndarray [shape=(T,)], int64
+        Database frame copied to each output frame (before blending).
+    boundaries : ndarray, int64
+        Output frames where a new window starts (t = step, 2 step, ...).
+    steps : list of dict
+        Provenance, one entry per search step (see :meth:`Searcher.synthesize`).
+    """
+
+    motion: object
+    source_frames: np.ndarray
+    boundaries: np.ndarray
+    steps: list
+    fps: float
+    audio_path: str | None = None
+    options: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.source_frames.shape[0])
+
+    @property
+    def positions(self) -> np.ndarray:
+        """ndarray [shape=(T, J, 3)], world metres."""
+        return self.motion.positions
+
+    def provenance(self) -> dict:
+        return {
+            "audio": self.audio_path,
+            "fps": self.fps,
+            "n_frames": self.n_frames,
+            "duration_s": self.n_frames / self.fps,
+            "options": self.options,
+            "steps": self.steps,
+        }
+
+    def write_provenance(self, path: str | os.PathLike) -> None:
+        with open(path, "w") as f:
+            json.dump(self.provenance(), f, indent=1)
