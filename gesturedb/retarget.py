@@ -244,7 +244,8 @@ def retarget(motion: Motion, target: Skeleton, *, mapping=None) -> RetargetResul
     pairs = match_joints(src, target, mapping)
     t_keys = body_keys(target.names)
     s_keys = body_keys(src.names)
-    paired_keys = {t_keys.get(t) for t in pairs}
+    # a part counts as paired when either side of a pair has it (a mapping may pair an odd name)
+    paired_keys = {t_keys.get(t) for t in pairs} | {s_keys.get(s) for s in pairs.values()}
     missing = [k for k in _REQUIRED if k not in paired_keys]
     if missing:
         no_t = [k for k in missing if k not in t_keys.values()]

@@ -167,10 +167,12 @@ def _canonical_part(side, part, has_part) -> str | None:
         return None
     digits = re.sub(r"^\D*", "", part)
     stem = re.sub(r"\d+$", "", part)
-    for prefix in ("hand", "finger", "fingers"):
-        if stem.startswith(prefix) and stem[len(prefix):].rstrip("finger") in _FINGERS + tuple(_FINGER_SYNONYMS):
+    # HandIndex, IndexFinger, FingerIndex, Index: the finger's own word is what counts
+    for prefix in ("hand", "fingers", "finger"):
+        if stem.startswith(prefix) and len(stem) > len(prefix):
             stem = stem[len(prefix):]
-    stem = stem.replace("finger", "") if stem.endswith("finger") or stem.startswith("finger") else stem
+    if stem.endswith("finger") and len(stem) > len("finger"):
+        stem = stem[:-len("finger")]
     stem = _FINGER_SYNONYMS.get(stem, stem)
     if stem in _FINGERS and side is not None:
         return f"{side}_{stem}{int(digits) if digits else 1}"
