@@ -101,6 +101,33 @@ def twh_rig():
     return _bvh(j, channels=lambda name, root: 6)
 
 
+def unreal_rig():
+    """An Unreal-mannequin-named rig (``upperarm_l``, ``index_01_l``) whose root sits on the floor below the pelvis."""
+    names = {"collar": "clavicle_{s}", "upperarm": "upperarm_{s}", "forearm": "lowerarm_{s}", "hand": "hand_{s}",
+             "finger": "{f}_0{k}_{s}", "chest": "spine_03"}
+    j = [
+        ("root", None, np.array([0.0, 0.0, 0.0])),
+        ("pelvis", "root", np.array([0.0, 101.0, 0.0])),
+        ("spine_01", "pelvis", np.array([0.0, 11.0, 0.0])),
+        ("spine_02", "spine_01", np.array([0.0, 13.0, 0.0])),
+        ("spine_03", "spine_02", np.array([0.0, 14.0, 0.0])),
+        ("neck_01", "spine_03", np.array([0.0, 16.0, 0.0])),
+        ("head", "neck_01", np.array([0.0, 10.0, 2.0])),
+    ]
+    for side, sign in (("l", 1.0), ("r", -1.0)):
+        j += [(n.replace("Index", "index").replace("Middle", "middle").replace("Ring", "ring")
+               .replace("Pinky", "pinky").replace("Thumb", "thumb"), par, o)
+              for n, par, o in _arm("", side, sign, down_deg=50.0, arm_scale=1.05, fingers=True, names=names)]
+    for side, sign in (("l", 1.0), ("r", -1.0)):
+        j += [
+            (f"thigh_{side}", "pelvis", np.array([sign * 9.5, -5.0, 0.0])),
+            (f"calf_{side}", f"thigh_{side}", np.array([0.0, -46.0, 0.0])),
+            (f"foot_{side}", f"calf_{side}", np.array([0.0, -43.0, 0.0])),
+            (f"ball_{side}", f"foot_{side}", np.array([0.0, -7.0, 13.0])),
+        ]
+    return _bvh(j, channels=lambda name, root: (6 if root else 3))
+
+
 def no_arms_rig():
     """Hips, spine, head and legs only: nothing to carry gestures."""
     j = [("Hips", None, np.array([0.0, 1.0, 0.0])), ("Spine", "Hips", np.array([0.0, 0.3, 0.0])),

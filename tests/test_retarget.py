@@ -25,11 +25,14 @@ ARMS = {
     "twh": {"L": ("b_l_arm", "b_l_forearm", "b_l_wrist", "b_l_middle1"),
             "R": ("b_r_arm", "b_r_forearm", "b_r_wrist", "b_r_middle1")},
 }
+ARMS["unreal"] = {"L": ("upperarm_l", "lowerarm_l", "hand_l", "middle_01_l"),
+                  "R": ("upperarm_r", "lowerarm_r", "hand_r", "middle_01_r")}
 ARMS["mixamo_nofingers"] = {s: v[:3] + (None,) for s, v in ARMS["mixamo"].items()}
 
 RIGS = {
     "mixamo": lambda: rigs.mixamo_rig(down_deg=40.0, arm_scale=1.1, leg_scale=0.92),  # A-pose, cm
     "twh": rigs.twh_rig,  # T-pose, 6 channels on every joint, twist helpers
+    "unreal": rigs.unreal_rig,  # arms 50 degrees down, root on the floor below the pelvis
     "mixamo_nofingers": lambda: rigs.mixamo_rig(down_deg=0.0, arm_scale=0.9, fingers=False),
 }
 
@@ -120,7 +123,9 @@ def test_real_motion_onto_rig_keeps_arm_directions(source, tmp_path, rig_name):
         assert {"b_l_arm_twist", "b_r_wrist_twist"} <= set(res.unmapped_target)
     assert "jaw" in res.unmapped_source
     # hips trajectory scaled by the hip-height ratio: the feet stay as high above the floor, in proportion
-    s_h, t_h = source.skeleton.index("pelvis"), (rig.names.index("b_root") if rig_name == "twh" else 0)
+    s_h = source.skeleton.index("pelvis")
+    t_h = {"twh": "b_root", "unreal": "pelvis"}.get(rig_name)
+    t_h = rig.names.index(t_h) if t_h else 0
     rest_s, rest_t = source.skeleton.rest_positions(), rig.rest_positions()
     ratio = (rest_t[t_h, 1] - rest_t[:, 1].min()) / (rest_s[s_h, 1] - rest_s[:, 1].min())
     assert res.scale == pytest.approx(ratio)
