@@ -39,6 +39,35 @@ def _sample(arm, bones, frames, first_frame):
     return out
 
 
+def _mesh_vertices(mesh):
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = mesh.evaluated_get(dg)
+    m = ev.to_mesh()
+    out = [mesh.matrix_world @ v.co for v in m.vertices]
+    ev.to_mesh_clear()
+    return out
+
+
+def _swap_mesh(glb_arm, bvh_arm, frames):
+    """Largest vertex distance (m) between the .glb mesh under its own armature and under the BVH armature."""
+    meshes = [o for o in bpy.context.scene.objects if o.type == "MESH" and any(
+        m.type == "ARMATURE" and m.object == glb_arm for m in o.modifiers)]
+    if len(meshes) != 1:
+        raise SystemExit(f"expected one mesh skinned to {glb_arm.name}; got {[o.name for o in meshes]}")
+    mesh = meshes[0]
+    mod = next(m for m in mesh.modifiers if m.type == "ARMATURE")
+    worst = 0.0
+    for f in frames:
+        bpy.context.scene.frame_set(f)
+        a = _mesh_vertices(mesh)
+        mod.object = bvh_arm
+        bpy.context.scene.frame_set(f + 1)  # the BVH was keyed from frame 1
+        b = _mesh_vertices(mesh)
+        mod.object = glb_arm
+        worst = max(worst, max((u - v).length for u, v in zip(a, b)))
+    return worst
+
+
 def _render(path, target):
     scene = bpy.context.scene
     scene.render.engine = "BLENDER_WORKBENCH"
@@ -92,9 +121,7 @@ def main():
         arm = _armature(before)
         # the BVH importer keys file frame i at Blender frame frame_start + i
         result["bvh"] = _sample(arm, bones, frames, 1)
-        if args.glb:
-            arm.hide_set(True)
-            arm.hide_render = True
+        bvh_arm = arm
 
     if args.glb:
         before = {o.name for o in scene.objects}
@@ -102,6 +129,12 @@ def main():
         arm = _armature(before)
         # the glTF importer keys time t at frame t * fps (time 0 at frame 0)
         result["glb"] = _sample(arm, bones, frames, 0)
+        if args.bvh:
+            # docs/blender.md step 4: a mesh bound to the rig, driven by the imported BVH armature
+            # through its Armature modifier, deforms as under the glTF armature it came with
+            result["mesh_swap_max_m"] = _swap_mesh(arm, bvh_arm, frames)
+            bvh_arm.hide_set(True)
+            bvh_arm.hide_render = True
         if args.render:
             scene.frame_set(args.render_frame)
             bpy.context.view_layer.update()

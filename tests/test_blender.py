@@ -72,6 +72,9 @@ def test_blender_imports_our_glb_and_bvh(scott_dir, tmp_path):
             print(f"Blender {got['version']} {kind} {b}: max |ours - Blender| {err:.2e} m")
             # float32 in the .glb, 6 decimals of a centimetre in the .bvh
             assert err < 1e-3, (kind, b, err)
+    # the user's step (docs/blender.md): the mesh bound to the rig follows the imported BVH armature
+    print(f"mesh under the BVH armature vs under the glTF armature: max {got['mesh_swap_max_m']:.2e} m")
+    assert got["mesh_swap_max_m"] < 1e-3
     # the wrists really move between the frames compared (so the check can fail)
     w = np.asarray(got["glb"]["mixamorig:LeftHand"])
     assert np.linalg.norm(w - w[0], axis=1).max() > 0.05

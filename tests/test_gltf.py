@@ -74,7 +74,7 @@ def test_glb_forward_kinematics_from_the_file_matches(source, tmp_path):
     assert paths == sorted([(j, "rotation") for j in range(len(names))] + [(0, "translation")])
     # the skinned mesh is bound at the rest pose: inverse bind matrices undo the rest joint placements
     ibm = _accessor(gl, gl.binary_blob(), gl.skins[0].inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
-    rest = source.skeleton.rest_positions() - source.skeleton.offsets[0] + source.root_positions[0]
+    rest = source.skeleton.rest_positions()
     np.testing.assert_allclose(ibm[:, :3, 3], -rest, atol=1e-5)
     assert gl.meshes and gl.nodes[gl.scenes[0].nodes[1]].skin == 0
 

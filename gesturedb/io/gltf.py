@@ -120,15 +120,12 @@ def write_glb(path, motion: Motion, *, mesh: bool = True) -> None:
     for j in range(1, n_j):
         children[sk.parents[j]].append(j)
     for j in range(n_j):
-        t = motion.root_positions[0] if j == 0 else sk.offsets[j]
+        t = sk.offsets[j]  # the rig's rest pose, root included: a mesh bound to the rig binds to this
         gl.nodes.append(g.Node(name=sk.names[j], translation=[float(x) for x in t], rotation=[0.0, 0.0, 0.0, 1.0],
                                children=children[j] or None))
 
     rest = sk.rest_positions()
-    rest[0] = motion.root_positions[0]
-    for j in range(1, n_j):
-        rest[j] = rest[sk.parents[j]] + sk.offsets[j]
-    # inverse bind matrices: the bind pose is the rest pose placed at the first frame's root; column-major
+    # inverse bind matrices: the bind pose is the rig's rest pose; column-major
     ibm = np.tile(np.eye(4, dtype=np.float32), (n_j, 1, 1))
     ibm[:, :3, 3] = -rest
     ibm_acc = add(np.ascontiguousarray(ibm.transpose(0, 2, 1)).reshape(n_j, 16), _FLOAT, "MAT4")
