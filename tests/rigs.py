@@ -101,6 +101,12 @@ def twh_rig():
     return _bvh(j, channels=lambda name, root: 6)
 
 
+def _lower_fingers(name):
+    for f in ("Index", "Middle", "Ring", "Pinky", "Thumb"):
+        name = name.replace(f, f.lower())
+    return name
+
+
 def unreal_rig():
     """An Unreal-mannequin-named rig (``upperarm_l``, ``index_01_l``) whose root sits on the floor below the pelvis."""
     names = {"collar": "clavicle_{s}", "upperarm": "upperarm_{s}", "forearm": "lowerarm_{s}", "hand": "hand_{s}",
@@ -115,8 +121,7 @@ def unreal_rig():
         ("head", "neck_01", np.array([0.0, 10.0, 2.0])),
     ]
     for side, sign in (("l", 1.0), ("r", -1.0)):
-        j += [(n.replace("Index", "index").replace("Middle", "middle").replace("Ring", "ring")
-               .replace("Pinky", "pinky").replace("Thumb", "thumb"), par, o)
+        j += [(_lower_fingers(n), _lower_fingers(par), o)
               for n, par, o in _arm("", side, sign, down_deg=50.0, arm_scale=1.05, fingers=True, names=names)]
     for side, sign in (("l", 1.0), ("r", -1.0)):
         j += [
@@ -139,6 +144,10 @@ def no_arms_rig():
 
 def _bvh(joints, *, channels):
     """BVH text of a joint table; one frame of rest pose (with the OFFSETs as position channels where there are 6)."""
+    defined = {name for name, _, _ in joints}
+    orphans = [name for name, parent, _ in joints if parent is not None and parent not in defined]
+    if orphans:
+        raise ValueError(f"rig table: joints whose parent is not defined: {orphans}")
     kids = {}
     for name, parent, _ in joints:
         kids.setdefault(parent, []).append(name)
