@@ -38,6 +38,27 @@ def apply_target(args, motion):
     return res.motion
 
 
+def speech_beside(output, audio):
+    """For a .glb output, the speech as a 16-bit WAV of the same stem (glTF has no audio); its path or None."""
+    import os
+
+    if not audio or os.path.splitext(output)[1].lower() != ".glb":
+        return None
+    import soundfile as sf
+
+    from gesturedb.errors import InputFileError
+
+    wav = os.path.splitext(output)[0] + ".wav"
+    if os.path.abspath(wav) == os.path.abspath(audio):
+        return None
+    try:
+        data, sr = sf.read(audio, always_2d=False)
+        sf.write(wav, data, sr, subtype="PCM_16")
+    except (RuntimeError, OSError) as exc:  # soundfile's errors for unreadable/unwritable files
+        raise InputFileError(wav, f"cannot write the speech beside the .glb: {exc}") from None
+    return wav
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("retarget", help="move motion onto another rig (BVH or glTF skin); write BVH or glTF",
                        description="Pairs joints by body part across naming schemes (SMPL-X, GENEA/TWH, ZEGGS, "

@@ -65,6 +65,9 @@ def run(args) -> int:
     prov = args.provenance or os.path.splitext(args.output)[0] + ".provenance.json"
     res.write_provenance(prov)
     written = [args.output, prov]
+    from gesturedb.cli.retarget import speech_beside
+
+    written += [w for w in [speech_beside(args.output, args.audio)] if w]
     if args.npz:
         np.savez_compressed(args.npz, positions=motion.positions.astype(np.float32), fps=motion.fps,
                             parents=np.asarray(motion.skeleton.parents), names=np.asarray(motion.skeleton.names))

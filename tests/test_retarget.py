@@ -205,6 +205,11 @@ def test_synthesized_motion_onto_a_rig_and_glb_cli(scott_db_path, scott_dir, tmp
     assert "mapped 52 joints" in err and "kept at rest (1): mixamorig:HeadTop_End" in err and "mixamorig:LeftHand<-left_wrist" in err
     synth = read_motion(out)
     assert synth.skeleton.names == rig.names and synth.fps == 30.0 and synth.n_frames > 100
+    # glTF has no audio: the speech travels beside it, same stem, 16-bit PCM, same length
+    import soundfile as sf
+
+    wav, ref = sf.info(str(tmp_path / "synth.wav")), sf.info(str(scott_dir / "inputs/2_scott_0_3_3.wav"))
+    assert wav.subtype == "PCM_16" and wav.frames == ref.frames and wav.samplerate == ref.samplerate
     # the renderer previews a .glb like any other motion file
     png = tmp_path / "synth.png"
     assert main(["render", str(out), "-o", str(png)]) == 0 and png.stat().st_size > 10_000
