@@ -113,9 +113,30 @@ def test_retargeted_glb_and_a_rig_with_rotated_bone_axes(source, tmp_path):
         gl.nodes[j].rotation = [float(x) for x in r.as_quat()]
     gl.nodes.append(pygltflib.Node(name="Armature", scale=[0.01, 0.01, 0.01], children=[0]))
     gl.scenes[0].nodes = [len(gl.nodes) - 1]
-    gl.animations = []
+    # the animation in those bone frames: world rotation = our global rotation @ the bone's rest rotation
+    _, glob = res.motion.forward_kinematics()
+    g_w = [Rotation.from_quat(glob[:, j][:, [1, 2, 3, 0]]) * world_rot[j] for j in range(sk.n_joints)]
+    blob = bytearray(gl.binary_blob())
+    anim = gl.animations[0]
+    for ch in anim.channels:
+        j = ch.target.node
+        if ch.target.path == "rotation":
+            local = g_w[j] if sk.parents[j] < 0 else g_w[sk.parents[j]].inv() * g_w[j]
+            val = local.as_quat().astype(np.float32)
+        else:
+            val = (res.motion.root_positions / 0.01).astype(np.float32)
+        acc = gl.accessors[anim.samplers[ch.sampler].output]
+        start = gl.bufferViews[acc.bufferView].byteOffset
+        blob[start:start + val.nbytes] = val.tobytes()
+    gl.set_binary_blob(bytes(blob))
     odd = tmp_path / "odd_axes.glb"
     gl.save_binary(str(odd))
+    # read back as motion in the project's convention: the same joint positions
+    moved = read_gltf(odd)
+    np.testing.assert_allclose(moved.positions, res.motion.positions, atol=1e-5)
+    # and the same local rotations (up to the sign of the quaternion)
+    dot = np.abs((moved.rotations * res.motion.rotations).sum(-1))
+    assert dot.min() > 1 - 1e-9
     rig = read_gltf_rig(odd)
     assert rig.names == sk.names
     np.testing.assert_allclose(rig.rest_positions() - rig.offsets[0], sk.rest_positions() - sk.offsets[0],
