@@ -66,6 +66,7 @@ setup(
         "imageio>=2.30",
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report
+        "pygltflib>=1.16",   # glTF 2.0 (.glb) export of motion and target rigs (io/gltf.py)
     ],
     extras_require={
         # import-linter: the layers contract of .importlinter (stages import only the stages below them)

@@ -1,23 +1,29 @@
-"""`gesturedb export DB.h5 --recording NAME --start S --end E -o out.bvh`"""
+"""`gesturedb export DB.h5 --recording NAME --start S --end E -o out.bvh|out.glb [--target-skeleton RIG]`"""
 from __future__ import annotations
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("export", help="write a stretch of a recording in the database to BVH")
+    p = sub.add_parser("export", help="write a stretch of a recording in the database to BVH or glTF")
     p.add_argument("db", metavar="DB.h5")
     p.add_argument("--recording", required=True, help="recording name (see `gesturedb info`)")
     p.add_argument("--start", type=float, default=None, help="start time, s (default: 0)")
     p.add_argument("--end", type=float, default=None, help="end time, s (default: the end)")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.bvh")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.bvh|OUT.glb")
+    from gesturedb.cli.retarget import add_target_options
+
+    add_target_options(p)
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
     import gesturedb
-    from gesturedb.io.bvh import write_bvh
+    from gesturedb.cli.retarget import apply_target
+    from gesturedb.io import check_motion_output, write_motion
 
+    check_motion_output(args.output)
     with gesturedb.open(args.db) as db:
         motion = db.motion(args.recording, args.start, args.end)
-    write_bvh(args.output, motion)
+    motion = apply_target(args, motion)
+    write_motion(args.output, motion)
     print(f"wrote {args.output}: {motion.rotations.shape[0]} frames at {motion.fps:g} fps")
     return 0

@@ -19,6 +19,7 @@ COMMANDS = {
     "masks": "masks",
     "eval": "eval",
     "render": "render",
+    "retarget": "retarget",
 }
 
 

@@ -19,7 +19,7 @@ def add_parser(sub) -> None:
         description="Render BVH files, joint-position npz files (gesturedb synth --npz), SMPL-X npz files and/or a "
         "stretch of a database side by side: .mp4 (H.264, with --audio muxed in), .gif, or .png (a contact sheet).",
     )
-    p.add_argument("inputs", nargs="*", metavar="INPUT", help=".bvh or .npz files")
+    p.add_argument("inputs", nargs="*", metavar="INPUT", help=".bvh, .npz or .glb files")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help=".mp4, .gif or .png")
     p.add_argument("--audio", default=None, metavar="SPEECH.wav",
                    help="speech to mux into an MP4 (default for a database stretch: its recording's audio)")
@@ -60,6 +60,11 @@ def load_positions(path):
 
         m = read_bvh(path)
         return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
+    if ext in (".glb", ".gltf"):
+        from gesturedb.io.gltf import read_gltf
+
+        m = read_gltf(path)
+        return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
     if ext == ".npz":
         try:
             with np.load(path, allow_pickle=False) as z:
@@ -91,7 +96,7 @@ def load_positions(path):
             return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
         raise InputFileError(path, f"npz: expected joint positions (positions, parents, fps) or SMPL-X "
                                    f"(poses, trans); got fields {sorted(keys)}")
-    raise InputFileError(path, f"unknown motion extension {ext or '(none)'!r}; expected .bvh or .npz")
+    raise InputFileError(path, f"unknown motion extension {ext or '(none)'!r}; expected .bvh, .npz or .glb")
 
 
 def resample_positions(pos, fps_from: float, fps_to: float):

@@ -14,7 +14,7 @@ def add_parser(sub) -> None:
     p.add_argument("db", metavar="DB.h5")
     p.add_argument("--audio", required=True, metavar="SPEECH.wav")
     p.add_argument("--transcript", default=None, metavar="WORDS", help="TextGrid/TSV/JSON word timings (for keywords)")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.bvh")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.bvh|OUT.glb")
     p.add_argument("--npz", default=None, metavar="OUT.npz", help="also write joint positions (T, J, 3) in metres")
     p.add_argument("--provenance", default=None, metavar="OUT.json",
                    help="where every step came from (default: OUT.provenance.json)")
@@ -35,6 +35,9 @@ def add_parser(sub) -> None:
     p.add_argument("--exclude", default=None, help="comma-separated recordings to leave out of the search")
     p.add_argument("--export-fps", type=float, default=None, help="resample the BVH/npz to this frame rate")
     p.add_argument("--render", default=None, metavar="OUT.mp4", help="also render the result (mp4/gif/png)")
+    from gesturedb.cli.retarget import add_target_options
+
+    add_target_options(p)
     p.set_defaults(run=run)
 
 
@@ -42,8 +45,11 @@ def run(args) -> int:
     import numpy as np
 
     import gesturedb
-    from gesturedb.io.bvh import write_bvh
+    from gesturedb.cli.retarget import apply_target
+    from gesturedb.io import check_motion_output, write_motion
     from gesturedb.synth import Searcher
+
+    check_motion_output(args.output)
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
     with gesturedb.open(args.db) as db:
@@ -54,10 +60,14 @@ def run(args) -> int:
             keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
         )
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
-    write_bvh(args.output, motion)
+    motion = apply_target(args, motion)
+    write_motion(args.output, motion)
     prov = args.provenance or os.path.splitext(args.output)[0] + ".provenance.json"
     res.write_provenance(prov)
     written = [args.output, prov]
+    from gesturedb.cli.retarget import speech_beside
+
+    written += [w for w in [speech_beside(args.output, args.audio)] if w]
     if args.npz:
         np.savez_compressed(args.npz, positions=motion.positions.astype(np.float32), fps=motion.fps,
                             parents=np.asarray(motion.skeleton.parents), names=np.asarray(motion.skeleton.names))

@@ -16,3 +16,11 @@ if ((${#need[@]})); then
 fi
 
 python3 -m pip install --quiet --disable-pip-version-check -e ".[test]"
+
+# Blender as a Python module (bpy, for tests/test_blender.py): it pins numpy < 2 and needs
+# Python 3.11, so it gets an environment of its own; where it cannot install, that test skips and says why.
+if python3 -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+  { [ -x .venv-blender/bin/python ] || python3 -m venv .venv-blender; } &&
+    .venv-blender/bin/python -m pip install --quiet --disable-pip-version-check "bpy>=4.2,<6" ||
+    echo "setup: bpy did not install; tests/test_blender.py will be skipped" >&2
+fi

@@ -22,7 +22,7 @@ import re
 
 from gesturedb.errors import InputFileError, ParameterError
 
-__all__ = ["BODY_ROLES", "FEATURE_ROLES", "find_joints"]
+__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints"]
 
 FEATURE_ROLES = ("left_wrist", "right_wrist", "left_elbow", "right_elbow",
                  "left_index1", "right_index1", "left_pinky1", "right_pinky1")
@@ -136,3 +136,122 @@ def find_joints(names, roles=FEATURE_ROLES + BODY_ROLES, *, mapping=None, source
             raise InputFileError(source, msg)
         raise ParameterError(msg)
     return found
+
+
+# --- whole-skeleton correspondence (retargeting) ------------------------------------------
+# Every body part a retargeted joint can carry, side removed, digits kept where they
+# number a segment: part name as `_parse` leaves it (digits stripped) -> canonical part.
+_BODY_PARTS = {
+    "hips": "hips", "pelvis": "hips", "root": "hips",
+    "spine": "spine", "chest": "spine", "upperchest": "spine", "torso": "spine", "back": "spine",
+    "neck": "neck", "head": "head",
+    "collar": "collar", "clavicle": "collar", "scap": "collar",
+    "arm": "upperarm", "upperarm": "upperarm", "uparm": "upperarm", "humerus": "upperarm",
+    "forearm": "forearm", "lowerarm": "forearm", "elbow": "forearm",
+    "hand": "hand", "wrist": "hand",
+    "upleg": "upleg", "upperleg": "upleg", "thigh": "upleg", "femur": "upleg",
+    "leg": "leg", "lowerleg": "leg", "knee": "leg", "calf": "leg", "shin": "leg",
+    "foot": "foot", "ankle": "foot",
+    "toebase": "toe", "toe": "toe", "toes": "toe", "ball": "toe",
+}
+_FINGERS = ("thumb", "index", "middle", "ring", "pinky")
+_FINGER_SYNONYMS = {"little": "pinky", "pinkie": "pinky"}
+# names that mark a joint as no anatomical joint of its own (End Site stand-ins, twist
+# helpers): they keep their rest rotation
+_SKIP = ("end", "top", "twist", "roll", "nub", "site", "tip")
+
+
+def _canonical_part(side, part, has_part) -> str | None:
+    """Canonical key of one joint, or None when it is no joint we transfer."""
+    if any(s in part for s in _SKIP):
+        return None
+    digits = re.sub(r"^\D*", "", part)
+    stem = re.sub(r"\d+$", "", part)
+    # HandIndex, IndexFinger, FingerIndex, Index: the finger's own word is what counts
+    for prefix in ("hand", "fingers", "finger"):
+        if stem.startswith(prefix) and len(stem) > len(prefix):
+            stem = stem[len(prefix):]
+    if stem.endswith("finger") and len(stem) > len("finger"):
+        stem = stem[:-len("finger")]
+    stem = _FINGER_SYNONYMS.get(stem, stem)
+    if stem in _FINGERS and side is not None:
+        return f"{side}_{stem}{int(digits) if digits else 1}"
+    if side is None:
+        if stem == "hip" or stem == "hips":
+            return "hips"
+        canon = _BODY_PARTS.get(stem)
+        return canon if canon in ("hips", "spine", "neck", "head") else None
+    # words whose meaning depends on the rig's other names
+    if stem == "shoulder":
+        # BVH rigs: Shoulder = clavicle, Arm = upper arm; SMPL-X: collar + shoulder = upper arm
+        canon = "collar" if has_part(side, ("arm", "upperarm", "uparm", "humerus")) else "upperarm"
+    elif stem == "hip":
+        canon = "upleg"
+    elif stem == "foot":
+        # SMPL-X: ankle + foot (the toes); BVH rigs: Foot + ToeBase
+        canon = "toe" if has_part(side, ("ankle",)) else "foot"
+    else:
+        canon = _BODY_PARTS.get(stem)
+    return None if canon is None else f"{side}_{canon}"
+
+
+def body_keys(names) -> dict[int, str]:
+    """Canonical body-part key of every joint that has one.
+
+    Keys are ``hips``, ``spine0``, ``spine1``, ... (the spine chain from the hips
+    up, numbered in order), ``neck``, ``head``, and per side ``left_collar``,
+    ``left_upperarm``, ``left_forearm``, ``left_hand``, ``left_upleg``,
+    ``left_leg``, ``left_foot``, ``left_toe`` and fingers ``left_index1`` ...
+    (segment numbers as the rig writes them). They are read from the names of
+    SMPL-X, GENEA / Talking With Hands (``b_l_arm``), ZEGGS and Mixamo
+    (``mixamorig:LeftArm``), Unreal (``upperarm_l``, ``calf_l``, ``index_01_l``)
+    and generic BVH rigs. Where a word means different bones in different
+    schemes (``shoulder``: the clavicle in BVH rigs that also have an ``Arm``,
+    the upper arm in SMPL-X; ``foot``: the toes when there is an ``ankle``), the
+    other names of the rig decide. Twist helpers and End-Site stand-ins
+    (``*_twist``, ``HeadTop_End``) get no key. When two joints get the same key
+    the one nearer the root (lower index) keeps it.
+
+    Parameters
+    ----------
+    names : sequence of str [length J]
+
+    Returns
+    -------
+    dict of int to str
+        Joint index -> key, for the joints that have one.
+    """
+    names = [str(n) for n in names]
+    parsed = [_parse(n) for n in names]
+    parts = {(s, re.sub(r"\d+$", "", p)) for s, p in parsed}
+
+    def has_part(side, stems):
+        return any((side, s) in parts for s in stems)
+
+    keys: dict[int, str] = {}
+    taken = set()
+    spine = []
+    # the hips: a joint called hips/pelvis, else one called root, else joint 0 (Unreal's
+    # "root" sits on the floor below its "pelvis")
+    hips = next((j for j, (s, p) in enumerate(parsed) if s is None and p in ("hips", "hip", "pelvis")), None)
+    if hips is None:
+        hips = next((j for j, (s, p) in enumerate(parsed) if s is None and p == "root"), 0)
+    if names:
+        keys[hips] = "hips"
+        taken.add("hips")
+    for j, (side, part) in enumerate(parsed):
+        key = _canonical_part(side, part, has_part)
+        if key == "hips":
+            continue
+        if key == "spine":
+            spine.append(j)
+            continue
+        if key is None or key in taken:
+            continue
+        if key in ("neck",) and "neck" in taken:
+            continue
+        keys[j] = key
+        taken.add(key)
+    for i, j in enumerate(spine):
+        keys[j] = f"spine{i}"
+    return keys
