@@ -43,7 +43,7 @@ setup(
     python_requires=">=3.10",
     packages=[
         "gesturedb", "gesturedb.io", "gesturedb.features", "gesturedb.db", "gesturedb.control",
-        "gesturedb.synth", "gesturedb.eval", "gesturedb.cli",
+        "gesturedb.synth", "gesturedb.refiner", "gesturedb.eval", "gesturedb.cli",
     ],
     # cli/ lives at the top of the repository to keep the command line visibly
     # thin and separate, but installs as gesturedb.cli.
@@ -71,6 +71,8 @@ setup(
     extras_require={
         # import-linter: the layers contract of .importlinter (stages import only the stages below them)
         "test": ["pytest>=7", "import-linter>=2.0"],
+        # the cGAN refiner; the CPU build of torch is pinned (a plain `torch` pulls GBs of CUDA)
+        "refiner": ["torch==2.13.0"],
     },
     entry_points={"console_scripts": ["gesturedb=gesturedb.cli.main:main"]},
 )

@@ -85,6 +85,8 @@ def add_parser(sub) -> None:
                    help="side-by-side video of the first input (default: mp4 with the speech)")
     m.add_argument("--video-seconds", type=float, default=None, metavar="S", help="render only the first S seconds")
     m.add_argument("--keywords", action="store_true", help="let the rank-sum search use keyword sub-databases")
+    m.add_argument("--refiner", default=None, metavar="REFINER.pt",
+                   help="add the system 'rank-sum + refiner' (gesturedb refiner train)")
     m.add_argument("-q", "--quiet", action="store_true", help="do not print the tables")
     _search_options(m, preselect=False)
     m.set_defaults(run=run_motion)
@@ -131,6 +133,11 @@ def run_motion(args) -> int:
         bad = [s for s in systems if s not in SYSTEMS[1:]]
         if bad:
             raise ParameterError(f"--systems: expected names from {','.join(SYSTEMS[1:])}, got {','.join(bad)}")
+    refiner = None
+    if args.refiner:
+        from gesturedb.refiner import load_refiner
+
+        refiner = load_refiner(args.refiner)  # checked against the database when it is used
     holdout = args.data_dir or args.holdout_start is not None or args.holdout_end is not None
     if holdout:
         if args.db or args.audio:
@@ -143,7 +150,7 @@ def run_motion(args) -> int:
             args.data_dir, args.holdout_start, args.holdout_end, recording=args.recording,
             db_path=args.train_db or os.path.join(args.output, "train.h5"), mirror=not args.no_mirror,
             systems=["ground_truth"] + (systems or list(SYSTEMS[1:])), controls=args.controls,
-            keywords=args.keywords, **_search_kwargs(args),
+            keywords=args.keywords, refiner=refiner, **_search_kwargs(args),
         )
     else:
         if not args.db or not args.audio:
@@ -154,7 +161,7 @@ def run_motion(args) -> int:
         with gesturedb.open(args.db) as db:
             ev = evaluate_inputs(
                 db, args.audio, transcripts=[_beside(a) for a in args.audio], systems=systems or list(SYSTEMS[1:]),
-                controls=args.controls, keywords=args.keywords, **_search_kwargs(args),
+                controls=args.controls, keywords=args.keywords, refiner=refiner, **_search_kwargs(args),
             )
     written = ev.write(args.output, render=not args.no_render, video=None if args.video == "none" else args.video,
                        video_seconds=args.video_seconds)

@@ -35,6 +35,8 @@ def add_parser(sub) -> None:
     p.add_argument("--exclude", default=None, help="comma-separated recordings to leave out of the search")
     p.add_argument("--export-fps", type=float, default=None, help="resample the BVH/npz to this frame rate")
     p.add_argument("--render", default=None, metavar="OUT.mp4", help="also render the result (mp4/gif/png)")
+    p.add_argument("--refiner", default=None, metavar="REFINER.pt",
+                   help="refine the result with a trained refiner (gesturedb refiner train)")
     from gesturedb.cli.retarget import add_target_options
 
     add_target_options(p)
@@ -53,11 +55,16 @@ def run(args) -> int:
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
     with gesturedb.open(args.db) as db:
+        refiner = None
+        if args.refiner:
+            from gesturedb.refiner import load_refiner
+
+            refiner = load_refiner(args.refiner, db)
         res = Searcher(db, segments=args.segments).synthesize(
             args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
             seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
             control=args.control,
-            keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
+            keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None, refiner=refiner,
         )
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
     motion = apply_target(args, motion)

@@ -20,6 +20,7 @@ SYSTEM_LABELS = {
     "audio_only": "audio-only matching",
     "ranksum_pose": "rank-sum, pose pre-selection",
     "ranksum_audio": "rank-sum, audio pre-selection",
+    "ranksum_refined": "rank-sum + cGAN refiner",
 }
 
 

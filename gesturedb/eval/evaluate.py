@@ -139,6 +139,7 @@ def synthesize_systems(
     blend_frames: int = 4,
     segments: str = "chunks",
     exclude=None,
+    refiner=None,
 ) -> dict[str, SystemOutput]:
     """Motion of every system for the same speech.
 
@@ -159,6 +160,9 @@ def synthesize_systems(
         Recorded joint positions at the database fps for this speech.
     transcript : Words, optional
         Passed to the search (keyword sub-databases) when ``keywords``.
+    refiner : object with ``refine(motion, audio)``, optional
+        Adds the system ``ranksum_refined``: the ``ranksum_pose`` motion refined
+        (e.g. a :class:`gesturedb.refiner.train.Refiner`).
 
     Returns
     -------
@@ -203,6 +207,18 @@ def synthesize_systems(
                                       preselect=name.split("_", 1)[1], init=init, seed=seed, step=step,
                                       blend_frames=blend_frames, exclude=exclude)
             out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
+    if refiner is not None:
+        from gesturedb.features.audio import audio_deltas
+
+        if hasattr(refiner, "check"):
+            refiner.check(db)
+        base = out.get("ranksum_pose")
+        if base is None:
+            res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k, init=init,
+                                      seed=seed, step=step, blend_frames=blend_frames, exclude=exclude)
+            base = SystemOutput("ranksum_pose", res.positions, res.boundaries, res.source_frames, res.motion)
+        m = refiner.refine(base.motion, np.concatenate([query, audio_deltas(query)], axis=1))
+        out["ranksum_refined"] = SystemOutput("ranksum_refined", m.positions, base.boundaries, base.source_frames, m)
     n = min(o.positions.shape[0] for o in out.values())
     for o in out.values():
         o.positions = o.positions[:n]
@@ -515,11 +531,12 @@ def _common(db, opts, controls, control_audio):
     ctl = None
     if controls:
         ctl = evaluate_controls(db, control_audio[0], sr=control_audio[1],
-                                **{k: v for k, v in opts.items() if k not in ("keywords",)})
+                                **{k: v for k, v in opts.items() if k not in ("keywords", "refiner")})
     return root, joints, reference, thresholds, ctl
 
 
 def _settings(opts, joints, names, **more):
+    opts = dict(opts, refiner=getattr(opts.get("refiner"), "path", None))
     return dict(opts, joints=[int(j) for j in joints], joint_names=[names[j] for j in joints], **more)
 
 
@@ -537,6 +554,7 @@ def evaluate_inputs(
     blend_frames: int = 4,
     segments: str = "chunks",
     keywords: bool = False,
+    refiner=None,
     exclude=None,
 ) -> MotionEvaluation:
     """Every system on new speech without motion capture (metrics that need no ground truth).
@@ -571,7 +589,7 @@ def evaluate_inputs(
     transcripts = list(transcripts) if transcripts is not None else [None] * len(audio)
     if len(transcripts) != len(audio):
         raise ParameterError(f"transcripts: expected one per audio file ({len(audio)}), got {len(transcripts)}")
-    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments,
+    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments, refiner=refiner,
                 keywords=keywords, exclude=exclude)
     first = _read_samples(db, audio[0], None)
     root, joints, reference, thresholds, ctl = _common(db, opts, controls, (first[0], first[1]))
@@ -648,6 +666,7 @@ def evaluate_holdout(
     blend_frames: int = 4,
     segments: str = "chunks",
     keywords: bool = False,
+    refiner=None,
     build_options: dict | None = None,
 ) -> MotionEvaluation:
     """Hold a stretch of a recording out, build a database from the rest, and compare with its motion.
@@ -707,7 +726,7 @@ def evaluate_holdout(
         raise ParameterError(f"holdout: nothing left to build a database from once {holdout_start_s}-{end_s} s of "
                              f"{held.name} is held out")
 
-    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments,
+    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments, refiner=refiner,
                 keywords=keywords, exclude=None)
     tmp = None
     if db_path is None:

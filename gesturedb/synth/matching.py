@@ -115,6 +115,7 @@ class Searcher:
         control=None,
         keywords=True,
         exclude=None,
+        refiner=None,
     ) -> SynthResult:
         """Synthesize gestures for speech.
 
@@ -143,6 +144,11 @@ class Searcher:
             (True: all of the database's, False: none, a list: only those).
         exclude : list of str
             Recordings whose segments are left out of the search.
+        refiner : object with ``refine(motion, audio)``, optional
+            Applied to the assembled motion in one pass, e.g. a trained
+            :class:`gesturedb.refiner.train.Refiner` (``audio`` is the query's
+            standardised features and their deltas, (T, 28)). Any object with
+            that method works, so synthesis does not depend on the refiner stage.
 
         Returns
         -------
@@ -220,10 +226,15 @@ class Searcher:
             })
         starts = np.asarray(res.out_frames, dtype=np.int64)
         motion = self.assemble(source, starts, blend_frames=blend_frames, smooth=smooth)
+        if refiner is not None:
+            from gesturedb.features.audio import audio_deltas
+
+            motion = refiner.refine(motion, np.concatenate([query, audio_deltas(query)], axis=1))
         options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames, smooth=smooth,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
-                       segments=self.segments_kind, database=db.path)
+                       segments=self.segments_kind, database=db.path,
+                       refiner=None if refiner is None else str(getattr(refiner, "path", None) or type(refiner).__name__))
         return SynthResult(motion=motion, source_frames=source, boundaries=starts[1:], steps=steps,
                            fps=db.fps, audio_path=audio_path, options=options)
 
