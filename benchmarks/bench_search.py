@@ -38,10 +38,43 @@ M, L, DP, DA, N = 9624, 64, 96, 14, 8
 FPS, SECONDS = 15, 24
 
 
-def make_db(seed=0):
+def motion_pose(rng, F, n_rec=150):
+    """(F, 96) pose features with the structure of real ones: 8 joints x 3
+    coordinates moving smoothly (6 latent Gaussian-filtered signals, about
+    5 frames of correlation like the wrists at 15 fps, mapped to the 24
+    coordinates, plus 1 cm of jitter),
+    stacked at f, f-2, f-4, f-6 clamped to the recording's first frame, each in
+    the current frame's slowly turning body frame (as gesturedb.features.pose
+    does), over n_rec recordings."""
+    from scipy.ndimage import gaussian_filter1d
+
+    out = np.empty((F, DP), np.float32)
+    bounds = np.linspace(0, F, n_rec + 1).astype(int)
+    rest = rng.standard_normal(24) * 0.3  # one speaker: one rest pose
+    arms = rng.standard_normal((6, 24)) * 0.08
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        n = b - a
+        # two arms: 6 latent degrees of freedom drive the 24 coordinates (joints
+        # of one arm move together), plus a little independent jitter
+        z = gaussian_filter1d(rng.standard_normal((n, 6)), 5.0, axis=0)
+        x = (z / z.std(axis=0)) @ arms
+        x += gaussian_filter1d(rng.standard_normal((n, 24)), 2.0, axis=0) * 0.01 + rest
+        yaw = gaussian_filter1d(rng.standard_normal(n), 20.0) * 2.0
+        c, sn = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+        f = np.arange(n)
+        for k in range(4):
+            p = x[np.maximum(f - 2 * k, 0)].reshape(n, 8, 3)
+            px, pz = p[..., 0], p[..., 2]
+            q = np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1)
+            out[a:b, 24 * k:24 * (k + 1)] = q.reshape(n, 24)
+    return out
+
+
+def make_db(seed=0, data="motion"):
     rng = np.random.default_rng(seed)
     F = M * L
-    pose = rng.standard_normal((F, DP), dtype=np.float32)
+    pose = (motion_pose(rng, F) if data == "motion"
+            else rng.standard_normal((F, DP), dtype=np.float32))
     audio = rng.standard_normal((F, DA), dtype=np.float32)
     seg_start = np.arange(M, dtype=np.int64) * L
     seg_len = np.full(M, L, dtype=np.int64)

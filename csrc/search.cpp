@@ -241,15 +241,17 @@ void check_database(const Database& db) {
                                     std::to_string(db.pose_f16.cols) + ")");
     }
     if (db.proj.data != nullptr) {
-        const int64_t J = db.proj.cols;
-        if (db.proj.rows != F || J < 2 || db.proj_basis.data == nullptr || db.proj_basis.rows != db.pose.cols ||
+        const int64_t J = db.proj_dim;
+        if (db.proj.rows != (F + kFrameBlock - 1) / kFrameBlock || J < 2 || db.proj.cols != kFrameBlock * J || db.proj_basis.data == nullptr || db.proj_basis.rows != db.pose.cols ||
             db.proj_basis.cols != J - 1 || db.proj_mean.data == nullptr || db.proj_mean.size != db.pose.cols ||
             !(db.proj_max_norm >= 0.0) || !(db.proj_max_norm < std::numeric_limits<double>::infinity())) {
-            throw std::invalid_argument("pose_proj: expected rows (" + std::to_string(F) +
-                                        ", J >= 2), basis (" + std::to_string(db.pose.cols) +
+            throw std::invalid_argument("pose_proj: expected blocks (" +
+                                        std::to_string((F + kFrameBlock - 1) / kFrameBlock) +
+                                        ", 16 J) with J >= 2, basis (" + std::to_string(db.pose.cols) +
                                         ", J - 1), mean (" + std::to_string(db.pose.cols) +
-                                        ",) and a finite max norm; got rows (" +
-                                        std::to_string(db.proj.rows) + ", " + std::to_string(J) + ")");
+                                        ",) and a finite max norm; got blocks (" +
+                                        std::to_string(db.proj.rows) + ", " + std::to_string(db.proj.cols) +
+                                        "), J = " + std::to_string(J));
         }
     }
     for (int64_t m = 0; m < db.seg_start.size; ++m) {
@@ -532,7 +534,7 @@ struct ProjQuery {
 };
 
 ProjQuery proj_query(const Database& db, const float* x) {
-    const int64_t Dp = db.pose.cols, J = db.proj.cols, k = J - 1;
+    const int64_t Dp = db.pose.cols, J = db.proj_dim, k = J - 1;
     ProjQuery pq;
     pq.zx.assign(J, 0.0f);
     std::vector<double> d(Dp);
@@ -596,19 +598,20 @@ bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const Query
     const int64_t n_cand = db.seg_len[m] - qs.n;
     if (n_cand < 1) return true;
     if (!pq.ok) return false;
-    const int64_t seg0 = db.seg_start[m], J = db.proj.cols;
+    const int64_t seg0 = db.seg_start[m], J = db.proj_dim;
     const float inf = std::numeric_limits<float>::infinity();
     float umin = inf;
     bool any = false;
     for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
         any = true;
         // candidate i's entry frame is seg0 + i
-        kern.l2sq_rows_f32(db.proj.row(seg0 + i0), i1 - i0, J, pq.zx.data(), dh + i0);
-        const float* rf = db.proj.row(seg0 + i0) + (J - 1);
-        // branch-free so the compiler vectorises it; a NaN makes umin NaN-free
-        // but is caught by the finiteness test on dh below
+        kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), dh + i0);
+        // a NaN never lowers umin (the comparison fails) and is caught by the
+        // finiteness test on dh below
         for (int64_t i = i0; i < i1; ++i) {
-            const float ub = pq.a_up * dh[i] + pq.b_up * rf[(i - i0) * J] + pq.c_up;
+            const int64_t f = seg0 + i;
+            const float rf = db.proj(f / kFrameBlock, kFrameBlock * (J - 1) + f % kFrameBlock);
+            const float ub = pq.a_up * dh[i] + pq.b_up * rf + pq.c_up;
             umin = ub < umin ? ub : umin;
         }
     });

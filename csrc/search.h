@@ -25,14 +25,17 @@ struct Database {
     // segment's minimum are read in float32. Results do not change.
     Span2<const uint16_t> pose_f16;
     // Optional projection of pose (data null when absent), a bounded filter
-    // for pose pre-selection that reads J instead of Dp floats per frame:
-    //   proj[f] = (U^T (P[f] - mean), ||(I - U U^T)(P[f] - mean)||)   (J values)
+    // for pose pre-selection that reads J = proj_dim instead of Dp floats per frame:
+    //   z_f = (U^T (P[f] - mean), ||(I - U U^T)(P[f] - mean)||)   (J values)
+    // stored in blocks of 16 frames (kernels.h, l2sq_blocks): proj is
+    // (ceil(F / 16), 16 J), value j of frame f at proj(f / 16, 16 j + f % 16).
     // with U = proj_basis (Dp, J-1) orthonormal columns (float64) and
     // proj_max_norm >= max_f ||P[f] - mean||. The squared distance of a frame
     // to prev then lies in [|z_f - z_x|^2, |z_f - z_x|^2 + 4 r_f r_x]; the step
     // keeps the candidates whose lower bound can reach the smallest upper bound
     // and computes only those exactly on P. Results do not change.
     Span2<const float> proj;
+    int64_t proj_dim = 0;
     Span2<const double> proj_basis;
     Span1<const double> proj_mean;
     double proj_max_norm = 0.0;

@@ -286,7 +286,10 @@ class PoseProjection:
     ----------
     pose : ndarray
         The source array (kept to check that searches use the same one).
+    blocks : ndarray [shape=(ceil(F / 16), J, 16)], float32
+        ``z_f`` of frame ``f`` at ``blocks[f // 16, :, f % 16]`` (padding frames 0).
     rows : ndarray [shape=(F, J)], float32
+        The same values row by row.
     basis : ndarray [shape=(Dp, J - 1)], float64, orthonormal columns
     mean : ndarray [shape=(Dp,)], float64
     max_norm : float
@@ -322,24 +325,33 @@ class PoseProjection:
         _, vecs = np.linalg.eigh(cov)
         self.basis = np.ascontiguousarray(vecs[:, ::-1][:, :k])
         self.mean = mean
-        self.rows = np.empty((F, k + 1), dtype=np.float32)
+        rows = np.zeros((-(-F // 16) * 16, k + 1), dtype=np.float32)
         max_norm = 0.0
         with np.errstate(invalid="ignore", over="ignore"):
             for a in range(0, F, block):
                 d = pose[a:a + block] - mean  # float64
                 c = d @ self.basis
                 r = np.sqrt(((d - c @ self.basis.T) ** 2).sum(axis=1))
-                self.rows[a:a + block, :k] = c
-                self.rows[a:a + block, k] = r
+                rows[a:a + len(c), :k] = c
+                rows[a:a + len(c), k] = r
                 n = np.sqrt((d * d).sum(axis=1))
                 if n.size:
                     # NaN rows are caught per segment by the kernel; they set no bound
                     max_norm = max(max_norm, float(np.nanmax(n, initial=0.0)))
         self.max_norm = max_norm * (1.0 + 1e-9) if np.isfinite(max_norm) else np.inf
+        # 16 frames per block, column by column: the kernel computes 16 frames'
+        # distances as one vector per column (no horizontal sums)
+        self.blocks = np.ascontiguousarray(rows.reshape(-1, 16, k + 1).transpose(0, 2, 1))
+        self._F = F
+
+    @property
+    def rows(self) -> np.ndarray:
+        """ndarray [shape=(F, J)], float32: ``z_f`` row by row (a copy of ``blocks``)."""
+        return self.blocks.transpose(0, 2, 1).reshape(-1, self.blocks.shape[1])[:self._F]
 
     def __repr__(self) -> str:
-        return (f"PoseProjection({self.rows.shape[0]} frames x {self.rows.shape[1]}, "
-                f"{self.rows.nbytes / 1e6:.0f} MB)")
+        return (f"PoseProjection({self._F} frames x {self.blocks.shape[1]}, "
+                f"{self.blocks.nbytes / 1e6:.0f} MB)")
 
 
 def _pose_proj(pose_proj, pose):
@@ -354,7 +366,7 @@ def _pose_proj(pose_proj, pose):
             f"array {pose_proj.pose.shape} (searches would compare against the wrong rows)")
     if not np.isfinite(pose_proj.max_norm):
         return None  # an infinite pose value: no usable bound, the exact scan
-    return (pose_proj.rows, pose_proj.basis, pose_proj.mean, float(pose_proj.max_norm))
+    return (pose_proj.blocks, pose_proj.basis, pose_proj.mean, float(pose_proj.max_norm))
 
 
 # --------------------------------------------------------------------------
