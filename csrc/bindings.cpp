@@ -319,6 +319,42 @@ PYBIND11_MODULE(_core, m) {
        py::arg("pose_proj").none(true) = py::none(),
        "One rank-sum step (use gesturedb.search.rank_sum_step, which validates).");
 
+    m.def("preselect", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+                          const F32& prev, const F32& query, const std::string& preselect,
+                          const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
+                          int threads, const std::optional<U16>& pose_f16,
+                          const std::optional<py::tuple>& pose_proj) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
+        check_vector(prev, db.pose.cols, "prev_pose");
+        const Span2<const float> q = span2(query, "query_audio");
+        if (q.cols != db.audio.cols || q.rows < 1)
+            throw std::invalid_argument("query_audio: expected (n >= 1, " + std::to_string(db.audio.cols) +
+                                        "); got " + shape_str(query));
+        StepOptions opt;
+        opt.preselect = parse_preselect(preselect);
+        opt.allowed = make_allowed(allowed, db, false).at(0);
+        opt.exclude = exclude_ptr(exclude, db.n_segments());
+        const Kernels& kern = active_kernels();
+        const int64_t M = db.n_segments();
+        py::array_t<int64_t> s(M);
+        py::array_t<float> dp(M);
+        py::array_t<double> da(M);
+        int64_t* ps = s.mutable_data();
+        float* pdp = dp.mutable_data();
+        double* pda = da.mutable_data();
+        {
+            py::gil_scoped_release release;
+            StepEngine engine(kern, db, threads <= 0 ? default_threads() : threads);
+            engine.preselect(prev.data(), q.data, q.rows, opt, ps, pdp, pda);
+        }
+        return py::make_tuple(s, dp, da);
+    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+       py::arg("seg_len").noconvert(), py::arg("prev").noconvert(), py::arg("query").noconvert(),
+       py::arg("preselect"), py::arg("allowed").noconvert().none(true),
+       py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
+       py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+       "Pre-selection table of one step (use gesturedb.search.preselect_table, which validates).");
+
     m.def("search", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
                        const F32& query, const F32& init_pose, int64_t window, int64_t k,
                        const std::string& preselect, const std::optional<U64>& allowed,

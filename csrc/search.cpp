@@ -692,6 +692,11 @@ struct StepEngine::Impl {
     }
 
     StepResult step(const float* prev, const float* q, int64_t n, const StepOptions& opt) {
+        return ranker.rank(db, preselect(prev, q, n, opt), n, opt.k);
+    }
+
+    // Spec steps 1-3 for every segment (sel_s = -1: no allowed candidate).
+    Selection preselect(const float* prev, const float* q, int64_t n, const StepOptions& opt) {
         const QueryStep qs{prev, q, query_norm2(kern, q, n * db.audio.cols), n};
         Selection sel{sel_s.data(), sel_dp.data(), sel_da.data()};
         const int64_t n_chunks = int64_t(chunk_begin.size()) - 1;
@@ -760,7 +765,7 @@ struct StepEngine::Impl {
                 if (sel.s[m] >= 0) complete_other(kern, db, m, qs, opt.preselect, sel);
             }
         });
-        return ranker.rank(db, sel, n, opt.k);
+        return sel;
     }
 };
 
@@ -772,6 +777,18 @@ StepResult StepEngine::step(const float* prev, const float* query, int64_t n,
                             const StepOptions& opt) {
     if (n < 1) throw std::invalid_argument("step: window length must be >= 1");
     return impl_->step(prev, query, n, opt);
+}
+
+void StepEngine::preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt,
+                           int64_t* start, float* pose_dist, double* audio_dist) {
+    if (n < 1) throw std::invalid_argument("step: window length must be >= 1");
+    const Selection sel = impl_->preselect(prev, query, n, opt);
+    const int64_t M = impl_->db.n_segments();
+    std::copy(sel.s, sel.s + M, start);
+    for (int64_t m = 0; m < M; ++m) {
+        pose_dist[m] = sel.s[m] >= 0 ? sel.dp[m] : 0.0f;
+        audio_dist[m] = sel.s[m] >= 0 ? sel.da[m] : 0.0;
+    }
 }
 
 // ---------------------------------------------------------------------------

@@ -111,6 +111,14 @@ public:
     // One step: prev (Dp,), query window (n, Da) contiguous, 1 <= n.
     StepResult step(const float* prev, const float* query, int64_t n, const StepOptions& opt);
 
+    // Spec steps 1-3 only, the table a sharded search merges: per segment m
+    // (M,) the pre-selected start s (-1 when the segment has no allowed
+    // candidate), its pose distance (float32, as the ranking compares it) and
+    // audio distance. Ranks computed over the rows of several shards' tables
+    // (ties by global segment index) are exactly those of one database.
+    void preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt,
+                   int64_t* start, float* pose_dist, double* audio_dist);
+
 private:
     struct Impl;
     std::unique_ptr<Impl> impl_;

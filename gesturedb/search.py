@@ -45,6 +45,8 @@ __all__ = [
     "SearchResult",
     "HalfPose",
     "PoseProjection",
+    "preselect_table",
+    "rank_table",
     "rank_sum_step",
     "rank_sum_search",
     "rank_sum_search_batch",
@@ -637,6 +639,67 @@ def rank_sum_step(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, k=
         pose_dist=r["pose_dist"], audio_dist=r["audio_dist"], pose_rank=r["pose_rank"],
         audio_rank=r["audio_rank"], rank=r["pose_rank"] + r["audio_rank"],
         n_candidates=r["n_candidates"])
+
+
+def preselect_table(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, preselect="pose",
+                    allowed=None, exclude=None, threads=None, pose_f16=None, pose_proj=None):
+    """Spec steps 1-3 of one step: the pre-selected candidate of every segment.
+
+    The table a sharded search merges: ranks computed by :func:`rank_table`
+    over the concatenated tables of several shards (segments in global order)
+    are exactly the ranks of one database holding them all.
+
+    Parameters are those of :func:`rank_sum_step` (without ``k``).
+
+    Returns
+    -------
+    starts : ndarray [shape=(M,)], int64
+        Pre-selected ``s`` of each segment, -1 when it has no allowed candidate.
+    pose_dist : ndarray [shape=(M,)], float32
+        Its pose distance (0 where ``starts`` is -1), as the ranking compares it.
+    audio_dist : ndarray [shape=(M,)], float64
+        Its audio distance (0 where ``starts`` is -1).
+    """
+    seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
+    prev = _pose_vector(prev_pose, pose.shape[1], "prev_pose")
+    q = _query(query_audio, audio.shape[1], "query_audio")
+    preselect = _preselect(preselect)
+    allowed = _allowed(allowed, pose.shape[0])
+    exclude = _exclude(exclude, seg_start.shape[0])
+    return _core().preselect(pose, audio, seg_start, seg_len, prev, q, preselect, allowed, exclude,
+                             _threads(threads), _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
+
+
+def rank_table(starts, pose_dist, audio_dist, *, k=1):
+    """Spec steps 4-5 over a pre-selection table (one database's or several shards' concatenated).
+
+    Parameters
+    ----------
+    starts, pose_dist, audio_dist : ndarray [shape=(M,)]
+        As returned by :func:`preselect_table`; row ``m`` is segment ``m``.
+    k : int
+        The k-th best (1-based); the last one if fewer remain.
+
+    Returns
+    -------
+    tuple (segment, pose_rank, audio_rank, n_candidates) of int, or None when no segment remains.
+    """
+    k = _positive_int(k, "k")
+    m = np.flatnonzero(np.asarray(starts) >= 0)
+    K = m.size
+    if K == 0:
+        return None
+    # -0 == +0 and every NaN sorts last and equal to the others, like the kernel's keys:
+    # lexsort's last key is primary, ties fall to the segment index
+    dp = np.asarray(pose_dist, dtype=np.float32)[m] + np.float32(0.0)
+    da = np.asarray(audio_dist, dtype=np.float64)[m] + 0.0
+    rp = np.empty(K, np.int64)
+    rp[np.lexsort((m, dp))] = np.arange(K)
+    ra = np.empty(K, np.int64)
+    ra[np.lexsort((m, da))] = np.arange(K)
+    order = np.lexsort((m, rp, rp + ra))
+    c = int(order[min(k, K) - 1])
+    return int(m[c]), int(rp[c]), int(ra[c]), K
 
 
 def _result(d, T, sl=slice(None)) -> SearchResult:
