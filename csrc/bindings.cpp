@@ -355,6 +355,22 @@ PYBIND11_MODULE(_core, m) {
        py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
        "Pre-selection table of one step (use gesturedb.search.preselect_table, which validates).");
 
+    m.def("rank_table", [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t k) {
+        require_ndim(start, 1, "starts");
+        const int64_t M = start.shape(0);
+        check_vector(pose_dist, M, "pose_dist");
+        if (audio_dist.ndim() != 1 || audio_dist.shape(0) != M)
+            throw std::invalid_argument("audio_dist: expected (" + std::to_string(M) + ",); got " +
+                                        shape_str(audio_dist));
+        TableRank r;
+        {
+            py::gil_scoped_release release;
+            r = rank_table(start.data(), pose_dist.data(), audio_dist.data(), M, k);
+        }
+        return py::make_tuple(r.segment, r.pose_rank, r.audio_rank, r.n_candidates);
+    }, py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
+       py::arg("k"), "Ranks over a pre-selection table (use gesturedb.search.rank_table).");
+
     m.def("search", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
                        const F32& query, const F32& init_pose, int64_t window, int64_t k,
                        const std::string& preselect, const std::optional<U64>& allowed,

@@ -779,6 +779,30 @@ StepResult StepEngine::step(const float* prev, const float* query, int64_t n,
     return impl_->step(prev, query, n, opt);
 }
 
+TableRank rank_table(const int64_t* start, const float* pose_dist, const double* audio_dist, int64_t M,
+                     int64_t k) {
+    if (k < 1) throw std::invalid_argument("k: expected >= 1");
+    if (M > int64_t(std::numeric_limits<int32_t>::max()))
+        throw std::invalid_argument("table: expected fewer than 2^31 rows");
+    // the ranker reads only the segment count and starts of a Database
+    std::vector<int64_t> zero(std::max<int64_t>(M, 1), 0);
+    Database db;
+    db.seg_start = {zero.data(), M};
+    db.seg_len = {zero.data(), M};
+    // Selection is read-only here; the ranker never writes through it
+    Selection sel{const_cast<int64_t*>(start), const_cast<float*>(pose_dist), const_cast<double*>(audio_dist)};
+    Ranker ranker;
+    const StepResult r = ranker.rank(db, sel, 0, k);
+    TableRank out;
+    out.n_candidates = r.n_candidates;
+    if (r.found) {
+        out.segment = r.segment;
+        out.pose_rank = r.pose_rank;
+        out.audio_rank = r.audio_rank;
+    }
+    return out;
+}
+
 void StepEngine::preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt,
                            int64_t* start, float* pose_dist, double* audio_dist) {
     if (n < 1) throw std::invalid_argument("step: window length must be >= 1");

@@ -124,6 +124,17 @@ private:
     std::unique_ptr<Impl> impl_;
 };
 
+// Spec steps 4-5 over a pre-selection table of M rows (start -1: no
+// candidate), e.g. several shards' tables concatenated in global segment order.
+struct TableRank {
+    int64_t segment = -1;      // -1 when no row has a candidate
+    int64_t pose_rank = -1;
+    int64_t audio_rank = -1;
+    int64_t n_candidates = 0;
+};
+TableRank rank_table(const int64_t* start, const float* pose_dist, const double* audio_dist, int64_t M,
+                     int64_t k);
+
 // A whole search of query (T, Da) from init_pose (Dp,), steps at t = 0, N, 2N...
 // Returns -1 on success, else the index of the step that found no candidate
 // (entries from that step on are left unwritten).

@@ -581,21 +581,14 @@ def rank_table(starts, pose_dist, audio_dist, *, k=1):
     tuple (segment, pose_rank, audio_rank, n_candidates) of int, or None when no segment remains.
     """
     k = _positive_int(k, "k")
-    m = np.flatnonzero(np.asarray(starts) >= 0)
-    K = m.size
-    if K == 0:
-        return None
-    # -0 == +0 and every NaN sorts last and equal to the others, like the kernel's keys:
-    # lexsort's last key is primary, ties fall to the segment index
-    dp = np.asarray(pose_dist, dtype=np.float32)[m] + np.float32(0.0)
-    da = np.asarray(audio_dist, dtype=np.float64)[m] + 0.0
-    rp = np.empty(K, np.int64)
-    rp[np.lexsort((m, dp))] = np.arange(K)
-    ra = np.empty(K, np.int64)
-    ra[np.lexsort((m, da))] = np.arange(K)
-    order = np.lexsort((m, rp, rp + ra))
-    c = int(order[min(k, K) - 1])
-    return int(m[c]), int(rp[c]), int(ra[c]), K
+    s = np.ascontiguousarray(starts, dtype=np.int64)
+    dp = np.ascontiguousarray(pose_dist, dtype=np.float32)
+    da = np.ascontiguousarray(audio_dist, dtype=np.float64)
+    if s.ndim != 1 or dp.shape != s.shape or da.shape != s.shape:
+        raise ParameterError(f"rank_table: expected three (M,) arrays; got {s.shape}, {dp.shape}, {da.shape}")
+    # the kernel's own ranker (radix sort, top-list shortcut): the same ranks as a step
+    m, rp, ra, K = _core().rank_table(s, dp, da, k)
+    return None if m < 0 else (int(m), int(rp), int(ra), int(K))
 
 
 def _result(d, T, sl=slice(None)) -> SearchResult:

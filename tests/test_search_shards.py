@@ -24,6 +24,33 @@ def test_rank_table_merges_shard_tables_exactly():
             assert float(dp[m]) == want.pose_dist and float(da[m]) == want.audio_dist
 
 
+def _numpy_rank(s, dp, da, k):
+    """Spec steps 4-5 written independently in numpy (lexsort: last key primary, ties by m)."""
+    m = np.flatnonzero(s >= 0)
+    if m.size == 0:
+        return None
+    K = m.size
+    rp = np.empty(K, np.int64)
+    rp[np.lexsort((m, dp[m].astype(np.float64) + 0.0))] = np.arange(K)
+    ra = np.empty(K, np.int64)
+    ra[np.lexsort((m, da[m] + 0.0))] = np.arange(K)
+    c = np.lexsort((m, rp, rp + ra))[min(k, K) - 1]
+    return int(m[c]), int(rp[c]), int(ra[c]), K
+
+
+@pytest.mark.parametrize("M", [1, 7, 300, 5000])
+def test_rank_table_matches_numpy_with_ties_and_gaps(M):
+    rng = np.random.default_rng(M)
+    for trial in range(20):
+        s = np.where(rng.random(M) < 0.8, rng.integers(1, 50, M), -1).astype(np.int64)
+        dp = rng.integers(0, 4 if trial % 2 else 1000, M).astype(np.float32)  # many exact ties
+        da = rng.integers(0, 5, M) / 4.0 if trial % 3 else rng.random(M)
+        dp[rng.random(M) < 0.05] = -0.0
+        for k in (1, 2, 17, M + 3):
+            assert search.rank_table(s, dp, da, k=k) == _numpy_rank(s, dp, da, k), (trial, k)
+    assert search.rank_table(np.full(3, -1), np.zeros(3, np.float32), np.zeros(3), k=1) is None
+
+
 @pytest.mark.parametrize("parts", [2, 3])
 def test_sharded_search_random_data(dask_client, parts):
     rng = np.random.default_rng(12 + parts)
