@@ -180,3 +180,14 @@ def test_searcher_uses_the_projection_by_default_with_identical_output(scott_db,
         b = plain.synthesize(speech, k=k, smooth=False)
         assert a.steps == b.steps
         np.testing.assert_array_equal(a.positions, b.positions)
+
+
+def test_keep_fraction_separates_motion_from_unstructured_rows(scott_db):
+    """Real pose features keep a few candidates per segment; i.i.d. rows keep most."""
+    real = search.PoseProjection(np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32))
+    assert real.keep_fraction < 0.1
+    rng = np.random.default_rng(7)
+    noise = search.PoseProjection(rng.standard_normal((4000, 96)).astype(np.float32))
+    assert noise.keep_fraction > 0.5
+    P, _, _, _ = stacked_recordings(rng)
+    assert search.PoseProjection(P).keep_fraction < 0.25

@@ -44,7 +44,8 @@ class Searcher:
         Pose steps stream a 24-column projection of the pose features
         (:class:`gesturedb.search.PoseProjection`, built at the first pose
         search): identical results, a quarter of the bytes per step. On by
-        default; takes precedence over ``half_precision``.
+        default (skipped when it would keep a quarter of the candidates or
+        more); takes precedence over ``half_precision``.
     """
 
     def __init__(self, db, *, segments: str = "chunks", half_precision: bool = False,
@@ -70,11 +71,16 @@ class Searcher:
 
     def pose_projection(self):
         """The :class:`gesturedb.search.PoseProjection` of the database's pose
-        features, built once (None when ``projection=False``)."""
+        features, built once; None when ``projection=False`` or when it would
+        keep a quarter of the candidates or more (pose features without the
+        structure of motion: the filter would only add work)."""
         if self._projection and self._proj is None:
             from gesturedb.search import PoseProjection
 
             self._proj = PoseProjection(self.db.pose_features)
+            if self._proj.keep_fraction >= 0.25:
+                self._projection = False
+                self._proj = None
         return self._proj
 
     # -- inputs ---------------------------------------------------------------
