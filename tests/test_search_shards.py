@@ -88,3 +88,25 @@ def test_sharded_search_real_database(dask_client, scott_db, parts):
             assert_same_search(sh.search(q, P[10], **kw), search.rank_sum_search(P, A, st, ln, q, P[10], **kw))
     finally:
         sh.close()
+
+
+def test_synthesis_over_shards_is_identical(dask_client, scott_db, scott_dir):
+    from gesturedb.synth import Searcher
+
+    speech = scott_dir / "inputs/2_scott_0_2_2.wav"
+    a = Searcher(scott_db).synthesize(speech, k=2, smooth=False)
+    for parts in (2, 3):
+        b = Searcher(scott_db, client=dask_client, parts=parts).synthesize(speech, k=2, smooth=False)
+        assert a.steps == b.steps
+        np.testing.assert_array_equal(a.positions, b.positions)
+
+
+def test_cli_synth_with_a_scheduler(scott_db_path, scott_dir, tmp_path):
+    from gesturedb.cli.main import main
+
+    speech = scott_dir / "inputs/2_scott_0_2_2.wav"
+    out_a, out_b = tmp_path / "a.bvh", tmp_path / "b.bvh"
+    assert main(["synth", str(scott_db_path), "--audio", str(speech), "-o", str(out_a)]) == 0
+    assert main(["synth", str(scott_db_path), "--audio", str(speech), "-o", str(out_b),
+                 "--scheduler", "local:1", "--parts", "3"]) == 0
+    assert out_a.read_bytes() == out_b.read_bytes()

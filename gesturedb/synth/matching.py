@@ -46,11 +46,18 @@ class Searcher:
         search): identical results, a quarter of the bytes per step. On by
         default (skipped when it would keep a quarter of the candidates or
         more); takes precedence over ``half_precision``.
+    client : distributed.Client, optional
+        Search over ``parts`` shards resident on this Dask cluster's workers
+        (:class:`gesturedb.db.shards.ShardedSearch`, built at the first
+        search): exactly the same output as the search in this process.
+    parts : int
+        Number of shards with ``client``.
     """
 
     def __init__(self, db, *, segments: str = "chunks", half_precision: bool = False,
-                 projection: bool = True):
+                 projection: bool = True, client=None, parts: int = 2):
         self.db = db
+        self._client, self._parts, self._sharded = client, parts, None
         self._projection = bool(projection)
         self._proj = None
         self._half = None
@@ -208,11 +215,20 @@ class Searcher:
         excl = self.exclude_recordings(exclude)
         init_pose = self.initial_pose(init, seed=seed)
         try:
-            res = rank_sum_search(
-                db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
-                step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl, pose_f16=self._half,
-                pose_proj=self.pose_projection() if preselect == "pose" else None,
-            )
+            if self._client is not None:
+                if self._sharded is None:
+                    from gesturedb.db.shards import ShardedSearch
+
+                    self._sharded = ShardedSearch(db.pose_features, db.audio_features, self.seg_start,
+                                                  self.seg_len, client=self._client, parts=self._parts)
+                res = self._sharded.search(query, init_pose, step=step, k=k, preselect=preselect,
+                                           allowed=allowed, exclude=excl)
+            else:
+                res = rank_sum_search(
+                    db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
+                    step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl, pose_f16=self._half,
+                    pose_proj=self.pose_projection() if preselect == "pose" else None,
+                )
         except SearchError as exc:
             raise self._explain(exc, labels, keyword_bits=keyword_bits, exclude=excl, step=step, T=T) from None
 
