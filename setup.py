@@ -63,6 +63,7 @@ setup(
         "pyvista>=0.43",     # offscreen skeleton rendering
         "vtk>=9.4",          # renders offscreen through EGL (needs libegl1, libegl-mesa0, libgl1-mesa-dri)
         "pillow>=10.1",      # sized built-in font for captions
+        "dask[distributed]>=2024.1",  # build on a cluster (gesturedb build --scheduler)
         "imageio>=2.30",
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report

@@ -16,6 +16,9 @@ def add_parser(sub) -> None:
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="files or folders")
     p.add_argument("-o", "--output", required=True, metavar="DB.h5")
     p.add_argument("-j", "--workers", type=int, default=min(2, os.cpu_count() or 1), help="processes (default: %(default)s)")
+    p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
+                   help="process recordings as Dask tasks (a LocalCluster of N workers or a running scheduler); "
+                   "this process still writes the file")
     p.add_argument("-r", "--recursive", action="store_true", help="also take files in sub-folders")
     p.add_argument("--fps", type=float, default=15.0, help="database frame rate (default: %(default)s)")
     p.add_argument("--chunk-frames", type=int, default=64, help="fixed chunk length (default: %(default)s)")
@@ -53,6 +56,7 @@ def run(args) -> int:
         print(pair_inputs(args.inputs, recursive=args.recursive).summary(), file=sys.stderr)
     db = build(
         args.inputs, args.output, workers=args.workers, recursive=args.recursive, progress=not args.quiet,
+        scheduler=args.scheduler,
         fps=args.fps, chunk_frames=args.chunk_frames, gap_s=args.gap_s, pose_window=args.pose_window,
         pose_stride=args.pose_stride, mirror=args.mirror, speaker=args.speaker,
         joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s,

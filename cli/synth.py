@@ -34,6 +34,9 @@ def add_parser(sub) -> None:
     p.add_argument("--keywords", default=None, help="comma-separated keywords to use (default: all)")
     p.add_argument("--exclude", default=None, help="comma-separated recordings to leave out of the search")
     p.add_argument("--export-fps", type=float, default=None, help="resample the BVH/npz to this frame rate")
+    p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
+                   help="search over --parts shards on Dask workers (same output)")
+    p.add_argument("--parts", type=int, default=2, help="shards with --scheduler (default: %(default)s)")
     p.add_argument("--render", default=None, metavar="OUT.mp4", help="also render the result (mp4/gif/png)")
     p.add_argument("--refiner", default=None, metavar="REFINER.pt",
                    help="refine the result with a trained refiner (gesturedb refiner train)")
@@ -54,13 +57,17 @@ def run(args) -> int:
     check_motion_output(args.output)
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
-    with gesturedb.open(args.db) as db:
+    from contextlib import nullcontext
+
+    from gesturedb.db.cluster import dask_client
+
+    with gesturedb.open(args.db) as db, (dask_client(args.scheduler) if args.scheduler else nullcontext()) as client:
         refiner = None
         if args.refiner:
             from gesturedb.refiner import load_refiner
 
             refiner = load_refiner(args.refiner, db)
-        res = Searcher(db, segments=args.segments).synthesize(
+        res = Searcher(db, segments=args.segments, client=client, parts=args.parts).synthesize(
             args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
             seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
             control=args.control,

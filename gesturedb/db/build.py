@@ -521,6 +521,7 @@ def build(
     workers: int = 1,
     recursive: bool = False,
     progress: bool | Callable = False,
+    scheduler=None,
     **config,
 ):
     """Build a gesture database from recordings and open it.
@@ -537,6 +538,11 @@ def build(
         Processes used for the per-recording work.
     progress : bool
         Show a progress bar (tqdm, on stderr).
+    scheduler : str or distributed.Client, optional
+        Process the recordings as Dask tasks instead of local processes:
+        ``"local:N"`` (a LocalCluster of N workers), ``"tcp://HOST:PORT"`` or a
+        Client (see :mod:`gesturedb.db.cluster`). This process stays the only
+        writer of the file; the database is identical to a local build.
     **config
         Any field of :class:`BuildConfig` (``fps``, ``chunk_frames``, ``gap_s``, ``mirror``, ...).
 
@@ -558,7 +564,7 @@ def build(
             "inputs: expected at least one recording (a motion file .bvh/.npz and a .wav with the same stem), "
             f"found none in {', '.join(map(str, inputs))}" + ("\n" + pairing.summary() if pairing.skipped else "")
         )
-    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress)
+    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler)
     for r in recs[1:]:
         if not _same_skeleton(recs[0].skeleton, r.skeleton):
             raise InputFileError(
@@ -575,7 +581,8 @@ def build(
     return db
 
 
-def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress) -> list[RecordingData]:
+def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress,
+                 scheduler=None) -> list[RecordingData]:
     bar = None
     if progress:
         from tqdm import tqdm
@@ -583,7 +590,17 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
         bar = tqdm(total=len(sources), unit="rec", desc="building", disable=None)
     out: list[RecordingData] = []
     try:
-        if workers == 1 or len(sources) == 1:
+        if scheduler is not None:
+            from gesturedb.db.cluster import process_on_cluster
+
+            def done(i):
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix_str(sources[i].name)
+
+            for res in process_on_cluster(_process_star, [(s, cfg) for s in sources], scheduler, on_done=done):
+                out += res  # input order: the content does not depend on scheduling
+        elif workers == 1 or len(sources) == 1:
             for s in sources:
                 out += process_recording(s, cfg)
                 if bar is not None:
