@@ -28,6 +28,7 @@ def add_parser(sub) -> None:
                    help='role -> joint name override, e.g. \'{"left_index1": "LeftHandThumb1"}\' or a .json file')
     p.add_argument("--max-mismatch", type=float, default=1.0, dest="max_mismatch_s",
                    help="largest audio/motion duration difference, s (default: %(default)s)")
+    p.add_argument("--no-graph", action="store_true", help="skip the motion graph (add it later with `gesturedb graph`)")
     p.add_argument("-q", "--quiet", action="store_true", help="no pairing report or progress bar")
     p.set_defaults(run=run)
 
@@ -55,7 +56,7 @@ def run(args) -> int:
         args.inputs, args.output, workers=args.workers, recursive=args.recursive, progress=not args.quiet,
         fps=args.fps, chunk_frames=args.chunk_frames, gap_s=args.gap_s, pose_window=args.pose_window,
         pose_stride=args.pose_stride, mirror=args.mirror, speaker=args.speaker,
-        joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s,
+        joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s, graph=not args.no_graph,
     )
     with db:
         print(f"wrote {args.output}: {len(db.recordings)} recording(s), {db.n_frames} frames "

@@ -20,6 +20,7 @@ COMMANDS = {
     "eval": "eval",
     "render": "render",
     "retarget": "retarget",
+    "graph": "graph",
 }
 
 

@@ -62,6 +62,8 @@ class BuildConfig:
     speaker : str or None
         Speaker name for every recording; None infers it from BEAT-style stems
         (``2_scott_0_1_1`` -> ``scott``) or the folder name.
+    graph : bool
+        Also build the motion graph and style predictor (:mod:`gesturedb.db.graph`).
     """
 
     fps: float = 15.0
@@ -75,6 +77,7 @@ class BuildConfig:
     joint_map: dict | None = None
     max_mismatch_s: float = 1.0
     speaker: str | None = None
+    graph: bool = True
 
     def __post_init__(self):
         def bad(name, expected):
@@ -488,6 +491,10 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig) -> None:
     W(h5, "words/text", [t for r in recs for t in r.words[2]], dims)
 
     _write_controls_and_masks(h5, recs)
+    if cfg.graph:
+        from gesturedb.db.graph import write_graph
+
+        write_graph(h5)
 
 
 def _write_controls_and_masks(h5, recs: list[RecordingData]) -> None:

@@ -1,0 +1,251 @@
+"""The motion graph over the database's word-gap clips (GestureMaster, Sec. 4.1) and the style predictor.
+
+Built at ``gesturedb build`` (default) or added to an existing file by ``gesturedb graph DB.h5``;
+stored under ``graph/`` and ``style_model/`` (see :mod:`gesturedb.db.schema`). It lives in the
+database layer because the build writes it; the search over it is :mod:`gesturedb.synth.graph`.
+
+Transition cost (Eq. 1), ``T(p, q) = l1 * T_p + l2 * T_r`` over ``m = transition_frames``
+frames, the last ``m`` frames of ``p`` against the first ``m`` of ``q``:
+
+- ``T_p``: summed *squared* distance (m^2) of all joints in the body frame (root position
+  subtracted, root heading removed), so where the speaker stood or faced does not matter.
+  Squared, so the whole K x K table is one matrix product (``|a|^2 + |b|^2 - 2 a.b``).
+- ``T_r``: summed ``1 - <q_a, q_b>^2`` (= sin^2 of half the angle) over the local
+  rotations of every non-root joint; ``<q_a, q_b>^2`` is linear in the outer products
+  ``q q^T``, so this is a matrix product too (and it does not care about q vs -q).
+
+Edges. ``p -> q`` exists where ``T(p, q) < delta_T``; ``delta_T`` defaults to the
+``delta_quantile`` (10 %) quantile of all off-diagonal costs of the database, because the
+paper's ``delta_T = 8`` belongs to its own units. Additionally every node keeps its
+``min_out`` (4) cheapest out-edges, so a small database never falls apart into nodes
+without a way on. There are no self-edges: the graph itself never plays a clip twice in a
+row (the back-to-back repeat rule), which also means the output never loops on one clip.
+
+Style predictor (Sec. 3.3 uses StyleGestures; here a ridge regression): the clip's mean
+and standard deviation of the standardised audio features (2 x Da) plus its word rate
+-> the clip's style signature (speed m/s, radius m, height m). Fitted on the database's
+clips when the graph is built; the held-out error (every 5th clip held out, RMS per
+output standardised by the target std) is stored beside the error of predicting the mean.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from gesturedb.errors import ParameterError
+
+L1 = 0.7
+L2 = 0.3
+TRANSITION_FRAMES = 2
+DELTA_QUANTILE = 0.10
+MIN_OUT = 4
+RIDGE_ALPHA = 1.0
+
+
+def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
+    """Quaternions (n, 4) removing the heading (rotation about +y) of root rotations (n, 4)."""
+    from gesturedb import rotations as R
+
+    fwd = R.apply(root_q, np.broadcast_to(np.array([0.0, 0.0, 1.0]), root_q.shape[:-1] + (3,)))
+    a = -np.arctan2(fwd[..., 0], fwd[..., 2]) / 2
+    return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
+
+
+def transition_features(positions, rotations, root, frames):
+    """Body-frame position and rotation features of the given frames.
+
+    Parameters
+    ----------
+    positions : ndarray [shape=(F, J, 3)], metres, world
+    rotations : ndarray [shape=(F, J, 4)], local quaternions (w, x, y, z)
+    root : ndarray [shape=(F, 3)], metres
+    frames : ndarray [shape=(K, m)], int
+        Frames of each clip's transition window.
+
+    Returns
+    -------
+    pos : ndarray [shape=(K, m * J * 3)], metres, body frame
+    rot : ndarray [shape=(K, m * (J - 1) * 10)]
+        Upper triangle of ``q q^T`` (off-diagonals doubled) per non-root joint, so that
+        ``rot_a . rot_b = sum <q_a, q_b>^2``.
+    """
+    from gesturedb import rotations as R
+
+    K, m = frames.shape
+    f = frames.reshape(-1)
+    p = np.asarray(positions[f], dtype=np.float64) - np.asarray(root[f], dtype=np.float64)[:, None, :]
+    q = np.asarray(rotations[f], dtype=np.float64)
+    yinv = _yaw_inverse(q[:, 0])
+    p = R.apply(np.repeat(yinv[:, None, :], p.shape[1], axis=1), p)
+    qq = q[:, 1:, :]
+    iu, ju = np.triu_indices(4)
+    scale = np.where(iu == ju, 1.0, np.sqrt(2.0))
+    outer = qq[..., iu] * qq[..., ju] * scale
+    return p.reshape(K, -1), outer.reshape(K, -1)
+
+
+def transition_costs(end_pos, end_rot, start_pos, start_rot, *, l1: float = L1, l2: float = L2) -> np.ndarray:
+    """Dense ``T[p, q]`` (K, K) from clip-end and clip-start features by two matrix products (BLAS)."""
+    n_rot = end_rot.shape[1] / 10.0  # joints x frames: sum of 1 - dot^2 = n - <outer, outer>
+    tp = (end_pos * end_pos).sum(1)[:, None] + (start_pos * start_pos).sum(1)[None, :] - 2.0 * (end_pos @ start_pos.T)
+    tr = n_rot - end_rot @ start_rot.T
+    return l1 * np.maximum(tp, 0.0) + l2 * np.maximum(tr, 0.0)
+
+
+def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE,
+                     min_out: int = MIN_OUT):
+    """CSR edges (no self-edges) where ``T < delta_T`` plus each node's ``min_out`` cheapest.
+
+    Returns
+    -------
+    indptr : int64 (K + 1,), indices : int64 (E,), cost : float64 (E,), delta_T : float
+    """
+    K = T.shape[0]
+    T = np.array(T, dtype=np.float64)
+    np.fill_diagonal(T, np.inf)
+    if delta_T is None:
+        off = T[np.isfinite(T)]
+        delta_T = float(np.quantile(off, delta_quantile)) if off.size else 0.0
+    keep = T < delta_T
+    k = min(int(min_out), K - 1)
+    if k > 0:
+        cheapest = np.argpartition(T, k - 1, axis=1)[:, :k]
+        keep[np.arange(K)[:, None], cheapest] = True
+    np.fill_diagonal(keep, False)
+    rows, cols = np.nonzero(keep)
+    indptr = np.zeros(K + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=K), out=indptr[1:])
+    return indptr, cols.astype(np.int64), T[rows, cols].astype(np.float64), float(delta_T)
+
+
+def clip_audio_inputs(audio_features: np.ndarray, starts, lengths, n_words) -> np.ndarray:
+    """Style-predictor inputs per clip: mean and std of standardised audio features, word rate.
+
+    Parameters
+    ----------
+    audio_features : ndarray [shape=(F, Da)], standardised
+    starts, lengths : int arrays (K,), frames
+    n_words : ndarray (K,), words per clip; divided by the clip length in frames (words/frame)
+
+    Returns
+    -------
+    ndarray [shape=(K, 2 Da + 1)], float64
+    """
+    a = np.asarray(audio_features, dtype=np.float64)
+    out = np.empty((len(starts), 2 * a.shape[1] + 1))
+    for k, (s, n) in enumerate(zip(starts, lengths)):
+        seg = a[int(s): int(s) + int(n)]
+        out[k, : a.shape[1]] = seg.mean(0)
+        out[k, a.shape[1]: 2 * a.shape[1]] = seg.std(0)
+        out[k, -1] = float(n_words[k]) / max(int(n), 1)
+    return out
+
+
+def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float = RIDGE_ALPHA) -> dict:
+    """Ridge regression ``Y ~ X`` on standardised inputs; held-out error vs the mean predictor.
+
+    Returns a dict with ``coef (P, S)``, ``intercept (S,)``, ``x_mean (P,)``, ``x_std (P,)``,
+    ``heldout_rmse`` and ``mean_rmse`` (RMS over held-out clips and the S outputs, each
+    output divided by its standard deviation), ``n_heldout``.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+
+    def fit(Xt, Yt):
+        mu, sd = Xt.mean(0), np.maximum(Xt.std(0), 1e-9)
+        Z = (Xt - mu) / sd
+        ym = Yt.mean(0)
+        A = Z.T @ Z + alpha * np.eye(Z.shape[1])
+        coef = np.linalg.solve(A, Z.T @ (Yt - ym))
+        return coef, ym, mu, sd
+
+    def predict(m, Xq):
+        coef, ym, mu, sd = m
+        return ((Xq - mu) / sd) @ coef + ym
+
+    K = X.shape[0]
+    held = np.arange(K) % 5 == 4
+    ysd = np.maximum(Y.std(0), 1e-9)
+    if held.sum() >= 1 and (~held).sum() >= 2:
+        m = fit(X[~held], Y[~held])
+        err = ((predict(m, X[held]) - Y[held]) / ysd) ** 2
+        base = ((Y[~held].mean(0) - Y[held]) / ysd) ** 2
+        heldout, mean_err = float(np.sqrt(err.mean())), float(np.sqrt(base.mean()))
+    else:
+        heldout = mean_err = float("nan")
+    coef, ym, mu, sd = fit(X, Y)
+    return dict(coef=coef, intercept=ym, x_mean=mu, x_std=sd, heldout_rmse=heldout, mean_rmse=mean_err,
+                n_heldout=int(held.sum()))
+
+
+def predict_style(model: dict, X: np.ndarray) -> np.ndarray:
+    """Style signatures (n, S) predicted from inputs (n, P) by a model from :func:`fit_style_model`."""
+    return ((np.asarray(X, dtype=np.float64) - model["x_mean"]) / model["x_std"]) @ model["coef"] + model["intercept"]
+
+
+def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = TRANSITION_FRAMES,
+                delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT) -> dict:
+    """Compute the motion graph and the style model of an open, writable database file and store them.
+
+    Called by the build (inside :func:`gesturedb.db.storage.write_atomically`) and by
+    :func:`add_graph` (inside :func:`gesturedb.db.storage.edit`). Returns a summary dict.
+    """
+    from gesturedb.db import schema
+
+    if not isinstance(transition_frames, (int, np.integer)) or transition_frames < 1:
+        raise ParameterError(f"transition_frames: expected a positive integer, got {transition_frames!r}")
+    for name, v in (("l1", l1), ("l2", l2)):
+        if not np.isfinite(v) or v < 0:
+            raise ParameterError(f"{name}: expected a finite weight >= 0, got {v!r}")
+    r = lambda p: schema.read(h5, p)  # noqa: E731
+    start, length = r("clips/start"), r("clips/length")
+    K = start.shape[0]
+    m = int(transition_frames)
+    off = np.arange(m)
+    # clips shorter than m frames repeat their edge frames
+    last = start[:, None] + np.maximum(length[:, None] - m + off, 0).clip(max=length[:, None] - 1)
+    first = start[:, None] + np.minimum(off, length[:, None] - 1)
+    pos, rot, root = h5["frames/joint_positions"], h5["frames/local_rotations"], h5["frames/root_positions"]
+    need = np.unique(np.concatenate([last.ravel(), first.ravel()]))
+    pos_a, rot_a, root_a = pos[need], rot[need], root[need]
+    idx = lambda f: np.searchsorted(need, f)  # noqa: E731
+    ep, er = transition_features(pos_a, rot_a, root_a, idx(last))
+    sp, sr = transition_features(pos_a, rot_a, root_a, idx(first))
+    T = transition_costs(ep, er, sp, sr, l1=l1, l2=l2)
+    indptr, indices, cost, dT = edges_from_costs(T, delta_T=delta_T, delta_quantile=delta_quantile, min_out=min_out)
+
+    dims = {"K": K}
+    schema.write(h5, "graph/indptr", indptr, dims)
+    schema.write(h5, "graph/indices", indices, dims)
+    schema.write(h5, "graph/cost", cost, dims)
+    g = h5["graph"]
+    for k, v in dict(l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
+                     delta_quantile=float(delta_quantile), min_out=int(min_out)).items():
+        g.attrs[k] = v
+
+    n_words = r("clips/word_end") - r("clips/word_start")
+    X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
+    model = fit_style_model(X, r("clips/style").astype(np.float64))
+    for k in ("coef", "intercept", "x_mean", "x_std"):
+        schema.write(h5, f"style_model/{k}", model[k], dims)
+    sm = h5["style_model"]
+    for k in ("heldout_rmse", "mean_rmse", "n_heldout"):
+        sm.attrs[k] = model[k]
+    sm.attrs["alpha"] = RIDGE_ALPHA
+    return dict(n_nodes=K, n_edges=int(indices.shape[0]), delta_T=dT, heldout_rmse=model["heldout_rmse"],
+                mean_rmse=model["mean_rmse"])
+
+
+def add_graph(path, **options) -> dict:
+    """Add (or replace) the motion graph of an existing database file, upgrading a version-1 file.
+
+    Written through :func:`gesturedb.db.storage.edit` (temporary copy + rename).
+    """
+    from gesturedb.db import schema, storage
+
+    with storage.edit(path, upgrade=True) as h5:
+        for grp in ("graph", "style_model"):
+            if grp in h5:
+                del h5[grp]
+        summary = write_graph(h5, **options)
+        h5.attrs["schema_version"] = schema.SCHEMA_VERSION
+    return summary
