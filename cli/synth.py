@@ -18,6 +18,10 @@ def add_parser(sub) -> None:
     p.add_argument("--npz", default=None, metavar="OUT.npz", help="also write joint positions (T, J, 3) in metres")
     p.add_argument("--provenance", default=None, metavar="OUT.json",
                    help="where every step came from (default: OUT.provenance.json)")
+    p.add_argument("--method", choices=("knn", "graph"), default="knn",
+                   help="knn: rank-sum motion matching (default); graph: GestureMaster motion-graph path search")
+    p.add_argument("--gap", type=float, default=None, dest="gap_s",
+                   help="--method graph: input pause that splits clips, s (default: the database's)")
     p.add_argument("--k", type=int, default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")
@@ -53,12 +57,20 @@ def run(args) -> int:
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
     with gesturedb.open(args.db) as db:
-        res = Searcher(db, segments=args.segments).synthesize(
-            args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
-            seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
-            control=args.control,
-            keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
-        )
+        if args.method == "graph":
+            from gesturedb.synth.graph import GraphSynthesizer
+
+            res = GraphSynthesizer(db).synthesize(
+                args.audio, transcript=args.transcript, gap_s=args.gap_s, blend_frames=args.blend_frames,
+                smooth=not args.no_smooth, control=args.control, keywords=keywords,
+                exclude=args.exclude.split(",") if args.exclude else None)
+        else:
+            res = Searcher(db, segments=args.segments).synthesize(
+                args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
+                seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
+                control=args.control,
+                keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
+            )
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
     motion = apply_target(args, motion)
     write_motion(args.output, motion)
