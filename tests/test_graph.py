@@ -1,0 +1,202 @@
+"""The motion graph (gesturedb.db.graph) and graph synthesis (gesturedb.synth.graph) on toy and real data."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+import gesturedb
+from gesturedb import rotations as R
+from gesturedb.db import graph as G
+from gesturedb.db import schema
+from gesturedb.errors import SchemaError
+from gesturedb.synth.graph import MAX_SPEED, GraphSynthesizer, voiced_segments
+from gesturedb.synth.viterbi import check_csr
+
+INPUTS = ["2_scott_0_2_2", "2_scott_0_3_3", "2_scott_0_4_4", "2_scott_0_5_5"]
+
+
+def _direct_cost(pos, rot, root, fa, fb, l1, l2):
+    """T between frame lists fa (end of p) and fb (start of q) by explicit loops (the oracle)."""
+    tp = tr = 0.0
+    for a, b in zip(fa, fb):
+        local = []
+        for f in (a, b):
+            fwd = R.apply(rot[f, 0], np.array([0.0, 0.0, 1.0]))
+            yaw = np.arctan2(fwd[0], fwd[2])
+            c, s = np.cos(yaw), np.sin(yaw)
+            m = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])  # rotation about y by -yaw
+            local.append((pos[f] - root[f]) @ m.T)
+        tp += float(np.sum((local[0] - local[1]) ** 2))
+        tr += float(np.sum(1 - np.sum(rot[a, 1:] * rot[b, 1:], -1) ** 2))
+    return l1 * tp + l2 * tr
+
+
+def test_transition_costs_match_direct_loops():
+    rng = np.random.default_rng(0)
+    F, J, K, m = 40, 5, 6, 2
+    pos = rng.normal(size=(F, J, 3))
+    root = rng.normal(size=(F, 3))
+    rot = R.normalize(rng.normal(size=(F, J, 4)))
+    ends = rng.integers(0, F, (K, m))
+    starts = rng.integers(0, F, (K, m))
+    ep, er = G.transition_features(pos, rot, root, ends)
+    sp, sr = G.transition_features(pos, rot, root, starts)
+    T = G.transition_costs(ep, er, sp, sr, l1=0.7, l2=0.3)
+    for p in range(K):
+        for q in range(K):
+            assert T[p, q] == pytest.approx(_direct_cost(pos, rot, root, ends[p], starts[q], 0.7, 0.3), abs=1e-9)
+
+
+def test_edges_threshold_plus_cheapest():
+    rng = np.random.default_rng(1)
+    K = 30
+    T = rng.random((K, K)) * 10
+    indptr, indices, cost, dT = G.edges_from_costs(T, delta_quantile=0.05, min_out=3)
+    check_csr(indptr, indices, cost, K)
+    dense = np.zeros((K, K), bool)
+    src = np.repeat(np.arange(K), np.diff(indptr))
+    dense[src, indices] = True
+    assert not dense.diagonal().any()
+    off = ~np.eye(K, dtype=bool)
+    assert dT == pytest.approx(np.quantile(T[off], 0.05))
+    assert np.all(dense[(T < dT) & off])  # every edge under the threshold
+    assert np.all(np.diff(indptr) >= 3)
+    for p in range(K):  # the cheapest 3 are among the edges, and nothing else above the threshold
+        order = [q for q in np.argsort(T[p]) if q != p]
+        assert dense[p, order[:3]].all()
+        extra = dense[p] & (T[p] >= dT)
+        assert extra.sum() <= 3
+    np.testing.assert_array_equal(cost, T[src, indices])
+
+
+def test_style_model_beats_the_mean_on_learnable_data():
+    rng = np.random.default_rng(2)
+    X = rng.normal(size=(200, 5))
+    Y = X @ rng.normal(size=(5, 3)) + 0.1 * rng.normal(size=(200, 3))
+    m = G.fit_style_model(X, Y)
+    assert m["heldout_rmse"] < 0.3 * m["mean_rmse"]
+    np.testing.assert_allclose(G.predict_style(m, X), Y, atol=0.5)
+
+
+def test_voiced_segments_find_bursts():
+    sr = 16000
+    t = np.arange(int(3.0 * sr)) / sr
+    x = 1e-4 * np.random.default_rng(3).normal(size=t.shape)
+    truth = [(0.2, 0.6), (1.1, 1.5), (2.2, 2.9)]
+    for a, b in truth:
+        sel = (t >= a) & (t < b)
+        x[sel] += 0.3 * np.sin(2 * np.pi * 220 * t[sel])
+    s, e = voiced_segments(x, sr)
+    assert len(s) == 3
+    np.testing.assert_allclose(s, [a for a, _ in truth], atol=0.02)
+    np.testing.assert_allclose(e, [b for _, b in truth], atol=0.02)
+
+
+def test_real_graph_is_stored_and_consistent(scott_db_path):
+    with h5py.File(scott_db_path, "r") as h5:
+        K = h5["clips/start"].shape[0]
+        indptr, indices, cost = (schema.read(h5, f"graph/{k}") for k in ("indptr", "indices", "cost"))
+        check_csr(indptr, indices, cost, K)
+        assert np.all(np.diff(indptr) >= min(G.MIN_OUT, K - 1))
+        attrs = dict(h5["graph"].attrs)
+        assert attrs["l1"] == 0.7 and attrs["l2"] == 0.3
+        # one edge recomputed from the frames by the direct loop
+        st, ln = h5["clips/start"][()], h5["clips/length"][()]
+        p, q = 0, int(indices[indptr[0]])
+        m = int(attrs["transition_frames"])
+        pos, rot, root = (h5[f"frames/{k}"][()].astype(np.float64) for k in ("joint_positions", "local_rotations",
+                                                                              "root_positions"))
+        want = _direct_cost(pos, rot, root, st[p] + ln[p] - m + np.arange(m), st[q] + np.arange(m), 0.7, 0.3)
+        assert cost[indptr[0]] == pytest.approx(want, rel=1e-4)
+        sm = dict(h5["style_model"].attrs)
+        assert np.isfinite(sm["heldout_rmse"]) or K < 7
+
+
+def test_old_file_is_a_clear_error_and_graph_command_upgrades(scott_db_path, tmp_path, capsys):
+    from gesturedb.cli.main import main
+
+    old = tmp_path / "old.h5"
+    shutil.copy(scott_db_path, old)
+    with h5py.File(old, "r+") as h5:
+        want = {k: h5[f"graph/{k}"][()] for k in ("indptr", "indices", "cost")}
+        del h5["graph"], h5["style_model"]
+        h5.attrs["schema_version"] = 1
+    with pytest.raises(SchemaError, match=r"old.h5: schema_version: expected 2, got 1 .*gesturedb graph"):
+        gesturedb.open(old)
+    assert main(["graph", str(old)]) == 0
+    assert "edges" in capsys.readouterr().out
+    with gesturedb.open(old) as db, h5py.File(old, "r") as h5:
+        for k, v in want.items():
+            np.testing.assert_array_equal(h5[f"graph/{k}"][()], v)  # same graph as the build made
+        GraphSynthesizer(db)
+
+
+@pytest.fixture(scope="module")
+def mirrored_db(scott_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("gdb") / "scott_m.h5"
+    gesturedb.build([scott_dir], out, mirror=True).close()
+    return out
+
+
+def _check_result(res, db, n_expected, synth):
+    T = res.n_frames
+    assert T == n_expected and res.motion.rotations.shape[0] == T
+    np.testing.assert_allclose(np.linalg.norm(res.motion.rotations, axis=-1), 1, atol=1e-6)
+    steps = res.steps
+    assert steps[0]["out_start"] == 0 and steps[-1]["out_end"] == T
+    assert all(a["out_end"] == b["out_start"] for a, b in zip(steps[:-1], steps[1:]))
+    nodes = [s["node"] for s in steps]
+    assert all(a != b for a, b in zip(nodes[:-1], nodes[1:])), "back-to-back repeat"
+    assert all(1 / MAX_SPEED - 1e-9 <= s["speed"] <= MAX_SPEED + 1e-9 for s in steps)
+    # the path's cost, recomputed from the provenance, is the search's cost
+    o = res.options
+    total = o["w_data"] * sum(s["data_cost"] for s in steps) + o["w_trans"] * sum(
+        s["transition_cost"] for s in steps[1:])
+    assert total == pytest.approx(o["total_cost"], rel=1e-9)
+    for s in steps:
+        assert s["data_cost"] == pytest.approx(o["l5"] * s["style_cost"] + o["l6"] * s["rhythm_cost"]
+                                               + o["l_dur"] * s["duration_cost"] + 1000.0 * s["unfit"])
+        rec = db.recording(s["recording"])
+        assert 0 <= s["source_start_s"] < s["source_end_s"] <= rec.n_frames / db.fps + 1e-6
+
+
+@pytest.mark.slow
+def test_graph_synthesis_on_all_inputs(mirrored_db, scott_dir):
+    from gesturedb.features.audio import n_frames_for_duration
+    from gesturedb.io.audio import read_audio
+
+    with gesturedb.open(mirrored_db) as db:
+        synth = GraphSynthesizer(db)
+        assert any(r.mirrored for r in db.recordings) and len(synth.start) == len(db.clips)
+        for stem in INPUTS:
+            wav = scott_dir / "inputs" / f"{stem}.wav"
+            x, sr = read_audio(wav, sr=16000)
+            n = n_frames_for_duration(x.shape[0] / sr, db.fps)
+            tg = scott_dir / "inputs" / f"{stem}.TextGrid"
+            for tr in ([tg, None] if tg.exists() else [None]):
+                res = synth.synthesize(wav, transcript=tr)
+                _check_result(res, db, n, synth)
+                assert len(res.steps) >= 3
+
+
+def test_cli_graph_synth_and_missing_graph(mirrored_db, scott_dir, tmp_path, capsys):
+    from gesturedb.cli.main import main
+
+    wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
+    out = tmp_path / "g.bvh"
+    assert main(["synth", str(mirrored_db), "--method", "graph", "--audio", str(wav), "-o", str(out),
+                 "--npz", str(tmp_path / "g.npz")]) == 0
+    prov = json.loads((tmp_path / "g.provenance.json").read_text())
+    assert prov["options"]["method"] == "graph" and prov["steps"][0]["node"] >= 0
+    pos = np.load(tmp_path / "g.npz")["positions"]
+    assert pos.shape[0] == prov["n_frames"] and np.isfinite(pos).all()
+    nog = tmp_path / "nog.h5"
+    assert main(["build", str(scott_dir), "-o", str(nog), "--no-graph", "-q"]) == 0
+    capsys.readouterr()
+    assert main(["synth", str(nog), "--method", "graph", "--audio", str(wav), "-o", str(tmp_path / "x.bvh")]) == 2
+    err = capsys.readouterr().err
+    assert "no motion graph" in err and "gesturedb graph" in err and not (tmp_path / "x.bvh").exists()
