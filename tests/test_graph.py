@@ -31,7 +31,8 @@ def _direct_cost(pos, rot, root, fa, fb, l1, l2):
             m = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])  # rotation about y by -yaw
             local.append((pos[f] - root[f]) @ m.T)
         tp += float(np.sum((local[0] - local[1]) ** 2))
-        tr += float(np.sum(1 - np.sum(rot[a, 1:] * rot[b, 1:], -1) ** 2))
+        qa, qb = (rot[f, 1:] * np.sign(rot[f, 1:, :1] + 1e-300) for f in (a, b))  # w >= 0 hemisphere
+        tr += float(np.sum(1 - np.sum(qa * qb, -1)))
     return l1 * tp + l2 * tr
 
 
@@ -43,33 +44,32 @@ def test_transition_costs_match_direct_loops():
     rot = R.normalize(rng.normal(size=(F, J, 4)))
     ends = rng.integers(0, F, (K, m))
     starts = rng.integers(0, F, (K, m))
-    ep, er = G.transition_features(pos, rot, root, ends)
-    sp, sr = G.transition_features(pos, rot, root, starts)
-    T = G.transition_costs(ep, er, sp, sr, l1=0.7, l2=0.3)
+    ex = G.transition_features(pos, rot, root, ends, l1=0.7, l2=0.3)
+    sx = G.transition_features(pos, rot, root, starts, l1=0.7, l2=0.3)
+    T = G.transition_costs(ex, sx)
+    assert T.dtype == np.float64 and T.shape == (K, K)
     for p in range(K):
         for q in range(K):
-            assert T[p, q] == pytest.approx(_direct_cost(pos, rot, root, ends[p], starts[q], 0.7, 0.3), abs=1e-9)
+            # the matmul runs in float32: relative error ~1e-6 of the feature norms
+            assert T[p, q] == pytest.approx(_direct_cost(pos, rot, root, ends[p], starts[q], 0.7, 0.3), rel=1e-4, abs=1e-3)
 
 
-def test_edges_threshold_plus_cheapest():
+@pytest.mark.parametrize("K,max_out", [(30, 32), (60, 8)])
+def test_edges_threshold_plus_cheapest(K, max_out):
     rng = np.random.default_rng(1)
-    K = 30
     T = rng.random((K, K)) * 10
-    indptr, indices, cost, dT = G.edges_from_costs(T, delta_quantile=0.05, min_out=3)
+    indptr, indices, cost, dT = G.edges_from_costs(T.copy(), delta_quantile=0.1, min_out=3, max_out=max_out)
     check_csr(indptr, indices, cost, K)
     dense = np.zeros((K, K), bool)
     src = np.repeat(np.arange(K), np.diff(indptr))
     dense[src, indices] = True
     assert not dense.diagonal().any()
     off = ~np.eye(K, dtype=bool)
-    assert dT == pytest.approx(np.quantile(T[off], 0.05))
-    assert np.all(dense[(T < dT) & off])  # every edge under the threshold
-    assert np.all(np.diff(indptr) >= 3)
-    for p in range(K):  # the cheapest 3 are among the edges, and nothing else above the threshold
-        order = [q for q in np.argsort(T[p]) if q != p]
-        assert dense[p, order[:3]].all()
-        extra = dense[p] & (T[p] >= dT)
-        assert extra.sum() <= 3
+    assert dT == pytest.approx(np.quantile(T[off], 0.1))
+    for p in range(K):  # oracle: sort the row, take the rule literally
+        order = [q for q in np.argsort(T[p], kind="stable") if q != p][: min(max_out, K - 1)]
+        want = {q for r, q in enumerate(order) if r < 3 or T[p, q] < dT}
+        assert set(np.flatnonzero(dense[p])) == want
     np.testing.assert_array_equal(cost, T[src, indices])
 
 

@@ -9,16 +9,22 @@ frames, the last ``m`` frames of ``p`` against the first ``m`` of ``q``:
 
 - ``T_p``: summed *squared* distance (m^2) of all joints in the body frame (root position
   subtracted, root heading removed), so where the speaker stood or faced does not matter.
-  Squared, so the whole K x K table is one matrix product (``|a|^2 + |b|^2 - 2 a.b``).
-- ``T_r``: summed ``1 - <q_a, q_b>^2`` (= sin^2 of half the angle) over the local
-  rotations of every non-root joint; ``<q_a, q_b>^2`` is linear in the outer products
-  ``q q^T``, so this is a matrix product too (and it does not care about q vs -q).
+- ``T_r``: summed ``1 - <q_a, q_b>`` over the local rotations of every non-root joint, each
+  quaternion first put on the ``w >= 0`` hemisphere (q and -q are one rotation); for unit
+  quaternions that is ``|q_a - q_b|^2 / 2`` (1 - cos of half the angle). A local joint
+  rotation near 180 degrees (w ~ 0) could land on either hemisphere; gestures do not bend
+  joints that far.
+- Both are squared Euclidean distances, so with ``x = [sqrt(l1) p, sqrt(l2 / 2) q]`` the
+  whole K x K table is ``|x_a|^2 + |x_b|^2 - 2 x_a . x_b``: one float32 matrix product
+  (BLAS), the result kept in float64.
 
 Edges. ``p -> q`` exists where ``T(p, q) < delta_T``; ``delta_T`` defaults to the
-``delta_quantile`` (10 %) quantile of all off-diagonal costs of the database, because the
-paper's ``delta_T = 8`` belongs to its own units. Additionally every node keeps its
-``min_out`` (4) cheapest out-edges, so a small database never falls apart into nodes
-without a way on. There are no self-edges: the graph itself never plays a clip twice in a
+``delta_quantile`` (10 %) quantile of all off-diagonal costs of the database (from a
+fixed strided sample of at most 10^6 pairs), because the paper's ``delta_T = 8`` belongs to
+its own units. Of those, every node keeps at most its ``max_out`` (32) cheapest, so the
+search stays ``O(n K max_out)`` on large databases; and every node keeps its ``min_out``
+(4) cheapest out-edges whatever ``delta_T``, so a small database never falls apart into
+nodes without a way on. There are no self-edges: the graph itself never plays a clip twice in a
 row (the back-to-back repeat rule), which also means the output never loops on one clip.
 
 Style predictor (Sec. 3.3 uses StyleGestures; here a ridge regression): the clip's mean
@@ -38,6 +44,7 @@ L2 = 0.3
 TRANSITION_FRAMES = 2
 DELTA_QUANTILE = 0.10
 MIN_OUT = 4
+MAX_OUT = 32
 RIDGE_ALPHA = 1.0
 
 
@@ -50,8 +57,8 @@ def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
 
 
-def transition_features(positions, rotations, root, frames):
-    """Body-frame position and rotation features of the given frames.
+def transition_features(positions, rotations, root, frames, *, l1: float = L1, l2: float = L2) -> np.ndarray:
+    """Weighted body-frame features of the given frames: ``T = |x_end(p) - x_start(q)|^2``.
 
     Parameters
     ----------
@@ -63,10 +70,9 @@ def transition_features(positions, rotations, root, frames):
 
     Returns
     -------
-    pos : ndarray [shape=(K, m * J * 3)], metres, body frame
-    rot : ndarray [shape=(K, m * (J - 1) * 10)]
-        Upper triangle of ``q q^T`` (off-diagonals doubled) per non-root joint, so that
-        ``rot_a . rot_b = sum <q_a, q_b>^2``.
+    ndarray [shape=(K, m * (J * 3 + (J - 1) * 4))], float64
+        ``sqrt(l1)`` x body-frame joint positions, then ``sqrt(l2 / 2)`` x the non-root
+        local quaternions on the ``w >= 0`` hemisphere.
     """
     from gesturedb import rotations as R
 
@@ -76,42 +82,55 @@ def transition_features(positions, rotations, root, frames):
     q = np.asarray(rotations[f], dtype=np.float64)
     yinv = _yaw_inverse(q[:, 0])
     p = R.apply(np.repeat(yinv[:, None, :], p.shape[1], axis=1), p)
-    qq = q[:, 1:, :]
-    iu, ju = np.triu_indices(4)
-    scale = np.where(iu == ju, 1.0, np.sqrt(2.0))
-    outer = qq[..., iu] * qq[..., ju] * scale
-    return p.reshape(K, -1), outer.reshape(K, -1)
+    qq = q[:, 1:, :] * np.where(q[:, 1:, :1] < 0, -1.0, 1.0)
+    x = np.concatenate([np.sqrt(l1) * p.reshape(len(f), -1), np.sqrt(l2 / 2) * qq.reshape(len(f), -1)], axis=1)
+    return x.reshape(K, -1)
 
 
-def transition_costs(end_pos, end_rot, start_pos, start_rot, *, l1: float = L1, l2: float = L2) -> np.ndarray:
-    """Dense ``T[p, q]`` (K, K) from clip-end and clip-start features by two matrix products (BLAS)."""
-    n_rot = end_rot.shape[1] / 10.0  # joints x frames: sum of 1 - dot^2 = n - <outer, outer>
-    tp = (end_pos * end_pos).sum(1)[:, None] + (start_pos * start_pos).sum(1)[None, :] - 2.0 * (end_pos @ start_pos.T)
-    tr = n_rot - end_rot @ start_rot.T
-    return l1 * np.maximum(tp, 0.0) + l2 * np.maximum(tr, 0.0)
+def transition_costs(end_x: np.ndarray, start_x: np.ndarray) -> np.ndarray:
+    """Dense ``T[p, q]`` (K, K), float64, from clip-end and clip-start features by one float32 matmul (BLAS)."""
+    a = np.ascontiguousarray(end_x, dtype=np.float32)
+    b = np.ascontiguousarray(start_x, dtype=np.float32)
+    T = (a @ b.T).astype(np.float64)
+    T *= -2.0
+    T += np.einsum("ij,ij->i", end_x, end_x)[:, None]
+    T += np.einsum("ij,ij->i", start_x, start_x)[None, :]
+    return np.maximum(T, 0.0, out=T)
 
 
 def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE,
-                     min_out: int = MIN_OUT):
-    """CSR edges (no self-edges) where ``T < delta_T`` plus each node's ``min_out`` cheapest.
+                     min_out: int = MIN_OUT, max_out: int = MAX_OUT):
+    """CSR edges (no self-edges): each node's ``T < delta_T`` among its ``max_out`` cheapest, plus its ``min_out`` cheapest.
+
+    ``T`` is modified (its diagonal set to +inf). Ties at the cut are broken by target index.
 
     Returns
     -------
     indptr : int64 (K + 1,), indices : int64 (E,), cost : float64 (E,), delta_T : float
     """
     K = T.shape[0]
-    T = np.array(T, dtype=np.float64)
     np.fill_diagonal(T, np.inf)
     if delta_T is None:
-        off = T[np.isfinite(T)]
-        delta_T = float(np.quantile(off, delta_quantile)) if off.size else 0.0
-    keep = T < delta_T
-    k = min(int(min_out), K - 1)
-    if k > 0:
-        cheapest = np.argpartition(T, k - 1, axis=1)[:, :k]
-        keep[np.arange(K)[:, None], cheapest] = True
-    np.fill_diagonal(keep, False)
-    rows, cols = np.nonzero(keep)
+        step = max(1, (K * K) // 1_000_000)
+        sample = T.reshape(-1)[::step]
+        sample = sample[np.isfinite(sample)]
+        delta_T = float(np.quantile(sample, delta_quantile)) if sample.size else 0.0
+    k_max = min(int(max_out), K - 1)
+    k_min = min(int(min_out), k_max)
+    if k_max <= 0:
+        return np.zeros(K + 1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), float(delta_T)
+    # the k_max cheapest of every row, in order (stable sort: ties by target index)
+    part = np.argpartition(T, k_max - 1, axis=1)[:, :k_max] if k_max < K - 1 else np.argsort(T, axis=1)[:, :k_max]
+    vals = np.take_along_axis(T, part, 1)
+    o = np.lexsort((part, vals), axis=1)
+    part, vals = np.take_along_axis(part, o, 1), np.take_along_axis(vals, o, 1)
+    keep = (vals < delta_T) | (np.arange(k_max)[None, :] < k_min)
+    keep &= np.isfinite(vals)
+    rows = np.repeat(np.arange(K), keep.sum(1))
+    cols = part[keep]
+    # CSR wants targets increasing within a row
+    o = np.lexsort((cols, rows))
+    rows, cols = rows[o], cols[o]
     indptr = np.zeros(K + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows, minlength=K), out=indptr[1:])
     return indptr, cols.astype(np.int64), T[rows, cols].astype(np.float64), float(delta_T)
@@ -183,7 +202,8 @@ def predict_style(model: dict, X: np.ndarray) -> np.ndarray:
 
 
 def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = TRANSITION_FRAMES,
-                delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT) -> dict:
+                delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
+                max_out: int = MAX_OUT) -> dict:
     """Compute the motion graph and the style model of an open, writable database file and store them.
 
     Called by the build (inside :func:`gesturedb.db.storage.write_atomically`) and by
@@ -208,10 +228,11 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     need = np.unique(np.concatenate([last.ravel(), first.ravel()]))
     pos_a, rot_a, root_a = pos[need], rot[need], root[need]
     idx = lambda f: np.searchsorted(need, f)  # noqa: E731
-    ep, er = transition_features(pos_a, rot_a, root_a, idx(last))
-    sp, sr = transition_features(pos_a, rot_a, root_a, idx(first))
-    T = transition_costs(ep, er, sp, sr, l1=l1, l2=l2)
-    indptr, indices, cost, dT = edges_from_costs(T, delta_T=delta_T, delta_quantile=delta_quantile, min_out=min_out)
+    ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2)
+    sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2)
+    T = transition_costs(ex, sx)
+    indptr, indices, cost, dT = edges_from_costs(T, delta_T=delta_T, delta_quantile=delta_quantile,
+                                                 min_out=min_out, max_out=max_out)
 
     dims = {"K": K}
     schema.write(h5, "graph/indptr", indptr, dims)
@@ -219,7 +240,8 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     schema.write(h5, "graph/cost", cost, dims)
     g = h5["graph"]
     for k, v in dict(l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
-                     delta_quantile=float(delta_quantile), min_out=int(min_out)).items():
+                     delta_quantile=float(delta_quantile), min_out=int(min_out),
+                     max_out=int(max_out)).items():
         g.attrs[k] = v
 
     n_words = r("clips/word_end") - r("clips/word_start")

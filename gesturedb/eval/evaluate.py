@@ -198,6 +198,12 @@ def synthesize_systems(
         elif name == "audio_only":
             assembled(name, B.audio_only_windows(db.audio_features, searcher.seg_start, searcher.seg_len, query,
                                                  step=step, exclude=excl))
+        elif name == "graph":
+            from gesturedb.synth.graph import GraphSynthesizer
+
+            res = GraphSynthesizer(db).synthesize(samples, sr=sr, transcript=transcript, keywords=keywords,
+                                                  blend_frames=blend_frames, exclude=exclude)
+            out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
         else:
             res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k,
                                       preselect=name.split("_", 1)[1], init=init, seed=seed, step=step,
