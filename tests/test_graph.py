@@ -80,6 +80,9 @@ def test_style_model_beats_the_mean_on_learnable_data():
     m = G.fit_style_model(X, Y)
     assert m["heldout_rmse"] < 0.3 * m["mean_rmse"]
     np.testing.assert_allclose(G.predict_style(m, X), Y, atol=0.5)
+    # a clip and its mirrored copy are held out together
+    mg = G.fit_style_model(X, Y, groups=np.arange(200) // 2)
+    assert mg["n_heldout"] == 2 * (100 // 5)
 
 
 def test_voiced_segments_find_bursts():

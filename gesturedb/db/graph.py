@@ -45,7 +45,7 @@ TRANSITION_FRAMES = 2
 DELTA_QUANTILE = 0.10
 MIN_OUT = 4
 MAX_OUT = 32
-RIDGE_ALPHA = 1.0
+RIDGE_ALPHA = 10.0
 
 
 def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
@@ -159,8 +159,12 @@ def clip_audio_inputs(audio_features: np.ndarray, starts, lengths, n_words) -> n
     return out
 
 
-def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float = RIDGE_ALPHA) -> dict:
+def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float = RIDGE_ALPHA, groups=None) -> dict:
     """Ridge regression ``Y ~ X`` on standardised inputs; held-out error vs the mean predictor.
+
+    ``groups`` (K,) int: clips of one group are held out together (a clip and its mirrored
+    copy share audio and nearly share style: splitting them would leak). Every 5th group
+    (by order of first appearance) is held out; default: every clip its own group.
 
     Returns a dict with ``coef (P, S)``, ``intercept (S,)``, ``x_mean (P,)``, ``x_std (P,)``,
     ``heldout_rmse`` and ``mean_rmse`` (RMS over held-out clips and the S outputs, each
@@ -182,7 +186,10 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float = RIDGE_ALPHA)
         return ((Xq - mu) / sd) @ coef + ym
 
     K = X.shape[0]
-    held = np.arange(K) % 5 == 4
+    groups = np.arange(K) if groups is None else np.asarray(groups)
+    _, first, inv = np.unique(groups, return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first))  # group number in order of first appearance
+    held = rank[inv] % 5 == 4
     ysd = np.maximum(Y.std(0), 1e-9)
     if held.sum() >= 1 and (~held).sum() >= 2:
         m = fit(X[~held], Y[~held])
@@ -246,7 +253,13 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
 
     n_words = r("clips/word_end") - r("clips/word_start")
     X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
-    model = fit_style_model(X, r("clips/style").astype(np.float64))
+    # a clip and its mirrored copy (same recording name but '~mirror', same offset) form one group
+    names = [nm.removesuffix("~mirror") for nm in r("recordings/name")]
+    rec = r("clips/recording")
+    rstart = r("recordings/start_frame")
+    keys = [(names[int(c)], int(s0 - rstart[int(c)])) for c, s0 in zip(rec, start)]
+    uniq = {k: i for i, k in enumerate(dict.fromkeys(keys))}
+    model = fit_style_model(X, r("clips/style").astype(np.float64), groups=np.array([uniq[k] for k in keys]))
     for k in ("coef", "intercept", "x_mean", "x_std"):
         schema.write(h5, f"style_model/{k}", model[k], dims)
     sm = h5["style_model"]
