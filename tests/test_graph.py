@@ -12,7 +12,7 @@ import gesturedb
 from gesturedb import rotations as R
 from gesturedb.db import graph as G
 from gesturedb.db import schema
-from gesturedb.errors import SchemaError
+from gesturedb.errors import SchemaError, SearchError
 from gesturedb.synth.graph import MAX_SPEED, GraphSynthesizer, voiced_segments
 from gesturedb.synth.viterbi import check_csr
 
@@ -203,3 +203,26 @@ def test_cli_graph_synth_and_missing_graph(mirrored_db, scott_dir, tmp_path, cap
     assert main(["synth", str(nog), "--method", "graph", "--audio", str(wav), "-o", str(tmp_path / "x.bvh")]) == 2
     err = capsys.readouterr().err
     assert "no motion graph" in err and "gesturedb graph" in err and not (tmp_path / "x.bvh").exists()
+
+
+def test_graph_control_schedule_restricts_nodes(mirrored_db, scott_dir):
+    """A node is allowed for a target clip when >= half its frames are in the mask at the clip's middle."""
+    wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
+    with gesturedb.open(mirrored_db) as db:
+        synth = GraphSynthesizer(db)
+        res = synth.synthesize(wav, control="0-30: left_wrist_height > p50")
+        h = db.controls["left_wrist_height"]
+        thr = np.percentile(h, 50)
+        for s in res.steps:
+            mid_s = (s["out_start"] + s["out_end"]) / 2 / db.fps
+            a, n = synth.start[s["node"]], synth.length[s["node"]]
+            frac = float(np.mean(h[a:a + n] > thr))
+            if mid_s < 30:
+                assert s["control"] is not None and frac >= 0.5 - 1.0 / n
+            else:
+                assert s["control"] is None
+        assert any(s["control"] for s in res.steps)
+        # excluding the only recording (its mirror goes with it) leaves no node: a named error
+        orig = [r.name for r in db.recordings if not r.mirrored][0]
+        with pytest.raises(SearchError, match="target clip 0 has no allowed node"):
+            synth.synthesize(wav, exclude=[orig])
