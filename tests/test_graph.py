@@ -226,3 +226,22 @@ def test_graph_control_schedule_restricts_nodes(mirrored_db, scott_dir):
         orig = [r.name for r in db.recordings if not r.mirrored][0]
         with pytest.raises(SearchError, match="target clip 0 has no allowed node"):
             synth.synthesize(wav, exclude=[orig])
+
+
+def test_rhythm_agreement_reproduces_the_database_signatures(scott_db):
+    """eval.rhythm on a recording's own motion and words = the build's stored signatures (independent path)."""
+    from gesturedb.eval.common import feature_joint_indices
+    from gesturedb.eval.rhythm import rhythm_hamming
+    from gesturedb.features.rhythm import hamming
+
+    rec = scott_db.recordings[0]
+    a, b = rec.start_frame, rec.start_frame + rec.n_frames
+    words = scott_db.words
+    sel = np.asarray(words.recording) == rec.index
+    got = rhythm_hamming(np.asarray(scott_db.joint_positions[a:b], dtype=np.float64),
+                         word_start_s=np.asarray(words.start_s)[sel], word_end_s=np.asarray(words.end_s)[sel],
+                         fps=scott_db.fps, joints=feature_joint_indices(scott_db), gap_s=scott_db.config["gap_s"])
+    c = scott_db.clips
+    mine = np.asarray(c.recording) == rec.index
+    want = float(np.mean(hamming(c.rhythm_audio[mine], c.rhythm_motion[mine])))
+    assert got == pytest.approx(want)
