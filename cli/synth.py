@@ -27,8 +27,8 @@ def add_parser(sub) -> None:
     p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")
     p.add_argument("--seed", type=int, default=0, help="seed for --init random")
     p.add_argument("--step", type=int, default=8, help="frames per search step N (default: 8)")
-    p.add_argument("--blend", type=int, default=4, dest="blend_frames",
-                   help="cross-fade frames at window boundaries, 0 = off (default: 4)")
+    p.add_argument("--blend", type=int, default=None, dest="blend_frames",
+                   help="cross-fade frames at window boundaries, 0 = off (default: 4; --method graph: 8)")
     p.add_argument("--no-smooth", action="store_true",
                    help="no Savitzky-Golay smoothing (window 7, order 2) of the result")
     p.add_argument("--segments", choices=("chunks", "clips"), default="chunks")
@@ -61,13 +61,15 @@ def run(args) -> int:
             from gesturedb.synth.graph import GraphSynthesizer
 
             res = GraphSynthesizer(db).synthesize(
-                args.audio, transcript=args.transcript, gap_s=args.gap_s, blend_frames=args.blend_frames,
+                args.audio, transcript=args.transcript, gap_s=args.gap_s,
+                blend_frames=8 if args.blend_frames is None else args.blend_frames,
                 smooth=not args.no_smooth, control=args.control, keywords=keywords,
                 exclude=args.exclude.split(",") if args.exclude else None)
         else:
             res = Searcher(db, segments=args.segments).synthesize(
                 args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
-                seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
+                seed=args.seed, step=args.step, blend_frames=4 if args.blend_frames is None else args.blend_frames,
+                smooth=not args.no_smooth,
                 control=args.control,
                 keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
             )

@@ -202,8 +202,9 @@ def synthesize_systems(
         elif name == "graph":
             from gesturedb.synth.graph import GraphSynthesizer
 
+            # its seams are seconds apart: it blends twice as long (8 frames for the default 4)
             res = GraphSynthesizer(db).synthesize(samples, sr=sr, transcript=transcript, keywords=keywords,
-                                                  blend_frames=blend_frames, exclude=exclude)
+                                                  blend_frames=2 * blend_frames, exclude=exclude)
             out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
         else:
             res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k,
