@@ -20,8 +20,8 @@ def add_parser(sub) -> None:
                    help="where every step came from (default: OUT.provenance.json)")
     p.add_argument("--method", choices=("knn", "graph"), default="knn",
                    help="knn: rank-sum motion matching (default); graph: GestureMaster motion-graph path search")
-    p.add_argument("--gap", type=float, default=None, dest="gap_s",
-                   help="--method graph: input pause that splits clips, s (default: the database's)")
+    p.add_argument("--gap", type=lambda t: t if t == "auto" else float(t), default=None, dest="gap_s",
+                   help="--method graph: input pause that splits clips, s, or 'auto' (default: the database's)")
     p.add_argument("--k", type=int, default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")

@@ -245,3 +245,27 @@ def test_rhythm_agreement_reproduces_the_database_signatures(scott_db):
     mine = np.asarray(c.recording) == rec.index
     want = float(np.mean(hamming(c.rhythm_audio[mine], c.rhythm_motion[mine])))
     assert got == pytest.approx(want)
+
+
+def test_suggest_gap_gives_clips_of_a_few_seconds():
+    rng = np.random.default_rng(4)
+    pauses = rng.exponential(0.15, 400)
+    gap = G.suggest_gap_s(pauses, 120.0, n_sequences=1)
+    n_cuts = int(np.sum(pauses > gap))
+    assert 0.1 <= gap <= 0.4
+    assert n_cuts == round(120 / 3) - 1 or gap in (0.1, 0.4)
+    assert G.suggest_gap_s(pauses, 2.0) == 0.4  # shorter than one clip: no cut needed
+    assert G.suggest_gap_s(np.full(5, 0.05), 120.0) == 0.1  # too few pauses: the lower bound
+
+
+def test_build_gap_auto_and_input_gap_auto(scott_dir, tmp_path):
+    out = tmp_path / "auto.h5"
+    with gesturedb.build([scott_dir], out, gap_s="auto") as db:
+        gap = db.config["gap_s"]
+        assert isinstance(gap, float) and 0.1 <= gap <= 0.4
+        mean_clip_s = np.mean(db.clips.length) / db.fps
+        assert mean_clip_s < 8.0  # the 0.4 s default gives ~13 s clips on this speaker
+        res = GraphSynthesizer(db).synthesize(scott_dir / "inputs" / "2_scott_0_3_3.wav",
+                                              transcript=scott_dir / "inputs" / "2_scott_0_3_3.TextGrid",
+                                              gap_s="auto")
+        assert 0.1 <= res.options["gap_s"] <= 0.4 and len(res.steps) >= 10

@@ -136,6 +136,35 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
     return indptr, cols.astype(np.int64), T[rows, cols].astype(np.float64), float(delta_T)
 
 
+def suggest_gap_s(pauses_s, total_s: float, *, n_sequences: int = 1, target_clip_s: float = 3.0,
+                  lo_s: float = 0.1, hi_s: float = 0.4) -> float:
+    """The word gap (s) that cuts speech into clips of about ``target_clip_s`` (Sec. 3.1: a few seconds).
+
+    Parameters
+    ----------
+    pauses_s : ndarray [shape=(P,)], seconds
+        Pauses between consecutive words of all sequences.
+    total_s : float
+        Total duration of the sequences.
+    n_sequences : int
+        Recordings (each already starts a clip).
+
+    Returns
+    -------
+    float
+        Midway between the ``n``-th and ``n+1``-th longest pauses, ``n = round(total_s /
+        target_clip_s) - n_sequences`` cuts, clamped to ``[lo_s, hi_s]`` (the paper's 0.4 s
+        is the upper end: a longer gap only gives fewer, longer clips).
+    """
+    p = np.sort(np.asarray(pauses_s, dtype=np.float64))[::-1]
+    n = int(round(float(total_s) / float(target_clip_s))) - int(n_sequences)
+    if n <= 0 or p.size == 0:
+        return float(hi_s)
+    if n >= p.size:
+        return float(lo_s)
+    return float(np.clip((p[n - 1] + p[n]) / 2, lo_s, hi_s))
+
+
 def clip_audio_inputs(audio_features: np.ndarray, starts, lengths, n_words) -> np.ndarray:
     """Style-predictor inputs per clip: mean and std of standardised audio features, word rate.
 

@@ -149,9 +149,13 @@ class GraphSynthesizer:
         from gesturedb.features.segments import word_gap_clips
 
         fps = self.db.fps
-        gap = float(self.db.config.get("gap_s", 0.4)) if gap_s is None else float(gap_s)
-        if not gap > 0:
-            raise ParameterError(f"gap_s: expected a positive number of seconds, got {gap_s!r}")
+        if gap_s is not None and gap_s != "auto":
+            try:
+                ok = float(gap_s) > 0
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise ParameterError(f"gap_s: expected a positive number of seconds or 'auto', got {gap_s!r}")
         if transcript is not None:
             from gesturedb.io.transcripts import Words, read_transcript
 
@@ -161,6 +165,14 @@ class GraphSynthesizer:
             ws, we = voiced_segments(samples, sr)
         order = np.argsort(ws, kind="stable")
         ws, we = ws[order], we[order]
+        if gap_s == "auto":  # from this speech's own pauses, clips of about 3 s (as the build's "auto")
+            from gesturedb.db.graph import suggest_gap_s
+
+            pauses = ws[1:] - np.maximum.accumulate(we)[:-1] if ws.size > 1 else np.zeros(0)
+            gap = suggest_gap_s(pauses, T / fps)
+        else:
+            gap = float(self.db.config.get("gap_s", 0.4)) if gap_s is None else float(gap_s)
+        self.last_gap_s = gap
         clips = word_gap_clips(ws, we, n_frames=T, fps=fps, gap_s=gap)
         bounds = [int(x) for x in clips.start] + [T]
         bounds = _split_long(bounds, ws, we, fps, int(self.length.max()))
@@ -199,8 +211,9 @@ class GraphSynthesizer:
         audio : path or ndarray [shape=(n,)]
         transcript : path, Words or None
             Word timings; without them pauses come from :func:`voiced_segments`.
-        gap_s : float, optional
-            Pause that splits the input (default: the database's ``gap_s``).
+        gap_s : float or "auto", optional
+            Pause that splits the input (default: the database's ``gap_s``; "auto": from the
+            input's own pauses, clips of about 3 s, :func:`gesturedb.db.graph.suggest_gap_s`).
         w_data, w_trans, l5, l6 : float
             lambda_3, lambda_4, lambda_5, lambda_6 (Sec. 5: 1, 3, 1, 0.1).
         l_dur : float
@@ -242,7 +255,7 @@ class GraphSynthesizer:
         path, total = viterbi(unary, self.indptr, self.indices, self.edge_cost, w_data=w_data, w_trans=w_trans)
         motion, source, steps = self._assemble(path, bounds, terms, unary, labels, blend_frames=blend_frames,
                                                smooth=smooth)
-        options = dict(method="graph", gap_s=gap_s, w_data=w_data, w_trans=w_trans, l5=l5, l6=l6, l_dur=l_dur,
+        options = dict(method="graph", gap_s=self.last_gap_s, w_data=w_data, w_trans=w_trans, l5=l5, l6=l6, l_dur=l_dur,
                        blend_frames=blend_frames, smooth=smooth, total_cost=total,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
