@@ -269,3 +269,20 @@ def test_build_gap_auto_and_input_gap_auto(scott_dir, tmp_path):
                                               transcript=scott_dir / "inputs" / "2_scott_0_3_3.TextGrid",
                                               gap_s="auto")
         assert 0.1 <= res.options["gap_s"] <= 0.4 and len(res.steps) >= 10
+
+
+def test_build_without_transcript_cuts_at_voiced_pauses(scott_dir, tmp_path):
+    """A recording without a transcript is cut at the pauses the energy detector finds (not one clip)."""
+    from gesturedb.features.pauses import voiced_segments
+    from gesturedb.io.audio import read_audio
+
+    for ext in ("npz", "wav"):
+        (tmp_path / f"2_scott_0_1_1.{ext}").symlink_to(scott_dir / f"2_scott_0_1_1.{ext}")
+    with gesturedb.build([tmp_path], tmp_path / "nt.h5", gap_s=0.3) as db:
+        words = db.words
+        assert len(words) > 10 and set(words.text) == {""}
+        x, sr = read_audio(scott_dir / "2_scott_0_1_1.wav", sr=int(db.config["sample_rate"]))
+        vs, _ = voiced_segments(x, sr)
+        np.testing.assert_allclose(np.asarray(words.start_s), vs[vs < db.n_frames / db.fps])
+        assert len(db.clips) > 1
+        GraphSynthesizer(db).synthesize(scott_dir / "inputs" / "2_scott_0_2_2.wav")

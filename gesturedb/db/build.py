@@ -347,6 +347,14 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
             f"({motion_dur:.2f} s in {os.path.basename(source.motion)}), got {audio_dur:.2f} s",
         )
     words = read_transcript(source.transcript) if source.transcript else None
+    if words is None:
+        # no transcript: voiced stretches of the speech stand in for words (empty text), so the
+        # recording is still cut into clips at its pauses, as the graph synthesis cuts its input
+        from gesturedb.features.pauses import voiced_segments
+        from gesturedb.io.transcripts import Words
+
+        vs, ve = voiced_segments(samples, sr)
+        words = Words(start_s=vs, end_s=ve, text=[""] * len(vs), source=None)
     if source.span_s is not None:
         motion, samples, words, motion_dur = _trim(source, motion, samples, sr, words)
     if words is not None and len(words):

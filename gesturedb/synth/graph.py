@@ -37,6 +37,7 @@ import os
 import numpy as np
 
 from gesturedb.errors import ParameterError, SchemaError
+from gesturedb.features.pauses import voiced_segments
 from gesturedb.synth.assemble import Piece, assemble_pieces, continuation, placed_frames
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.viterbi import viterbi
@@ -54,41 +55,6 @@ GRAPH_BLEND_FRAMES = 8
 MIN_CLIP = 8
 ORDER2_PARTS = ("shoulder", "elbow", "wrist", "hand", "arm", "index", "middle", "ring", "pinky", "thumb",
                 "head", "neck", "jaw", "eye", "collar", "finger")
-
-
-def voiced_segments(samples: np.ndarray, sr: int, *, hop_s: float = 0.01, min_silence_s: float = 0.08):
-    """Word-like voiced stretches of speech from its energy (no transcript needed).
-
-    Parameters
-    ----------
-    samples : ndarray [shape=(n,)], mono
-    sr : int, Hz
-
-    Returns
-    -------
-    start_s, end_s : ndarray [shape=(W,)], seconds
-        Voiced runs (RMS in dB above 35 % of the way from its 10th to 95th percentile),
-        merged across silences shorter than ``min_silence_s``.
-    """
-    x = np.asarray(samples, dtype=np.float64)
-    hop = max(1, int(round(hop_s * sr)))
-    n = x.shape[0] // hop
-    if n == 0:
-        return np.zeros(0), np.zeros(0)
-    rms = np.sqrt((x[: n * hop].reshape(n, hop) ** 2).mean(1) + 1e-12)
-    db = 20 * np.log10(rms)
-    lo, hi = np.percentile(db, 10), np.percentile(db, 95)
-    voiced = db > lo + 0.35 * (hi - lo)
-    edges = np.diff(np.concatenate([[0], voiced.astype(np.int8), [0]]))
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    if starts.size == 0:
-        return np.zeros(0), np.zeros(0)
-    keep = np.concatenate([[True], (starts[1:] - ends[:-1]) * hop_s >= min_silence_s])
-    grp = np.cumsum(keep) - 1
-    s = starts[keep]
-    e = np.maximum.reduceat(ends, np.flatnonzero(keep))
-    del grp
-    return s * hop_s, e * hop_s
 
 
 def _split_long(bounds: list[int], w_start, w_end, fps: float, max_len: int) -> list[int]:
