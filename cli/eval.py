@@ -62,7 +62,7 @@ def add_parser(sub) -> None:
         description="Either hold out a stretch of a recording (--data-dir, --holdout-start, --holdout-end): build a "
         "database from the rest and compare every system with the held-out motion capture; or take a database "
         "and new speech (DB.h5 --audio ...) and compute the metrics that need no ground truth. Systems: "
-        "random windows, pose-only, audio-only, rank-sum with pose and with audio pre-selection.",
+        "random windows, pose-only, audio-only, rank-sum with pose and with audio pre-selection, motion graph.",
     )
     m.add_argument("db", nargs="?", default=None, metavar="DB.h5", help="database to search (not with --data-dir)")
     m.add_argument("--audio", action="append", default=[], metavar="SPEECH.wav",
@@ -78,7 +78,7 @@ def add_parser(sub) -> None:
                    help="keep the training database here (default: OUT/train.h5)")
     m.add_argument("-o", "--output", required=True, metavar="DIR", help="report folder")
     m.add_argument("--systems", default=None,
-                   help="comma-separated subset of random,pose_only,audio_only,ranksum_pose,ranksum_audio")
+                   help="comma-separated subset of random,pose_only,audio_only,ranksum_pose,ranksum_audio,graph")
     m.add_argument("--controls", action="store_true", help="also run `eval controls` and add it to the report")
     m.add_argument("--no-render", action="store_true", help="no contact sheets or video")
     m.add_argument("--video", choices=("mp4", "gif", "none"), default="mp4",

@@ -21,6 +21,7 @@ COMMANDS = {
     "render": "render",
     "retarget": "retarget",
     "refiner": "refiner",
+    "graph": "graph",
 }
 
 

@@ -18,13 +18,17 @@ def add_parser(sub) -> None:
     p.add_argument("--npz", default=None, metavar="OUT.npz", help="also write joint positions (T, J, 3) in metres")
     p.add_argument("--provenance", default=None, metavar="OUT.json",
                    help="where every step came from (default: OUT.provenance.json)")
+    p.add_argument("--method", choices=("knn", "graph"), default="knn",
+                   help="knn: rank-sum motion matching (default); graph: GestureMaster motion-graph path search")
+    p.add_argument("--gap", type=lambda t: t if t == "auto" else float(t), default=None, dest="gap_s",
+                   help="--method graph: input pause that splits clips, s, or 'auto' (default: the database's)")
     p.add_argument("--k", type=int, default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")
     p.add_argument("--seed", type=int, default=0, help="seed for --init random")
     p.add_argument("--step", type=int, default=8, help="frames per search step N (default: 8)")
-    p.add_argument("--blend", type=int, default=4, dest="blend_frames",
-                   help="cross-fade frames at window boundaries, 0 = off (default: 4)")
+    p.add_argument("--blend", type=int, default=None, dest="blend_frames",
+                   help="cross-fade frames at window boundaries, 0 = off (default: 4; --method graph: 8)")
     p.add_argument("--no-smooth", action="store_true",
                    help="no Savitzky-Golay smoothing (window 7, order 2) of the result")
     p.add_argument("--segments", choices=("chunks", "clips"), default="chunks")
@@ -67,12 +71,25 @@ def run(args) -> int:
             from gesturedb.refiner import load_refiner
 
             refiner = load_refiner(args.refiner, db)
-        res = Searcher(db, segments=args.segments, client=client, parts=args.parts).synthesize(
-            args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
-            seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
-            control=args.control,
-            keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None, refiner=refiner,
-        )
+        if args.method == "graph":
+            from gesturedb.errors import ParameterError
+            from gesturedb.synth.graph import GraphSynthesizer
+
+            if refiner is not None or args.scheduler:
+                raise ParameterError("--method graph: --refiner and --scheduler work with the k-NN method only")
+            res = GraphSynthesizer(db).synthesize(
+                args.audio, transcript=args.transcript, gap_s=args.gap_s,
+                blend_frames=8 if args.blend_frames is None else args.blend_frames,
+                smooth=not args.no_smooth, control=args.control, keywords=keywords,
+                exclude=args.exclude.split(",") if args.exclude else None)
+        else:
+            res = Searcher(db, segments=args.segments, client=client, parts=args.parts).synthesize(
+                args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
+                seed=args.seed, step=args.step, blend_frames=4 if args.blend_frames is None else args.blend_frames,
+                smooth=not args.no_smooth,
+                control=args.control,
+                keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None, refiner=refiner,
+            )
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
     motion = apply_target(args, motion)
     write_motion(args.output, motion)

@@ -49,8 +49,10 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
 
 
 @contextlib.contextmanager
-def edit(path: str | os.PathLike):
+def edit(path: str | os.PathLike, *, upgrade: bool = False):
     """Yield a writable :class:`h5py.File` on a copy of ``path``; replace ``path`` on success.
+
+    ``upgrade=True`` also opens a version-1 file (the caller brings it to the current version).
 
     Examples
     --------
@@ -69,7 +71,7 @@ def edit(path: str | os.PathLike):
         shutil.copyfile(path, tmp)
         shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
         with h5py.File(tmp, "r+") as h5:
-            schema.check_version(h5, path)
+            schema.check_version(h5, path, upgradable=upgrade)
             yield h5
         os.replace(tmp, path)
     except BaseException:

@@ -93,6 +93,7 @@ METRIC_COLUMNS = (
     ("seam_jerk_m_s3", "seam jerk", ".1f"),
     ("inside_jerk_m_s3", "inside jerk", ".1f"),
     ("seam_ratio", "seam/inside", ".2f"),
+    ("rhythm_hamming", "rhythm Ham", ".2f"),
 )
 
 
@@ -202,6 +203,13 @@ def synthesize_systems(
         elif name == "audio_only":
             assembled(name, B.audio_only_windows(db.audio_features, searcher.seg_start, searcher.seg_len, query,
                                                  step=step, exclude=excl))
+        elif name == "graph":
+            from gesturedb.synth.graph import GraphSynthesizer
+
+            # its seams are seconds apart: it blends twice as long (8 frames for the default 4)
+            res = GraphSynthesizer(db).synthesize(samples, sr=sr, transcript=transcript, keywords=keywords,
+                                                  blend_frames=2 * blend_frames, exclude=exclude)
+            out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
         else:
             res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k,
                                       preselect=name.split("_", 1)[1], init=init, seed=seed, step=step,
@@ -507,6 +515,12 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
     rows, counts = system_metrics(outputs, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
                                   names=db.joint_names, reference_counts=reference["speed_counts"])
     fj = feature_joint_indices(db)
+    from gesturedb.eval.rhythm import input_words, rhythm_hamming
+
+    ws, we = input_words(samples, sr, transcript)
+    for n, o in outputs.items():  # speech rhythm vs each system's motion rhythm (eval/rhythm.py)
+        rows[n]["rhythm_hamming"] = rhythm_hamming(o.positions, word_start_s=ws, word_end_s=we, fps=db.fps,
+                                                   joints=fj, gap_s=float(db.config.get("gap_s", 0.4)))
     wh = {n: control_features(o.positions, joints=fj, fps=db.fps)["left_wrist_height"].astype(np.float64)
           for n, o in outputs.items()}
     return InputEvaluation(name=name, audio=audio_path, samples=samples, sr=sr, fps=db.fps, outputs=outputs,
