@@ -55,7 +55,7 @@ __all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "foot_
            "placed_frames", "savgol_smooth"]
 
 #: Time constant (s) of the pull of the heading towards +z.
-HEADING_PULL_S = 4.0
+HEADING_PULL_S = 2.0
 #: Time constant (s) of the pull of the horizontal root position towards the origin.
 POSITION_PULL_S = 6.0
 

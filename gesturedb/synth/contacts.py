@@ -19,7 +19,7 @@ __all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "foot_contacts", "foot_joint
 #: A foot's lowest point within this height (m) of the floor can be planted.
 CONTACT_HEIGHT_M = 0.05
 #: ... and its ankle moves horizontally slower than this (m/s).
-CONTACT_SPEED_M_S = 0.15
+CONTACT_SPEED_M_S = 0.3
 #: Frames over which a released foot returns from its anchor to where the motion puts it.
 RELEASE_FRAMES = 6
 #: A contact whose anchor drifts further than this (m, horizontally) from the foot is re-anchored.
@@ -83,7 +83,7 @@ def foot_contacts(positions: np.ndarray, *, fps: float, feet: np.ndarray, floor_
 
 
 def pin_root(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, contacts: np.ndarray, *,
-             leak_s: float = 6.0, max_step_m_s: float = 0.3) -> np.ndarray:
+             leak_s: float = 6.0, max_step_m_s: float = 0.15) -> np.ndarray:
     """Move the root horizontally so that planted ankles do not slide.
 
     Parameters
