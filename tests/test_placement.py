@@ -112,13 +112,26 @@ def test_placement_keeps_each_pieces_own_displacement_and_turning(scott_db):
     np.testing.assert_allclose(m.root_positions[n:, 1], root1[:, 1])
 
 
-def test_planted_feet_stay_planted(scott_db):
-    """Where a source foot is planted, the output's ankle barely moves horizontally, also for mirrored frames."""
+@pytest.fixture(scope="module")
+def mirrored_db(scott_dir, tmp_path_factory):
+    import gesturedb
+
+    out = tmp_path_factory.mktemp("mirror") / "scott_mirror.h5"
+    gesturedb.build([scott_dir], out, mirror=True).close()
+    with gesturedb.open(out) as db:
+        yield db
+
+
+@pytest.mark.parametrize("which", ["scott", "mirrored"])
+def test_planted_feet_stay_planted(scott_db, mirrored_db, which):
+    """Where a source foot is planted, the output's ankle barely moves horizontally; the mirrored copy
+    (second recording of the mirrored database) alone as well."""
     rng = np.random.default_rng(3)
-    db = scott_db
+    db = scott_db if which == "scott" else mirrored_db
+    lo = 1 if which == "scott" else db.recordings[1].start_frame + 1
     T, step = 400, 8
     starts = np.arange(0, T, step)
-    src = np.concatenate([np.arange(s, s + step) for s in rng.integers(1, db.n_frames - step - 10, len(starts))])
+    src = np.concatenate([np.arange(s, s + step) for s in rng.integers(lo, db.n_frames - step - 10, len(starts))])
     feet = foot_joints(db.skeleton)
     src_pos = np.asarray(db.joint_positions[src], dtype=np.float64)
     planted = foot_contacts(src_pos, fps=db.fps, feet=feet, floor_y=float(src_pos[:, feet, 1].min()))
