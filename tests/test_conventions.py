@@ -88,3 +88,16 @@ def test_reference_mean_speed_matches_the_motion_beats_speed():
     beats = np.arange(1, 11) * 0.5 + 0.1
     assert C.beat_align_headline(pos, fps=fps, joints=[0], audio_beats_s=beats, reference_speed_m_s=ref) == \
         pytest.approx(M.beat_align(pos, fps=fps, joints=[0], audio_beats_s=beats, direction="audio_to_motion"))
+
+
+def test_convention_metrics_rows_compare_with_the_ground_truth():
+    fps = 30.0
+    gt, beats = _pulsing(fps, 6.0, 0.5, depth=0.9)
+    fast = gt * 3.0  # three times the speed: beyond GENEA's last speed edge for most frames
+    rows = C.convention_metrics({"ground_truth": gt, "fast": fast}, fps=fps, joints=[0], audio_beats_s=beats,
+                                reference_speed_m_s=0.2)
+    assert set(rows["fast"]) == {k for k, _, _ in C.CONVENTION_COLUMNS}
+    assert rows["ground_truth"]["genea_hellinger_speed_gt"] == 0.0
+    assert rows["fast"]["genea_hellinger_speed_gt"] == pytest.approx(C.genea_hellinger(fast, gt, fps=fps, joints=[0]))
+    assert rows["ground_truth"]["beat_align_headline"] == pytest.approx(1.0, abs=1e-6)
+    assert np.isnan(rows["fast"]["genea_hellinger_speed_db"])  # no database counts given

@@ -24,8 +24,9 @@ import numpy as np
 from gesturedb.errors import ParameterError
 from gesturedb.eval import metrics as M
 
-__all__ = ["GENEA_SPEED_MAX_CM_S", "GENEA_ACCEL_MAX_CM_S2", "genea_histogram", "genea_hellinger",
-           "reference_mean_speed", "beat_align_headline"]
+__all__ = ["GENEA_SPEED_MAX_CM_S", "GENEA_ACCEL_MAX_CM_S2", "CONVENTION_COLUMNS", "genea_histogram",
+           "genea_hellinger", "reference_mean_speed", "beat_align_headline", "database_mean_speed",
+           "database_genea_counts", "convention_metrics"]
 
 #: Last speed bin edge of the GENEA histograms (cm/s): values beyond are dropped.
 GENEA_SPEED_MAX_CM_S = 50.0
@@ -142,3 +143,70 @@ def beat_align_headline(positions, *, fps: float, joints, audio_beats_s, referen
         if not math.isnan(s):
             scores.append(s)
     return float(np.mean(scores)) if scores else float("nan")
+
+
+#: (key, header, format) of the published-conventions table of ``gesturedb eval motion``.
+CONVENTION_COLUMNS = (
+    ("genea_hellinger_speed_gt", "H speed GENEA vs GT", ".3f"),
+    ("genea_hellinger_accel_gt", "H accel GENEA vs GT", ".3f"),
+    ("genea_hellinger_speed_db", "H speed GENEA vs DB", ".3f"),
+    ("beat_align_headline", "BeatAlign a->m (DB thr)", ".3f"),
+)
+
+
+def database_mean_speed(db, *, joints, root: int) -> np.ndarray:
+    """Mean speed (m/s) of each joint over the database's recordings (root's horizontal position removed),
+    frame-weighted; the reference of :func:`beat_align_headline`."""
+    total = np.zeros(len(joints))
+    n = 0
+    for rec in db.recordings:
+        if rec.n_frames < 3:
+            continue
+        pos = np.array(db.joint_positions[rec.start_frame:rec.start_frame + rec.n_frames], dtype=np.float64)
+        pos[:, :, [0, 2]] -= pos[:, root:root + 1, [0, 2]]
+        total += reference_mean_speed(pos, fps=db.fps, joints=joints) * rec.n_frames
+        n += rec.n_frames
+    return total / max(n, 1)
+
+
+def convention_metrics(positions: dict, *, fps: float, joints, audio_beats_s, reference_speed_m_s,
+                       database_counts=None) -> dict:
+    """Rows of :data:`CONVENTION_COLUMNS` for every system.
+
+    Parameters
+    ----------
+    positions : dict name -> ndarray [shape=(F, J, 3)], metres
+        Root-relative positions (``"ground_truth"`` among them enables the "vs GT" columns).
+    joints : sequence of int
+        Joints of the histograms and the beats (the upper body).
+    database_counts : ndarray, optional
+        :func:`genea_histogram` of the database, for the "vs DB" column.
+    """
+    gt = positions.get("ground_truth")
+    rows = {}
+    for name, pos in positions.items():
+        row = {k: float("nan") for k, _, _ in CONVENTION_COLUMNS}
+        if gt is not None:
+            row["genea_hellinger_speed_gt"] = genea_hellinger(pos, gt, fps=fps, joints=joints)
+            row["genea_hellinger_accel_gt"] = genea_hellinger(pos, gt, fps=fps, joints=joints, kind="acceleration")
+        if database_counts is not None:
+            c, _ = genea_histogram(pos, fps=fps, joints=joints)
+            if c.sum() and np.sum(database_counts):
+                row["genea_hellinger_speed_db"] = M.hellinger_distance(c, database_counts)
+        row["beat_align_headline"] = beat_align_headline(pos, fps=fps, joints=joints, audio_beats_s=audio_beats_s,
+                                                         reference_speed_m_s=reference_speed_m_s)
+        rows[name] = row
+    return rows
+
+
+def database_genea_counts(db, *, joints, root: int) -> np.ndarray:
+    """:func:`genea_histogram` (speed) summed over the database's recordings."""
+    counts = None
+    for rec in db.recordings:
+        if rec.n_frames < 2:
+            continue
+        pos = np.array(db.joint_positions[rec.start_frame:rec.start_frame + rec.n_frames], dtype=np.float64)
+        pos[:, :, [0, 2]] -= pos[:, root:root + 1, [0, 2]]
+        c, _ = genea_histogram(pos, fps=db.fps, joints=joints)
+        counts = c if counts is None else counts + c
+    return counts

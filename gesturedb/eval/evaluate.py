@@ -95,6 +95,8 @@ METRIC_COLUMNS = (
     ("seam_ratio", "seam/inside", ".2f"),
 )
 
+from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
+
 #: (key, header, format) of the world-space table (:func:`gesturedb.eval.placement.world_metrics`).
 WORLD_COLUMNS = (
     ("pelvis_speed_m_s", "pelvis m/s", ".3f"),
@@ -477,11 +479,15 @@ class MotionEvaluation:
             out.append(self.table(inp.metrics))
             out.append("world space (whole body; 'rel': root's horizontal position removed)")
             out.append(self.table(inp.metrics, WORLD_COLUMNS))
+            out.append("published conventions (GENEA histograms in cm/s, overflow dropped; BeatAlign audio->motion, "
+                       "beats above 0.3 x the database's mean speed; docs/metrics.md)")
+            out.append(self.table(inp.metrics, CONVENTION_COLUMNS))
             out.append("")
         if len(self.inputs) > 1:
             out.append(f"mean over {len(self.inputs)} inputs")
             out.append(self.table(self.summary()))
             out.append(self.table(self.summary(), WORLD_COLUMNS))
+            out.append(self.table(self.summary(), CONVENTION_COLUMNS))
             out.append("")
         if self.controls is not None:
             out.append(self.controls.to_text())
@@ -509,6 +515,14 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
 
     for n, o in outputs.items():  # world space, before the root is removed for the arm metrics
         rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
+    from gesturedb.eval import conventions as CV, metrics as M
+
+    conv = CV.convention_metrics({n: metric_positions(o.positions, root) for n, o in outputs.items()}, fps=db.fps,
+                                 joints=joints, audio_beats_s=M.audio_beats(samples, sr=sr),
+                                 reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
+                                 database_counts=CV.database_genea_counts(db, joints=joints, root=root))
+    for n in rows:
+        rows[n].update(conv[n])
     fj = feature_joint_indices(db)
     wh = {n: control_features(o.positions, joints=fj, fps=db.fps)["left_wrist_height"].astype(np.float64)
           for n, o in outputs.items()}
