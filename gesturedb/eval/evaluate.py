@@ -96,6 +96,19 @@ METRIC_COLUMNS = (
     ("rhythm_hamming", "rhythm Ham", ".2f"),
 )
 
+from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
+
+#: (key, header, format) of the world-space table (:func:`gesturedb.eval.placement.world_metrics`).
+WORLD_COLUMNS = (
+    ("pelvis_speed_m_s", "pelvis m/s", ".3f"),
+    ("max_root_step_m", "max root step m", ".3f"),
+    ("foot_speed_m_s", "foot m/s", ".3f"),
+    ("foot_skating_m_s", "skating m/s", ".3f"),
+    ("max_abs_heading_deg", "max |heading| deg", ".1f"),
+    *((f"jerk_{s}_{g}_m_s3", f"{g} jerk {s}", ".1f")
+      for g in ("root", "legs", "arms", "hands", "head") for s in ("world", "rel")),
+)
+
 
 @dataclass(eq=False)
 class SystemOutput:
@@ -458,17 +471,18 @@ class MotionEvaluation:
             "controls": self.controls.to_dict() if self.controls is not None else None,
         })
 
-    def columns(self, rows: dict[str, dict]) -> list[tuple[str, str, str]]:
+    def columns(self, rows: dict[str, dict], spec=METRIC_COLUMNS) -> list[tuple[str, str, str]]:
         """:data:`METRIC_COLUMNS` that have a value in some row (no ground truth: no "vs GT" column)."""
         all_rows = [self.reference_row(), *rows.values()]
-        return [c for c in METRIC_COLUMNS
+        return [c for c in spec
                 if any(isinstance(r.get(c[0]), (int, float)) and math.isfinite(r[c[0]]) for r in all_rows)]
 
-    def table(self, rows: dict[str, dict]) -> str:
-        """One metrics table (text): the reference row, then every system."""
-        cols = self.columns(rows)
+    def table(self, rows: dict[str, dict], spec=METRIC_COLUMNS) -> str:
+        """One metrics table (text): the reference row, then every system (``spec``: :data:`WORLD_COLUMNS`
+        for the world-space one, which has no reference row)."""
+        cols = self.columns(rows, spec)
         head = ["system"] + [h for _, h, _ in cols]
-        all_rows = {"reference": self.reference_row(), **rows}
+        all_rows = {"reference": self.reference_row(), **rows} if spec is METRIC_COLUMNS else dict(rows)
         body = [[SYSTEM_LABELS.get(n, n)] + [_fmt(r.get(k), f) for k, _, f in cols] for n, r in all_rows.items()]
         widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
         line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
@@ -487,10 +501,17 @@ class MotionEvaluation:
         for inp in self.inputs:
             out.append(f"{inp.name} ({inp.n_frames} frames, {inp.n_frames / inp.fps:.1f} s)")
             out.append(self.table(inp.metrics))
+            out.append("world space (whole body; 'rel': root's horizontal position removed)")
+            out.append(self.table(inp.metrics, WORLD_COLUMNS))
+            out.append("published conventions (GENEA histograms in cm/s, overflow dropped; BeatAlign audio->motion, "
+                       "beats above 0.3 x the database's mean speed; docs/metrics.md)")
+            out.append(self.table(inp.metrics, CONVENTION_COLUMNS))
             out.append("")
         if len(self.inputs) > 1:
             out.append(f"mean over {len(self.inputs)} inputs")
             out.append(self.table(self.summary()))
+            out.append(self.table(self.summary(), WORLD_COLUMNS))
+            out.append(self.table(self.summary(), CONVENTION_COLUMNS))
             out.append("")
         if self.controls is not None:
             out.append(self.controls.to_text())
@@ -514,6 +535,18 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
                                  **opts)
     rows, counts = system_metrics(outputs, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
                                   names=db.joint_names, reference_counts=reference["speed_counts"])
+    from gesturedb.eval.placement import world_metrics
+
+    for n, o in outputs.items():  # world space, before the root is removed for the arm metrics
+        rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
+    from gesturedb.eval import conventions as CV, metrics as M
+
+    conv = CV.convention_metrics({n: metric_positions(o.positions, root) for n, o in outputs.items()}, fps=db.fps,
+                                 joints=joints, audio_beats_s=M.audio_beats(samples, sr=sr),
+                                 reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
+                                 database_counts=CV.database_genea_counts(db, joints=joints, root=root))
+    for n in rows:
+        rows[n].update(conv[n])
     fj = feature_joint_indices(db)
     from gesturedb.eval.rhythm import input_words, rhythm_hamming
 
