@@ -210,3 +210,21 @@ def test_without_torch_the_commands_say_how_to_install(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 2
     assert "pip install 'gesturedb[refiner]'" in r.stderr
+
+
+def test_refining_keeps_the_root_and_the_planted_legs(scott_db):
+    from gesturedb.refiner.train import _leg_joints
+
+    joints = moving_joints(scott_db.local_rotations)
+    G = Generator(6 * len(joints), width=8)
+    torch.nn.init.normal_(G.out.weight, std=0.1)  # a generator that changes things
+    ref = Refiner(G, joints, feature_identity(scott_db))
+    motion = scott_db.motion(scott_db.recordings[0].name, 0.0, 6.0)
+    audio = np.random.default_rng(0).standard_normal((motion.n_frames, 28)).astype(np.float32)
+    out = ref.refine(motion, audio)
+    legs = _leg_joints(scott_db.skeleton)
+    assert len(legs) >= 8
+    assert np.array_equal(out.rotations[:, legs], np.asarray(motion.rotations, dtype=np.float64)[:, legs])
+    assert np.array_equal(out.root_positions, motion.root_positions)
+    arms = [j for j in joints if j not in set(legs)]
+    assert not np.allclose(out.rotations[:, arms], motion.rotations[:, arms])

@@ -277,6 +277,25 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
+def _leg_joints(skeleton) -> np.ndarray:
+    """Joints below the hips (both legs, hips included); empty when the skeleton has no recognisable hips."""
+    from gesturedb.io.joints import find_joints
+
+    try:
+        hips = find_joints(skeleton.names, ("left_hip", "right_hip"))
+    except GestureDBError:
+        return np.zeros(0, dtype=np.int64)
+    parents = np.asarray(skeleton.parents)
+    out = []
+    for j in range(len(parents)):
+        k = j
+        while k >= 0 and k not in hips.values():
+            k = int(parents[k])
+        if k >= 0:
+            out.append(j)
+    return np.asarray(out, dtype=np.int64)
+
+
 class Refiner:
     """A trained generator that refines whole motions of any length in one pass.
 
@@ -317,7 +336,8 @@ class Refiner:
         Returns
         -------
         gesturedb.motion.Motion
-            Same skeleton, fps and root; refined local rotations of the moving joints.
+            Same skeleton, fps and root; refined local rotations of the moving joints
+            above the hips (the legs keep the input's planted feet).
         """
         from gesturedb.motion import Motion
 
@@ -334,4 +354,8 @@ class Refiner:
         with torch.no_grad():
             y = self.G(a, x)[0].numpy().T.astype(np.float64)
         rot = from_channels(y, motion.rotations, self.joints)
+        # the legs stay the k-NN's: assembly planted the feet with leg IK, and a refined
+        # leg would slide them again (measured: skating 0.05 -> 0.18 m/s on held-out speech)
+        legs = _leg_joints(motion.skeleton)
+        rot[:, legs] = np.asarray(motion.rotations, dtype=np.float64)[:, legs]
         return Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=rot, root_positions=motion.root_positions)
