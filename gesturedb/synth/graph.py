@@ -32,7 +32,6 @@ the upper-body search.
 """
 from __future__ import annotations
 
-import os
 
 import numpy as np
 
@@ -197,18 +196,10 @@ class GraphSynthesizer:
             ``rhythm_cost``, ``duration_cost``, ``data_cost``, ``transition_cost`` (into it),
             ``control``, ``keyword``.
         """
-        from gesturedb.io.audio import read_audio
-        from gesturedb.synth.matching import Searcher
+        from gesturedb.synth.matching import Searcher, speech_samples
 
         db = self.db
-        audio_path = None
-        if isinstance(audio, (str, os.PathLike)):
-            audio_path = os.fspath(audio)
-            samples, sr = read_audio(audio_path, sr=int(db.config.get("sample_rate", 16000)))
-        else:
-            if sr is None:
-                raise ParameterError("sr: expected the sample rate of the samples given as audio, got None")
-            samples = np.asarray(audio, dtype=np.float32)
+        samples, sr, audio_path = speech_samples(db, audio, sr)
         if not isinstance(blend_frames, (int, np.integer)) or blend_frames < 0:
             raise ParameterError(f"blend_frames: expected a non-negative number of frames, got {blend_frames!r}")
         searcher = Searcher(db, segments="clips")

@@ -27,6 +27,23 @@ from gesturedb.synth.assemble import assemble_frames
 from gesturedb.synth.result import SynthResult
 
 
+def speech_samples(db, audio, sr: int | None = None):
+    """Speech as mono samples at the database's analysis rate: ``(samples, sr, path or None)``.
+
+    ``audio`` is a WAV path (read and resampled) or an array of mono samples
+    whose rate ``sr`` must then be given. Shared by every synthesis method.
+    """
+    from gesturedb.io.audio import read_audio
+
+    if isinstance(audio, (str, os.PathLike)):
+        path = os.fspath(audio)
+        samples, sr = read_audio(path, sr=int(db.config.get("sample_rate", 16000)))
+        return samples, sr, path
+    if sr is None:
+        raise ParameterError("sr: expected the sample rate of the samples given as audio, got None")
+    return np.asarray(audio, dtype=np.float32), sr, None
+
+
 class Searcher:
     """Search an open database for new speech.
 
@@ -188,18 +205,10 @@ class Searcher:
             ``segment_start``, ``db_frame``, ``pose_dist``, ``audio_dist``, ``pose_rank``,
             ``audio_rank``, ``control`` and ``keyword`` (None when unconstrained).
         """
-        from gesturedb.io.audio import read_audio
         from gesturedb.search import rank_sum_search
 
         db = self.db
-        audio_path = None
-        if isinstance(audio, (str, os.PathLike)):
-            audio_path = os.fspath(audio)
-            samples, sr = read_audio(audio_path, sr=int(db.config.get("sample_rate", 16000)))
-        else:
-            if sr is None:
-                raise ParameterError("sr: expected the sample rate of the samples given as audio, got None")
-            samples = np.asarray(audio, dtype=np.float32)
+        samples, sr, audio_path = speech_samples(db, audio, sr)
         if not isinstance(step, (int, np.integer)) or step < 1:
             raise ParameterError(f"step: expected a positive number of frames, got {step!r}")
         if not isinstance(blend_frames, (int, np.integer)) or blend_frames < 0:

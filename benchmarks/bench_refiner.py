@@ -1,0 +1,88 @@
+"""Refiner speed on this CPU: training iterations per second, and what refining adds to a synthesis.
+
+Run by hand (never collected by pytest); needs the refiner extra (torch):
+
+    python benchmarks/bench_refiner.py [--threads 2] [--repeat 3]
+
+Builds the mirrored BEAT2 database in a temporary folder, makes the training
+windows once, then prints (medians over --repeat, all measured in this run):
+
+- training: seconds per iteration (5 critic updates + 1 generator update,
+  batch 32, width 64) and iterations per second;
+- a 60 s synthesis (four input clips joined, trimmed to 60 s): the k-NN
+  synthesis alone, the refinement of its result alone, and the ratio
+  refinement / synthesis (the goal: refining adds less than 10%).
+The refiner is untrained here: its cost does not depend on its weights.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("GESTUREDB_DATA", ROOT.parent / "shared" / "data"))
+
+
+def median_time(fn, repeat):
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--iterations", type=int, default=5, help="training iterations per timing")
+    args = ap.parse_args()
+
+    import torch
+
+    import gesturedb
+    from gesturedb.features.audio import audio_deltas
+    from gesturedb.io.audio import read_audio
+    from gesturedb.refiner.data import database_identity, feature_identity, make_training_data
+    from gesturedb.refiner.train import Refiner, TrainConfig, Trainer
+    from gesturedb.synth import Searcher
+
+    torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        db = gesturedb.build([DATA / "beat2-scott"], os.path.join(tmp, "scott.h5"), mirror=True)
+        t = time.perf_counter()
+        data = make_training_data(db)
+        t_data = time.perf_counter() - t
+        tr = Trainer(data, TrainConfig(), database_identity(db), feature_identity(db))
+        tr.step()  # warm-up
+        s_train = median_time(lambda: [tr.step() for _ in range(args.iterations)], args.repeat) / args.iterations
+
+        rate = int(db.config.get("sample_rate", 16000))
+        clips = sorted((DATA / "beat2-scott" / "inputs").glob("*.wav"))
+        y = np.concatenate([read_audio(c, sr=rate)[0] for c in clips])[: 60 * rate]
+        searcher = Searcher(db)
+        refiner = Refiner(tr.G, data.joints, feature_identity(db))
+        res = searcher.synthesize(y, sr=rate)
+        query = searcher.query_features(y, rate)
+        audio = np.concatenate([query, audio_deltas(query)], axis=1)
+        s_synth = median_time(lambda: searcher.synthesize(y, sr=rate), args.repeat)
+        s_refine = median_time(lambda: refiner.refine(res.motion, audio), args.repeat)
+
+    print(f"torch {torch.__version__}, {args.threads} threads; database {db.n_frames} frames; "
+          f"{data.real.shape[0]} training windows of {data.real.shape[1]} channels (made in {t_data:.1f} s)")
+    print(f"training: {s_train * 1000:.0f} ms per iteration = {1 / s_train:.2f} iterations/s")
+    print(f"60 s synthesis: k-NN {s_synth * 1000:.0f} ms, refining it {s_refine * 1000:.0f} ms "
+          f"= {100 * s_refine / s_synth:.1f}% of the synthesis (goal < 10%)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
