@@ -275,24 +275,37 @@ def from_matrix(m) -> np.ndarray:
     m = np.asarray(m, dtype=np.float64)
     if m.ndim < 2 or m.shape[-2:] != (3, 3):
         raise ParameterError(f"m: expected rotation matrices of shape (..., 3, 3); got shape {m.shape}")
-    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
-    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
-    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    shape = m.shape[:-2]
+    m = m.reshape(-1, 3, 3)
+    m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
     # Each branch divides by the largest of |w|, |x|, |y|, |z|; picking the largest
     # diagonal term per element keeps the division well conditioned everywhere.
-    diag = np.stack([m00 + m11 + m22, m00, m11, m22], axis=-1)
-    case = np.argmax(diag, axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0 = np.sqrt(np.maximum(1 + m00 + m11 + m22, 0.0))
-        c0 = np.stack([0.5 * t0, (m21 - m12) / (2 * t0), (m02 - m20) / (2 * t0), (m10 - m01) / (2 * t0)], -1)
-        t1 = np.sqrt(np.maximum(1 + m00 - m11 - m22, 0.0))
-        c1 = np.stack([(m21 - m12) / (2 * t1), 0.5 * t1, (m01 + m10) / (2 * t1), (m02 + m20) / (2 * t1)], -1)
-        t2 = np.sqrt(np.maximum(1 - m00 + m11 - m22, 0.0))
-        c2 = np.stack([(m02 - m20) / (2 * t2), (m01 + m10) / (2 * t2), 0.5 * t2, (m12 + m21) / (2 * t2)], -1)
-        t3 = np.sqrt(np.maximum(1 - m00 - m11 + m22, 0.0))
-        c3 = np.stack([(m10 - m01) / (2 * t3), (m02 + m20) / (2 * t3), (m12 + m21) / (2 * t3), 0.5 * t3], -1)
-    cands = np.stack([c0, c1, c2, c3], axis=-2)
-    q = np.take_along_axis(cands, case[..., None, None], axis=-2)[..., 0, :]
+    # The w branch (rotations under about 90 degrees, most joint rotations) is computed
+    # for all elements at once, the other three only where they are needed.
+    case = np.argmax(np.stack([m00 + m11 + m22, m00, m11, m22], axis=-1), axis=-1)
+    q = np.empty((m.shape[0], 4))
+    for c in range(4):
+        idx = np.flatnonzero(case == c)
+        if idx.size == 0:
+            continue
+        k = m[idx]
+        a00, a01, a02 = k[:, 0, 0], k[:, 0, 1], k[:, 0, 2]
+        a10, a11, a12 = k[:, 1, 0], k[:, 1, 1], k[:, 1, 2]
+        a20, a21, a22 = k[:, 2, 0], k[:, 2, 1], k[:, 2, 2]
+        if c == 0:
+            t = np.sqrt(np.maximum(1 + a00 + a11 + a22, 0.0))
+            v = (0.5 * t, (a21 - a12) / (2 * t), (a02 - a20) / (2 * t), (a10 - a01) / (2 * t))
+        elif c == 1:
+            t = np.sqrt(np.maximum(1 + a00 - a11 - a22, 0.0))
+            v = ((a21 - a12) / (2 * t), 0.5 * t, (a01 + a10) / (2 * t), (a02 + a20) / (2 * t))
+        elif c == 2:
+            t = np.sqrt(np.maximum(1 - a00 + a11 - a22, 0.0))
+            v = ((a02 - a20) / (2 * t), (a01 + a10) / (2 * t), 0.5 * t, (a12 + a21) / (2 * t))
+        else:
+            t = np.sqrt(np.maximum(1 - a00 - a11 + a22, 0.0))
+            v = ((a10 - a01) / (2 * t), (a02 + a20) / (2 * t), (a12 + a21) / (2 * t), 0.5 * t)
+        q[idx] = np.stack(v, axis=-1)
+    q = q.reshape(shape + (4,))
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0.0, -q, q)
 
