@@ -67,10 +67,12 @@ setup(
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report
         "pygltflib>=1.16",   # glTF 2.0 (.glb) export of motion and target rigs (io/gltf.py)
+        "filelock>=3.12",    # exclusive write lock beside a database during edits (db/storage.py)
     ],
     extras_require={
         # import-linter: the layers contract of .importlinter (stages import only the stages below them)
-        "test": ["pytest>=7", "import-linter>=2.0"],
+        "test": ["pytest>=7", "import-linter>=2.0",
+                 "atheris>=2.3"],  # coverage-guided fuzzing of every parser (tests/fuzz/)
     },
     entry_points={"console_scripts": ["gesturedb=gesturedb.cli.main:main"]},
 )

@@ -299,12 +299,22 @@ class Database:
     @functools.cached_property
     def masks(self) -> dict[str, np.ndarray]:
         """Saved masks: name -> packed uint64 bitset over frames."""
-        g = self._h5.get(schema.MASKS_GROUP)
+        g = self._masks_group()
         return {} if g is None else {k: np.asarray(g[k][()], dtype=np.uint64) for k in sorted(g)}
+
+    def _masks_group(self):
+        import h5py
+
+        g = self._h5.get(schema.MASKS_GROUP)
+        for k in ([] if g is None else g):
+            if not isinstance(g[k], h5py.Dataset):
+                raise SchemaError(self.path, f"{schema.MASKS_GROUP}/{k}: expected a saved mask (a dataset), got a "
+                                  f"group (a mask name with '/'?); repair with `gesturedb masks DB remove {k}`")
+        return g
 
     @functools.cached_property
     def mask_definitions(self) -> dict[str, str]:
-        g = self._h5.get(schema.MASKS_GROUP)
+        g = self._masks_group()
         return {} if g is None else {k: str(g[k].attrs.get("definition", "")) for k in sorted(g)}
 
     # -- motion out -----------------------------------------------------------

@@ -181,6 +181,10 @@ def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str,
         if arr.size and arr.dtype.kind != want.kind and not (arr.dtype.kind in "iub" and want.kind in "iub"):
             raise SchemaError("<writing>", f"{path}: expected {want}, got {arr.dtype}")
         arr = arr.astype(want, copy=False)
+        if want.kind == "f" and arr.size and not np.isfinite(arr).all():
+            idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
+            raise SchemaError("<writing>", f"{path}: expected finite values, got {arr[idx]} at index {idx}; "
+                                           "refusing to write a database with non-finite data")
     _check_shape(field, arr, dims)
     ds = h5.create_dataset(path, data=arr, dtype=_np_dtype(field.dtype))
     ds.attrs["unit"] = field.unit
@@ -217,6 +221,24 @@ def check_version(h5, filename: str | os.PathLike | None = None) -> int:
             f"with this version or open it with the version that wrote it",
         )
     return got
+
+
+#: names of saved masks: an identifier the mask language can refer to, at most 64 characters
+#: (no '/', which HDF5 would turn into nested groups, no '.', no spaces)
+MASK_NAME_PATTERN = r"[A-Za-z_][A-Za-z0-9_]{0,63}"
+#: names of recordings (file stems): no ',' (``--exclude`` separates with commas), no '/' and no control characters
+RECORDING_NAME_PATTERN = r"[^,/\x00-\x1f\x7f]{1,255}"
+
+
+def check_name(kind: str, name, pattern: str) -> str:
+    """Return ``name`` if it matches ``pattern`` entirely, else raise :class:`ParameterError`."""
+    import re
+
+    from gesturedb.errors import ParameterError
+
+    if not isinstance(name, str) or not re.fullmatch(pattern, name):
+        raise ParameterError(f"{kind}: expected a name matching {pattern}, got {name!r}")
+    return name
 
 
 def write_json_attr(obj, name: str, value: Any) -> None:
