@@ -106,7 +106,7 @@ class Database:
         except OSError as exc:
             raise InputFileError(self.path, f"not an HDF5 file ({exc})") from None
         try:
-            schema.check_version(self._h5, self.path)
+            schema.check_file(self._h5, self.path)
         except Exception:
             self._h5.close()
             raise

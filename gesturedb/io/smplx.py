@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -178,7 +179,9 @@ def _array(path, data, key, shape_desc):
     try:
         _check_declared_size(path, data, key)
         return np.asarray(data[key])
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+    # zlib.error: a corrupt deflate stream (found by tests/fuzz/fuzz_npz.py); NotImplementedError:
+    # an unsupported zip compression; RuntimeError: an encrypted entry; EOFError: a truncated entry
+    except (ValueError, OSError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError, EOFError) as exc:
         raise InputFileError(path, f"{key}: unreadable ({exc})") from None
 
 
@@ -205,7 +208,8 @@ def read_smplx(path) -> Motion:
     """
     try:
         data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    # NotImplementedError: a zip "version needed" this Python cannot read (found by tests/fuzz/fuzz_npz.py)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, NotImplementedError, zlib.error) as exc:
         raise InputFileError(path, f"cannot read as .npz: {exc}") from None
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise InputFileError(path, "expected an .npz archive with poses, trans and mocap_frame_rate; "
