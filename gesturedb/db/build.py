@@ -394,7 +394,7 @@ def _process_star(args):
     return process_recording(*args)
 
 
-def _single_threaded_worker() -> None:
+def _single_threaded_worker(parent_pid: int | None = None) -> None:
     """Worker-process initializer: one BLAS/OpenMP thread per process.
 
     Parallelism comes from the processes; letting each one's BLAS also use
@@ -404,10 +404,10 @@ def _single_threaded_worker() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
-    _exit_with_parent()
+    _exit_with_parent(parent_pid)
 
 
-def _exit_with_parent() -> None:
+def _exit_with_parent(parent: int | None = None) -> None:
     """Make this worker die when the build process dies (even by SIGKILL), not linger for minutes.
 
     Linux: prctl(PR_SET_PDEATHSIG, SIGKILL). Elsewhere (or if prctl is unavailable) a
@@ -417,7 +417,11 @@ def _exit_with_parent() -> None:
     import sys
     import threading
 
-    parent = os.getppid()
+    # the pid is taken in the parent before the fork: read here, a parent killed during the fork
+    # would already have been replaced by the reaper and the check below would pass
+    parent = os.getppid() if parent is None else parent
+    if os.getppid() != parent:
+        os._exit(1)
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -636,7 +640,7 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
             from concurrent.futures import ProcessPoolExecutor
 
             with ProcessPoolExecutor(max_workers=min(workers, len(sources)),
-                                     initializer=_single_threaded_worker) as ex:
+                                     initializer=_single_threaded_worker, initargs=(os.getpid(),)) as ex:
                 # map keeps input order, so the database content does not depend on scheduling
                 for s, res in zip(sources, ex.map(_process_star, [(s, cfg) for s in sources])):
                     out += res
