@@ -447,3 +447,18 @@ def test_build_workers_exit_when_the_build_is_killed(scott_dir, tmp_path):
     while time.time() < deadline and any(_alive(k) for k in kids):
         time.sleep(0.1)
     assert not any(_alive(k) for k in kids), "workers outlived the killed build"
+
+
+def test_textgrid_overlap_is_a_one_line_error(scott_dir, tmp_path):
+    from gesturedb.io import read_transcript
+
+    text = (scott_dir / f"{STEM}.TextGrid").read_text()
+    # make the second interval start before the first one ends
+    lines = text.splitlines()
+    xmins = [i for i, ln in enumerate(lines) if ln.strip().startswith("xmin =")]
+    lines[xmins[4]] = lines[xmins[4]].split("=")[0] + "= 1.45"  # "first" starts inside "the" (1.42-1.52)
+    p = tmp_path / "overlap.TextGrid"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputFileError, match="overlap.TextGrid") as info:
+        read_transcript(p)
+    assert "\n" not in str(info.value)

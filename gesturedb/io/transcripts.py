@@ -182,7 +182,8 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
         tg = textgrid.openTextgrid(os.fspath(path), includeEmptyIntervals=False, reportingMode="silence")
     except (praat_errors.PraatioException, ValueError, IndexError, KeyError, UnicodeError, AttributeError,
             TypeError) as exc:
-        raise InputFileError(path, f"cannot parse as a Praat TextGrid: {type(exc).__name__}: {exc}") from None
+        raise InputFileError(path, f"cannot parse as a Praat TextGrid: {type(exc).__name__}: "
+                                   f"{' '.join(str(exc).split())}")  # praatio's messages span lines: keep one from None
     names = list(tg.tierNames)
     match = [n for n in names if n.strip().lower() == tier.lower()]
     if not match:
