@@ -462,3 +462,15 @@ def test_textgrid_overlap_is_a_one_line_error(scott_dir, tmp_path):
     with pytest.raises(InputFileError, match="overlap.TextGrid") as info:
         read_transcript(p)
     assert "\n" not in str(info.value)
+
+
+def test_absurd_bvh_offsets_name_the_file_and_line(data_dir, tmp_path):
+    from gesturedb.io import read_motion
+
+    lines = (data_dir / "bvh-foreign/AV_8Walk_Meredith_HVHA_Rep1.bvh").read_text().splitlines()
+    j = [k for k, ln in enumerate(lines) if ln.strip().startswith("OFFSET")][1]
+    lines[j] = "OFFSET 1e308 1e308 1e308"
+    p = tmp_path / "big.bvh"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputFileError, match=rf"big.bvh: line {j + 1}: .*OFFSET: expected a length within"):
+        read_motion(p)

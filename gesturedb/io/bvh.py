@@ -89,6 +89,8 @@ def _tokens(lines, start, stop):
 
 #: deepest joint chain accepted (a human skeleton with fingers is ~10-30 deep); a limit, not a RecursionError
 MAX_BVH_DEPTH = 200
+#: largest |OFFSET| component accepted, in file units (1e6 m even for a file in micrometres)
+MAX_BVH_OFFSET = 1e12
 #: frame rates accepted from ``Frame Time`` (1 / Frame Time), Hz
 MIN_FPS, MAX_FPS = 1.0, 1000.0
 
@@ -120,6 +122,9 @@ def _parse_hierarchy(path, lines, start, stop):
             fail(f"{what}: expected a number, got {tok.lstrip(chr(0))!r}", ln)
         if not math.isfinite(v):
             fail(f"{what}: expected a finite number, got {tok!r}", ln)
+        if abs(v) > MAX_BVH_OFFSET:
+            # forward kinematics of such bones overflows to inf/NaN far from here; say it where it is
+            fail(f"{what}: expected a length within +-{MAX_BVH_OFFSET:g} file units, got {tok}", ln)
         return v
 
     joints: list[_Joint] = []
