@@ -115,21 +115,28 @@ def _os_error(path: str, exc: OSError) -> GestureDBError:
 
 @contextlib.contextmanager
 def sigterm_as_interrupt():
-    """Turn SIGTERM into KeyboardInterrupt in the main thread, so cleanup runs as for Ctrl-C."""
+    """Turn SIGTERM into KeyboardInterrupt in the main thread, so cleanup runs as for Ctrl-C.
+
+    Yields a list that records the signals received: a KeyboardInterrupt raised inside a
+    finalizer (h5py closing objects) is swallowed by Python, so writers check the list
+    once more before their rename.
+    """
+    got: list[int] = []
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield got
         return
 
     def handler(signum, frame):
+        got.append(signum)
         raise KeyboardInterrupt(f"signal {signum}")
 
     try:
         old = signal.signal(signal.SIGTERM, handler)
     except (ValueError, OSError):  # not settable here (embedded interpreter): nothing to restore
-        yield
+        yield got
         return
     try:
-        yield
+        yield got
     finally:
         signal.signal(signal.SIGTERM, old)
 
@@ -160,12 +167,14 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
         raise ParameterError(f"output: folder {folder} does not exist")
     if os.path.isdir(out_path):
         raise ParameterError(f"output: {out_path} is a folder; expected a file name such as DB.h5")
-    with sigterm_as_interrupt(), locked(out_path):
+    with sigterm_as_interrupt() as signals, locked(out_path):
         remove_stale_temporaries(out_path)
         tmp = _mkstemp(out_path)
         try:
             with h5py.File(tmp, "w", track_order=True) as h5:
                 fill(h5)
+            if signals:
+                raise KeyboardInterrupt("SIGTERM")
             # mkstemp makes the file 0600; give it the mode a plain open() would
             umask = os.umask(0)
             os.umask(umask)
@@ -199,7 +208,7 @@ def edit(path: str | os.PathLike):
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise InputFileError(path, "no such file")
-    with sigterm_as_interrupt(), locked(path):
+    with sigterm_as_interrupt() as signals, locked(path):
         remove_stale_temporaries(path)
         tmp = _mkstemp(path)
         try:
@@ -211,6 +220,8 @@ def edit(path: str | os.PathLike):
             with h5py.File(tmp, "r+") as h5:
                 schema.check_version(h5, path)
                 yield h5
+            if signals:
+                raise KeyboardInterrupt("SIGTERM")
             os.replace(tmp, path)
         except BaseException as exc:
             with contextlib.suppress(FileNotFoundError):
