@@ -474,3 +474,31 @@ def test_absurd_bvh_offsets_name_the_file_and_line(data_dir, tmp_path):
     p.write_text("\n".join(lines) + "\n")
     with pytest.raises(InputFileError, match=rf"big.bvh: line {j + 1}: .*OFFSET: expected a length within"):
         read_motion(p)
+
+
+def test_provenance_is_never_written_with_nan(tmp_path):
+    from gesturedb.synth.result import SynthResult
+
+    class Fake:
+        def provenance(self):
+            return {"steps": [{"audio_dist": float("nan")}]}
+
+    with pytest.raises(InputFileError, match="p.json: provenance: expected finite numbers"):
+        SynthResult.write_provenance(Fake(), tmp_path / "p.json")
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_an_output_reaching_an_input_through_a_symlink_or_hard_link_is_refused(tmp_path):
+    from gesturedb.io.outputs import check_outputs
+
+    src = tmp_path / "a.wav"
+    src.write_bytes(b"RIFF")
+    (tmp_path / "link.wav").symlink_to(src)
+    os.link(src, tmp_path / "hard.wav")
+    for out in ("link.wav", "hard.wav", "sub/../a.wav"):
+        (tmp_path / "sub").mkdir(exist_ok=True)
+        with pytest.raises(ParameterError, match="is an input of this command"):
+            check_outputs({"-o": tmp_path / out}, [src])
+    with pytest.raises(ParameterError, match="the same file as -o"):
+        check_outputs({"-o": tmp_path / "x.bvh", "--npz": tmp_path / "x.bvh"})
+    check_outputs({"-o": tmp_path / "new.bvh", "--npz": None}, [src])  # a fine output passes
