@@ -43,7 +43,7 @@ setup(
     python_requires=">=3.10",
     packages=[
         "gesturedb", "gesturedb.io", "gesturedb.features", "gesturedb.db", "gesturedb.control",
-        "gesturedb.synth", "gesturedb.eval", "gesturedb.cli",
+        "gesturedb.synth", "gesturedb.refiner", "gesturedb.eval", "gesturedb.cli",
     ],
     # cli/ lives at the top of the repository to keep the command line visibly
     # thin and separate, but installs as gesturedb.cli.
@@ -63,6 +63,7 @@ setup(
         "pyvista>=0.43",     # offscreen skeleton rendering
         "vtk>=9.4",          # renders offscreen through EGL (needs libegl1, libegl-mesa0, libgl1-mesa-dri)
         "pillow>=10.1",      # sized built-in font for captions
+        "dask[distributed]>=2024.1",  # build on a cluster (gesturedb build --scheduler)
         "imageio>=2.30",
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report
@@ -75,6 +76,8 @@ setup(
                  # coverage-guided fuzzing of every parser (tests/fuzz/); wheels exist for Linux x86_64 only,
                  # elsewhere tests/test_fuzz.py skips with a warning that the fuzzers did not run
                  'atheris>=2.3; platform_system == "Linux" and platform_machine == "x86_64"'],
+        # the cGAN refiner; the CPU build of torch is pinned (a plain `torch` pulls GBs of CUDA)
+        "refiner": ["torch==2.13.0"],
     },
     entry_points={"console_scripts": ["gesturedb=gesturedb.cli.main:main"]},
 )

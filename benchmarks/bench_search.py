@@ -1,22 +1,31 @@
 """Benchmark of the rank-sum search at the paper's scale (run by hand, never by pytest).
 
 Database: 9,624 segments x 64 frames = 615,936 frames, pose features of 96
-values, audio features of 14 values, window N = 8, random data with a fixed
-seed (the same sizes as Habibie et al. 2022, Sec. 3.3). Prints, in one run:
+values, audio features of 14 values, window N = 8 (the same sizes as Habibie
+et al. 2022, Sec. 3.3), fixed seed. Pose data: by default ("--data motion")
+synthetic motion with the structure of real pose features (see motion_pose:
+smooth joints stacked over f, f-2, f-4, f-6 in a turning body frame); with
+"--data random" i.i.d. Gaussian rows, which have no structure for the
+PoseProjection filter to use (it then keeps most rows: the worst case).
+Prints, in one run:
 
 (a) latency of one step of the kernel (median of many), pose and audio pre-selection,
-    and pose pre-selection through a HalfPose (binary16 rows as a bounded filter,
-    identical results, half the bytes);
+    pose pre-selection through a HalfPose (binary16 rows as a bounded filter,
+    identical results, half the bytes) and through a PoseProjection (24 columns
+    per frame as a bounded filter, identical results, a quarter of the bytes;
+    what gesturedb's Searcher uses by default);
 (b) the same step written in vectorised numpy (what a user would write) and
     a check that it picks the same window;
-(c) the floor: the time to read the pose matrix once at the memory bandwidth
-    measured now (a streaming sum in C++ on 1 and 2 threads, and numpy's sum);
+(c) the floors: the time to read the 96-wide pose matrix once at the memory
+    bandwidth measured now (a streaming sum in C++ on 1 and 2 threads, and
+    numpy's sum), and the 24-wide projection once (C++, 2 threads);
 (d) the real-time factor of a 24 s synthesis at 15 fps (360 frames, 45 steps);
 (e) the batched search with every segment's audio as a query (64 frames =
     8 steps each), against a loop of single searches timed on a subset and
     extrapolated (said so in the output), with a check that they agree.
 
 Usage:  python benchmarks/bench_search.py [--reps 41] [--loop-subset 24] [--skip-batch]
+                                          [--data motion|random]
 The machine is shared: every timing is a median over interleaved repetitions,
 and (e) also reports CPU time, which other processes do not inflate.
 """
@@ -38,10 +47,43 @@ M, L, DP, DA, N = 9624, 64, 96, 14, 8
 FPS, SECONDS = 15, 24
 
 
-def make_db(seed=0):
+def motion_pose(rng, F, n_rec=150):
+    """(F, 96) pose features with the structure of real ones: 8 joints x 3
+    coordinates moving smoothly (6 latent Gaussian-filtered signals, about
+    5 frames of correlation like the wrists at 15 fps, mapped to the 24
+    coordinates, plus 1 cm of jitter),
+    stacked at f, f-2, f-4, f-6 clamped to the recording's first frame, each in
+    the current frame's slowly turning body frame (as gesturedb.features.pose
+    does), over n_rec recordings."""
+    from scipy.ndimage import gaussian_filter1d
+
+    out = np.empty((F, DP), np.float32)
+    bounds = np.linspace(0, F, n_rec + 1).astype(int)
+    rest = rng.standard_normal(24) * 0.3  # one speaker: one rest pose
+    arms = rng.standard_normal((6, 24)) * 0.08
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        n = b - a
+        # two arms: 6 latent degrees of freedom drive the 24 coordinates (joints
+        # of one arm move together), plus a little independent jitter
+        z = gaussian_filter1d(rng.standard_normal((n, 6)), 5.0, axis=0)
+        x = (z / z.std(axis=0)) @ arms
+        x += gaussian_filter1d(rng.standard_normal((n, 24)), 2.0, axis=0) * 0.01 + rest
+        yaw = gaussian_filter1d(rng.standard_normal(n), 20.0) * 2.0
+        c, sn = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+        f = np.arange(n)
+        for k in range(4):
+            p = x[np.maximum(f - 2 * k, 0)].reshape(n, 8, 3)
+            px, pz = p[..., 0], p[..., 2]
+            q = np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1)
+            out[a:b, 24 * k:24 * (k + 1)] = q.reshape(n, 24)
+    return out
+
+
+def make_db(seed=0, data="motion"):
     rng = np.random.default_rng(seed)
     F = M * L
-    pose = rng.standard_normal((F, DP), dtype=np.float32)
+    pose = (motion_pose(rng, F) if data == "motion"
+            else rng.standard_normal((F, DP), dtype=np.float32))
     audio = rng.standard_normal((F, DA), dtype=np.float32)
     seg_start = np.arange(M, dtype=np.int64) * L
     seg_len = np.full(M, L, dtype=np.int64)
@@ -104,32 +146,44 @@ def main(argv=None):
     ap.add_argument("--loop-subset", type=int, default=24,
                     help="queries timed one by one to extrapolate the loop in (e)")
     ap.add_argument("--skip-batch", action="store_true", help="skip (e)")
+    ap.add_argument("--data", choices=("motion", "random"), default="motion",
+                    help="synthetic pose data: structured motion (default) or i.i.d. Gaussian")
     args = ap.parse_args(argv)
 
     threads = _core.default_threads()
     print(f"gesturedb search benchmark: {M} segments x {L} frames = {M * L} frames, "
           f"pose {DP}, audio {DA}, N = {N}; simd = {search.get_simd()} "
-          f"(available {search.kernels()}), threads = {threads}")
-    rng, pose, audio, st, ln = make_db()
+          f"(available {search.kernels()}), threads = {threads}, data = {args.data}")
+    rng, pose, audio, st, ln = make_db(data=args.data)
     prev = pose[12345].copy()
     q = rng.standard_normal((N, DA), dtype=np.float32)
     t = time.perf_counter()
     half = search.HalfPose(pose)
+    t_half = time.perf_counter() - t
+    t = time.perf_counter()
+    proj = search.PoseProjection(pose)
+    t_proj = time.perf_counter() - t
     print(f"pose matrix {pose.nbytes / 1e6:.0f} MB, audio matrix {audio.nbytes / 1e6:.0f} MB, "
-          f"HalfPose {half.data.nbytes / 1e6:.0f} MB (built once in {time.perf_counter() - t:.2f} s)")
+          f"HalfPose {half.data.nbytes / 1e6:.0f} MB (built once in {t_half:.2f} s), "
+          f"PoseProjection {proj.blocks.nbytes / 1e6:.0f} MB (built once in {t_proj:.2f} s; "
+          f"median residual {np.median(proj.rows[:, -1]):.3f})")
 
     # --- (a) + (c): kernel steps and the read floor, interleaved ----------------
-    def step(pre, th=None, f16=None):
+    def step(pre, th=None, f16=None, pj=None):
         return lambda: search.rank_sum_step(pose, audio, st, ln, prev, q, preselect=pre, threads=th,
-                                            pose_f16=f16)
+                                            pose_f16=f16, pose_proj=pj)
 
+    flat24 = proj.blocks.reshape(-1)
     fns = {
         "floor C++ 2 threads": lambda: _core.stream_sum_f32(pose, 2),
         "floor C++ 1 thread": lambda: _core.stream_sum_f32(pose, 1),
         "floor numpy sum": lambda: pose.sum(),
+        "floor 24-wide 2 thr": lambda: _core.stream_sum_f32(flat24, 2),
         "step pose": step("pose"),
         "step pose 1 thread": step("pose", 1),
         "step pose HalfPose": step("pose", f16=half),
+        "step pose Projection": step("pose", pj=proj),
+        "step pose Proj 1 thr": step("pose", 1, pj=proj),
         "step audio": step("audio"),
     }
     res = interleaved(fns, args.reps)
@@ -147,6 +201,15 @@ def main(argv=None):
     same = search.rank_sum_step(pose, audio, st, ln, prev, q) == \
         search.rank_sum_step(pose, audio, st, ln, prev, q, pose_f16=half)
     print(f"  HalfPose step returns the same StepResult: {same}")
+    step_proj = res["step pose Projection"][0]
+    floor24 = res["floor 24-wide 2 thr"][0]
+    print(f"  PoseProjection: step {1e3 * step_proj:.2f} ms = today's pose step / {step_pose / step_proj:.2f} "
+          f"(1 thread: / {res['step pose 1 thread'][0] / res['step pose Proj 1 thr'][0]:.2f}); "
+          f"step / 24-wide floor {step_proj / floor24:.2f}; 96-wide floor / 24-wide floor "
+          f"{res['floor C++ 2 threads'][0] / floor24:.2f}")
+    same = search.rank_sum_step(pose, audio, st, ln, prev, q) == \
+        search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj)
+    print(f"  PoseProjection step returns the same StepResult: {same}")
     print("  (a pose step reads the entry frames of every candidate, 56 of every 64 rows of the\n"
           "   pose matrix, and one audio window per segment; an audio step reads the audio matrix\n"
           "   and one pose row per segment)")
@@ -165,18 +228,20 @@ def main(argv=None):
         r = search.rank_sum_step(pose, audio, st, ln, prev, q, preselect=pre)
         same = (r.segment, r.start) == (m_np, s_np)
         t_step = res[f"step {pre}"][0]
+        extra = (f"   numpy/PoseProjection step = {min(t_np) / step_proj:6.1f}x" if pre == "pose" else "")
         print(f"  numpy {pre:5s} {1e3 * min(t_np):8.1f} ms (median {1e3 * np.median(t_np):.1f})   "
-              f"numpy/step = {min(t_np) / t_step:6.1f}x   same choice: {same}")
+              f"numpy/step = {min(t_np) / t_step:6.1f}x{extra}   same choice: {same}")
 
     # --- (d) real-time factor ---------------------------------------------------
     T = FPS * SECONDS
     query = rng.standard_normal((T, DA), dtype=np.float32)
     print(f"\n(d) {SECONDS} s at {FPS} fps = {T} frames, {-(-T // N)} steps of N = {N}:")
-    for label, f16 in (("", None), (" with HalfPose", half)):
+    for label, f16, pj in (("", None, None), (" with HalfPose", half, None),
+                           (" with PoseProjection", None, proj)):
         t_syn = []
         for _ in range(5):
             t = time.perf_counter()
-            search.rank_sum_search(pose, audio, st, ln, query, prev, step=N, pose_f16=f16)
+            search.rank_sum_search(pose, audio, st, ln, query, prev, step=N, pose_f16=f16, pose_proj=pj)
             t_syn.append(time.perf_counter() - t)
         t_syn = float(np.median(t_syn))
         print(f"  search{label}: {1e3 * t_syn:.1f} ms, real-time factor {t_syn / SECONDS:.4f} "

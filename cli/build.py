@@ -18,10 +18,15 @@ def add_parser(sub) -> None:
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="files or folders")
     p.add_argument("-o", "--output", required=True, metavar="DB.h5")
     p.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1), help="processes (default: %(default)s)")
+    p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
+                   help="process recordings as Dask tasks (a LocalCluster of N workers or a running scheduler); "
+                   "this process still writes the file")
     p.add_argument("-r", "--recursive", action="store_true", help="also take files in sub-folders")
     p.add_argument("--fps", type=float_range(1, 1000), default=15.0, help="database frame rate (default: %(default)s)")
     p.add_argument("--chunk-frames", type=int, default=64, help="fixed chunk length (default: %(default)s)")
-    p.add_argument("--gap", type=float, default=0.4, dest="gap_s", help="word gap that splits clips, s (default: %(default)s)")
+    p.add_argument("--gap", type=_gap, default=0.4, dest="gap_s",
+                   help="word gap that splits clips, s, or 'auto' (clips of about 3 s from the speakers' own pauses; "
+                   "default: %(default)s)")
     p.add_argument("--pose-window", type=int, default=4)
     p.add_argument("--pose-stride", type=int, default=2)
     p.add_argument("--mirror", action="store_true", help="add left/right mirrored copies")
@@ -30,8 +35,13 @@ def add_parser(sub) -> None:
                    help='role -> joint name override, e.g. \'{"left_index1": "LeftHandThumb1"}\' or a .json file')
     p.add_argument("--max-mismatch", type=float, default=1.0, dest="max_mismatch_s",
                    help="largest audio/motion duration difference, s (default: %(default)s)")
+    p.add_argument("--no-graph", action="store_true", help="skip the motion graph (add it later with `gesturedb graph`)")
     p.add_argument("-q", "--quiet", action="store_true", help="no pairing report or progress bar")
     p.set_defaults(run=run)
+
+
+def _gap(text):
+    return text if text == "auto" else float(text)
 
 
 def _joint_map(text):
@@ -55,9 +65,10 @@ def run(args) -> int:
         print(pair_inputs(args.inputs, recursive=args.recursive).summary(), file=sys.stderr)
     db = build(
         args.inputs, args.output, workers=args.workers, recursive=args.recursive, progress=not args.quiet,
+        scheduler=args.scheduler,
         fps=args.fps, chunk_frames=args.chunk_frames, gap_s=args.gap_s, pose_window=args.pose_window,
         pose_stride=args.pose_stride, mirror=args.mirror, speaker=args.speaker,
-        joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s,
+        joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s, graph=not args.no_graph,
     )
     with db:
         print(f"wrote {args.output}: {len(db.recordings)} recording(s), {db.n_frames} frames "

@@ -62,7 +62,7 @@ def add_parser(sub) -> None:
         description="Either hold out a stretch of a recording (--data-dir, --holdout-start, --holdout-end): build a "
         "database from the rest and compare every system with the held-out motion capture; or take a database "
         "and new speech (DB.h5 --audio ...) and compute the metrics that need no ground truth. Systems: "
-        "random windows, pose-only, audio-only, rank-sum with pose and with audio pre-selection.",
+        "random windows, pose-only, audio-only, rank-sum with pose and with audio pre-selection, motion graph.",
     )
     m.add_argument("db", nargs="?", default=None, metavar="DB.h5", help="database to search (not with --data-dir)")
     m.add_argument("--audio", action="append", default=[], metavar="SPEECH.wav",
@@ -78,13 +78,15 @@ def add_parser(sub) -> None:
                    help="keep the training database here (default: OUT/train.h5)")
     m.add_argument("-o", "--output", required=True, metavar="DIR", help="report folder")
     m.add_argument("--systems", default=None,
-                   help="comma-separated subset of random,pose_only,audio_only,ranksum_pose,ranksum_audio")
+                   help="comma-separated subset of random,pose_only,audio_only,ranksum_pose,ranksum_audio,graph")
     m.add_argument("--controls", action="store_true", help="also run `eval controls` and add it to the report")
     m.add_argument("--no-render", action="store_true", help="no contact sheets or video")
     m.add_argument("--video", choices=("mp4", "gif", "none"), default="mp4",
                    help="side-by-side video of the first input (default: mp4 with the speech)")
     m.add_argument("--video-seconds", type=float, default=None, metavar="S", help="render only the first S seconds")
     m.add_argument("--keywords", action="store_true", help="let the rank-sum search use keyword sub-databases")
+    m.add_argument("--refiner", default=None, metavar="REFINER.pt",
+                   help="add the system 'rank-sum + refiner' (gesturedb refiner train)")
     m.add_argument("-q", "--quiet", action="store_true", help="do not print the tables")
     _search_options(m, preselect=False)
     m.set_defaults(run=run_motion)
@@ -133,6 +135,11 @@ def run_motion(args) -> int:
         bad = [s for s in systems if s not in SYSTEMS[1:]]
         if bad:
             raise ParameterError(f"--systems: expected names from {','.join(SYSTEMS[1:])}, got {','.join(bad)}")
+    refiner = None
+    if args.refiner:
+        from gesturedb.refiner import load_refiner
+
+        refiner = load_refiner(args.refiner)  # checked against the database when it is used
     holdout = args.data_dir or args.holdout_start is not None or args.holdout_end is not None
     if holdout:
         if args.db or args.audio:
@@ -145,7 +152,7 @@ def run_motion(args) -> int:
             args.data_dir, args.holdout_start, args.holdout_end, recording=args.recording,
             db_path=args.train_db or os.path.join(args.output, "train.h5"), mirror=not args.no_mirror,
             systems=["ground_truth"] + (systems or list(SYSTEMS[1:])), controls=args.controls,
-            keywords=args.keywords, **_search_kwargs(args),
+            keywords=args.keywords, refiner=refiner, **_search_kwargs(args),
         )
     else:
         if not args.db or not args.audio:
@@ -156,7 +163,7 @@ def run_motion(args) -> int:
         with gesturedb.open(args.db) as db:
             ev = evaluate_inputs(
                 db, args.audio, transcripts=[_beside(a) for a in args.audio], systems=systems or list(SYSTEMS[1:]),
-                controls=args.controls, keywords=args.keywords, **_search_kwargs(args),
+                controls=args.controls, keywords=args.keywords, refiner=refiner, **_search_kwargs(args),
             )
     written = ev.write(args.output, render=not args.no_render, video=None if args.video == "none" else args.video,
                        video_seconds=args.video_seconds)

@@ -20,6 +20,8 @@ COMMANDS = {
     "eval": "eval",
     "render": "render",
     "retarget": "retarget",
+    "refiner": "refiner",
+    "graph": "graph",
 }
 
 

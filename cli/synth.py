@@ -20,13 +20,17 @@ def add_parser(sub) -> None:
     p.add_argument("--npz", default=None, metavar="OUT.npz", help="also write joint positions (T, J, 3) in metres")
     p.add_argument("--provenance", default=None, metavar="OUT.json",
                    help="where every step came from (default: OUT.provenance.json)")
+    p.add_argument("--method", choices=("knn", "graph"), default="knn",
+                   help="knn: rank-sum motion matching (default); graph: GestureMaster motion-graph path search")
+    p.add_argument("--gap", type=lambda t: t if t == "auto" else float(t), default=None, dest="gap_s",
+                   help="--method graph: input pause that splits clips, s, or 'auto' (default: the database's)")
     p.add_argument("--k", type=int_range(1, 10**6), default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")
     p.add_argument("--seed", type=int_range(0, 2**63 - 1), default=0, help="seed for --init random")
     p.add_argument("--step", type=int_range(1, 10**5), default=8, help="frames per search step N (default: 8)")
-    p.add_argument("--blend", type=int_range(0, 10**5), default=4, dest="blend_frames",
-                   help="cross-fade frames at window boundaries, 0 = off (default: 4)")
+    p.add_argument("--blend", type=int_range(0, 10**5), default=None, dest="blend_frames",
+                   help="cross-fade frames at window boundaries, 0 = off (default: 4; --method graph: 8)")
     p.add_argument("--no-smooth", action="store_true",
                    help="no Savitzky-Golay smoothing (window 7, order 2) of the result")
     p.add_argument("--segments", choices=("chunks", "clips"), default="chunks")
@@ -36,7 +40,12 @@ def add_parser(sub) -> None:
     p.add_argument("--keywords", default=None, help="comma-separated keywords to use (default: all)")
     p.add_argument("--exclude", default=None, help="comma-separated recordings to leave out of the search")
     p.add_argument("--export-fps", type=float_range(1, 1000), default=None, help="resample the BVH/npz to this frame rate")
+    p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
+                   help="search over --parts shards on Dask workers (same output)")
+    p.add_argument("--parts", type=int_range(1, 4096), default=2, help="shards with --scheduler (default: %(default)s)")
     p.add_argument("--render", default=None, metavar="OUT.mp4", help="also render the result (mp4/gif/png)")
+    p.add_argument("--refiner", default=None, metavar="REFINER.pt",
+                   help="refine the result with a trained refiner (gesturedb refiner train)")
     from gesturedb.cli.retarget import add_target_options
 
     add_target_options(p)
@@ -61,13 +70,35 @@ def run(args) -> int:
                   [args.db, args.audio, args.transcript, getattr(args, "target_skeleton", None)])
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
-    with gesturedb.open(args.db) as db:
-        res = Searcher(db, segments=args.segments).synthesize(
-            args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
-            seed=args.seed, step=args.step, blend_frames=args.blend_frames, smooth=not args.no_smooth,
-            control=args.control,
-            keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None,
-        )
+    from contextlib import nullcontext
+
+    from gesturedb.db.cluster import dask_client
+
+    with gesturedb.open(args.db) as db, (dask_client(args.scheduler) if args.scheduler else nullcontext()) as client:
+        refiner = None
+        if args.refiner:
+            from gesturedb.refiner import load_refiner
+
+            refiner = load_refiner(args.refiner, db)
+        if args.method == "graph":
+            from gesturedb.errors import ParameterError
+            from gesturedb.synth.graph import GraphSynthesizer
+
+            if refiner is not None or args.scheduler:
+                raise ParameterError("--method graph: --refiner and --scheduler work with the k-NN method only")
+            res = GraphSynthesizer(db).synthesize(
+                args.audio, transcript=args.transcript, gap_s=args.gap_s,
+                blend_frames=8 if args.blend_frames is None else args.blend_frames,
+                smooth=not args.no_smooth, control=args.control, keywords=keywords,
+                exclude=args.exclude.split(",") if args.exclude else None)
+        else:
+            res = Searcher(db, segments=args.segments, client=client, parts=args.parts).synthesize(
+                args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
+                seed=args.seed, step=args.step, blend_frames=4 if args.blend_frames is None else args.blend_frames,
+                smooth=not args.no_smooth,
+                control=args.control,
+                keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None, refiner=refiner,
+            )
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
     motion = apply_target(args, motion)
     write_motion(args.output, motion)

@@ -28,6 +28,7 @@ using I64 = py::array_t<int64_t, py::array::c_style>;
 using U64 = py::array_t<uint64_t, py::array::c_style>;
 using Bool = py::array_t<bool, py::array::c_style>;
 using U16 = py::array_t<uint16_t, py::array::c_style>;
+using F64 = py::array_t<double, py::array::c_style>;
 
 std::string shape_str(const py::array& a) {
     std::string s = "(";
@@ -51,9 +52,34 @@ Span2<const float> span2(const F32& a, const char* name) {
 }
 
 Database make_db(const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
-                 const std::optional<U16>& pose_f16 = std::nullopt) {
+                 const std::optional<U16>& pose_f16 = std::nullopt,
+                 const std::optional<py::tuple>& pose_proj = std::nullopt) {
     Database db;
     db.pose = span2(pose, "pose");
+    if (pose_proj) {
+        // (blocks float32 (ceil(F/16), J, 16), basis float64 (Dp, J-1), mean float64 (Dp,), max norm)
+        if (pose_proj->size() != 4) throw std::invalid_argument("pose_proj: expected a 4-tuple");
+        // refuse anything cast would have to copy: a copy would die with this scope
+        if (!py::isinstance<F32>((*pose_proj)[0]) || !py::isinstance<F64>((*pose_proj)[1]) ||
+            !py::isinstance<F64>((*pose_proj)[2]))
+            throw std::invalid_argument("pose_proj: expected float32 rows and float64 basis and mean, C-contiguous");
+        const F32 rows = (*pose_proj)[0].cast<F32>();
+        const F64 basis = (*pose_proj)[1].cast<F64>();
+        const F64 mean = (*pose_proj)[2].cast<F64>();
+        require_ndim(rows, 3, "pose_proj blocks");
+        if (rows.shape(2) != kFrameBlock)
+            throw std::invalid_argument("pose_proj blocks: expected (ceil(F/16), J, 16); got " + shape_str(rows));
+        require_ndim(basis, 2, "pose_proj basis");
+        require_ndim(mean, 1, "pose_proj mean");
+        // the tuple's arrays are owned by the caller's PoseProjection; cast
+        // returned views of them (already float32/float64 C-contiguous, checked
+        // in Python), so these pointers stay valid for the call
+        db.proj = {rows.data(), int64_t(rows.shape(0)), int64_t(rows.shape(1)) * kFrameBlock};
+        db.proj_dim = int64_t(rows.shape(1));
+        db.proj_basis = {basis.data(), int64_t(basis.shape(0)), int64_t(basis.shape(1))};
+        db.proj_mean = {mean.data(), int64_t(mean.shape(0))};
+        db.proj_max_norm = (*pose_proj)[3].cast<double>();
+    }
     if (pose_f16) {
         require_ndim(*pose_f16, 2, "pose_f16");
         db.pose_f16 = {pose_f16->data(), int64_t(pose_f16->shape(0)), int64_t(pose_f16->shape(1))};
@@ -207,6 +233,27 @@ PYBIND11_MODULE(_core, m) {
     }, py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
        "||h - v||^2 per row of binary16 bit patterns h, with one instruction set.");
 
+    m.def("l2sq_blocks_f32", [](const F32& blocks, int64_t f0, int64_t f1, const F32& v,
+                                const std::string& isa) {
+        const Kernels& k = kernels_for(isa.c_str());
+        require_ndim(blocks, 3, "blocks");
+        if (blocks.shape(2) != kFrameBlock)
+            throw std::invalid_argument("blocks: expected (n_blocks, dim, 16); got " + shape_str(blocks));
+        const int64_t D = blocks.shape(1);
+        check_vector(v, D, "v");
+        if (f0 < 0 || f1 < f0 || f1 > int64_t(blocks.shape(0)) * kFrameBlock)
+            throw std::invalid_argument("[f0, f1): expected inside [0, " +
+                                        std::to_string(blocks.shape(0) * kFrameBlock) + ")");
+        py::array_t<float> d(f1 - f0);
+        float* pd = d.mutable_data();
+        {
+            py::gil_scoped_release release;
+            k.l2sq_blocks_f32(blocks.data(), f0, f1, D, v.data(), pd);
+        }
+        return d;
+    }, py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(),
+       py::arg("isa"), "||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, one instruction set.");
+
     m.def("cosdots_f32", [](const F32& audio, const F32& q, const std::string& isa) {
         const Kernels& k = kernels_for(isa.c_str());
         const Span2<const float> a = span2(audio, "audio");
@@ -242,8 +289,9 @@ PYBIND11_MODULE(_core, m) {
     m.def("step", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
                      const F32& prev, const F32& query, int64_t k, const std::string& preselect,
                      const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
-                     int threads, const std::optional<U16>& pose_f16) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16);
+                     int threads, const std::optional<U16>& pose_f16,
+                     const std::optional<py::tuple>& pose_proj) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
         check_vector(prev, db.pose.cols, "prev_pose");
         const Span2<const float> q = span2(query, "query_audio");
         if (q.cols != db.audio.cols || q.rows < 1)
@@ -268,14 +316,68 @@ PYBIND11_MODULE(_core, m) {
        py::arg("k"), py::arg("preselect"), py::arg("allowed").noconvert().none(true),
        py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
        py::arg("pose_f16").noconvert().none(true) = py::none(),
+       py::arg("pose_proj").none(true) = py::none(),
        "One rank-sum step (use gesturedb.search.rank_sum_step, which validates).");
+
+    m.def("preselect", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+                          const F32& prev, const F32& query, const std::string& preselect,
+                          const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
+                          int threads, const std::optional<U16>& pose_f16,
+                          const std::optional<py::tuple>& pose_proj) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
+        check_vector(prev, db.pose.cols, "prev_pose");
+        const Span2<const float> q = span2(query, "query_audio");
+        if (q.cols != db.audio.cols || q.rows < 1)
+            throw std::invalid_argument("query_audio: expected (n >= 1, " + std::to_string(db.audio.cols) +
+                                        "); got " + shape_str(query));
+        StepOptions opt;
+        opt.preselect = parse_preselect(preselect);
+        opt.allowed = make_allowed(allowed, db, false).at(0);
+        opt.exclude = exclude_ptr(exclude, db.n_segments());
+        const Kernels& kern = active_kernels();
+        const int64_t M = db.n_segments();
+        py::array_t<int64_t> s(M);
+        py::array_t<float> dp(M);
+        py::array_t<double> da(M);
+        int64_t* ps = s.mutable_data();
+        float* pdp = dp.mutable_data();
+        double* pda = da.mutable_data();
+        {
+            py::gil_scoped_release release;
+            StepEngine engine(kern, db, threads <= 0 ? default_threads() : threads);
+            engine.preselect(prev.data(), q.data, q.rows, opt, ps, pdp, pda);
+        }
+        return py::make_tuple(s, dp, da);
+    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+       py::arg("seg_len").noconvert(), py::arg("prev").noconvert(), py::arg("query").noconvert(),
+       py::arg("preselect"), py::arg("allowed").noconvert().none(true),
+       py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
+       py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+       "Pre-selection table of one step (use gesturedb.search.preselect_table, which validates).");
+
+    m.def("rank_table", [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t k) {
+        require_ndim(start, 1, "starts");
+        const int64_t M = start.shape(0);
+        check_vector(pose_dist, M, "pose_dist");
+        if (audio_dist.ndim() != 1 || audio_dist.shape(0) != M)
+            throw std::invalid_argument("audio_dist: expected (" + std::to_string(M) + ",); got " +
+                                        shape_str(audio_dist));
+        TableRank r;
+        {
+            py::gil_scoped_release release;
+            r = rank_table(start.data(), pose_dist.data(), audio_dist.data(), M, k);
+        }
+        return py::make_tuple(r.segment, r.pose_rank, r.audio_rank, r.n_candidates);
+    }, py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
+       py::arg("k"), "Ranks over a pre-selection table (use gesturedb.search.rank_table).");
 
     m.def("search", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
                        const F32& query, const F32& init_pose, int64_t window, int64_t k,
                        const std::string& preselect, const std::optional<U64>& allowed,
                        const std::optional<Bool>& exclude, int threads,
-                       const std::optional<U16>& pose_f16) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16);
+                       const std::optional<U16>& pose_f16,
+                       const std::optional<py::tuple>& pose_proj) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
         check_vector(init_pose, db.pose.cols, "init_pose");
         const Span2<const float> q = span2(query, "query_audio");
         if (window < 1) throw std::invalid_argument("step: expected >= 1; got " + std::to_string(window));
@@ -298,6 +400,7 @@ PYBIND11_MODULE(_core, m) {
        py::arg("window"), py::arg("k"), py::arg("preselect"),
        py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
        py::arg("threads") = 0, py::arg("pose_f16").noconvert().none(true) = py::none(),
+       py::arg("pose_proj").none(true) = py::none(),
        "A whole search -> (dict of (S,) arrays, failed step or -1) "
        "(use gesturedb.search.rank_sum_search, which validates).");
 
@@ -306,8 +409,9 @@ PYBIND11_MODULE(_core, m) {
                              const F32& init_poses, int64_t window, const I64& k,
                              const std::string& preselect, const std::optional<U64>& allowed,
                              const std::optional<Bool>& exclude, int threads,
-                             const std::string& method, const std::optional<U16>& pose_f16) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16);
+                             const std::string& method, const std::optional<U16>& pose_f16,
+                             const std::optional<py::tuple>& pose_proj) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
         const int64_t Q = int64_t(queries.size());
         BatchMethod bm;
         if (method == "auto") bm = BatchMethod::Auto;
@@ -373,6 +477,7 @@ PYBIND11_MODULE(_core, m) {
        py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
        py::arg("threads") = 0, py::arg("method") = "auto",
        py::arg("pose_f16").noconvert().none(true) = py::none(),
+       py::arg("pose_proj").none(true) = py::none(),
        "Many searches -> (dict of concatenated arrays, offsets (Q+1,), failed step per query) "
        "(use gesturedb.search.rank_sum_search_batch, which validates).");
 }

@@ -37,6 +37,17 @@ using CosDotsFn = void (*)(const float* base, int64_t n_win, int64_t stride,
 using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
                                float* d);
 
+// Squared distances of frames stored in blocks of 16 (structure of arrays, for
+// the pose projection filter):
+//   out[f - f0] = sum_j (blocks[(f/16) * 16 dim + 16 j + f%16] - v[j])^2   for f in [f0, f1)
+// A block holds 16 frames column by column, so 16 frames are one vector per
+// column and no row needs a horizontal sum. Only a filter (see proj_filter in
+// search.cpp): any summation order and FMA contraction are fine, the caller's
+// bound covers the float32 rounding of any order.
+constexpr int64_t kFrameBlock = 16;
+using L2sqBlocksFn = void (*)(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                              const float* v, float* out);
+
 // --- batched search -------------------------------------------------------
 // The batch evaluates many queries against the same rows at once. It uses the
 // functions below only as a *filter*: a blocked dot product (GEMM-like, much
@@ -80,6 +91,7 @@ struct Kernels {
     FilterFn l2filter_f32;
     FilterFn cosfilter_f32;
     L2sqRowsF16Fn l2sq_rows_f16;
+    L2sqBlocksFn l2sq_blocks_f32;
 };
 
 // --- per-ISA implementations (declared here, defined in kernels_<isa>.cpp) --
@@ -91,6 +103,7 @@ void l2filter_f32_scalar(const float*, int64_t, int64_t, const float*, const flo
 void cosfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_scalar(const uint16_t*, int64_t, int64_t, const float*, float*);
+void l2sq_blocks_f32_scalar(const float*, int64_t, int64_t, int64_t, const float*, float*);
 
 #if defined(__x86_64__) || defined(_M_X64)
 #define GESTUREDB_X86 1
@@ -102,6 +115,7 @@ void l2filter_f32_avx2(const float*, int64_t, int64_t, const float*, const float
 void cosfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
                         const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx2(const uint16_t*, int64_t, int64_t, const float*, float*);
+void l2sq_blocks_f32_avx2(const float*, int64_t, int64_t, int64_t, const float*, float*);
 void l2sq_rows_f32_avx512(const float*, int64_t, int64_t, const float*, float*);
 void cosdots_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, float*, float*);
 void dots_block_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, int64_t, float*);
@@ -110,6 +124,7 @@ void l2filter_f32_avx512(const float*, int64_t, int64_t, const float*, const flo
 void cosfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx512(const uint16_t*, int64_t, int64_t, const float*, float*);
+void l2sq_blocks_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, float*);
 #endif
 
 // --- dispatch (dispatch.cpp) ------------------------------------------------

@@ -9,6 +9,7 @@
 #ifdef GESTUREDB_X86
 #include <immintrin.h>
 
+#include <algorithm>
 #include <cstring>
 #include <limits>
 
@@ -218,6 +219,34 @@ __attribute__((target("avx2,fma,f16c"))) void l2sq_rows_f16_avx2(
             a += e * e;
         }
         d[r] = a;
+    }
+}
+
+// 16 frames per block = two vectors of 8; a partial block at either end of
+// [f0, f1) is computed whole and only its frames in range are copied out
+GDB_AVX2 void l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                   const float* v, float* out) {
+    if (f1 <= f0) return;
+    alignas(32) float tmp[kFrameBlock];
+    for (int64_t b = f0 / kFrameBlock; b * kFrameBlock < f1; ++b) {
+        const float* blk = blocks + b * kFrameBlock * dim;
+        __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
+        for (int64_t j = 0; j < dim; ++j) {
+            const __m256 x = _mm256_set1_ps(v[j]);
+            const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(blk + j * kFrameBlock), x);
+            const __m256 d1 = _mm256_sub_ps(_mm256_loadu_ps(blk + j * kFrameBlock + 8), x);
+            acc0 = _mm256_fmadd_ps(d0, d0, acc0);
+            acc1 = _mm256_fmadd_ps(d1, d1, acc1);
+        }
+        const int64_t lo = std::max(f0, b * kFrameBlock), hi = std::min(f1, (b + 1) * kFrameBlock);
+        if (lo == b * kFrameBlock && hi == lo + kFrameBlock) {
+            _mm256_storeu_ps(out + (lo - f0), acc0);
+            _mm256_storeu_ps(out + (lo - f0) + 8, acc1);
+        } else {
+            _mm256_store_ps(tmp, acc0);
+            _mm256_store_ps(tmp + 8, acc1);
+            for (int64_t f = lo; f < hi; ++f) out[f - f0] = tmp[f - b * kFrameBlock];
+        }
     }
 }
 

@@ -12,6 +12,7 @@
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #include <immintrin.h>
 
+#include <algorithm>
 #include <cstring>
 #include <limits>
 
@@ -311,6 +312,38 @@ GDB_AVX512 void l2sq_rows_f16_avx512(const uint16_t* rows, int64_t n_rows, int64
         const uint16_t* row = rows + r * dim;
         prefetch_f16_row(row + 2 * kPrefetchRows * dim, dim);
         d[r] = reduce_tree(l2sq_f16_lanes(row, v, dim, tail_mask));
+    }
+}
+
+// 16 frames per block = one vector; partial blocks at the ends of [f0, f1)
+// are computed whole and only the frames in range are copied out
+GDB_AVX512 void l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                       const float* v, float* out) {
+    if (f1 <= f0) return;
+    alignas(64) float tmp[kFrameBlock];
+    for (int64_t b = f0 / kFrameBlock; b * kFrameBlock < f1; ++b) {
+        const float* blk = blocks + b * kFrameBlock * dim;
+        __m512 acc0 = _mm512_setzero_ps(), acc1 = _mm512_setzero_ps();
+        int64_t j = 0;
+        // two accumulators hide the FMA latency
+        for (; j + 2 <= dim; j += 2) {
+            const __m512 d0 = _mm512_sub_ps(_mm512_loadu_ps(blk + j * kFrameBlock), _mm512_set1_ps(v[j]));
+            const __m512 d1 = _mm512_sub_ps(_mm512_loadu_ps(blk + (j + 1) * kFrameBlock), _mm512_set1_ps(v[j + 1]));
+            acc0 = _mm512_fmadd_ps(d0, d0, acc0);
+            acc1 = _mm512_fmadd_ps(d1, d1, acc1);
+        }
+        if (j < dim) {
+            const __m512 d0 = _mm512_sub_ps(_mm512_loadu_ps(blk + j * kFrameBlock), _mm512_set1_ps(v[j]));
+            acc0 = _mm512_fmadd_ps(d0, d0, acc0);
+        }
+        const __m512 acc = _mm512_add_ps(acc0, acc1);
+        const int64_t lo = std::max(f0, b * kFrameBlock), hi = std::min(f1, (b + 1) * kFrameBlock);
+        if (lo == b * kFrameBlock && hi == lo + kFrameBlock) {
+            _mm512_storeu_ps(out + (lo - f0), acc);
+        } else {
+            _mm512_store_ps(tmp, acc);
+            for (int64_t f = lo; f < hi; ++f) out[f - f0] = tmp[f - b * kFrameBlock];
+        }
     }
 }
 

@@ -145,4 +145,17 @@ void l2sq_rows_f16_scalar(const uint16_t* rows, int64_t n_rows, int64_t dim, con
     }
 }
 
+void l2sq_blocks_f32_scalar(const float* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                            float* out) {
+    for (int64_t f = f0; f < f1; ++f) {
+        const float* col = blocks + (f / kFrameBlock) * kFrameBlock * dim + f % kFrameBlock;
+        double acc = 0.0;
+        for (int64_t j = 0; j < dim; ++j) {
+            const double e = double(col[j * kFrameBlock]) - double(v[j]);
+            acc += e * e;
+        }
+        out[f - f0] = float(acc);
+    }
+}
+
 }  // namespace gesturedb

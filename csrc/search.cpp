@@ -240,6 +240,20 @@ void check_database(const Database& db) {
                                     std::to_string(db.pose_f16.rows) + ", " +
                                     std::to_string(db.pose_f16.cols) + ")");
     }
+    if (db.proj.data != nullptr) {
+        const int64_t J = db.proj_dim;
+        if (db.proj.rows != (F + kFrameBlock - 1) / kFrameBlock || J < 2 || db.proj.cols != kFrameBlock * J || db.proj_basis.data == nullptr || db.proj_basis.rows != db.pose.cols ||
+            db.proj_basis.cols != J - 1 || db.proj_mean.data == nullptr || db.proj_mean.size != db.pose.cols ||
+            !(db.proj_max_norm >= 0.0) || !(db.proj_max_norm < std::numeric_limits<double>::infinity())) {
+            throw std::invalid_argument("pose_proj: expected blocks (" +
+                                        std::to_string((F + kFrameBlock - 1) / kFrameBlock) +
+                                        ", 16 J) with J >= 2, basis (" + std::to_string(db.pose.cols) +
+                                        ", J - 1), mean (" + std::to_string(db.pose.cols) +
+                                        ",) and a finite max norm; got blocks (" +
+                                        std::to_string(db.proj.rows) + ", " + std::to_string(db.proj.cols) +
+                                        "), J = " + std::to_string(J));
+        }
+    }
     for (int64_t m = 0; m < db.seg_start.size; ++m) {
         const int64_t s = db.seg_start[m], L = db.seg_len[m];
         if (s < 0 || L < 0 || s > F || L > F - s) {
@@ -510,6 +524,110 @@ bool half_filter(const Kernels& kern, const Database& db, int64_t m, const Query
     return true;
 }
 
+// The query side of the projection filter: z_x = (U^T (x - mean), r_x) in
+// double, its float32 copy for the filter kernel, and the constants of the
+// bounds (see proj_filter).
+struct ProjQuery {
+    std::vector<float> zx;  // (J,)
+    float a_lo = 0, c_lo = 0, a_up = 0, b_up = 0, c_up = 0;
+    bool ok = false;        // false: not finite, every segment is scanned exactly
+};
+
+ProjQuery proj_query(const Database& db, const float* x) {
+    const int64_t Dp = db.pose.cols, J = db.proj_dim, k = J - 1;
+    ProjQuery pq;
+    pq.zx.assign(J, 0.0f);
+    std::vector<double> d(Dp);
+    double xn2 = 0.0;
+    for (int64_t j = 0; j < Dp; ++j) {
+        d[j] = double(x[j]) - db.proj_mean[j];
+        xn2 += d[j] * d[j];
+    }
+    std::vector<double> c(k, 0.0);
+    for (int64_t j = 0; j < Dp; ++j)
+        for (int64_t i = 0; i < k; ++i) c[i] += d[j] * db.proj_basis(j, i);
+    double r2 = 0.0;
+    for (int64_t j = 0; j < Dp; ++j) {
+        double e = d[j];
+        for (int64_t i = 0; i < k; ++i) e -= db.proj_basis(j, i) * c[i];
+        r2 += e * e;
+    }
+    for (int64_t i = 0; i < k; ++i) pq.zx[i] = float(c[i]);
+    const double rx = std::sqrt(r2);
+    pq.zx[k] = float(rx);
+    // Error budget, u = 2^-24. The stored rows and this z_x are float32
+    // roundings of float64 projections, so |z_f - z_x| is known to within
+    // e0 = 2^-21 S, S = max |P[f] - mean| + |x - mean| (|z| = |p - mean|, so
+    // each rounding is at most 2^-24 |z| per value, sqrt(J) 2^-24 |z| in norm;
+    // 2^-21 leaves room for J up to 64 and for the float64 projection). The
+    // filter's float32 sum Lh of J squares is within gk = 2 (J + 4) u of
+    // |z_f - z_x|^2, the exact kernel's of Dp squares within g = 2 (Dp + 4) u of
+    // the true distance, whatever the summation order. With eta = 2^-12,
+    // (a -/+ e)^2 is >= / <= (1 -/+ eta) a^2 -/+ (1/eta (+1)) e^2.
+    const double u = std::ldexp(1.0, -24);
+    const double S = db.proj_max_norm + std::sqrt(xn2);
+    const double e0 = std::ldexp(1.0, -21) * S * (1.0 + 1e-9);
+    const double eta = std::ldexp(1.0, -12);
+    const double gk = 2.0 * double(J + 4) * u, g = 2.0 * double(Dp + 4) * u;
+    const double tiny = double(Dp + J) * std::ldexp(1.0, -140);  // float underflow of the squares
+    // exact d32 >= (1-g) ((1-eta) Lh / (1+gk) - e0^2 / eta); the per-row float
+    // arithmetic of a_lo Lh - c_lo rounds by at most 2u, taken off a_lo
+    pq.a_lo = float((1.0 - g) * (1.0 - eta) / (1.0 + gk) * (1.0 - 8.0 * u));
+    pq.c_lo = float(((1.0 - g) * e0 * e0 / eta + tiny) * (1.0 + 8.0 * u));
+    // exact d32 <= (1+g) ((1+eta) Lh / (1-gk) + (1 + 1/eta) e0^2 + 4 (r_f + e0)(r_x + e0))
+    //          <= (1+g) ((1+eta) Lh / (1-gk) + 4 rf_stored (rx_stored + e0) + (1 + 1/eta) e0^2 + 16 e0 (S + e0))
+    // (stored r values are within e0 of the true ones and at most S)
+    // rounded up by 8u for the float evaluation of a_up Lh + b_up r_f + c_up
+    const double up = (1.0 + g) * (1.0 + 8.0 * u);
+    pq.a_up = float(up * (1.0 + eta) / (1.0 - gk) * (1.0 + 4.0 * u));
+    pq.b_up = float(up * 4.0 * (double(pq.zx[k]) + e0) * (1.0 + 4.0 * u));
+    pq.c_up = float((up * ((1.0 + 1.0 / eta) * e0 * e0 + 16.0 * e0 * (S + e0)) + tiny) * (1.0 + 4.0 * u));
+    pq.ok = std::isfinite(S) && std::isfinite(double(pq.a_up)) && std::isfinite(double(pq.b_up)) &&
+            std::isfinite(double(pq.c_up));
+    return pq;
+}
+
+// Pose pre-selection filter of segment m through the projection (see
+// Database::proj): the smallest upper bound Umin over the allowed candidates,
+// then every candidate whose lower bound is <= Umin is kept (ascending). The
+// exact minimum of the kept ones (ties to the smallest s) is the exact answer:
+// the winner's exact distance is <= Umin and its lower bound <= that.
+// Returns false when a value is not finite; the caller then scans exactly.
+bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
+                 const ProjQuery& pq, const BitsetView& allowed, float* dh, std::vector<int32_t>& kept) {
+    const int64_t n_cand = db.seg_len[m] - qs.n;
+    if (n_cand < 1) return true;
+    if (!pq.ok) return false;
+    const int64_t seg0 = db.seg_start[m], J = db.proj_dim;
+    const float inf = std::numeric_limits<float>::infinity();
+    float umin = inf;
+    bool any = false;
+    for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
+        any = true;
+        // candidate i's entry frame is seg0 + i
+        kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), dh + i0);
+        // a NaN never lowers umin (the comparison fails) and is caught by the
+        // finiteness test on dh below
+        for (int64_t i = i0; i < i1; ++i) {
+            const int64_t f = seg0 + i;
+            const float rf = db.proj(f / kFrameBlock, kFrameBlock * (J - 1) + f % kFrameBlock);
+            const float ub = pq.a_up * dh[i] + pq.b_up * rf + pq.c_up;
+            umin = ub < umin ? ub : umin;
+        }
+    });
+    if (!any) return true;
+    if (!(umin < inf)) return false;
+    bool bad = false;
+    for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
+        for (int64_t i = i0; i < i1; ++i) {
+            const float lb = pq.a_lo * dh[i] - pq.c_lo;
+            bad |= !(dh[i] < inf);
+            if (lb <= umin) kept.push_back(int32_t(i));
+        }
+    });
+    return !bad;
+}
+
 // The exact pose pre-selection over the kept candidates [first, last) of half_filter.
 int64_t argmin_kept(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
                     const int32_t* first, const int32_t* last, Selection& sel) {
@@ -574,13 +692,22 @@ struct StepEngine::Impl {
     }
 
     StepResult step(const float* prev, const float* q, int64_t n, const StepOptions& opt) {
+        return ranker.rank(db, preselect(prev, q, n, opt), n, opt.k);
+    }
+
+    // Spec steps 1-3 for every segment (sel_s = -1: no allowed candidate).
+    Selection preselect(const float* prev, const float* q, int64_t n, const StepOptions& opt) {
         const QueryStep qs{prev, q, query_norm2(kern, q, n * db.audio.cols), n};
         Selection sel{sel_s.data(), sel_dp.data(), sel_da.data()};
         const int64_t n_chunks = int64_t(chunk_begin.size()) - 1;
         const int64_t work =
             db.n_frames() * (opt.preselect == Preselect::Pose ? db.pose.cols : 2 * n * db.audio.cols);
         const int use_threads = (threads > 1 && work >= kMinParallelWork) ? threads : 1;
-        const bool half = db.pose_f16.data != nullptr && opt.preselect == Preselect::Pose;
+        const bool proj = db.proj.data != nullptr && opt.preselect == Preselect::Pose;
+        const bool half = !proj && db.pose_f16.data != nullptr && opt.preselect == Preselect::Pose;
+        const bool filtered = half || proj;
+        ProjQuery pq;
+        if (proj) pq = proj_query(db, prev);
         double x_norm = 0.0;  // ||prev||, for the half filter's bound
         if (half) {
             for (int64_t j = 0; j < db.pose.cols; ++j) x_norm += double(prev[j]) * double(prev[j]);
@@ -606,9 +733,11 @@ struct StepEngine::Impl {
                 sel.s[m] = -1;
                 off[m - m0] = int64_t(kept.size());
                 if (opt.exclude != nullptr && opt.exclude[m]) continue;
-                if (half) {
+                if (filtered) {
                     const size_t before = kept.size();
-                    if (half_filter(kern, db, m, qs, x_norm, opt.allowed, sa, kept)) continue;
+                    if (proj ? proj_filter(kern, db, m, qs, pq, opt.allowed, sa, kept)
+                             : half_filter(kern, db, m, qs, x_norm, opt.allowed, sa, kept))
+                        continue;
                     kept.resize(before);  // not finite: this segment is scanned exactly
                 }
                 const int64_t i = preselect_exact(kern, db, m, qs, opt.preselect, opt.allowed, sa, sb, sel);
@@ -616,7 +745,7 @@ struct StepEngine::Impl {
             }
             off[m1 - m0] = int64_t(kept.size());
             constexpr int64_t kAhead = 6;
-            if (half) {
+            if (filtered) {
                 auto prefetch_kept = [&](int64_t m) {
                     for (int64_t j = off[m - m0]; j < off[m - m0 + 1]; ++j)
                         prefetch_bytes(db.pose.row(db.seg_start[m] + kept[j]), db.pose.cols * int64_t(sizeof(float)));
@@ -636,7 +765,7 @@ struct StepEngine::Impl {
                 if (sel.s[m] >= 0) complete_other(kern, db, m, qs, opt.preselect, sel);
             }
         });
-        return ranker.rank(db, sel, n, opt.k);
+        return sel;
     }
 };
 
@@ -648,6 +777,42 @@ StepResult StepEngine::step(const float* prev, const float* query, int64_t n,
                             const StepOptions& opt) {
     if (n < 1) throw std::invalid_argument("step: window length must be >= 1");
     return impl_->step(prev, query, n, opt);
+}
+
+TableRank rank_table(const int64_t* start, const float* pose_dist, const double* audio_dist, int64_t M,
+                     int64_t k) {
+    if (k < 1) throw std::invalid_argument("k: expected >= 1");
+    if (M > int64_t(std::numeric_limits<int32_t>::max()))
+        throw std::invalid_argument("table: expected fewer than 2^31 rows");
+    // the ranker reads only the segment count and starts of a Database
+    std::vector<int64_t> zero(std::max<int64_t>(M, 1), 0);
+    Database db;
+    db.seg_start = {zero.data(), M};
+    db.seg_len = {zero.data(), M};
+    // Selection is read-only here; the ranker never writes through it
+    Selection sel{const_cast<int64_t*>(start), const_cast<float*>(pose_dist), const_cast<double*>(audio_dist)};
+    Ranker ranker;
+    const StepResult r = ranker.rank(db, sel, 0, k);
+    TableRank out;
+    out.n_candidates = r.n_candidates;
+    if (r.found) {
+        out.segment = r.segment;
+        out.pose_rank = r.pose_rank;
+        out.audio_rank = r.audio_rank;
+    }
+    return out;
+}
+
+void StepEngine::preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt,
+                           int64_t* start, float* pose_dist, double* audio_dist) {
+    if (n < 1) throw std::invalid_argument("step: window length must be >= 1");
+    const Selection sel = impl_->preselect(prev, query, n, opt);
+    const int64_t M = impl_->db.n_segments();
+    std::copy(sel.s, sel.s + M, start);
+    for (int64_t m = 0; m < M; ++m) {
+        pose_dist[m] = sel.s[m] >= 0 ? sel.dp[m] : 0.0f;
+        audio_dist[m] = sel.s[m] >= 0 ? sel.da[m] : 0.0;
+    }
 }
 
 // ---------------------------------------------------------------------------

@@ -24,6 +24,21 @@ struct Database {
     // the distance each row can have in float32; only rows that may still be a
     // segment's minimum are read in float32. Results do not change.
     Span2<const uint16_t> pose_f16;
+    // Optional projection of pose (data null when absent), a bounded filter
+    // for pose pre-selection that reads J = proj_dim instead of Dp floats per frame:
+    //   z_f = (U^T (P[f] - mean), ||(I - U U^T)(P[f] - mean)||)   (J values)
+    // stored in blocks of 16 frames (kernels.h, l2sq_blocks): proj is
+    // (ceil(F / 16), 16 J), value j of frame f at proj(f / 16, 16 j + f % 16).
+    // with U = proj_basis (Dp, J-1) orthonormal columns (float64) and
+    // proj_max_norm >= max_f ||P[f] - mean||. The squared distance of a frame
+    // to prev then lies in [|z_f - z_x|^2, |z_f - z_x|^2 + 4 r_f r_x]; the step
+    // keeps the candidates whose lower bound can reach the smallest upper bound
+    // and computes only those exactly on P. Results do not change.
+    Span2<const float> proj;
+    int64_t proj_dim = 0;
+    Span2<const double> proj_basis;
+    Span1<const double> proj_mean;
+    double proj_max_norm = 0.0;
 
     int64_t n_frames() const { return pose.rows; }
     int64_t n_segments() const { return seg_start.size; }
@@ -96,10 +111,29 @@ public:
     // One step: prev (Dp,), query window (n, Da) contiguous, 1 <= n.
     StepResult step(const float* prev, const float* query, int64_t n, const StepOptions& opt);
 
+    // Spec steps 1-3 only, the table a sharded search merges: per segment m
+    // (M,) the pre-selected start s (-1 when the segment has no allowed
+    // candidate), its pose distance (float32, as the ranking compares it) and
+    // audio distance. Ranks computed over the rows of several shards' tables
+    // (ties by global segment index) are exactly those of one database.
+    void preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt,
+                   int64_t* start, float* pose_dist, double* audio_dist);
+
 private:
     struct Impl;
     std::unique_ptr<Impl> impl_;
 };
+
+// Spec steps 4-5 over a pre-selection table of M rows (start -1: no
+// candidate), e.g. several shards' tables concatenated in global segment order.
+struct TableRank {
+    int64_t segment = -1;      // -1 when no row has a candidate
+    int64_t pose_rank = -1;
+    int64_t audio_rank = -1;
+    int64_t n_candidates = 0;
+};
+TableRank rank_table(const int64_t* start, const float* pose_dist, const double* audio_dist, int64_t M,
+                     int64_t k);
 
 // A whole search of query (T, Da) from init_pose (Dp,), steps at t = 0, N, 2N...
 // Returns -1 on success, else the index of the step that found no candidate

@@ -15,7 +15,7 @@ if ((${#need[@]})); then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}"
 fi
 
-python3 -m pip install --quiet --disable-pip-version-check -e ".[test]"
+python3 -m pip install --quiet --disable-pip-version-check -e ".[test,refiner]"
 
 # Blender as a Python module (bpy, for tests/test_blender.py): it pins numpy < 2 and needs
 # Python 3.11, so it gets an environment of its own; where it cannot install, that test skips and says why.

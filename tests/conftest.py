@@ -43,3 +43,13 @@ def scott_db(scott_db_path):
 
     with gesturedb.open(scott_db_path) as db:
         yield db
+
+
+@pytest.fixture(scope="session")
+def dask_client():
+    """A LocalCluster of 2 single-threaded workers for the whole session
+    (in-process threads: starts in about a second and shuts down cleanly)."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        yield client

@@ -187,3 +187,43 @@ def test_l2sq_f16_non_finite():
     for isa in ISAS:
         got = _core.l2sq_rows_f16(h.view(np.uint16), v, isa)
         assert got[0] == np.inf and np.isnan(got[1]) and got[2] == 5.0
+
+
+# --- frames in blocks of 16 (the pose projection filter) ---------------------
+
+def _blocks(rows):
+    """(F, dim) rows -> (ceil(F/16), dim, 16) blocks, padding frames zero."""
+    F, dim = rows.shape
+    pad = np.zeros((-(-F // 16) * 16, dim), np.float32)
+    pad[:F] = rows
+    return np.ascontiguousarray(pad.reshape(-1, 16, dim).transpose(0, 2, 1))
+
+
+@pytest.mark.parametrize("dim", SIZES)
+def test_l2sq_blocks_scalar_vs_float64(dim):
+    rng = np.random.default_rng(300 + dim)
+    rows, v = rows_and_vec(rng, 53, dim)
+    want = ((rows.astype(np.float64) - v.astype(np.float64)) ** 2).sum(axis=1)
+    got = _core.l2sq_blocks_f32(_blocks(rows), 0, 53, v, "scalar")
+    np.testing.assert_allclose(got, want, rtol=2 ** -23, atol=0)
+
+
+@pytest.mark.parametrize("isa", SIMD)
+@pytest.mark.parametrize("dim", SIZES)
+def test_l2sq_blocks_simd_vs_scalar_on_awkward_ranges(isa, dim):
+    rng = np.random.default_rng(400 + dim)
+    rows, v = rows_and_vec(rng, 70, dim)
+    b = _blocks(rows)
+    for f0, f1 in [(0, 70), (0, 1), (3, 10), (15, 17), (16, 32), (5, 69), (31, 33), (64, 70), (20, 20)]:
+        ref = _core.l2sq_blocks_f32(b, f0, f1, v, "scalar").astype(np.float64)
+        got = _core.l2sq_blocks_f32(b, f0, f1, v, isa).astype(np.float64)
+        assert got.shape == (f1 - f0,)
+        np.testing.assert_allclose(got, ref, rtol=(dim + 4) * 2.0 ** -24, atol=0)
+
+
+def test_l2sq_blocks_rejects_bad_shapes():
+    b = np.zeros((2, 3, 16), np.float32)
+    with pytest.raises(ValueError, match=r"blocks: expected \(n_blocks, dim, 16\)"):
+        _core.l2sq_blocks_f32(np.zeros((2, 3, 8), np.float32), 0, 4, np.zeros(3, np.float32), "scalar")
+    with pytest.raises(ValueError, match=r"\[f0, f1\): expected inside \[0, 32\)"):
+        _core.l2sq_blocks_f32(b, 0, 33, np.zeros(3, np.float32), "scalar")

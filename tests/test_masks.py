@@ -735,3 +735,20 @@ def test_masks_on_real_motion(scott_dir):
     assert sched.bitsets.shape == (38, M.n_words(F))
     # step 18 spans 9.6-10.13 s, step 19 10.13-10.67 s
     assert sched.labels[18] == "pelvis_speed_low" and sched.labels[19] == "pelvis_speed_high"
+
+
+def test_percentile_masks_of_many_features_each_match_their_own_percentiles():
+    """One compiler serves every feature: a cached comparison must never leak to
+    another feature's expression (ids of freed parse nodes are reused)."""
+    import gc
+
+    rng = np.random.default_rng(5)
+    controls = {f"f{i:02d}": rng.standard_normal(1000).astype(np.float32) * (i + 1) for i in range(30)}
+    for _ in range(3):
+        gc.collect()
+        masks = M.percentile_masks(controls)
+        for name, x in controls.items():
+            v = x.astype(np.float64)
+            lo, hi = np.percentile(v, M.LOW_PERCENTILE), np.percentile(v, M.HIGH_PERCENTILE)
+            np.testing.assert_array_equal(M.unpack_bits(masks[f"{name}_low"].words, 1000), v < lo, err_msg=name)
+            np.testing.assert_array_equal(M.unpack_bits(masks[f"{name}_high"].words, 1000), v > hi, err_msg=name)

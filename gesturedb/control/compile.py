@@ -314,6 +314,10 @@ class _Compiler:
         self._parsed: dict[str, MaskExpression] = {}
         self._saved: dict[str, np.ndarray] = {}
         self._cmp: dict[int, tuple[np.ndarray, Comparison]] = {}
+        # the nodes behind the keys of _cmp, kept alive: a freed node's id can be
+        # reused by a node of a later expression, which would then get this
+        # node's cached bits (seen as wrong default masks in built databases)
+        self._cmp_nodes: dict[int, _Cmp] = {}
         self._stack: list[str] = []
         # Comparisons met by the current compile(), id(node) -> (node, Comparison);
         # None while evaluating with an overridden threshold.
@@ -430,6 +434,7 @@ class _Compiler:
                 source=self._stack[-1] if self._stack else None,
             )
             self._cmp[key] = (words, cmp)
+            self._cmp_nodes[key] = node
         if self._recording is not None:
             self._recording.setdefault(key, (node, self._cmp[key][1]))
         return self._cmp[key]

@@ -45,8 +45,10 @@ class BuildConfig:
         Database frame rate (Hz); 15 as in Habibie et al. 2022.
     chunk_frames : int
         Length of the fixed chunks (the paper's T_match = 64 frames).
-    gap_s : float
+    gap_s : float or "auto"
         Word-gap clips split where the pause between words exceeds this (s); 0.4 in GestureMaster.
+        ``"auto"``: chosen from the recordings' own pauses so that clips last about 3 s
+        (:func:`gesturedb.db.graph.suggest_gap_s`); the number chosen is what the file stores.
     pose_window, pose_stride : int
         Pose feature = feature joints at frames f, f - stride, ..., f - (window-1)*stride.
     sample_rate : int
@@ -62,6 +64,8 @@ class BuildConfig:
     speaker : str or None
         Speaker name for every recording; None infers it from BEAT-style stems
         (``2_scott_0_1_1`` -> ``scott``) or the folder name.
+    graph : bool
+        Also build the motion graph and style predictor (:mod:`gesturedb.db.graph`).
     """
 
     fps: float = 15.0
@@ -75,6 +79,7 @@ class BuildConfig:
     joint_map: dict | None = None
     max_mismatch_s: float = 1.0
     speaker: str | None = None
+    graph: bool = True
 
     def __post_init__(self):
         def bad(name, expected):
@@ -86,7 +91,7 @@ class BuildConfig:
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
                 bad(name, "a positive integer")
-        if not (self.gap_s > 0):
+        if self.gap_s != "auto" and not (isinstance(self.gap_s, (int, float)) and self.gap_s > 0):
             bad("gap_s", "a positive number of seconds")
         if not (self.max_mismatch_s >= 0):
             bad("max_mismatch_s", "a non-negative number of seconds")
@@ -344,6 +349,14 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
             f"({motion_dur:.2f} s in {os.path.basename(source.motion)}), got {audio_dur:.2f} s",
         )
     words = read_transcript(source.transcript) if source.transcript else None
+    if words is None:
+        # no transcript: voiced stretches of the speech stand in for words (empty text), so the
+        # recording is still cut into clips at its pauses, as the graph synthesis cuts its input
+        from gesturedb.features.pauses import voiced_segments
+        from gesturedb.io.transcripts import Words
+
+        vs, ve = voiced_segments(samples, sr)
+        words = Words(start_s=vs, end_s=ve, text=[""] * len(vs), source=None)
     if source.span_s is not None:
         motion, samples, words, motion_dur = _trim(source, motion, samples, sr, words)
     if words is not None and len(words):
@@ -530,6 +543,10 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig) -> None:
     W(h5, "words/text", [t for r in recs for t in r.words[2]], dims)
 
     _write_controls_and_masks(h5, recs)
+    if cfg.graph:
+        from gesturedb.db.graph import write_graph
+
+        write_graph(h5)
 
 
 def _write_controls_and_masks(h5, recs: list[RecordingData]) -> None:
@@ -563,6 +580,7 @@ def build(
     workers: int = 1,
     recursive: bool = False,
     progress: bool | Callable = False,
+    scheduler=None,
     **config,
 ):
     """Build a gesture database from recordings and open it.
@@ -579,6 +597,11 @@ def build(
         Processes used for the per-recording work.
     progress : bool
         Show a progress bar (tqdm, on stderr).
+    scheduler : str or distributed.Client, optional
+        Process the recordings as Dask tasks instead of local processes:
+        ``"local:N"`` (a LocalCluster of N workers), ``"tcp://HOST:PORT"`` or a
+        Client (see :mod:`gesturedb.db.cluster`). This process stays the only
+        writer of the file; the database is identical to a local build.
     **config
         Any field of :class:`BuildConfig` (``fps``, ``chunk_frames``, ``gap_s``, ``mirror``, ...).
 
@@ -605,7 +628,9 @@ def build(
     for r in pairing.recordings:
         schema.check_name(f"recording name of {r.motion}", r.name, schema.RECORDING_NAME_PATTERN)
     check_outputs({"output": out_path}, [p for r in pairing.recordings for p in (r.motion, r.audio, r.transcript)])
-    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress)
+    if cfg.gap_s == "auto":
+        cfg = dataclasses.replace(cfg, gap_s=_auto_gap(pairing.recordings))
+    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler)
     for r in recs[1:]:
         if not _same_skeleton(recs[0].skeleton, r.skeleton):
             raise InputFileError(
@@ -622,7 +647,35 @@ def build(
     return db
 
 
-def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress) -> list[RecordingData]:
+def _auto_gap(sources: list[RecordingSource]) -> float:
+    """gap_s from the pauses of every transcript (mirrored copies have the same words: not counted twice)."""
+    from gesturedb.db.graph import suggest_gap_s
+    from gesturedb.io.audio import read_audio
+    from gesturedb.io.transcripts import read_transcript
+
+    pauses, total, n = [], 0.0, 0
+    for src in sources:
+        x, sr = read_audio(src.audio, sr=None)
+        dur = x.shape[0] / sr
+        if src.span_s is not None:
+            dur = min(dur, src.span_s[1]) - src.span_s[0]
+        total += dur
+        n += 1
+        if src.transcript:
+            w = read_transcript(src.transcript)
+            ws, we = np.asarray(w.start_s), np.asarray(w.end_s)
+            if src.span_s is not None:
+                keep = (ws >= src.span_s[0]) & (we <= src.span_s[1])
+                ws, we = ws[keep], we[keep]
+            o = np.argsort(ws, kind="stable")
+            ws, we = ws[o], we[o]
+            if ws.size > 1:
+                pauses.append(ws[1:] - np.maximum.accumulate(we)[:-1])
+    return suggest_gap_s(np.concatenate(pauses) if pauses else np.zeros(0), total, n_sequences=n)
+
+
+def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress,
+                 scheduler=None) -> list[RecordingData]:
     bar = None
     if progress:
         from tqdm import tqdm
@@ -630,7 +683,17 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
         bar = tqdm(total=len(sources), unit="rec", desc="building", disable=None)
     out: list[RecordingData] = []
     try:
-        if workers == 1 or len(sources) == 1:
+        if scheduler is not None:
+            from gesturedb.db.cluster import process_on_cluster
+
+            def done(i):
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix_str(sources[i].name)
+
+            for res in process_on_cluster(_process_star, [(s, cfg) for s in sources], scheduler, on_done=done):
+                out += res  # input order: the content does not depend on scheduling
+        elif workers == 1 or len(sources) == 1:
             for s in sources:
                 out += process_recording(s, cfg)
                 if bar is not None:

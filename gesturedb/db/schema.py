@@ -19,6 +19,9 @@ Da    audio-feature size (13 MFCC + log mean energy = 14)
 B     bitset words over frames, ceil(F / 64)
 S     style-signature size (3: speed m/s, radius m, height m)
 X     control features
+K1    K + 1 (CSR row pointer of the motion graph)
+G     motion-graph edges
+P     style-predictor inputs (2 Da + 1)
 ====  =====================================================================
 
 Bump :data:`SCHEMA_VERSION` whenever a dataset changes meaning, dtype or shape.
@@ -34,7 +37,8 @@ import numpy as np
 
 from gesturedb.errors import SchemaError
 
-SCHEMA_VERSION = 1
+#: 2: adds graph/ and style_model/ (GestureMaster motion graph); `gesturedb graph DB.h5` upgrades a version-1 file
+SCHEMA_VERSION = 2
 
 #: HDF5 variable-length UTF-8 strings
 STR = "str"
@@ -98,6 +102,14 @@ FIELDS: tuple[Field, ...] = (
     Field("clips/rhythm_audio", "uint32", ("K",), "", "32-bit rhythm signature of word onsets (bin 0 = LSB)"),
     Field("clips/rhythm_motion", "uint32", ("K",), "", "32-bit rhythm signature of hand-speed minima (bin 0 = LSB)"),
     Field("clips/style", "float32", ("K", "S"), "m/s, m, m", "mean hand speed, radius and height"),
+    # --- motion graph over the clips (GestureMaster Sec. 4.1; gesturedb/db/graph.py) ----------
+    Field("graph/indptr", "int64", ("K1",), "", "CSR row pointer over the source clip; attrs l1, l2, delta_T, min_out, transition_frames"),
+    Field("graph/indices", "int64", ("G",), "", "target clip of each edge, strictly increasing within a row, no self-edges"),
+    Field("graph/cost", "float64", ("G",), "1", "transition cost T = l1 * T_p (m^2) + l2 * T_r of each edge"),
+    Field("style_model/coef", "float64", ("P", "S"), "", "ridge weights: standardised clip audio inputs -> style"),
+    Field("style_model/intercept", "float64", ("S",), "m/s, m, m", "style of the mean input"),
+    Field("style_model/x_mean", "float64", ("P",), "", "input mean (audio mean, audio std, words/frame)"),
+    Field("style_model/x_std", "float64", ("P",), "", "input standard deviation; attrs heldout_rmse, mean_rmse"),
     # --- words -------------------------------------------------------------
     Field("words/recording", "int32", ("W",), "", "index into the recordings table"),
     Field("words/start_s", "float64", ("W",), "s", "word start, relative to the recording"),
@@ -207,8 +219,12 @@ def read(h5, path: str) -> np.ndarray:
     return arr
 
 
-def check_version(h5, filename: str | os.PathLike | None = None) -> int:
-    """Raise :class:`SchemaError` unless the file was written with :data:`SCHEMA_VERSION`."""
+def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: bool = False) -> int:
+    """Raise :class:`SchemaError` unless the file was written with :data:`SCHEMA_VERSION`.
+
+    ``upgradable=True`` also accepts version 1 (which only lacks the motion graph), for
+    :func:`gesturedb.db.graph.add_graph`.
+    """
     name = os.fspath(filename) if filename is not None else h5.filename
     if "schema_version" not in h5.attrs:
         raise SchemaError(name, "attribute 'schema_version' is missing: not a gesturedb database")
@@ -219,6 +235,14 @@ def check_version(h5, filename: str | os.PathLike | None = None) -> int:
             raise ValueError
     except (TypeError, ValueError):
         raise SchemaError(name, f"schema_version: expected the integer {SCHEMA_VERSION}, got {raw!r}") from None
+    if upgradable and got == 1:
+        return got
+    if got == 1 and SCHEMA_VERSION == 2:
+        raise SchemaError(
+            name,
+            f"schema_version: expected {SCHEMA_VERSION}, got 1 (no motion graph); run `gesturedb graph {name}` "
+            f"to add it, or rebuild the database",
+        )
     if got != SCHEMA_VERSION:
         raise SchemaError(
             name,
@@ -228,6 +252,10 @@ def check_version(h5, filename: str | os.PathLike | None = None) -> int:
         )
     return got
 
+
+#: groups every database has (the motion graph, the style model etc. are optional: exported keyword
+#: databases, ``--no-graph`` builds and version-1 files lack them)
+_CORE_GROUPS = ("recordings", "frames", "audio", "skeleton", "chunks", "clips", "words")
 
 #: rows of each per-frame array read by :func:`check_file` (spread over the file): the check stays cheap
 CHECK_SAMPLE_ROWS = 2000
@@ -273,7 +301,8 @@ def check_file(h5, filename: str | os.PathLike | None = None) -> None:
         ds = h5.get(f.path)
         if ds is None:
             # a file written by build holds every dataset; a hand-made partial file (tests) meets read()'s check
-            if "gesturedb_version" in h5.attrs:
+            # (the motion graph is optional: exported keyword databases and version-1 files have none)
+            if "gesturedb_version" in h5.attrs and f.path.split("/")[0] in _CORE_GROUPS:
                 fail(f"{f.path}: dataset missing ({f.doc})")
             continue
         if not isinstance(ds, h5py.Dataset):

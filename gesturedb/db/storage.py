@@ -93,6 +93,15 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
     return removed
 
 
+def _remove_own_temporaries(path: str) -> None:
+    """Remove every temporary file of ``path`` made by this process (also one whose name a signal lost)."""
+    path = os.path.abspath(path)
+    pattern = os.path.join(glob.escape(os.path.dirname(path)), glob.escape(f"{_tmp_prefix(path)}{os.getpid()}.") + "*.tmp")
+    for f in glob.glob(pattern):
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(f)
+
+
 def _mkstemp(path: str) -> str:
     folder = os.path.dirname(os.path.abspath(path))
     try:
@@ -169,8 +178,8 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
         raise ParameterError(f"output: {out_path} is a folder; expected a file name such as DB.h5")
     with sigterm_as_interrupt() as signals, locked(out_path):
         remove_stale_temporaries(out_path)
-        tmp = _mkstemp(out_path)
         try:
+            tmp = _mkstemp(out_path)
             with h5py.File(tmp, "w", track_order=True) as h5:
                 fill(h5)
             if signals:
@@ -181,8 +190,8 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
             os.chmod(tmp, 0o666 & ~umask)
             os.replace(tmp, out_path)
         except BaseException as exc:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
+            # by pattern, not by name: a SIGTERM inside mkstemp leaves a file whose name we never got
+            _remove_own_temporaries(out_path)
             disk = _is_disk_error(exc)
             if disk is not None:
                 raise _os_error(out_path, disk) from None
@@ -192,11 +201,12 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
 
 
 @contextlib.contextmanager
-def edit(path: str | os.PathLike):
+def edit(path: str | os.PathLike, *, upgrade: bool = False):
     """Yield a writable :class:`h5py.File` on a copy of ``path``; replace ``path`` on success.
 
     The database's write lock is held from before the copy until after the
     rename, so concurrent edits serialise instead of losing each other.
+    ``upgrade=True`` also opens a version-1 file (the caller brings it to the current version).
 
     Examples
     --------
@@ -210,22 +220,21 @@ def edit(path: str | os.PathLike):
         raise InputFileError(path, "no such file")
     with sigterm_as_interrupt() as signals, locked(path):
         remove_stale_temporaries(path)
-        tmp = _mkstemp(path)
         try:
+            tmp = _mkstemp(path)
             try:
                 shutil.copyfile(path, tmp)
                 shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
             except OSError as exc:
                 raise _os_error(path, exc) from None
             with h5py.File(tmp, "r+") as h5:
-                schema.check_version(h5, path)
+                schema.check_version(h5, path, upgradable=upgrade)
                 yield h5
             if signals:
                 raise KeyboardInterrupt("SIGTERM")
             os.replace(tmp, path)
         except BaseException as exc:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
+            _remove_own_temporaries(path)
             disk = _is_disk_error(exc)
             if disk is not None and not isinstance(exc, GestureDBError):
                 raise _os_error(path, disk) from None

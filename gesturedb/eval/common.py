@@ -10,7 +10,7 @@ import numpy as np
 from gesturedb.errors import InputFileError, ParameterError
 
 #: Systems of the objective evaluation, in table order.
-SYSTEMS = ("ground_truth", "random", "pose_only", "audio_only", "ranksum_pose", "ranksum_audio")
+SYSTEMS = ("ground_truth", "random", "pose_only", "audio_only", "ranksum_pose", "ranksum_audio", "graph")
 
 SYSTEM_LABELS = {
     "reference": "database motion (reference)",
@@ -20,6 +20,8 @@ SYSTEM_LABELS = {
     "audio_only": "audio-only matching",
     "ranksum_pose": "rank-sum, pose pre-selection",
     "ranksum_audio": "rank-sum, audio pre-selection",
+    "ranksum_refined": "rank-sum + cGAN refiner",
+    "graph": "motion graph (GestureMaster)",
 }
 
 

@@ -41,6 +41,12 @@ every frame (where the speaker stands is an artefact of window placement, not
 a gesture); metrics use the upper body (every joint except the root and the
 leg chains below the hips), BeatAlign the wrists against speech onsets.
 See ``docs/evaluation.md``.
+
+Length: over the package's 800-line mark on purpose, by a few lines: the
+systems, their synthesis, the shared references and the two evaluation modes
+(held-out and new speech) are one pipeline whose parts pass the same options
+along; the Table 2 evaluation, the world-space and the published-convention
+metrics already live in their own modules (controls, placement, conventions).
 """
 from __future__ import annotations
 
@@ -93,6 +99,20 @@ METRIC_COLUMNS = (
     ("seam_jerk_m_s3", "seam jerk", ".1f"),
     ("inside_jerk_m_s3", "inside jerk", ".1f"),
     ("seam_ratio", "seam/inside", ".2f"),
+    ("rhythm_hamming", "rhythm Ham", ".2f"),
+)
+
+from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
+
+#: (key, header, format) of the world-space table (:func:`gesturedb.eval.placement.world_metrics`).
+WORLD_COLUMNS = (
+    ("pelvis_speed_m_s", "pelvis m/s", ".3f"),
+    ("max_root_step_m", "max root step m", ".3f"),
+    ("foot_speed_m_s", "foot m/s", ".3f"),
+    ("foot_skating_m_s", "skating m/s", ".3f"),
+    ("max_abs_heading_deg", "max |heading| deg", ".1f"),
+    *((f"jerk_{s}_{g}_m_s3", f"{g} jerk {s}", ".1f")
+      for g in ("root", "legs", "arms", "hands", "head") for s in ("world", "rel")),
 )
 
 
@@ -139,6 +159,7 @@ def synthesize_systems(
     blend_frames: int = 4,
     segments: str = "chunks",
     exclude=None,
+    refiner=None,
 ) -> dict[str, SystemOutput]:
     """Motion of every system for the same speech.
 
@@ -159,6 +180,9 @@ def synthesize_systems(
         Recorded joint positions at the database fps for this speech.
     transcript : Words, optional
         Passed to the search (keyword sub-databases) when ``keywords``.
+    refiner : object with ``refine(motion, audio)``, optional
+        Adds the system ``ranksum_refined``: the ``ranksum_pose`` motion refined
+        (e.g. a :class:`gesturedb.refiner.train.Refiner`).
 
     Returns
     -------
@@ -198,11 +222,30 @@ def synthesize_systems(
         elif name == "audio_only":
             assembled(name, B.audio_only_windows(db.audio_features, searcher.seg_start, searcher.seg_len, query,
                                                  step=step, exclude=excl))
+        elif name == "graph":
+            from gesturedb.synth.graph import GraphSynthesizer
+
+            # its seams are seconds apart: it blends twice as long (8 frames for the default 4)
+            res = GraphSynthesizer(db).synthesize(samples, sr=sr, transcript=transcript, keywords=keywords,
+                                                  blend_frames=2 * blend_frames, exclude=exclude)
+            out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
         else:
             res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k,
                                       preselect=name.split("_", 1)[1], init=init, seed=seed, step=step,
                                       blend_frames=blend_frames, exclude=exclude)
             out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
+    if refiner is not None:
+        from gesturedb.features.audio import audio_deltas
+
+        if hasattr(refiner, "check"):
+            refiner.check(db)
+        base = out.get("ranksum_pose")
+        if base is None:
+            res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k, init=init,
+                                      seed=seed, step=step, blend_frames=blend_frames, exclude=exclude)
+            base = SystemOutput("ranksum_pose", res.positions, res.boundaries, res.source_frames, res.motion)
+        m = refiner.refine(base.motion, np.concatenate([query, audio_deltas(query)], axis=1))
+        out["ranksum_refined"] = SystemOutput("ranksum_refined", m.positions, base.boundaries, base.source_frames, m)
     n = min(o.positions.shape[0] for o in out.values())
     for o in out.values():
         o.positions = o.positions[:n]
@@ -434,17 +477,18 @@ class MotionEvaluation:
             "controls": self.controls.to_dict() if self.controls is not None else None,
         })
 
-    def columns(self, rows: dict[str, dict]) -> list[tuple[str, str, str]]:
+    def columns(self, rows: dict[str, dict], spec=METRIC_COLUMNS) -> list[tuple[str, str, str]]:
         """:data:`METRIC_COLUMNS` that have a value in some row (no ground truth: no "vs GT" column)."""
         all_rows = [self.reference_row(), *rows.values()]
-        return [c for c in METRIC_COLUMNS
+        return [c for c in spec
                 if any(isinstance(r.get(c[0]), (int, float)) and math.isfinite(r[c[0]]) for r in all_rows)]
 
-    def table(self, rows: dict[str, dict]) -> str:
-        """One metrics table (text): the reference row, then every system."""
-        cols = self.columns(rows)
+    def table(self, rows: dict[str, dict], spec=METRIC_COLUMNS) -> str:
+        """One metrics table (text): the reference row, then every system (``spec``: :data:`WORLD_COLUMNS`
+        for the world-space one, which has no reference row)."""
+        cols = self.columns(rows, spec)
         head = ["system"] + [h for _, h, _ in cols]
-        all_rows = {"reference": self.reference_row(), **rows}
+        all_rows = {"reference": self.reference_row(), **rows} if spec is METRIC_COLUMNS else dict(rows)
         body = [[SYSTEM_LABELS.get(n, n)] + [_fmt(r.get(k), f) for k, _, f in cols] for n, r in all_rows.items()]
         widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
         line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
@@ -463,10 +507,17 @@ class MotionEvaluation:
         for inp in self.inputs:
             out.append(f"{inp.name} ({inp.n_frames} frames, {inp.n_frames / inp.fps:.1f} s)")
             out.append(self.table(inp.metrics))
+            out.append("world space (whole body; 'rel': root's horizontal position removed)")
+            out.append(self.table(inp.metrics, WORLD_COLUMNS))
+            out.append("published conventions (GENEA histograms in cm/s, overflow dropped; BeatAlign audio->motion, "
+                       "beats above 0.3 x the database's mean speed; docs/metrics.md)")
+            out.append(self.table(inp.metrics, CONVENTION_COLUMNS))
             out.append("")
         if len(self.inputs) > 1:
             out.append(f"mean over {len(self.inputs)} inputs")
             out.append(self.table(self.summary()))
+            out.append(self.table(self.summary(), WORLD_COLUMNS))
+            out.append(self.table(self.summary(), CONVENTION_COLUMNS))
             out.append("")
         if self.controls is not None:
             out.append(self.controls.to_text())
@@ -490,7 +541,25 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
                                  **opts)
     rows, counts = system_metrics(outputs, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
                                   names=db.joint_names, reference_counts=reference["speed_counts"])
+    from gesturedb.eval.placement import world_metrics
+
+    for n, o in outputs.items():  # world space, before the root is removed for the arm metrics
+        rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
+    from gesturedb.eval import conventions as CV, metrics as M
+
+    conv = CV.convention_metrics({n: metric_positions(o.positions, root) for n, o in outputs.items()}, fps=db.fps,
+                                 joints=joints, audio_beats_s=M.audio_beats(samples, sr=sr),
+                                 reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
+                                 database_counts=CV.database_genea_counts(db, joints=joints, root=root))
+    for n in rows:
+        rows[n].update(conv[n])
     fj = feature_joint_indices(db)
+    from gesturedb.eval.rhythm import input_words, rhythm_hamming
+
+    ws, we = input_words(samples, sr, transcript)
+    for n, o in outputs.items():  # speech rhythm vs each system's motion rhythm (eval/rhythm.py)
+        rows[n]["rhythm_hamming"] = rhythm_hamming(o.positions, word_start_s=ws, word_end_s=we, fps=db.fps,
+                                                   joints=fj, gap_s=float(db.config.get("gap_s", 0.4)))
     wh = {n: control_features(o.positions, joints=fj, fps=db.fps)["left_wrist_height"].astype(np.float64)
           for n, o in outputs.items()}
     return InputEvaluation(name=name, audio=audio_path, samples=samples, sr=sr, fps=db.fps, outputs=outputs,
@@ -515,11 +584,12 @@ def _common(db, opts, controls, control_audio):
     ctl = None
     if controls:
         ctl = evaluate_controls(db, control_audio[0], sr=control_audio[1],
-                                **{k: v for k, v in opts.items() if k not in ("keywords",)})
+                                **{k: v for k, v in opts.items() if k not in ("keywords", "refiner")})
     return root, joints, reference, thresholds, ctl
 
 
 def _settings(opts, joints, names, **more):
+    opts = dict(opts, refiner=getattr(opts.get("refiner"), "path", None))
     return dict(opts, joints=[int(j) for j in joints], joint_names=[names[j] for j in joints], **more)
 
 
@@ -537,6 +607,7 @@ def evaluate_inputs(
     blend_frames: int = 4,
     segments: str = "chunks",
     keywords: bool = False,
+    refiner=None,
     exclude=None,
 ) -> MotionEvaluation:
     """Every system on new speech without motion capture (metrics that need no ground truth).
@@ -571,7 +642,7 @@ def evaluate_inputs(
     transcripts = list(transcripts) if transcripts is not None else [None] * len(audio)
     if len(transcripts) != len(audio):
         raise ParameterError(f"transcripts: expected one per audio file ({len(audio)}), got {len(transcripts)}")
-    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments,
+    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments, refiner=refiner,
                 keywords=keywords, exclude=exclude)
     first = _read_samples(db, audio[0], None)
     root, joints, reference, thresholds, ctl = _common(db, opts, controls, (first[0], first[1]))
@@ -648,6 +719,7 @@ def evaluate_holdout(
     blend_frames: int = 4,
     segments: str = "chunks",
     keywords: bool = False,
+    refiner=None,
     build_options: dict | None = None,
 ) -> MotionEvaluation:
     """Hold a stretch of a recording out, build a database from the rest, and compare with its motion.
@@ -707,7 +779,7 @@ def evaluate_holdout(
         raise ParameterError(f"holdout: nothing left to build a database from once {holdout_start_s}-{end_s} s of "
                              f"{held.name} is held out")
 
-    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments,
+    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments, refiner=refiner,
                 keywords=keywords, exclude=None)
     tmp = None
     if db_path is None:

@@ -4,6 +4,8 @@
 ``matching``       :class:`Searcher`: Habibie et al. k-NN motion matching
 ``assemble``       pieces of source motion -> one Motion (placement, seams, smoothing)
 ``result``         :class:`SynthResult`: the motion and its provenance
+``graph``          :class:`GraphSynthesizer`: GestureMaster motion-graph search;
+                   ``viterbi`` (from ``viterbi``), the exact path search
 =================  ==========================================================
 
     from gesturedb.synth import Searcher

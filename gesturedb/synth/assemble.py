@@ -6,10 +6,30 @@ motion graph hands over time-warped clips. Both become a list of
 :class:`Piece` and go through :func:`assemble_pieces`, so placement, seam blends
 and smoothing are the same for every method.
 
-Placement. Every piece keeps the placement of its own recording, normalised
-once so that each recording's mean floor position is the origin and its mean
-heading +z (chaining pieces onto each other's heading would integrate the
-source's small turns into a slow spin).
+Placement (``placement="continue"``, the default). The first piece keeps its
+own placement (recordings are normalised so that their mean floor position is
+the origin and their mean heading +z). Every later piece is rotated about +y
+and translated so that its first root position and heading continue the
+output's current root (the previous piece's ``lead_in`` where there is one,
+else a linear extrapolation of the last two output frames): a piece contributes
+only its own displacement and turning relative to its start, never the absolute
+place of its recording, so a seam between windows from different places does
+not teleport the body. Two gentle pulls keep a long output near the origin and
+facing forward: the heading decays towards +z with time constant
+``HEADING_PULL_S`` and the horizontal root position towards the origin with
+``POSITION_PULL_S`` (a leaky integration of the root's own velocity and turning,
+so neither jumps). ``placement="source"``: the old behaviour, every piece where
+its recording was.
+
+Foot contacts (:mod:`gesturedb.synth.contacts`). A foot (ankle + toe) is planted
+in a source frame when its lowest point is within ``CONTACT_HEIGHT_M`` of the
+floor (the lowest foot point of all pieces) and its ankle moves horizontally
+slower than ``CONTACT_SPEED_M_S``; contacts are computed on every piece's own
+forward kinematics, so mirrored recordings and time-warped clips are handled
+the same way (or given as ``Piece.contacts``). After blending, smoothing and the
+pulls, a two-bone leg IK (hip, knee) holds each planted ankle where its contact
+began, and the ankle keeps its world orientation; the root is not moved, so the
+cross-fade's slide is absorbed by the legs instead of the feet.
 
 Seams. After each piece boundary a short cross-fade (``blend_frames``, default
 4) slerps (rotations) and lerps (root) from the previous piece's natural
@@ -29,8 +49,16 @@ import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.motion import Motion
+from gesturedb.synth.contacts import foot_contacts, foot_joints, pin_root, plant_feet
 
-__all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "placed_frames", "savgol_smooth"]
+__all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "foot_contacts", "foot_joints",
+           "placed_frames", "savgol_smooth"]
+
+#: Time constant (s) of the pull of the heading towards +z.
+HEADING_PULL_S = 2.0
+#: Time constant (s) of the pull of the horizontal root position towards the origin.
+POSITION_PULL_S = 6.0
+
 
 
 @dataclass
@@ -49,12 +77,17 @@ class Piece:
         ``(rotations (m, J, 4), root (m, 3))``: how the *previous* piece would have
         continued over this piece's first ``m`` frames in its own source; the
         seam cross-fade starts from it. ``None``: no cross-fade into this piece.
+        Expressed in the same coordinates as the previous piece.
+    contacts : ndarray [shape=(n, 2)], bool, optional
+        Left and right foot planted in each frame; ``None``: detected from the
+        piece's own forward kinematics (:func:`foot_contacts`).
     """
 
     out_start: int
     rotations: np.ndarray
     root: np.ndarray
     lead_in: tuple[np.ndarray, np.ndarray] | None = None
+    contacts: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -121,9 +154,54 @@ def continuation(db, last_frame: int, n: int) -> np.ndarray:
     return cont if ok.all() else cont[: int(np.argmin(ok))]
 
 
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _place(rot: np.ndarray, root: np.ndarray, tf) -> tuple[np.ndarray, np.ndarray]:
+    """Apply a placement ``(yaw rad, source origin (3,), output origin (3,))`` to rotations and root."""
+    theta, src, dst = tf
+    q = _yaw_quat(theta)
+    rot = rot.copy()
+    rot[:, 0] = R.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
+    d = root - src
+    d[:, 1] = 0.0
+    out = R.apply(np.broadcast_to(q, d.shape[:-1] + (4,)), d) + dst
+    out[:, 1] = root[:, 1]
+    return rot, out
+
+
+def _pull(rot, root, fps):
+    """Leaky integration of the root's turning and horizontal velocity towards +z and the origin."""
+    T = root.shape[0]
+    yaw = _yaw_of(rot[:, 0])
+    kh = 1.0 / (HEADING_PULL_S * fps)
+    kp = 1.0 / (POSITION_PULL_S * fps)
+    h = np.empty(T)
+    y = np.empty((T, 2))
+    h[0] = yaw[0]
+    y[0] = root[0, [0, 2]]
+    dyaw = _wrap(np.diff(yaw))
+    dx = np.diff(root[:, [0, 2]], axis=0)
+    for t in range(1, T):
+        h[t] = h[t - 1] + dyaw[t - 1] - kh * _wrap(h[t - 1])
+        delta = h[t] - yaw[t]
+        c, s = np.cos(delta), np.sin(delta)
+        # rotation about +y by delta maps (x, z) -> (x cos + z sin, -x sin + z cos)
+        v = np.array([c * dx[t - 1, 0] + s * dx[t - 1, 1], -s * dx[t - 1, 0] + c * dx[t - 1, 1]])
+        y[t] = y[t - 1] + v - kp * y[t - 1]
+    delta = h - yaw
+    rot = rot.copy()
+    rot[:, 0] = R.multiply(_yaw_quat(delta), rot[:, 0])
+    root = root.copy()
+    root[:, 0], root[:, 2] = y[:, 0], y[:, 1]
+    return rot, root
+
+
 def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int | None = None,
-                    blend_frames: int = 4, smooth: bool = True) -> Motion:
-    """Lay pieces end to end, cross-fade each seam from the previous piece's continuation, smooth.
+                    blend_frames: int = 4, smooth: bool = True, placement: str = "continue",
+                    lock_feet: bool = True) -> Motion:
+    """Place pieces one after the other, cross-fade each seam from the previous piece's continuation, smooth.
 
     Parameters
     ----------
@@ -138,22 +216,60 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
         Cross-fade length after each seam that has a ``lead_in`` (0: no cross-fade).
     smooth : bool
         Savitzky-Golay filter over the result.
+    placement : {"continue", "source"}
+        ``"continue"``: each piece continues the output's root position and heading,
+        with the pulls to the origin and +z; ``"source"``: each piece where its
+        recording was (the behaviour before the placement issue). See the module docstring.
+    lock_feet : bool
+        Keep planted feet in place with leg IK (only with ``"continue"``).
     """
     if not pieces:
         raise ValueError("assemble_pieces: expected at least one piece")
+    if placement not in ("continue", "source"):
+        raise ValueError(f"assemble_pieces: placement: expected 'continue' or 'source'; got {placement!r}")
     T = pieces[-1].out_start + pieces[-1].n_frames if n_frames is None else int(n_frames)
     J = pieces[0].rotations.shape[1]
     rot = np.empty((T, J, 4))
     root = np.empty((T, 3))
     ends = [p.out_start for p in pieces[1:]] + [T]
-    for p, b in zip(pieces, ends):
+    cont = placement == "continue"
+    feet = foot_joints(skeleton) if cont and lock_feet else np.zeros((0, 2), dtype=np.int64)
+    contacts = np.zeros((T, 2), dtype=bool)
+    lows, src_pos = [], []
+    tf_prev = None
+    for i, (p, b) in enumerate(zip(pieces, ends)):
         a = p.out_start
         if p.n_frames < b - a:
             raise ValueError(f"assemble_pieces: piece at frame {a} has {p.n_frames} frames, needs {b - a}")
-        rot[a:b] = p.rotations[: b - a]
-        root[a:b] = p.root[: b - a]
-        if blend_frames > 0 and p.lead_in is not None and a > 0:
-            c_rot, c_root = p.lead_in
+        p_rot = np.asarray(p.rotations[: b - a], dtype=np.float64)
+        p_root = np.asarray(p.root[: b - a], dtype=np.float64)
+        lead = p.lead_in if (blend_frames > 0 and p.lead_in is not None and a > 0) else None
+        if lead is not None and lead[0].shape[0] == 0:
+            lead = None
+        if cont and b > a:
+            if tf_prev is None or a == 0:
+                tf = (0.0, np.zeros(3), np.zeros(3))
+            else:
+                if lead is not None:
+                    l_rot, l_root = _place(np.asarray(lead[0][:1], dtype=np.float64),
+                                           np.asarray(lead[1][:1], dtype=np.float64), tf_prev)
+                    target, target_yaw = l_root[0], float(_yaw_of(l_rot[0, 0]))
+                else:
+                    target = 2 * root[a - 1] - root[a - 2] if a >= 2 else root[a - 1]
+                    target_yaw = float(_yaw_of(rot[a - 1, 0]))
+                tf = (target_yaw - float(_yaw_of(p_rot[0, 0])), p_root[0], target)
+            if feet.shape[0]:
+                pos = Motion(skeleton=skeleton, fps=fps, rotations=p_rot, root_positions=p_root).positions
+                src_pos.append((a, b, pos, p.contacts))
+                lows.append(float(pos[:, feet, 1].min()))
+            if lead is not None:
+                lead = _place(np.asarray(lead[0], dtype=np.float64), np.asarray(lead[1], dtype=np.float64), tf_prev)
+            p_rot, p_root = _place(p_rot, p_root, tf)
+            tf_prev = tf
+        rot[a:b] = p_rot
+        root[a:b] = p_root
+        if lead is not None:
+            c_rot, c_root = lead
             n_bl = min(blend_frames, b - a, c_rot.shape[0])
             if n_bl == 0:
                 continue
@@ -161,13 +277,23 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
             w = x * x * (3 - 2 * x)
             rot[a:a + n_bl] = R.slerp(c_rot[:n_bl], rot[a:a + n_bl], w)
             root[a:a + n_bl] = (1 - w) * c_root[:n_bl] + w * root[a:a + n_bl]
+    if src_pos:
+        floor_y = min(lows)
+        for a, b, pos, given in src_pos:
+            contacts[a:b] = (np.asarray(given[: b - a], dtype=bool) if given is not None
+                             else foot_contacts(pos, fps=fps, feet=feet, floor_y=floor_y))
     if smooth:
         rot, root = savgol_smooth(rot, root)
+    if cont:
+        rot, root = _pull(rot, root, fps)
+        if feet.shape[0]:
+            root = pin_root(skeleton, fps, rot, root, contacts)
+            rot = plant_feet(skeleton, fps, rot, root, contacts)
     return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
 
 
 def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4,
-                    smooth: bool = True) -> Motion:
+                    smooth: bool = True, placement: str = "continue", lock_feet: bool = True) -> Motion:
     """Copy chosen database frames into one :class:`Motion` (the k-NN path).
 
     Parameters
@@ -177,7 +303,7 @@ def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, blend_frames:
         Database frame for every output frame.
     starts : ndarray, int64
         Output frame where each window starts (the first is 0).
-    blend_frames, smooth
+    blend_frames, smooth, placement, lock_feet
         See :func:`assemble_pieces`.
     """
     source = np.asarray(source, dtype=np.int64)
@@ -193,7 +319,7 @@ def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, blend_frames:
                 lead_in = placed_frames(db, cont)
         pieces.append(Piece(out_start=a, rotations=rot, root=root, lead_in=lead_in))
     return assemble_pieces(db.skeleton, db.fps, pieces, n_frames=source.shape[0],
-                           blend_frames=blend_frames, smooth=smooth)
+                           blend_frames=blend_frames, smooth=smooth, placement=placement, lock_feet=lock_feet)
 
 
 def savgol_smooth(rotations: np.ndarray, root: np.ndarray, *, window: int = 7, order: int = 2):

@@ -40,10 +40,26 @@ class Searcher:
         (:class:`gesturedb.search.HalfPose`): identical results, about 30%
         faster searches on large databases, for 0.4 s and 2 bytes per value
         spent once (616k frames). Worth it when one Searcher runs many syntheses.
+    projection : bool
+        Pose steps stream a 24-column projection of the pose features
+        (:class:`gesturedb.search.PoseProjection`, built at the first pose
+        search): identical results, a quarter of the bytes per step. On by
+        default (skipped when it would keep a quarter of the candidates or
+        more); takes precedence over ``half_precision``.
+    client : distributed.Client, optional
+        Search over ``parts`` shards resident on this Dask cluster's workers
+        (:class:`gesturedb.db.shards.ShardedSearch`, built at the first
+        search): exactly the same output as the search in this process.
+    parts : int
+        Number of shards with ``client``.
     """
 
-    def __init__(self, db, *, segments: str = "chunks", half_precision: bool = False):
+    def __init__(self, db, *, segments: str = "chunks", half_precision: bool = False,
+                 projection: bool = True, client=None, parts: int = 2):
         self.db = db
+        self._client, self._parts, self._sharded = client, parts, None
+        self._projection = bool(projection)
+        self._proj = None
         self._half = None
         if half_precision:
             from gesturedb.search import HalfPose
@@ -59,6 +75,20 @@ class Searcher:
         self.seg_start = np.ascontiguousarray(seg.start, dtype=np.int64)
         self.seg_len = np.ascontiguousarray(seg.length, dtype=np.int64)
         self.seg_recording = np.asarray(seg.recording)
+
+    def pose_projection(self):
+        """The :class:`gesturedb.search.PoseProjection` of the database's pose
+        features, built once; None when ``projection=False`` or when it would
+        keep a quarter of the candidates or more (pose features without the
+        structure of motion: the filter would only add work)."""
+        if self._projection and self._proj is None:
+            from gesturedb.search import PoseProjection
+
+            self._proj = PoseProjection(self.db.pose_features)
+            if self._proj.keep_fraction >= 0.25:
+                self._projection = False
+                self._proj = None
+        return self._proj
 
     # -- inputs ---------------------------------------------------------------
     def query_features(self, samples: np.ndarray, sr: int) -> np.ndarray:
@@ -115,6 +145,7 @@ class Searcher:
         control=None,
         keywords=True,
         exclude=None,
+        refiner=None,
     ) -> SynthResult:
         """Synthesize gestures for speech.
 
@@ -143,6 +174,11 @@ class Searcher:
             (True: all of the database's, False: none, a list: only those).
         exclude : list of str
             Recordings whose segments are left out of the search.
+        refiner : object with ``refine(motion, audio)``, optional
+            Applied to the assembled motion in one pass, e.g. a trained
+            :class:`gesturedb.refiner.train.Refiner` (``audio`` is the query's
+            standardised features and their deltas, (T, 28)). Any object with
+            that method works, so synthesis does not depend on the refiner stage.
 
         Returns
         -------
@@ -197,10 +233,20 @@ class Searcher:
         excl = self.exclude_recordings(exclude)
         init_pose = self.initial_pose(init, seed=seed)
         try:
-            res = rank_sum_search(
-                db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
-                step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl, pose_f16=self._half,
-            )
+            if self._client is not None:
+                if self._sharded is None:
+                    from gesturedb.db.shards import ShardedSearch
+
+                    self._sharded = ShardedSearch(db.pose_features, db.audio_features, self.seg_start,
+                                                  self.seg_len, client=self._client, parts=self._parts)
+                res = self._sharded.search(query, init_pose, step=step, k=k, preselect=preselect,
+                                           allowed=allowed, exclude=excl)
+            else:
+                res = rank_sum_search(
+                    db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
+                    step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl, pose_f16=self._half,
+                    pose_proj=self.pose_projection() if preselect == "pose" else None,
+                )
         except SearchError as exc:
             raise self._explain(exc, labels, keyword_bits=keyword_bits, exclude=excl, step=step, T=T) from None
 
@@ -232,10 +278,15 @@ class Searcher:
             })
         starts = np.asarray(res.out_frames, dtype=np.int64)
         motion = self.assemble(source, starts, blend_frames=blend_frames, smooth=smooth)
+        if refiner is not None:
+            from gesturedb.features.audio import audio_deltas
+
+            motion = refiner.refine(motion, np.concatenate([query, audio_deltas(query)], axis=1))
         options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames, smooth=smooth,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
-                       segments=self.segments_kind, database=db.path)
+                       segments=self.segments_kind, database=db.path,
+                       refiner=None if refiner is None else str(getattr(refiner, "path", None) or type(refiner).__name__))
         return SynthResult(motion=motion, source_frames=source, boundaries=starts[1:], steps=steps,
                            fps=db.fps, audio_path=audio_path, options=options)
 

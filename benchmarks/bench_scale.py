@@ -1,0 +1,86 @@
+"""Sharded pose step on a LocalCluster of 2 workers against one process (run by hand).
+
+Database: synthetic structured motion (benchmarks/bench_search.py: motion_pose)
+of --frames frames (default 5,000,000, about 93 hours at 15 fps) in 64-frame
+segments, 96-wide pose and 14-wide audio features. Prints, in one run, the
+median latency of one pose step
+  - in this process through the PoseProjection filter (2 threads and 1 thread),
+  - through ShardedSearch: 2 shards on a LocalCluster of 2 single-threaded
+    worker processes, each shard with its own PoseProjection, ranks merged
+    here (the whole round trip: 2 table tasks, gather, rank, 1 row fetch),
+and checks that both choose the same window. Memory per frame of each format
+is printed too.
+
+Usage:  python benchmarks/bench_scale.py [--frames 5000000] [--reps 15]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from bench_search import DA, DP, interleaved, motion_pose  # noqa: E402
+from gesturedb import search  # noqa: E402
+from gesturedb.db.shards import ShardedSearch  # noqa: E402
+
+L, N = 64, 8
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=5_000_000)
+    ap.add_argument("--reps", type=int, default=15)
+    args = ap.parse_args(argv)
+    from distributed import Client, LocalCluster
+
+    M = args.frames // L
+    F = M * L
+    rng = np.random.default_rng(0)
+    t = time.perf_counter()
+    pose = motion_pose(rng, F, n_rec=max(1, F // 4000))
+    audio = rng.standard_normal((F, DA), dtype=np.float32)
+    st = np.arange(M, dtype=np.int64) * L
+    ln = np.full(M, L, np.int64)
+    print(f"{F} frames ({F / 15 / 3600:.0f} h at 15 fps), {M} segments; generated in {time.perf_counter() - t:.0f} s")
+    t = time.perf_counter()
+    proj = search.PoseProjection(pose)
+    t_proj = time.perf_counter() - t
+    print(f"memory per frame: pose {4 * DP} B, projection {proj.blocks.nbytes / F:.0f} B, audio {4 * DA} B; "
+          f"PoseProjection built in {t_proj:.1f} s ({1e9 * t_proj / F:.0f} ns/frame)")
+    prev = pose[12345].copy()
+    q = rng.standard_normal((N, DA), dtype=np.float32)
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      memory_limit=0) as cluster, Client(cluster) as client:
+        t = time.perf_counter()
+        sh = ShardedSearch(pose, audio, st, ln, client=client, parts=2, threads=1)
+        client.gather(sh.shards)
+        print(f"2 shards resident on 2 worker processes in {time.perf_counter() - t:.1f} s")
+        fns = {
+            "one process, 2 threads": lambda: search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj),
+            "one process, 1 thread": lambda: search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj,
+                                                                  threads=1),
+            "2 shards on 2 workers": lambda: sh.search(q, prev, step=N),
+        }
+        res = interleaved(fns, args.reps)
+        print(f"\none pose step, median (min) over {args.reps} interleaved repetitions:")
+        for k, (med, mn) in res.items():
+            print(f"  {k:<24s} {1e3 * med:8.1f} ms  ({1e3 * mn:.1f})")
+        base = res["one process, 2 threads"][0]
+        print(f"  sharded / one process (2 threads): {res['2 shards on 2 workers'][0] / base:.2f}; "
+              f"per frame: {1e9 * base / F:.2f} ns (one process), "
+              f"{1e9 * res['2 shards on 2 workers'][0] / F:.2f} ns (sharded)")
+        a = search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj)
+        b = sh.search(q, prev, step=N)
+        print(f"  same choice: {(a.segment, a.start) == (int(b.segments[0]), int(b.starts[0]))}")
+        sh.close()
+
+
+if __name__ == "__main__":
+    main()

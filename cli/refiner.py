@@ -1,0 +1,93 @@
+"""`gesturedb refiner train|apply`: the cGAN refiner (needs the `refiner` extra: PyTorch CPU)."""
+from __future__ import annotations
+
+import sys
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("refiner", help="train a cGAN refiner on a database, or refine existing motion",
+                       description="The refiner of Habibie et al. 2022 (Sec. 3.2) smooths and resynchronises "
+                       "k-NN output. Needs PyTorch: pip install 'gesturedb[refiner]'.")
+    ops = p.add_subparsers(dest="op", metavar="OP", required=True)
+    t = ops.add_parser("train", help="train on a database's own audio and its k-NN synthesis")
+    t.add_argument("db", metavar="DB.h5")
+    t.add_argument("-o", "--output", required=True, metavar="REFINER.pt")
+    t.add_argument("--iterations", type=int, default=2000, help="generator updates in all (default: 2000)")
+    t.add_argument("--batch", type=int, default=32)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
+    t.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
+    a = ops.add_parser("apply", help="refine motion that already exists (BVH on the database's skeleton)")
+    a.add_argument("refiner", metavar="REFINER.pt")
+    a.add_argument("--db", required=True, metavar="DB.h5")
+    a.add_argument("--audio", required=True, metavar="SPEECH.wav")
+    a.add_argument("--input", required=True, metavar="KNN.bvh")
+    a.add_argument("-o", "--output", required=True, metavar="REFINED.bvh")
+    p.set_defaults(run=run)
+
+
+def _positive(name, v):
+    from gesturedb.errors import ParameterError
+
+    if v is not None and v < 1:
+        raise ParameterError(f"--{name}: expected a positive integer, got {v}")
+
+
+def run(args) -> int:
+    import gesturedb
+    from gesturedb.refiner import require_torch
+
+    torch = require_torch()
+    if args.op == "train":
+        from gesturedb.refiner.train import TrainConfig, train
+
+        for name in ("iterations", "batch", "threads"):
+            _positive(name, getattr(args, name))
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed,
+                          checkpoint_every_s=args.checkpoint_every)
+        with gesturedb.open(args.db) as db:
+            tr = train(db, args.output, config=cfg, resume=args.resume, progress=True,
+                       log=lambda m: print(m, file=sys.stderr))
+        last = tr.history[-1] if tr.history else {}
+        print(f"trained {tr.iteration} iterations -> {args.output}"
+              + (f" (critic {last['critic']:.3f}, L1 {last['l1']:.4f})" if last else ""))
+        return 0
+    import numpy as np
+
+    from gesturedb.errors import InputFileError
+    from gesturedb.features.audio import audio_deltas
+    from gesturedb.io import read_motion, write_motion
+    from gesturedb.io.audio import read_audio
+    from gesturedb.refiner import load_refiner
+    from gesturedb.synth import Searcher
+
+    with gesturedb.open(args.db) as db:
+        refiner = load_refiner(args.refiner, db)
+        motion = read_motion(args.input)
+        names, want = list(motion.skeleton.names), list(db.skeleton.names)
+        if sorted(names) != sorted(want):
+            missing = sorted(set(want) - set(names))[:5]
+            raise InputFileError(args.input, f"skeleton: expected the database's {len(want)} joints, got "
+                                             f"{len(names)} (missing e.g. {', '.join(missing) or 'none'})")
+        if names != want:  # a BVH lists joints depth first: put them back in the database's order
+            from gesturedb.motion import Motion
+
+            order = [names.index(n) for n in want]
+            motion = Motion(skeleton=db.skeleton, fps=motion.fps, rotations=motion.rotations[:, order],
+                            root_positions=motion.root_positions)
+        if abs(motion.fps - db.fps) > 1e-6:
+            motion = motion.resample(db.fps)
+        samples, sr = read_audio(args.audio, sr=int(db.config.get("sample_rate", 16000)))
+        query = Searcher(db).query_features(samples, sr)
+        T = min(query.shape[0], motion.n_frames)
+        if abs(query.shape[0] - motion.n_frames) > db.fps:
+            raise InputFileError(args.input, f"length: expected about {query.shape[0]} frames for {args.audio}, "
+                                             f"got {motion.n_frames}")
+        motion = motion[:T]
+        out = refiner.refine(motion, np.concatenate([query[:T], audio_deltas(query[:T])], axis=1))
+    write_motion(args.output, out)
+    print(f"refined {T} frames -> {args.output}")
+    return 0

@@ -1,0 +1,77 @@
+"""Dask for the build: recordings as tasks on a cluster, the client the only writer.
+
+``scheduler`` is ``"local:N"`` (a :class:`distributed.LocalCluster` of N
+single-threaded worker processes, started and shut down here),
+``"tcp://HOST:PORT"`` (an existing scheduler), or a ``distributed.Client``
+the caller owns. Workers only compute: each returns the
+:class:`gesturedb.db.build.RecordingData` of one recording to the client,
+which writes the HDF5 file through :mod:`gesturedb.db.storage` as a local
+build does. A failed task raises on the client before anything is written.
+"""
+from __future__ import annotations
+
+import contextlib
+import re
+from collections.abc import Callable, Iterator, Sequence
+
+from gesturedb.errors import ParameterError
+
+__all__ = ["dask_client", "process_on_cluster"]
+
+_LOCAL = re.compile(r"^local:(\d+)$")
+
+
+@contextlib.contextmanager
+def dask_client(scheduler) -> Iterator[object]:
+    """A ``distributed.Client`` for ``scheduler``; clusters started here are shut down on exit."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:  # pragma: no cover - an install without the dependency
+        raise ParameterError(
+            "scheduler: expected dask[distributed] to be installed (pip install 'dask[distributed]')") from None
+    if isinstance(scheduler, Client):
+        yield scheduler
+        return
+    if not isinstance(scheduler, str):
+        raise ParameterError(f"scheduler: expected 'local:N', 'tcp://HOST:PORT' or a distributed.Client; got {scheduler!r}")
+    m = _LOCAL.match(scheduler)
+    if m:
+        n = int(m.group(1))
+        if n < 1:
+            raise ParameterError(f"scheduler: expected local:N with N >= 1 workers; got {scheduler!r}")
+        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+                Client(cluster) as client:
+            yield client
+        return
+    if not scheduler.startswith("tcp://"):
+        raise ParameterError(f"scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got {scheduler!r}")
+    try:
+        client = Client(scheduler, timeout="10s")
+    except OSError as exc:
+        raise ParameterError(f"scheduler: expected a reachable Dask scheduler at {scheduler}; got {exc}") from None
+    with client:
+        yield client
+
+
+def process_on_cluster(fn: Callable, items: Sequence, scheduler, *, on_done: Callable | None = None) -> list:
+    """``[fn(x) for x in items]`` as Dask tasks, results in input order.
+
+    ``on_done(i)`` is called on the client as each task finishes (progress bar).
+    The first failed task's exception is raised after the others were cancelled.
+    """
+    from distributed import as_completed
+
+    with dask_client(scheduler) as client:
+        # pure=False: every item is computed even if two compare equal
+        futures = client.map(fn, list(items), pure=False)
+        index = {f.key: i for i, f in enumerate(futures)}
+        results: list = [None] * len(futures)
+        try:
+            for fut in as_completed(futures):
+                results[index[fut.key]] = fut.result()  # re-raises the task's exception
+                if on_done is not None:
+                    on_done(index[fut.key])
+        except BaseException:
+            client.cancel(futures)
+            raise
+        return results

@@ -1,0 +1,315 @@
+"""The motion graph over the database's word-gap clips (GestureMaster, Sec. 4.1) and the style predictor.
+
+Built at ``gesturedb build`` (default) or added to an existing file by ``gesturedb graph DB.h5``;
+stored under ``graph/`` and ``style_model/`` (see :mod:`gesturedb.db.schema`). It lives in the
+database layer because the build writes it; the search over it is :mod:`gesturedb.synth.graph`.
+
+Transition cost (Eq. 1), ``T(p, q) = l1 * T_p + l2 * T_r`` over ``m = transition_frames``
+frames, the last ``m`` frames of ``p`` against the first ``m`` of ``q``:
+
+- ``T_p``: summed *squared* distance (m^2) of all joints in the body frame (root position
+  subtracted, root heading removed), so where the speaker stood or faced does not matter.
+- ``T_r``: summed ``1 - <q_a, q_b>`` over the local rotations of every non-root joint, each
+  quaternion first put on the ``w >= 0`` hemisphere (q and -q are one rotation); for unit
+  quaternions that is ``|q_a - q_b|^2 / 2`` (1 - cos of half the angle). A local joint
+  rotation near 180 degrees (w ~ 0) could land on either hemisphere; gestures do not bend
+  joints that far.
+- Both are squared Euclidean distances, so with ``x = [sqrt(l1) p, sqrt(l2 / 2) q]`` the
+  whole K x K table is ``|x_a|^2 + |x_b|^2 - 2 x_a . x_b``: one float32 matrix product
+  (BLAS), the result kept in float64.
+
+Edges. ``p -> q`` exists where ``T(p, q) < delta_T``; ``delta_T`` defaults to the
+``delta_quantile`` (10 %) quantile of all off-diagonal costs of the database (from a
+fixed strided sample of at most 10^6 pairs), because the paper's ``delta_T = 8`` belongs to
+its own units. Of those, every node keeps at most its ``max_out`` (32) cheapest, so the
+search stays ``O(n K max_out)`` on large databases; and every node keeps its ``min_out``
+(4) cheapest out-edges whatever ``delta_T``, so a small database never falls apart into
+nodes without a way on. There are no self-edges: the graph itself never plays a clip twice in a
+row (the back-to-back repeat rule), which also means the output never loops on one clip.
+
+Style predictor (Sec. 3.3 uses StyleGestures; here a ridge regression): the clip's mean
+and standard deviation of the standardised audio features (2 x Da) plus its word rate
+-> the clip's style signature (speed m/s, radius m, height m). Fitted on the database's
+clips when the graph is built; the held-out error (every 5th clip held out, RMS per
+output standardised by the target std) is stored beside the error of predicting the mean.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from gesturedb.errors import ParameterError
+
+L1 = 0.7
+L2 = 0.3
+TRANSITION_FRAMES = 2
+DELTA_QUANTILE = 0.10
+MIN_OUT = 4
+MAX_OUT = 32
+RIDGE_ALPHA = 10.0
+
+
+def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
+    """Quaternions (n, 4) removing the heading (rotation about +y) of root rotations (n, 4)."""
+    from gesturedb import rotations as R
+
+    fwd = R.apply(root_q, np.broadcast_to(np.array([0.0, 0.0, 1.0]), root_q.shape[:-1] + (3,)))
+    a = -np.arctan2(fwd[..., 0], fwd[..., 2]) / 2
+    return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
+
+
+def transition_features(positions, rotations, root, frames, *, l1: float = L1, l2: float = L2) -> np.ndarray:
+    """Weighted body-frame features of the given frames: ``T = |x_end(p) - x_start(q)|^2``.
+
+    Parameters
+    ----------
+    positions : ndarray [shape=(F, J, 3)], metres, world
+    rotations : ndarray [shape=(F, J, 4)], local quaternions (w, x, y, z)
+    root : ndarray [shape=(F, 3)], metres
+    frames : ndarray [shape=(K, m)], int
+        Frames of each clip's transition window.
+
+    Returns
+    -------
+    ndarray [shape=(K, m * (J * 3 + (J - 1) * 4))], float64
+        ``sqrt(l1)`` x body-frame joint positions, then ``sqrt(l2 / 2)`` x the non-root
+        local quaternions on the ``w >= 0`` hemisphere.
+    """
+    from gesturedb import rotations as R
+
+    K, m = frames.shape
+    f = frames.reshape(-1)
+    p = np.asarray(positions[f], dtype=np.float64) - np.asarray(root[f], dtype=np.float64)[:, None, :]
+    q = np.asarray(rotations[f], dtype=np.float64)
+    yinv = _yaw_inverse(q[:, 0])
+    p = R.apply(np.repeat(yinv[:, None, :], p.shape[1], axis=1), p)
+    qq = q[:, 1:, :] * np.where(q[:, 1:, :1] < 0, -1.0, 1.0)
+    x = np.concatenate([np.sqrt(l1) * p.reshape(len(f), -1), np.sqrt(l2 / 2) * qq.reshape(len(f), -1)], axis=1)
+    return x.reshape(K, -1)
+
+
+def transition_costs(end_x: np.ndarray, start_x: np.ndarray) -> np.ndarray:
+    """Dense ``T[p, q]`` (K, K), float64, from clip-end and clip-start features by one float32 matmul (BLAS)."""
+    a = np.ascontiguousarray(end_x, dtype=np.float32)
+    b = np.ascontiguousarray(start_x, dtype=np.float32)
+    T = (a @ b.T).astype(np.float64)
+    T *= -2.0
+    T += np.einsum("ij,ij->i", end_x, end_x)[:, None]
+    T += np.einsum("ij,ij->i", start_x, start_x)[None, :]
+    return np.maximum(T, 0.0, out=T)
+
+
+def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE,
+                     min_out: int = MIN_OUT, max_out: int = MAX_OUT):
+    """CSR edges (no self-edges): each node's ``T < delta_T`` among its ``max_out`` cheapest, plus its ``min_out`` cheapest.
+
+    ``T`` is modified (its diagonal set to +inf). Ties at the cut are broken by target index.
+
+    Returns
+    -------
+    indptr : int64 (K + 1,), indices : int64 (E,), cost : float64 (E,), delta_T : float
+    """
+    K = T.shape[0]
+    np.fill_diagonal(T, np.inf)
+    if delta_T is None:
+        step = max(1, (K * K) // 1_000_000)
+        sample = T.reshape(-1)[::step]
+        sample = sample[np.isfinite(sample)]
+        delta_T = float(np.quantile(sample, delta_quantile)) if sample.size else 0.0
+    k_max = min(int(max_out), K - 1)
+    k_min = min(int(min_out), k_max)
+    if k_max <= 0:
+        return np.zeros(K + 1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), float(delta_T)
+    # the k_max cheapest of every row, in order (stable sort: ties by target index)
+    part = np.argpartition(T, k_max - 1, axis=1)[:, :k_max] if k_max < K - 1 else np.argsort(T, axis=1)[:, :k_max]
+    vals = np.take_along_axis(T, part, 1)
+    o = np.lexsort((part, vals), axis=1)
+    part, vals = np.take_along_axis(part, o, 1), np.take_along_axis(vals, o, 1)
+    keep = (vals < delta_T) | (np.arange(k_max)[None, :] < k_min)
+    keep &= np.isfinite(vals)
+    rows = np.repeat(np.arange(K), keep.sum(1))
+    cols = part[keep]
+    # CSR wants targets increasing within a row
+    o = np.lexsort((cols, rows))
+    rows, cols = rows[o], cols[o]
+    indptr = np.zeros(K + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=K), out=indptr[1:])
+    return indptr, cols.astype(np.int64), T[rows, cols].astype(np.float64), float(delta_T)
+
+
+def suggest_gap_s(pauses_s, total_s: float, *, n_sequences: int = 1, target_clip_s: float = 3.0,
+                  lo_s: float = 0.1, hi_s: float = 0.4) -> float:
+    """The word gap (s) that cuts speech into clips of about ``target_clip_s`` (Sec. 3.1: a few seconds).
+
+    Parameters
+    ----------
+    pauses_s : ndarray [shape=(P,)], seconds
+        Pauses between consecutive words of all sequences.
+    total_s : float
+        Total duration of the sequences.
+    n_sequences : int
+        Recordings (each already starts a clip).
+
+    Returns
+    -------
+    float
+        Midway between the ``n``-th and ``n+1``-th longest pauses, ``n = round(total_s /
+        target_clip_s) - n_sequences`` cuts, clamped to ``[lo_s, hi_s]`` (the paper's 0.4 s
+        is the upper end: a longer gap only gives fewer, longer clips).
+    """
+    p = np.sort(np.asarray(pauses_s, dtype=np.float64))[::-1]
+    n = int(round(float(total_s) / float(target_clip_s))) - int(n_sequences)
+    if n <= 0 or p.size == 0:
+        return float(hi_s)
+    if n >= p.size:
+        return float(lo_s)
+    return float(np.clip((p[n - 1] + p[n]) / 2, lo_s, hi_s))
+
+
+def clip_audio_inputs(audio_features: np.ndarray, starts, lengths, n_words) -> np.ndarray:
+    """Style-predictor inputs per clip: mean and std of standardised audio features, word rate.
+
+    Parameters
+    ----------
+    audio_features : ndarray [shape=(F, Da)], standardised
+    starts, lengths : int arrays (K,), frames
+    n_words : ndarray (K,), words per clip; divided by the clip length in frames (words/frame)
+
+    Returns
+    -------
+    ndarray [shape=(K, 2 Da + 1)], float64
+    """
+    a = np.asarray(audio_features, dtype=np.float64)
+    out = np.empty((len(starts), 2 * a.shape[1] + 1))
+    for k, (s, n) in enumerate(zip(starts, lengths)):
+        seg = a[int(s): int(s) + int(n)]
+        out[k, : a.shape[1]] = seg.mean(0)
+        out[k, a.shape[1]: 2 * a.shape[1]] = seg.std(0)
+        out[k, -1] = float(n_words[k]) / max(int(n), 1)
+    return out
+
+
+def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float = RIDGE_ALPHA, groups=None) -> dict:
+    """Ridge regression ``Y ~ X`` on standardised inputs; held-out error vs the mean predictor.
+
+    ``groups`` (K,) int: clips of one group are held out together (a clip and its mirrored
+    copy share audio and nearly share style: splitting them would leak). Every 5th group
+    (by order of first appearance) is held out; default: every clip its own group.
+
+    Returns a dict with ``coef (P, S)``, ``intercept (S,)``, ``x_mean (P,)``, ``x_std (P,)``,
+    ``heldout_rmse`` and ``mean_rmse`` (RMS over held-out clips and the S outputs, each
+    output divided by its standard deviation), ``n_heldout``.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+
+    def fit(Xt, Yt):
+        mu, sd = Xt.mean(0), np.maximum(Xt.std(0), 1e-9)
+        Z = (Xt - mu) / sd
+        ym = Yt.mean(0)
+        A = Z.T @ Z + alpha * np.eye(Z.shape[1])
+        coef = np.linalg.solve(A, Z.T @ (Yt - ym))
+        return coef, ym, mu, sd
+
+    def predict(m, Xq):
+        coef, ym, mu, sd = m
+        return ((Xq - mu) / sd) @ coef + ym
+
+    K = X.shape[0]
+    groups = np.arange(K) if groups is None else np.asarray(groups)
+    _, first, inv = np.unique(groups, return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first))  # group number in order of first appearance
+    held = rank[inv] % 5 == 4
+    ysd = np.maximum(Y.std(0), 1e-9)
+    if held.sum() >= 1 and (~held).sum() >= 2:
+        m = fit(X[~held], Y[~held])
+        err = ((predict(m, X[held]) - Y[held]) / ysd) ** 2
+        base = ((Y[~held].mean(0) - Y[held]) / ysd) ** 2
+        heldout, mean_err = float(np.sqrt(err.mean())), float(np.sqrt(base.mean()))
+    else:
+        heldout = mean_err = float("nan")
+    coef, ym, mu, sd = fit(X, Y)
+    return dict(coef=coef, intercept=ym, x_mean=mu, x_std=sd, heldout_rmse=heldout, mean_rmse=mean_err,
+                n_heldout=int(held.sum()))
+
+
+def predict_style(model: dict, X: np.ndarray) -> np.ndarray:
+    """Style signatures (n, S) predicted from inputs (n, P) by a model from :func:`fit_style_model`."""
+    return ((np.asarray(X, dtype=np.float64) - model["x_mean"]) / model["x_std"]) @ model["coef"] + model["intercept"]
+
+
+def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = TRANSITION_FRAMES,
+                delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
+                max_out: int = MAX_OUT) -> dict:
+    """Compute the motion graph and the style model of an open, writable database file and store them.
+
+    Called by the build (inside :func:`gesturedb.db.storage.write_atomically`) and by
+    :func:`add_graph` (inside :func:`gesturedb.db.storage.edit`). Returns a summary dict.
+    """
+    from gesturedb.db import schema
+
+    if not isinstance(transition_frames, (int, np.integer)) or transition_frames < 1:
+        raise ParameterError(f"transition_frames: expected a positive integer, got {transition_frames!r}")
+    for name, v in (("l1", l1), ("l2", l2)):
+        if not np.isfinite(v) or v < 0:
+            raise ParameterError(f"{name}: expected a finite weight >= 0, got {v!r}")
+    r = lambda p: schema.read(h5, p)  # noqa: E731
+    start, length = r("clips/start"), r("clips/length")
+    K = start.shape[0]
+    m = int(transition_frames)
+    off = np.arange(m)
+    # clips shorter than m frames repeat their edge frames
+    last = start[:, None] + np.maximum(length[:, None] - m + off, 0).clip(max=length[:, None] - 1)
+    first = start[:, None] + np.minimum(off, length[:, None] - 1)
+    pos, rot, root = h5["frames/joint_positions"], h5["frames/local_rotations"], h5["frames/root_positions"]
+    need = np.unique(np.concatenate([last.ravel(), first.ravel()]))
+    pos_a, rot_a, root_a = pos[need], rot[need], root[need]
+    idx = lambda f: np.searchsorted(need, f)  # noqa: E731
+    ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2)
+    sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2)
+    T = transition_costs(ex, sx)
+    indptr, indices, cost, dT = edges_from_costs(T, delta_T=delta_T, delta_quantile=delta_quantile,
+                                                 min_out=min_out, max_out=max_out)
+
+    dims = {"K": K}
+    schema.write(h5, "graph/indptr", indptr, dims)
+    schema.write(h5, "graph/indices", indices, dims)
+    schema.write(h5, "graph/cost", cost, dims)
+    g = h5["graph"]
+    for k, v in dict(l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
+                     delta_quantile=float(delta_quantile), min_out=int(min_out),
+                     max_out=int(max_out)).items():
+        g.attrs[k] = v
+
+    n_words = r("clips/word_end") - r("clips/word_start")
+    X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
+    # a clip and its mirrored copy (same recording name but '~mirror', same offset) form one group
+    names = [nm.removesuffix("~mirror") for nm in r("recordings/name")]
+    rec = r("clips/recording")
+    rstart = r("recordings/start_frame")
+    keys = [(names[int(c)], int(s0 - rstart[int(c)])) for c, s0 in zip(rec, start)]
+    uniq = {k: i for i, k in enumerate(dict.fromkeys(keys))}
+    model = fit_style_model(X, r("clips/style").astype(np.float64), groups=np.array([uniq[k] for k in keys]))
+    for k in ("coef", "intercept", "x_mean", "x_std"):
+        schema.write(h5, f"style_model/{k}", model[k], dims)
+    sm = h5["style_model"]
+    for k in ("heldout_rmse", "mean_rmse", "n_heldout"):
+        sm.attrs[k] = model[k]
+    sm.attrs["alpha"] = RIDGE_ALPHA
+    return dict(n_nodes=K, n_edges=int(indices.shape[0]), delta_T=dT, heldout_rmse=model["heldout_rmse"],
+                mean_rmse=model["mean_rmse"])
+
+
+def add_graph(path, **options) -> dict:
+    """Add (or replace) the motion graph of an existing database file, upgrading a version-1 file.
+
+    Written through :func:`gesturedb.db.storage.edit` (temporary copy + rename).
+    """
+    from gesturedb.db import schema, storage
+
+    with storage.edit(path, upgrade=True) as h5:
+        for grp in ("graph", "style_model"):
+            if grp in h5:
+                del h5[grp]
+        summary = write_graph(h5, **options)
+        h5.attrs["schema_version"] = schema.SCHEMA_VERSION
+    return summary

@@ -1,0 +1,42 @@
+"""The cGAN refiner (Habibie et al. 2022, Sec. 3.2): smooths and resynchronises k-NN output.
+
+The only part of gesturedb that imports torch; it is an optional extra
+(``pip install '.[refiner]'``, which pins the CPU build ``torch==2.13.0``).
+Importing this package does not import torch: its modules do, when used.
+
+=====================  =====================================================
+``representation``     motion <-> network channels (6D local rotations; numpy)
+``model``              generator and discriminator (torch)
+``data``               training windows: real pairs and k-NN fakes (cached)
+``train``              WGAN-GP training, checkpoints, resume; :class:`Refiner`
+=====================  =====================================================
+
+    from gesturedb.refiner import load_refiner
+    refiner = load_refiner("refiner.pt", db)          # checks skeleton and features
+    result = Searcher(db).synthesize("speech.wav", refiner=refiner)
+"""
+from __future__ import annotations
+
+from gesturedb.errors import GestureDBError
+
+INSTALL_HINT = "pip install 'gesturedb[refiner]' (or: pip install torch==2.13.0, the CPU build)"
+
+
+def require_torch():
+    """Import torch or raise a GestureDBError that says how to install it."""
+    try:
+        import torch
+    except ImportError as exc:
+        raise GestureDBError(f"the refiner needs PyTorch, which is not installed: {INSTALL_HINT}") from exc
+    return torch
+
+
+def load_refiner(path, db=None):
+    """Load a trained refiner checkpoint (no code is executed from the file); see :class:`train.Refiner`."""
+    require_torch()
+    from gesturedb.refiner.train import Refiner
+
+    return Refiner.load(path, db=db)
+
+
+__all__ = ["INSTALL_HINT", "load_refiner", "require_torch"]

@@ -1,0 +1,111 @@
+"""Generator and discriminator of the refiner (Habibie et al. 2022, Sec. 3.2), fully convolutional in time.
+
+Tensors are ``(batch, channels, T)``; audio has 28 channels (14 standardised
+MFCC + log energy and their first derivatives, as stored in the database),
+gestures ``C_g = 6 * Jm`` (see :mod:`gesturedb.refiner.representation`).
+
+Deviations from the paper, each for a stated reason:
+
+- The generator predicts a *correction* added to the k-NN gesture (its last
+  block, a single Conv1d, starts at zero). At initialisation the refiner is the
+  identity, so a short CPU training run can only improve on the k-NN input and
+  never starts from noise; the L1 term to the k-NN input (w1) keeps the same
+  meaning.
+- The discriminator averages its features over time before the fully
+  connected layer, so it accepts any T (the paper trains on fixed 64-frame
+  windows; at T = 64 this is a fixed pooling).
+- Any T: the input is padded (edge values repeated) to a multiple of the
+  generator's pooling factor 8 and the output cropped back.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+AUDIO_CHANNELS = 28
+POOL_FACTOR = 8  # max pooling after blocks 2, 4 and 6 of the encoder
+
+
+def _block(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv1d(c_in, c_out, 3, padding=1), nn.BatchNorm1d(c_out), nn.ReLU(inplace=True))
+
+
+class Generator(nn.Module):
+    """Encoder of 8 [Conv1d, BatchNorm1d, ReLU] blocks with max pooling after every second block
+    except the last; decoder of 8 blocks mirroring it with upsampling after every second block,
+    the last block a single Conv1d.
+
+    Parameters
+    ----------
+    gesture_channels : int
+        ``C_g``.
+    width : int
+        Channels of the hidden blocks.
+    """
+
+    def __init__(self, gesture_channels: int, *, audio_channels: int = AUDIO_CHANNELS, width: int = 128):
+        super().__init__()
+        self.gesture_channels = gesture_channels
+        c_in = audio_channels + gesture_channels
+        self.enc = nn.ModuleList([_block(c_in if i == 0 else width, width) for i in range(8)])
+        self.dec = nn.ModuleList([_block(width, width) for _ in range(7)])
+        self.out = nn.Conv1d(width, gesture_channels, 3, padding=1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, audio: torch.Tensor, gesture: torch.Tensor) -> torch.Tensor:
+        T = gesture.shape[-1]
+        pad = (-T) % POOL_FACTOR
+        a = F.pad(audio, (0, pad), mode="replicate") if pad else audio
+        g = F.pad(gesture, (0, pad), mode="replicate") if pad else gesture
+        h = torch.cat([a, g], dim=1)
+        for i, blk in enumerate(self.enc):
+            h = blk(h)
+            if i % 2 == 1 and i < 7:
+                h = F.max_pool1d(h, 2)
+        for i, blk in enumerate(self.dec):
+            h = blk(h)
+            if i % 2 == 0 and i < 6:  # three upsamplings undo the three poolings
+                h = F.interpolate(h, scale_factor=2, mode="linear", align_corners=False)
+        return gesture + self.out(h)[..., :T]
+
+
+class Discriminator(nn.Module):
+    """6 [Conv1d, InstanceNorm1d, LeakyReLU] blocks with average pooling after every second block,
+    then a fully connected layer to one scalar (the WGAN critic's score) per sequence."""
+
+    def __init__(self, gesture_channels: int, *, audio_channels: int = AUDIO_CHANNELS, width: int = 128):
+        super().__init__()
+        c_in = audio_channels + gesture_channels
+        self.blocks = nn.ModuleList([
+            nn.Sequential(nn.Conv1d(c_in if i == 0 else width, width, 3, padding=1),
+                          nn.InstanceNorm1d(width, affine=True), nn.LeakyReLU(0.2, inplace=True))
+            for i in range(6)
+        ])
+        self.fc = nn.Linear(width, 1)
+
+    def forward(self, audio: torch.Tensor, gesture: torch.Tensor) -> torch.Tensor:
+        h = torch.cat([audio, gesture], dim=1)
+        for i, blk in enumerate(self.blocks):
+            h = blk(h)
+            if i % 2 == 1 and h.shape[-1] >= 2:
+                h = F.avg_pool1d(h, 2)
+        return self.fc(h.mean(dim=-1)).squeeze(-1)
+
+
+def gradient_penalty(critic, real_audio: torch.Tensor, real: torch.Tensor, fake_audio: torch.Tensor,
+                     fake: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """WGAN-GP term (Gulrajani et al. 2017) of a conditional critic.
+
+    Mean over the batch of ``(||grad D(a, x)|| - 1)^2`` at the interpolates
+    ``a = eps * real_audio + (1 - eps) * fake_audio``, ``x = eps * real + (1 - eps) * fake``;
+    the norm is over both inputs, since the critic is Lipschitz in the pair.
+    ``eps`` is (B, 1, 1), uniform in [0, 1].
+    """
+    a = (eps * real_audio + (1 - eps) * fake_audio).requires_grad_(True)
+    x = (eps * real + (1 - eps) * fake).requires_grad_(True)
+    score = critic(a, x)
+    ga, gx = torch.autograd.grad(score.sum(), (a, x), create_graph=True)
+    norm = torch.sqrt(ga.flatten(1).pow(2).sum(1) + gx.flatten(1).pow(2).sum(1))
+    return ((norm - 1) ** 2).mean()

@@ -1,0 +1,82 @@
+"""Building on Dask: the same database as a local build, the client the only writer."""
+from __future__ import annotations
+
+import os
+
+import h5py
+import numpy as np
+import pytest
+
+import gesturedb
+from gesturedb.errors import GestureDBError, ParameterError
+
+STEM = "2_scott_0_1_1"
+
+
+def _two_recordings(scott_dir, tmp_path):
+    """Two recordings (links to the real one under two stems), so the cluster has two tasks."""
+    src = tmp_path / "in"
+    src.mkdir()
+    for stem in ("a_scott", "b_scott"):
+        for ext in (".npz", ".wav", ".TextGrid"):
+            os.symlink(scott_dir / f"{STEM}{ext}", src / f"{stem}{ext}")
+    return src
+
+
+def _content(path):
+    out = {}
+    with h5py.File(path, "r") as h5:
+        h5.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+        out["/attrs"] = {k: (v if not isinstance(v, np.ndarray) else v.tolist()) for k, v in h5.attrs.items()}
+    return out
+
+
+def test_cluster_build_is_identical_to_local_build(scott_dir, tmp_path, dask_client):
+    src = _two_recordings(scott_dir, tmp_path)
+    local = tmp_path / "local.h5"
+    dist = tmp_path / "dask.h5"
+    gesturedb.build([src], local, workers=2).close()
+    with gesturedb.build([src], dist, scheduler=dask_client) as db:
+        assert [r.name for r in db.recordings] == ["a_scott", "b_scott"]
+    a, b = _content(local), _content(dist)
+    assert a.keys() == b.keys()
+    for k in a:
+        if isinstance(a[k], np.ndarray):
+            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
+        else:
+            assert a[k] == b[k], k
+
+
+def test_failed_task_leaves_nothing_behind(scott_dir, tmp_path, dask_client):
+    src = _two_recordings(scott_dir, tmp_path)
+    os.remove(src / "b_scott.wav")
+    (src / "b_scott.wav").write_bytes(b"RIFF\x00\x00\x00\x00WAVEjunk")  # unreadable audio
+    out = tmp_path / "db.h5"
+    out.write_bytes(b"previous")
+    with pytest.raises(GestureDBError, match="b_scott.wav"):
+        gesturedb.build([src], out, scheduler=dask_client)
+    assert out.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["db.h5", "in"]
+
+
+def test_scheduler_validation(scott_dir, tmp_path):
+    for bad, msg in (("local:0", "expected local:N with N >= 1"), ("http://x:1", "expected 'local:N' or 'tcp://HOST:PORT'"),
+                     (3, "expected 'local:N', 'tcp://HOST:PORT' or a distributed.Client")):
+        with pytest.raises(ParameterError, match=msg):
+            gesturedb.build([scott_dir], tmp_path / "x.h5", scheduler=bad)
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_cli_build_with_a_local_cluster(scott_dir, tmp_path, capsys):
+    """`gesturedb build --scheduler local:1`: a LocalCluster of worker processes, started and stopped."""
+    from gesturedb.cli.main import main
+
+    out = tmp_path / "cli.h5"
+    assert main(["build", str(scott_dir), "-o", str(out), "--scheduler", "local:1", "-q"]) == 0
+    ref = tmp_path / "ref.h5"
+    gesturedb.build([scott_dir], ref).close()
+    a, b = _content(ref), _content(out)
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a if isinstance(a[k], np.ndarray))
+    assert main(["build", str(scott_dir), "-o", str(tmp_path / "bad.h5"), "--scheduler", "udp://x"]) == 2
+    assert "scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got 'udp://x'" in capsys.readouterr().err
+    assert not (tmp_path / "bad.h5").exists()

@@ -1,0 +1,288 @@
+"""The motion graph (gesturedb.db.graph) and graph synthesis (gesturedb.synth.graph) on toy and real data."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+import gesturedb
+from gesturedb import rotations as R
+from gesturedb.db import graph as G
+from gesturedb.db import schema
+from gesturedb.errors import SchemaError, SearchError
+from gesturedb.synth.graph import MAX_SPEED, GraphSynthesizer, voiced_segments
+from gesturedb.synth.viterbi import check_csr
+
+INPUTS = ["2_scott_0_2_2", "2_scott_0_3_3", "2_scott_0_4_4", "2_scott_0_5_5"]
+
+
+def _direct_cost(pos, rot, root, fa, fb, l1, l2):
+    """T between frame lists fa (end of p) and fb (start of q) by explicit loops (the oracle)."""
+    tp = tr = 0.0
+    for a, b in zip(fa, fb):
+        local = []
+        for f in (a, b):
+            fwd = R.apply(rot[f, 0], np.array([0.0, 0.0, 1.0]))
+            yaw = np.arctan2(fwd[0], fwd[2])
+            c, s = np.cos(yaw), np.sin(yaw)
+            m = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])  # rotation about y by -yaw
+            local.append((pos[f] - root[f]) @ m.T)
+        tp += float(np.sum((local[0] - local[1]) ** 2))
+        qa, qb = (rot[f, 1:] * np.sign(rot[f, 1:, :1] + 1e-300) for f in (a, b))  # w >= 0 hemisphere
+        tr += float(np.sum(1 - np.sum(qa * qb, -1)))
+    return l1 * tp + l2 * tr
+
+
+def test_transition_costs_match_direct_loops():
+    rng = np.random.default_rng(0)
+    F, J, K, m = 40, 5, 6, 2
+    pos = rng.normal(size=(F, J, 3))
+    root = rng.normal(size=(F, 3))
+    rot = R.normalize(rng.normal(size=(F, J, 4)))
+    ends = rng.integers(0, F, (K, m))
+    starts = rng.integers(0, F, (K, m))
+    ex = G.transition_features(pos, rot, root, ends, l1=0.7, l2=0.3)
+    sx = G.transition_features(pos, rot, root, starts, l1=0.7, l2=0.3)
+    T = G.transition_costs(ex, sx)
+    assert T.dtype == np.float64 and T.shape == (K, K)
+    for p in range(K):
+        for q in range(K):
+            # the matmul runs in float32: relative error ~1e-6 of the feature norms
+            assert T[p, q] == pytest.approx(_direct_cost(pos, rot, root, ends[p], starts[q], 0.7, 0.3), rel=1e-4, abs=1e-3)
+
+
+@pytest.mark.parametrize("K,max_out", [(30, 32), (60, 8)])
+def test_edges_threshold_plus_cheapest(K, max_out):
+    rng = np.random.default_rng(1)
+    T = rng.random((K, K)) * 10
+    indptr, indices, cost, dT = G.edges_from_costs(T.copy(), delta_quantile=0.1, min_out=3, max_out=max_out)
+    check_csr(indptr, indices, cost, K)
+    dense = np.zeros((K, K), bool)
+    src = np.repeat(np.arange(K), np.diff(indptr))
+    dense[src, indices] = True
+    assert not dense.diagonal().any()
+    off = ~np.eye(K, dtype=bool)
+    assert dT == pytest.approx(np.quantile(T[off], 0.1))
+    for p in range(K):  # oracle: sort the row, take the rule literally
+        order = [q for q in np.argsort(T[p], kind="stable") if q != p][: min(max_out, K - 1)]
+        want = {q for r, q in enumerate(order) if r < 3 or T[p, q] < dT}
+        assert set(np.flatnonzero(dense[p])) == want
+    np.testing.assert_array_equal(cost, T[src, indices])
+
+
+def test_style_model_beats_the_mean_on_learnable_data():
+    rng = np.random.default_rng(2)
+    X = rng.normal(size=(200, 5))
+    Y = X @ rng.normal(size=(5, 3)) + 0.1 * rng.normal(size=(200, 3))
+    m = G.fit_style_model(X, Y)
+    assert m["heldout_rmse"] < 0.3 * m["mean_rmse"]
+    np.testing.assert_allclose(G.predict_style(m, X), Y, atol=0.5)
+    # a clip and its mirrored copy are held out together
+    mg = G.fit_style_model(X, Y, groups=np.arange(200) // 2)
+    assert mg["n_heldout"] == 2 * (100 // 5)
+
+
+def test_voiced_segments_find_bursts():
+    sr = 16000
+    t = np.arange(int(3.0 * sr)) / sr
+    x = 1e-4 * np.random.default_rng(3).normal(size=t.shape)
+    truth = [(0.2, 0.6), (1.1, 1.5), (2.2, 2.9)]
+    for a, b in truth:
+        sel = (t >= a) & (t < b)
+        x[sel] += 0.3 * np.sin(2 * np.pi * 220 * t[sel])
+    s, e = voiced_segments(x, sr)
+    assert len(s) == 3
+    np.testing.assert_allclose(s, [a for a, _ in truth], atol=0.02)
+    np.testing.assert_allclose(e, [b for _, b in truth], atol=0.02)
+
+
+def test_real_graph_is_stored_and_consistent(scott_db_path):
+    with h5py.File(scott_db_path, "r") as h5:
+        K = h5["clips/start"].shape[0]
+        indptr, indices, cost = (schema.read(h5, f"graph/{k}") for k in ("indptr", "indices", "cost"))
+        check_csr(indptr, indices, cost, K)
+        assert np.all(np.diff(indptr) >= min(G.MIN_OUT, K - 1))
+        attrs = dict(h5["graph"].attrs)
+        assert attrs["l1"] == 0.7 and attrs["l2"] == 0.3
+        # one edge recomputed from the frames by the direct loop
+        st, ln = h5["clips/start"][()], h5["clips/length"][()]
+        p, q = 0, int(indices[indptr[0]])
+        m = int(attrs["transition_frames"])
+        pos, rot, root = (h5[f"frames/{k}"][()].astype(np.float64) for k in ("joint_positions", "local_rotations",
+                                                                              "root_positions"))
+        want = _direct_cost(pos, rot, root, st[p] + ln[p] - m + np.arange(m), st[q] + np.arange(m), 0.7, 0.3)
+        assert cost[indptr[0]] == pytest.approx(want, rel=1e-4)
+        sm = dict(h5["style_model"].attrs)
+        assert np.isfinite(sm["heldout_rmse"]) or K < 7
+
+
+def test_old_file_is_a_clear_error_and_graph_command_upgrades(scott_db_path, tmp_path, capsys):
+    from gesturedb.cli.main import main
+
+    old = tmp_path / "old.h5"
+    shutil.copy(scott_db_path, old)
+    with h5py.File(old, "r+") as h5:
+        want = {k: h5[f"graph/{k}"][()] for k in ("indptr", "indices", "cost")}
+        del h5["graph"], h5["style_model"]
+        h5.attrs["schema_version"] = 1
+    with pytest.raises(SchemaError, match=r"old.h5: schema_version: expected 2, got 1 .*gesturedb graph"):
+        gesturedb.open(old)
+    assert main(["graph", str(old)]) == 0
+    assert "edges" in capsys.readouterr().out
+    with gesturedb.open(old) as db, h5py.File(old, "r") as h5:
+        for k, v in want.items():
+            np.testing.assert_array_equal(h5[f"graph/{k}"][()], v)  # same graph as the build made
+        GraphSynthesizer(db)
+
+
+@pytest.fixture(scope="module")
+def mirrored_db(scott_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("gdb") / "scott_m.h5"
+    gesturedb.build([scott_dir], out, mirror=True).close()
+    return out
+
+
+def _check_result(res, db, n_expected, synth):
+    T = res.n_frames
+    assert T == n_expected and res.motion.rotations.shape[0] == T
+    np.testing.assert_allclose(np.linalg.norm(res.motion.rotations, axis=-1), 1, atol=1e-6)
+    steps = res.steps
+    assert steps[0]["out_start"] == 0 and steps[-1]["out_end"] == T
+    assert all(a["out_end"] == b["out_start"] for a, b in zip(steps[:-1], steps[1:]))
+    nodes = [s["node"] for s in steps]
+    assert all(a != b for a, b in zip(nodes[:-1], nodes[1:])), "back-to-back repeat"
+    assert all(1 / MAX_SPEED - 1e-9 <= s["speed"] <= MAX_SPEED + 1e-9 for s in steps)
+    # the path's cost, recomputed from the provenance, is the search's cost
+    o = res.options
+    total = o["w_data"] * sum(s["data_cost"] for s in steps) + o["w_trans"] * sum(
+        s["transition_cost"] for s in steps[1:])
+    assert total == pytest.approx(o["total_cost"], rel=1e-9)
+    for s in steps:
+        assert s["data_cost"] == pytest.approx(o["l5"] * s["style_cost"] + o["l6"] * s["rhythm_cost"]
+                                               + o["l_dur"] * s["duration_cost"] + 1000.0 * s["unfit"])
+        rec = db.recording(s["recording"])
+        assert 0 <= s["source_start_s"] < s["source_end_s"] <= rec.n_frames / db.fps + 1e-6
+
+
+@pytest.mark.slow
+def test_graph_synthesis_on_all_inputs(mirrored_db, scott_dir):
+    from gesturedb.features.audio import n_frames_for_duration
+    from gesturedb.io.audio import read_audio
+
+    with gesturedb.open(mirrored_db) as db:
+        synth = GraphSynthesizer(db)
+        assert any(r.mirrored for r in db.recordings) and len(synth.start) == len(db.clips)
+        for stem in INPUTS:
+            wav = scott_dir / "inputs" / f"{stem}.wav"
+            x, sr = read_audio(wav, sr=16000)
+            n = n_frames_for_duration(x.shape[0] / sr, db.fps)
+            tg = scott_dir / "inputs" / f"{stem}.TextGrid"
+            for tr in ([tg, None] if tg.exists() else [None]):
+                res = synth.synthesize(wav, transcript=tr)
+                _check_result(res, db, n, synth)
+                assert len(res.steps) >= 3
+
+
+def test_cli_graph_synth_and_missing_graph(mirrored_db, scott_dir, tmp_path, capsys):
+    from gesturedb.cli.main import main
+
+    wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
+    out = tmp_path / "g.bvh"
+    assert main(["synth", str(mirrored_db), "--method", "graph", "--audio", str(wav), "-o", str(out),
+                 "--npz", str(tmp_path / "g.npz")]) == 0
+    prov = json.loads((tmp_path / "g.provenance.json").read_text())
+    assert prov["options"]["method"] == "graph" and prov["steps"][0]["node"] >= 0
+    pos = np.load(tmp_path / "g.npz")["positions"]
+    assert pos.shape[0] == prov["n_frames"] and np.isfinite(pos).all()
+    nog = tmp_path / "nog.h5"
+    assert main(["build", str(scott_dir), "-o", str(nog), "--no-graph", "-q"]) == 0
+    capsys.readouterr()
+    assert main(["synth", str(nog), "--method", "graph", "--audio", str(wav), "-o", str(tmp_path / "x.bvh")]) == 2
+    err = capsys.readouterr().err
+    assert "no motion graph" in err and "gesturedb graph" in err and not (tmp_path / "x.bvh").exists()
+
+
+def test_graph_control_schedule_restricts_nodes(mirrored_db, scott_dir):
+    """A node is allowed for a target clip when >= half its frames are in the mask at the clip's middle."""
+    wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
+    with gesturedb.open(mirrored_db) as db:
+        synth = GraphSynthesizer(db)
+        res = synth.synthesize(wav, control="0-30: left_wrist_height > p50")
+        h = db.controls["left_wrist_height"]
+        thr = np.percentile(h, 50)
+        for s in res.steps:
+            mid_s = (s["out_start"] + s["out_end"]) / 2 / db.fps
+            a, n = synth.start[s["node"]], synth.length[s["node"]]
+            frac = float(np.mean(h[a:a + n] > thr))
+            if mid_s < 30:
+                assert s["control"] is not None and frac >= 0.5 - 1.0 / n
+            else:
+                assert s["control"] is None
+        assert any(s["control"] for s in res.steps)
+        # excluding the only recording (its mirror goes with it) leaves no node: a named error
+        orig = [r.name for r in db.recordings if not r.mirrored][0]
+        with pytest.raises(SearchError, match="target clip 0 has no allowed node"):
+            synth.synthesize(wav, exclude=[orig])
+
+
+def test_rhythm_agreement_reproduces_the_database_signatures(scott_db):
+    """eval.rhythm on a recording's own motion and words = the build's stored signatures (independent path)."""
+    from gesturedb.eval.common import feature_joint_indices
+    from gesturedb.eval.rhythm import rhythm_hamming
+    from gesturedb.features.rhythm import hamming
+
+    rec = scott_db.recordings[0]
+    a, b = rec.start_frame, rec.start_frame + rec.n_frames
+    words = scott_db.words
+    sel = np.asarray(words.recording) == rec.index
+    got = rhythm_hamming(np.asarray(scott_db.joint_positions[a:b], dtype=np.float64),
+                         word_start_s=np.asarray(words.start_s)[sel], word_end_s=np.asarray(words.end_s)[sel],
+                         fps=scott_db.fps, joints=feature_joint_indices(scott_db), gap_s=scott_db.config["gap_s"])
+    c = scott_db.clips
+    mine = np.asarray(c.recording) == rec.index
+    want = float(np.mean(hamming(c.rhythm_audio[mine], c.rhythm_motion[mine])))
+    assert got == pytest.approx(want)
+
+
+def test_suggest_gap_gives_clips_of_a_few_seconds():
+    rng = np.random.default_rng(4)
+    pauses = rng.exponential(0.15, 400)
+    gap = G.suggest_gap_s(pauses, 120.0, n_sequences=1)
+    n_cuts = int(np.sum(pauses > gap))
+    assert 0.1 <= gap <= 0.4
+    assert n_cuts == round(120 / 3) - 1 or gap in (0.1, 0.4)
+    assert G.suggest_gap_s(pauses, 2.0) == 0.4  # shorter than one clip: no cut needed
+    assert G.suggest_gap_s(np.full(5, 0.05), 120.0) == 0.1  # too few pauses: the lower bound
+
+
+def test_build_gap_auto_and_input_gap_auto(scott_dir, tmp_path):
+    out = tmp_path / "auto.h5"
+    with gesturedb.build([scott_dir], out, gap_s="auto") as db:
+        gap = db.config["gap_s"]
+        assert isinstance(gap, float) and 0.1 <= gap <= 0.4
+        mean_clip_s = np.mean(db.clips.length) / db.fps
+        assert mean_clip_s < 8.0  # the 0.4 s default gives ~13 s clips on this speaker
+        res = GraphSynthesizer(db).synthesize(scott_dir / "inputs" / "2_scott_0_3_3.wav",
+                                              transcript=scott_dir / "inputs" / "2_scott_0_3_3.TextGrid",
+                                              gap_s="auto")
+        assert 0.1 <= res.options["gap_s"] <= 0.4 and len(res.steps) >= 10
+
+
+def test_build_without_transcript_cuts_at_voiced_pauses(scott_dir, tmp_path):
+    """A recording without a transcript is cut at the pauses the energy detector finds (not one clip)."""
+    from gesturedb.features.pauses import voiced_segments
+    from gesturedb.io.audio import read_audio
+
+    for ext in ("npz", "wav"):
+        (tmp_path / f"2_scott_0_1_1.{ext}").symlink_to(scott_dir / f"2_scott_0_1_1.{ext}")
+    with gesturedb.build([tmp_path], tmp_path / "nt.h5", gap_s=0.3) as db:
+        words = db.words
+        assert len(words) > 10 and set(words.text) == {""}
+        x, sr = read_audio(scott_dir / "2_scott_0_1_1.wav", sr=int(db.config["sample_rate"]))
+        vs, _ = voiced_segments(x, sr)
+        np.testing.assert_allclose(np.asarray(words.start_s), vs[vs < db.n_frames / db.fps])
+        assert len(db.clips) > 1
+        GraphSynthesizer(db).synthesize(scott_dir / "inputs" / "2_scott_0_2_2.wav")

@@ -1,0 +1,184 @@
+"""Placement of pieces in the shared assembly step, foot contacts, and the world-space metrics."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from gesturedb import rotations as R
+from gesturedb.eval import placement as P
+from gesturedb.synth import Searcher
+from gesturedb.synth.assemble import Piece, assemble_frames, assemble_pieces, foot_contacts, foot_joints
+from gesturedb.synth.contacts import leg_joints
+
+
+# ---------------------------------------------------------------- metric conventions on hand-made signals
+
+def _line(F, v, fps):
+    """One joint moving at constant velocity v (m/s) along x: (F, 1, 3)."""
+    t = np.arange(F) / fps
+    pos = np.zeros((F, 1, 3))
+    pos[:, 0, 0] = v * t
+    return pos
+
+
+def test_root_speed_and_step_of_a_constant_velocity():
+    pos = _line(30, 0.5, 15.0)
+    assert P.root_speed(pos, fps=15.0) == pytest.approx(0.5)
+    assert P.max_root_step(pos) == pytest.approx(0.5 / 15.0)
+    pos[10:] += [0.3, 0, 0]  # a teleport shows as the largest step
+    assert P.max_root_step(pos) == pytest.approx(0.3 + 0.5 / 15.0)
+
+
+def test_mean_jerk_is_exact_for_a_cubic():
+    fps, c = 30.0, 0.7
+    t = np.arange(40) / fps
+    pos = np.zeros((40, 1, 3))
+    pos[:, 0, 1] = c * t ** 3
+    assert P.mean_jerk(pos, fps=fps, joints=[0]) == pytest.approx(6 * c, rel=1e-9)
+    assert P.mean_jerk(_line(40, 1.0, fps), fps=fps, joints=[0]) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_foot_skating_counts_only_feet_on_the_floor():
+    fps, F = 15.0, 20
+    pos = np.zeros((F, 2, 3))  # joint 0 ankle, 1 toe
+    pos[:, 0, 0] = 0.2 * np.arange(F) / fps  # sliding at 0.2 m/s on the floor
+    pos[:, 1] = pos[:, 0]
+    assert P.foot_skating(pos, fps=fps, feet=[[0, 1]]) == pytest.approx(0.2)
+    lifted = pos.copy()
+    lifted[F // 2:, :, 1] = 0.3  # in the air for the second half: only the first half counts
+    lifted[F // 2:, :, 0] += 5.0  # and a huge move in the air changes nothing
+    assert P.foot_skating(lifted, fps=fps, feet=[[0, 1]]) == pytest.approx(0.2)
+
+
+def test_heading_is_zero_facing_plus_z_and_positive_towards_plus_x():
+    pos = np.zeros((2, 2, 3))
+    pos[:, 0] = [0.1, 0, 0]  # left hip at +x: facing +z
+    pos[:, 1] = [-0.1, 0, 0]
+    assert np.allclose(P.heading_deg(pos, left_hip=0, right_hip=1), 0.0)
+    q = R.from_axis_angle(np.array([0, np.pi / 2, 0]))  # turned 90 degrees about +y: facing +x
+    turned = R.apply(np.broadcast_to(q, pos.shape[:-1] + (4,)), pos)
+    assert np.allclose(P.heading_deg(turned, left_hip=0, right_hip=1), 90.0)
+
+
+def test_root_relative_jerk_removes_only_the_roots_horizontal_motion(scott_db):
+    pos = np.asarray(scott_db.joint_positions[:200], dtype=np.float64)
+    t = np.arange(200) / scott_db.fps  # a sliding root: 5 cm at 1.5 Hz
+    slid = pos + 0.05 * np.sin(2 * np.pi * 1.5 * t)[:, None, None] * np.array([1.0, 0, 0.5])
+    m, ms = (P.world_metrics(p, fps=scott_db.fps, names=scott_db.joint_names) for p in (pos, slid))
+    for g in ("root", "legs", "arms", "hands", "head"):
+        assert ms[f"jerk_rel_{g}_m_s3"] == pytest.approx(m[f"jerk_rel_{g}_m_s3"], rel=1e-6)
+        assert abs(ms[f"jerk_world_{g}_m_s3"] - m[f"jerk_world_{g}_m_s3"]) > 3.0, g
+
+
+# ---------------------------------------------------------------- placement
+
+def _recording_piece(db, a, n, *, shift=(0.0, 0.0), turn=0.0):
+    rot = np.asarray(db.local_rotations[a:a + n], dtype=np.float64)
+    rot /= np.linalg.norm(rot, axis=-1, keepdims=True)
+    root = np.asarray(db.root_positions[a:a + n], dtype=np.float64)
+    q = R.from_axis_angle(np.array([0, turn, 0]))
+    rot[:, 0] = R.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
+    root = R.apply(np.broadcast_to(q, root.shape[:-1] + (4,)), root) + [shift[0], 0, shift[1]]
+    return rot, root
+
+
+def test_pieces_from_far_apart_places_do_not_teleport_the_body(scott_db):
+    """Each piece continues the output's root: a 2 m, 90-degree jump in the sources is no jump in the output."""
+    fps, n = scott_db.fps, 40
+    pieces = []
+    for i, a in enumerate(range(0, 6 * 97, 97)):
+        rot, root = _recording_piece(scott_db, a, n, shift=(2.0 * (i % 2), -1.5 * (i % 3)), turn=np.pi / 2 * (i % 2))
+        pieces.append(Piece(out_start=i * n, rotations=rot, root=root))
+    src_steps = max(P.max_root_step(np.asarray(scott_db.joint_positions[a:a + n])) for a in range(0, 6 * 97, 97))
+    for lock in (False, True):
+        m = assemble_pieces(scott_db.skeleton, fps, pieces, smooth=False, lock_feet=lock)
+        step = np.linalg.norm(np.diff(m.root_positions, axis=0), axis=-1)
+        assert step.max() < max(2 * src_steps, 0.06), (lock, step.max(), src_steps)
+    old = assemble_pieces(scott_db.skeleton, fps, pieces, smooth=False, placement="source")
+    assert np.linalg.norm(np.diff(old.root_positions, axis=0), axis=-1).max() > 1.0  # the behaviour that was fixed
+
+
+def test_placement_keeps_each_pieces_own_displacement_and_turning(scott_db):
+    fps, n = scott_db.fps, 60
+    rot0, root0 = _recording_piece(scott_db, 0, n)
+    rot1, root1 = _recording_piece(scott_db, 300, n, shift=(5.0, 5.0), turn=1.0)
+    m = assemble_pieces(scott_db.skeleton, fps, [Piece(0, rot0, root0), Piece(n, rot1, root1)], smooth=False,
+                        lock_feet=False)
+    # the second piece's own horizontal path length and height are kept (the pulls change them only slightly)
+    own = np.linalg.norm(np.diff(root1[:, [0, 2]], axis=0), axis=-1).sum()
+    out = np.linalg.norm(np.diff(m.root_positions[n:, [0, 2]], axis=0), axis=-1).sum()
+    assert out == pytest.approx(own, rel=0.15, abs=0.01)
+    np.testing.assert_allclose(m.root_positions[n:, 1], root1[:, 1])
+
+
+@pytest.fixture(scope="module")
+def mirrored_db(scott_dir, tmp_path_factory):
+    import gesturedb
+
+    out = tmp_path_factory.mktemp("mirror") / "scott_mirror.h5"
+    gesturedb.build([scott_dir], out, mirror=True).close()
+    with gesturedb.open(out) as db:
+        yield db
+
+
+@pytest.mark.parametrize("which", ["scott", "mirrored"])
+def test_planted_feet_stay_planted(scott_db, mirrored_db, which):
+    """Where a source foot is planted, the output's ankle barely moves horizontally; the mirrored copy
+    (second recording of the mirrored database) alone as well."""
+    rng = np.random.default_rng(3)
+    db = scott_db if which == "scott" else mirrored_db
+    lo = 1 if which == "scott" else db.recordings[1].start_frame + 1
+    T, step = 400, 8
+    starts = np.arange(0, T, step)
+    src = np.concatenate([np.arange(s, s + step) for s in rng.integers(lo, db.n_frames - step - 10, len(starts))])
+    feet = foot_joints(db.skeleton)
+    src_pos = np.asarray(db.joint_positions[src], dtype=np.float64)
+    planted = foot_contacts(src_pos, fps=db.fps, feet=feet, floor_y=float(src_pos[:, feet, 1].min()))
+    both = planted[1:] & planted[:-1]
+    speeds = {}
+    for lock in (False, True):
+        m = assemble_frames(db, src, starts, lock_feet=lock)
+        ank = m.positions[:, feet[:, 0]][:, :, [0, 2]]
+        v = np.linalg.norm(np.diff(ank, axis=0), axis=-1) * db.fps
+        speeds[lock] = float(v[both].mean())
+    assert both.sum() > 50
+    assert speeds[True] < 0.6 * speeds[False], speeds
+    assert speeds[True] < 0.12, speeds
+
+
+def test_leg_ik_only_touches_the_legs(scott_db):
+    db = scott_db
+    src = np.arange(100, 260)
+    starts = np.array([0, 40, 80, 120])
+    a = assemble_frames(db, src, starts, lock_feet=False)
+    b = assemble_frames(db, src, starts, lock_feet=True)
+    keep = np.setdiff1d(np.arange(1, db.skeleton.n_joints), leg_joints(db.skeleton).ravel())
+    np.testing.assert_allclose(a.rotations[:, keep], b.rotations[:, keep], atol=1e-9)
+    # the leg bones keep their lengths
+    for hip, knee, ankle in leg_joints(db.skeleton):
+        for u, v in ((hip, knee), (knee, ankle)):
+            la = np.linalg.norm(a.positions[:, u] - a.positions[:, v], axis=-1)
+            lb = np.linalg.norm(b.positions[:, u] - b.positions[:, v], axis=-1)
+            np.testing.assert_allclose(la, lb, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_no_heading_drift_over_five_minutes(scott_db, scott_dir):
+    """The four input WAVs (and the first again) end to end: 5 minutes keep facing forward, near the origin."""
+    wavs = sorted((scott_dir / "inputs").glob("*.wav"))
+    parts = [sf.read(str(w), dtype="float32")[0] for w in wavs]
+    sr = sf.info(str(wavs[0])).samplerate
+    audio = np.concatenate(parts + parts[:1])[: 300 * sr]
+    assert audio.shape[0] >= 299 * sr
+    res = Searcher(scott_db).synthesize(audio, sr=sr)
+    keys = {k: j for j, k in __import__("gesturedb.io.joints", fromlist=["body_keys"]).body_keys(
+        scott_db.joint_names).items()}
+    h = P.heading_deg(res.positions, left_hip=keys["left_upleg"], right_hip=keys["right_upleg"])
+    minute = int(60 * scott_db.fps)
+    for a in range(0, h.shape[0] - minute + 1, minute):  # every minute's mean heading within 20 degrees
+        r = np.radians(h[a:a + minute])
+        assert abs(np.degrees(np.arctan2(np.sin(r).mean(), np.cos(r).mean()))) < 20, a
+    db_xz = np.asarray(scott_db.root_positions[:, [0, 2]], dtype=np.float64)
+    reach = np.linalg.norm(db_xz - db_xz.mean(0), axis=1).max()
+    assert np.linalg.norm(res.motion.root_positions[:, [0, 2]], axis=1).max() < reach + 0.5

@@ -1,0 +1,230 @@
+"""The cGAN refiner: shapes, gradient penalty, training, exact resume, representation, checkpoints, CLI."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="the refiner extra (torch==2.13.0) is not installed: "
+                                           "pip install '.[refiner]'")
+
+from gesturedb import rotations as R  # noqa: E402
+from gesturedb.errors import InputFileError  # noqa: E402
+from gesturedb.refiner.data import (  # noqa: E402
+    TrainingData, database_identity, exclusion, feature_identity, window_starts,
+)
+from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty  # noqa: E402
+from gesturedb.refiner.representation import from_channels, moving_joints, to_channels  # noqa: E402
+from gesturedb.refiner.train import Refiner, TrainConfig, Trainer, read_checkpoint  # noqa: E402
+
+
+def _tiny_data(W=6, C=12, T=16, seed=0) -> TrainingData:
+    rng = np.random.default_rng(seed)
+    return TrainingData(
+        audio=rng.standard_normal((W, 28, T)).astype(np.float32),
+        real=rng.standard_normal((W, C, T)).astype(np.float32),
+        knn=rng.standard_normal((W, C, T)).astype(np.float32),
+        joints=np.arange(1, C // 6 + 1), starts=np.arange(W), ks=np.ones(W, np.int64),
+    )
+
+
+# -- model --------------------------------------------------------------------------
+@pytest.mark.parametrize("T", [1, 5, 8, 13, 64, 150])
+def test_generator_keeps_any_length_and_starts_as_identity(T):
+    G = Generator(18, width=16).eval()
+    a, x = torch.randn(2, 28, T), torch.randn(2, 18, T)
+    y = G(a, x)
+    assert y.shape == (2, 18, T)
+    # the last block starts at zero: an untrained refiner returns its input exactly
+    assert torch.equal(y, x)
+
+
+@pytest.mark.parametrize("T", [8, 16, 64, 100])
+def test_discriminator_gives_one_score_per_sequence(T):
+    D = Discriminator(18, width=16)
+    assert D(torch.randn(3, 28, T), torch.randn(3, 18, T)).shape == (3,)
+
+
+def test_generator_has_the_papers_blocks():
+    G = Generator(18, width=16)
+    assert len(G.enc) == 8 and len(G.dec) == 7  # + the final single Conv1d = 8 decoder blocks
+    assert isinstance(G.out, torch.nn.Conv1d)
+    D = Discriminator(18, width=16)
+    assert len(D.blocks) == 6 and isinstance(D.fc, torch.nn.Linear)
+
+
+def test_gradient_penalty_of_a_linear_critic_is_known():
+    # D(a, x) = <wa, a> + <wx, x>: the gradient is (wa, wx) everywhere, its norm known exactly
+    torch.manual_seed(0)
+    wa, wx = torch.randn(1, 28, 8), torch.randn(1, 6, 8)
+
+    def critic(a, x):
+        return (a * wa).flatten(1).sum(1) + (x * wx).flatten(1).sum(1)
+
+    norm = float(torch.sqrt((wa ** 2).sum() + (wx ** 2).sum()))
+    gp = gradient_penalty(critic, torch.randn(4, 28, 8), torch.randn(4, 6, 8), torch.randn(4, 28, 8),
+                          torch.randn(4, 6, 8), torch.rand(4, 1, 1))
+    assert float(gp) == pytest.approx((norm - 1) ** 2, rel=1e-5)
+    # a critic with unit gradient norm pays no penalty
+    s = 1 / norm
+    gp1 = gradient_penalty(lambda a, x: critic(a, x) * s, torch.randn(2, 28, 8), torch.randn(2, 6, 8),
+                           torch.randn(2, 28, 8), torch.randn(2, 6, 8), torch.rand(2, 1, 1))
+    assert float(gp1) == pytest.approx(0.0, abs=1e-8)
+
+
+def test_critic_updates_lower_the_critic_loss_on_a_tiny_batch():
+    tr = Trainer(_tiny_data(), TrainConfig(batch=4, width=16, n_critic=1), "id", {})
+    data = tr.data
+    a, real, knn = (torch.from_numpy(x[:4]) for x in (data.audio, data.real, data.knn))
+
+    def wasserstein():
+        with torch.no_grad():
+            fake = tr.G(a, knn)
+            return float(tr.D(a, fake).mean() - tr.D(a, real).mean())
+
+    before = wasserstein()
+    for _ in range(20):
+        tr.critic_step()
+    assert wasserstein() < before - 1e-3
+
+
+# -- resume -------------------------------------------------------------------------
+def test_resume_gives_the_weights_of_an_uninterrupted_run(tmp_path):
+    cfg = TrainConfig(batch=3, width=8, n_critic=2, iterations=4, seed=7)
+    straight = Trainer(_tiny_data(), cfg, "id", {"x": 1})
+    for _ in range(4):
+        straight.step()
+
+    first = Trainer(_tiny_data(), cfg, "id", {"x": 1})
+    for _ in range(2):
+        first.step()
+    first.save(tmp_path / "ck.pt")
+    torch.manual_seed(12345)  # whatever happened in between must not matter
+    second = Trainer(_tiny_data(), cfg, "id", {"x": 1})
+    second.restore(read_checkpoint(tmp_path / "ck.pt"))
+    for _ in range(2):
+        second.step()
+    assert second.iteration == 4
+    for name in ("G", "D"):
+        sa, sb = getattr(straight, name).state_dict(), getattr(second, name).state_dict()
+        for k in sa:
+            assert torch.equal(sa[k], sb[k]), f"{name}.{k} differs after resume"
+    assert [h["critic"] for h in straight.history] == [h["critic"] for h in second.history]
+
+
+def test_checkpoint_loading_runs_no_code(tmp_path):
+    class Payload:
+        def __reduce__(self):
+            return (print, ("owned",))
+
+    torch.save({"format": 1, "x": Payload()}, tmp_path / "evil.pt")
+    with pytest.raises(InputFileError, match="evil.pt.*expected a gesturedb refiner checkpoint"):
+        read_checkpoint(tmp_path / "evil.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(InputFileError, match="junk.pt"):
+        read_checkpoint(tmp_path / "junk.pt")
+
+
+# -- representation (real motion) ----------------------------------------------------
+def test_representation_round_trip_is_exact(scott_db):
+    q = np.asarray(scott_db.local_rotations[:300], dtype=np.float64)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    joints = moving_joints(scott_db.local_rotations)
+    assert 0 not in joints and len(joints) > 20
+    back = from_channels(to_channels(q, joints), q, joints)
+    # same rotation (q and -q are one) for every joint and frame
+    dot = np.abs(np.sum(back * q, axis=-1))
+    assert np.max(np.arccos(np.clip(dot, -1, 1)) * 2) < 1e-6
+    assert np.array_equal(back[:, 0], q[:, 0])  # the root is never touched
+
+
+def test_any_six_numbers_give_a_rotation():
+    rng = np.random.default_rng(1)
+    base = R.from_axis_angle(rng.standard_normal((5, 4, 3)))
+    out = from_channels(rng.standard_normal((5, 12)), base, np.array([1, 3]))
+    assert np.allclose(np.linalg.norm(out, axis=-1), 1.0)
+    assert np.array_equal(out[:, [0, 2]], base[:, [0, 2]])
+
+
+# -- training data (real database) ---------------------------------------------------
+def test_training_windows_never_see_their_own_neighbourhood(scott_db):
+    starts = window_starts(scott_db)
+    assert np.all(np.diff(starts) == 5)  # one recording, stride 5
+    ex = exclusion(scott_db, starts)
+    seg = scott_db.chunks
+    for i in (0, len(starts) // 2, len(starts) - 1):
+        a = starts[i]
+        overlap = (seg.start + seg.length > a) & (seg.start < a + 64)
+        assert ex[i][overlap].all()
+        assert not ex[i].all()  # something is left to search
+
+
+# -- the real pipeline: CLI train, resume, synth --refiner, apply ------------------------
+@pytest.mark.slow
+def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
+    def gdb(*args):
+        return subprocess.run([sys.executable, "-m", "gesturedb.cli", *map(str, args)],
+                              capture_output=True, text=True, timeout=600)
+
+    ck = tmp_path / "refiner.pt"
+    r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 2, "--batch", 4, "--threads", 1)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "refiner.pt.data.npz").is_file()
+    r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 3, "--batch", 4, "--resume")
+    assert r.returncode == 0, r.stderr
+    assert "trained 3 iterations" in r.stdout
+    assert read_checkpoint(ck)["iteration"] == 3
+
+    wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
+    plain, refined = tmp_path / "knn.bvh", tmp_path / "refined.bvh"
+    assert gdb("synth", scott_db_path, "--audio", wav, "-o", plain).returncode == 0
+    r = gdb("synth", scott_db_path, "--audio", wav, "-o", refined, "--refiner", ck)
+    assert r.returncode == 0, r.stderr
+    from gesturedb.io import read_motion
+
+    a, b = read_motion(plain), read_motion(refined)
+    assert a.n_frames == b.n_frames
+    assert np.allclose(a.root_positions, b.root_positions, atol=1e-4)  # the root is the k-NN's
+    assert np.all(np.isfinite(b.positions))
+    applied = tmp_path / "applied.bvh"
+    r = gdb("refiner", "apply", ck, "--db", scott_db_path, "--audio", wav, "--input", plain, "-o", applied)
+    assert r.returncode == 0, r.stderr
+    assert read_motion(applied).n_frames == a.n_frames
+
+
+def test_a_checkpoint_for_another_skeleton_is_refused(scott_db, tmp_path):
+    feats = feature_identity(scott_db)
+    tr = Trainer(_tiny_data(), TrainConfig(width=8), database_identity(scott_db),
+                 dict(feats, joint_names=feats["joint_names"][:-1]))
+    tr.save(tmp_path / "other.pt")
+    with pytest.raises(InputFileError, match="other.pt.*skeleton joints: the refiner was trained for"):
+        Refiner.load(tmp_path / "other.pt", db=scott_db)
+
+
+def test_without_torch_the_commands_say_how_to_install(tmp_path):
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "from gesturedb.cli.main import main\n"
+            f"sys.exit(main(['refiner', 'train', 'x.h5', '-o', {str(tmp_path / 'r.pt')!r}]))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert "pip install 'gesturedb[refiner]'" in r.stderr
+
+
+def test_refining_keeps_the_root_and_the_planted_legs(scott_db):
+    from gesturedb.refiner.train import _leg_joints
+
+    joints = moving_joints(scott_db.local_rotations)
+    G = Generator(6 * len(joints), width=8)
+    torch.nn.init.normal_(G.out.weight, std=0.1)  # a generator that changes things
+    ref = Refiner(G, joints, feature_identity(scott_db))
+    motion = scott_db.motion(scott_db.recordings[0].name, 0.0, 6.0)
+    audio = np.random.default_rng(0).standard_normal((motion.n_frames, 28)).astype(np.float32)
+    out = ref.refine(motion, audio)
+    legs = _leg_joints(scott_db.skeleton)
+    assert len(legs) >= 8
+    assert np.array_equal(out.rotations[:, legs], np.asarray(motion.rotations, dtype=np.float64)[:, legs])
+    assert np.array_equal(out.root_positions, motion.root_positions)
+    arms = [j for j in joints if j not in set(legs)]
+    assert not np.allclose(out.rotations[:, arms], motion.rotations[:, arms])

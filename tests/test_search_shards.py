@@ -1,0 +1,112 @@
+"""Sharded search on a LocalCluster: exactly the single-machine results."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gesturedb import search
+from gesturedb.db.shards import ShardedSearch
+from test_search import assert_same_search, continuous_db, exact_db, pack_bits
+
+
+def test_rank_table_merges_shard_tables_exactly():
+    """Ranks over concatenated per-shard tables equal the kernel's step on the whole database."""
+    rng = np.random.default_rng(11)
+    P, A, st, ln = exact_db(rng, Dp=5)
+    q = rng.integers(-2, 3, size=(8, A.shape[1])).astype(np.float32)
+    for prev in (P[3], P[40], P[100]):
+        for k in (1, 2, 5, 1000):
+            s, dp, da = search.preselect_table(P, A, st, ln, prev, q)
+            want = search.rank_sum_step(P, A, st, ln, prev, q, k=k)
+            m, rp, ra, K = search.rank_table(s, dp, da, k=k)
+            assert (m, s[m], rp, ra, K) == (want.segment, want.start, want.pose_rank, want.audio_rank,
+                                            want.n_candidates)
+            assert float(dp[m]) == want.pose_dist and float(da[m]) == want.audio_dist
+
+
+def _numpy_rank(s, dp, da, k):
+    """Spec steps 4-5 written independently in numpy (lexsort: last key primary, ties by m)."""
+    m = np.flatnonzero(s >= 0)
+    if m.size == 0:
+        return None
+    K = m.size
+    rp = np.empty(K, np.int64)
+    rp[np.lexsort((m, dp[m].astype(np.float64) + 0.0))] = np.arange(K)
+    ra = np.empty(K, np.int64)
+    ra[np.lexsort((m, da[m] + 0.0))] = np.arange(K)
+    c = np.lexsort((m, rp, rp + ra))[min(k, K) - 1]
+    return int(m[c]), int(rp[c]), int(ra[c]), K
+
+
+@pytest.mark.parametrize("M", [1, 7, 300, 5000])
+def test_rank_table_matches_numpy_with_ties_and_gaps(M):
+    rng = np.random.default_rng(M)
+    for trial in range(20):
+        s = np.where(rng.random(M) < 0.8, rng.integers(1, 50, M), -1).astype(np.int64)
+        dp = rng.integers(0, 4 if trial % 2 else 1000, M).astype(np.float32)  # many exact ties
+        da = rng.integers(0, 5, M) / 4.0 if trial % 3 else rng.random(M)
+        dp[rng.random(M) < 0.05] = -0.0
+        for k in (1, 2, 17, M + 3):
+            assert search.rank_table(s, dp, da, k=k) == _numpy_rank(s, dp, da, k), (trial, k)
+    assert search.rank_table(np.full(3, -1), np.zeros(3, np.float32), np.zeros(3), k=1) is None
+
+
+@pytest.mark.parametrize("parts", [2, 3])
+def test_sharded_search_random_data(dask_client, parts):
+    rng = np.random.default_rng(12 + parts)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=40)
+    F, M = P.shape[0], st.shape[0]
+    q = rng.standard_normal((50, A.shape[1])).astype(np.float32)
+    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=parts)
+    try:
+        assert len(sh.shards) == parts
+        allowed = pack_bits(rng.random(F) < 0.3)
+        exclude = rng.random(M) < 0.3
+        for kw in (dict(), dict(k=3), dict(preselect="audio", k=2), dict(allowed=allowed, exclude=exclude)):
+            assert_same_search(sh.search(q, P[5], **kw), search.rank_sum_search(P, A, st, ln, q, P[5], **kw),
+                               str(kw))
+        qs = [q[:20], q[5:40]]
+        init = np.stack([P[0], P[9]])
+        for a, b in zip(sh.search_batch(qs, init, k=[1, 2]),
+                        search.rank_sum_search_batch(P, A, st, ln, qs, init, k=np.array([1, 2]))):
+            assert_same_search(a, b)
+    finally:
+        sh.close()
+
+
+@pytest.mark.parametrize("parts", [2, 3])
+def test_sharded_search_real_database(dask_client, scott_db, parts):
+    P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)
+    A = np.ascontiguousarray(scott_db.audio_features[:], dtype=np.float32)
+    st = np.ascontiguousarray(scott_db.h5["chunks/start"][:], dtype=np.int64)
+    ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
+    rng = np.random.default_rng(20)
+    q = rng.standard_normal((120, A.shape[1])).astype(np.float32)
+    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=parts)
+    try:
+        for kw in (dict(), dict(k=2)):
+            assert_same_search(sh.search(q, P[10], **kw), search.rank_sum_search(P, A, st, ln, q, P[10], **kw))
+    finally:
+        sh.close()
+
+
+def test_synthesis_over_shards_is_identical(dask_client, scott_db, scott_dir):
+    from gesturedb.synth import Searcher
+
+    speech = scott_dir / "inputs/2_scott_0_2_2.wav"
+    a = Searcher(scott_db).synthesize(speech, k=2, smooth=False)
+    for parts in (2, 3):
+        b = Searcher(scott_db, client=dask_client, parts=parts).synthesize(speech, k=2, smooth=False)
+        assert a.steps == b.steps
+        np.testing.assert_array_equal(a.positions, b.positions)
+
+
+def test_cli_synth_with_a_scheduler(scott_db_path, scott_dir, tmp_path):
+    from gesturedb.cli.main import main
+
+    speech = scott_dir / "inputs/2_scott_0_2_2.wav"
+    out_a, out_b = tmp_path / "a.bvh", tmp_path / "b.bvh"
+    assert main(["synth", str(scott_db_path), "--audio", str(speech), "-o", str(out_a)]) == 0
+    assert main(["synth", str(scott_db_path), "--audio", str(speech), "-o", str(out_b),
+                 "--scheduler", "local:1", "--parts", "3"]) == 0
+    assert out_a.read_bytes() == out_b.read_bytes()
