@@ -68,10 +68,14 @@ setup(
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report
         "pygltflib>=1.16",   # glTF 2.0 (.glb) export of motion and target rigs (io/gltf.py)
+        "filelock>=3.12",    # exclusive write lock beside a database during edits (db/storage.py)
     ],
     extras_require={
         # import-linter: the layers contract of .importlinter (stages import only the stages below them)
-        "test": ["pytest>=7", "import-linter>=2.0"],
+        "test": ["pytest>=7", "import-linter>=2.0",
+                 # coverage-guided fuzzing of every parser (tests/fuzz/); wheels exist for Linux x86_64 only,
+                 # elsewhere tests/test_fuzz.py skips with a warning that the fuzzers did not run
+                 'atheris>=2.3; platform_system == "Linux" and platform_machine == "x86_64"'],
         # the cGAN refiner; the CPU build of torch is pinned (a plain `torch` pulls GBs of CUDA)
         "refiner": ["torch==2.13.0"],
     },

@@ -5,6 +5,8 @@ import json
 import os
 import sys
 
+from gesturedb.cli._args import float_range, int_range
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -15,12 +17,12 @@ def add_parser(sub) -> None:
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="files or folders")
     p.add_argument("-o", "--output", required=True, metavar="DB.h5")
-    p.add_argument("-j", "--workers", type=int, default=min(2, os.cpu_count() or 1), help="processes (default: %(default)s)")
+    p.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1), help="processes (default: %(default)s)")
     p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="process recordings as Dask tasks (a LocalCluster of N workers or a running scheduler); "
                    "this process still writes the file")
     p.add_argument("-r", "--recursive", action="store_true", help="also take files in sub-folders")
-    p.add_argument("--fps", type=float, default=15.0, help="database frame rate (default: %(default)s)")
+    p.add_argument("--fps", type=float_range(1, 1000), default=15.0, help="database frame rate (default: %(default)s)")
     p.add_argument("--chunk-frames", type=int, default=64, help="fixed chunk length (default: %(default)s)")
     p.add_argument("--gap", type=_gap, default=0.4, dest="gap_s",
                    help="word gap that splits clips, s, or 'auto' (clips of about 3 s from the speakers' own pauses; "

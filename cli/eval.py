@@ -101,7 +101,9 @@ def run_controls(args) -> int:
     import gesturedb
     from gesturedb.eval.evaluate import evaluate_controls
     from gesturedb.eval.report import write_controls_report
+    from gesturedb.io.outputs import check_outputs
 
+    check_outputs({"--json": args.json, "--md": args.md, "--plot": args.plot}, [args.db, args.audio])
     with gesturedb.open(args.db) as db:
         rep = evaluate_controls(
             db, args.audio, preselect=args.preselect, min_std_ratio=args.min_std_ratio,

@@ -20,7 +20,10 @@ def run(args) -> int:
     from gesturedb.cli.retarget import apply_target
     from gesturedb.io import check_motion_output, write_motion
 
+    from gesturedb.io.outputs import check_outputs
+
     check_motion_output(args.output)
+    check_outputs({"-o": args.output}, [args.db, args.target_skeleton])
     with gesturedb.open(args.db) as db:
         motion = db.motion(args.recording, args.start, args.end)
     motion = apply_target(args, motion)

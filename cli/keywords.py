@@ -120,6 +120,9 @@ def run(args) -> int:
         print(f"dropped {sub.word!r} ({len(sub)} occurrence(s)) from {args.db}")
         return 0
     if args.action == "export":
+        from gesturedb.io.outputs import check_outputs
+
+        check_outputs({"-o": args.output}, [args.db])
         with export_keyword(args.db, args.word, args.output, chunk_frames=args.chunk_frames) as out:
             print(f"wrote {args.output}: {len(out.recordings)} recording(s), {out.n_frames} frames "
                   f"({out.n_frames / out.fps:.1f} s at {out.fps:g} fps), {len(out.words)} words")

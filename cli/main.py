@@ -45,13 +45,31 @@ def main(argv: list[str] | None = None) -> int:
     parser = make_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.run(args) or 0)
+        rc = int(args.run(args) or 0)
+        sys.stdout.flush()  # inside the try: a closed pipe surfaces here, not at interpreter exit
+        return rc
     except GestureDBError as exc:
         print(f"gesturedb {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"gesturedb {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # `gesturedb ... | head`: the reader left; stop quietly like any Unix tool. Point stdout at
+        # devnull so the interpreter's final flush does not raise again.
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    except RecursionError:
+        # every parser has explicit limits; this is the backstop for one we missed
+        print(f"gesturedb {args.command}: error: input nested too deeply to process (recursion limit)",
+              file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"gesturedb {args.command}: error: out of memory (an input declares or needs more memory "
+              "than this machine has)", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -158,6 +158,9 @@ def run(args) -> int:
     ext = os.path.splitext(args.output)[1].lower()
     if ext not in (".mp4", ".gif", ".png"):
         raise ParameterError(f"-o {args.output}: expected a .mp4, .gif or .png file name")
+    from gesturedb.io.outputs import check_outputs
+
+    check_outputs({"-o": args.output}, [*args.inputs, args.audio, args.transcript, args.db])
     if not args.inputs and not args.db:
         raise ParameterError("render: expected at least one INPUT file or --db with a stretch to show")
     if args.db is None and (args.recording is not None or args.start is not None or args.end is not None):

@@ -73,7 +73,10 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from gesturedb.io import check_motion_output, read_motion, write_motion
 
+    from gesturedb.io.outputs import check_outputs
+
     check_motion_output(args.output)
+    check_outputs({"-o": args.output}, [args.input, args.target_skeleton])
     motion = read_motion(args.input)
     out = apply_target(args, motion)
     write_motion(args.output, out)

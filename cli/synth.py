@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import os
 
+from gesturedb.cli._args import float_range, int_range
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -22,12 +24,12 @@ def add_parser(sub) -> None:
                    help="knn: rank-sum motion matching (default); graph: GestureMaster motion-graph path search")
     p.add_argument("--gap", type=lambda t: t if t == "auto" else float(t), default=None, dest="gap_s",
                    help="--method graph: input pause that splits clips, s, or 'auto' (default: the database's)")
-    p.add_argument("--k", type=int, default=1, help="take the k-th best candidate (default: 1)")
+    p.add_argument("--k", type=int_range(1, 10**6), default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")
-    p.add_argument("--seed", type=int, default=0, help="seed for --init random")
-    p.add_argument("--step", type=int, default=8, help="frames per search step N (default: 8)")
-    p.add_argument("--blend", type=int, default=None, dest="blend_frames",
+    p.add_argument("--seed", type=int_range(0, 2**63 - 1), default=0, help="seed for --init random")
+    p.add_argument("--step", type=int_range(1, 10**5), default=8, help="frames per search step N (default: 8)")
+    p.add_argument("--blend", type=int_range(0, 10**5), default=None, dest="blend_frames",
                    help="cross-fade frames at window boundaries, 0 = off (default: 4; --method graph: 8)")
     p.add_argument("--no-smooth", action="store_true",
                    help="no Savitzky-Golay smoothing (window 7, order 2) of the result")
@@ -37,10 +39,10 @@ def add_parser(sub) -> None:
     p.add_argument("--no-keywords", action="store_true", help="ignore keyword sub-databases")
     p.add_argument("--keywords", default=None, help="comma-separated keywords to use (default: all)")
     p.add_argument("--exclude", default=None, help="comma-separated recordings to leave out of the search")
-    p.add_argument("--export-fps", type=float, default=None, help="resample the BVH/npz to this frame rate")
+    p.add_argument("--export-fps", type=float_range(1, 1000), default=None, help="resample the BVH/npz to this frame rate")
     p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="search over --parts shards on Dask workers (same output)")
-    p.add_argument("--parts", type=int, default=2, help="shards with --scheduler (default: %(default)s)")
+    p.add_argument("--parts", type=int_range(1, 4096), default=2, help="shards with --scheduler (default: %(default)s)")
     p.add_argument("--render", default=None, metavar="OUT.mp4", help="also render the result (mp4/gif/png)")
     p.add_argument("--refiner", default=None, metavar="REFINER.pt",
                    help="refine the result with a trained refiner (gesturedb refiner train)")
@@ -58,7 +60,14 @@ def run(args) -> int:
     from gesturedb.io import check_motion_output, write_motion
     from gesturedb.synth import Searcher
 
+    from gesturedb.io.outputs import check_outputs
+
     check_motion_output(args.output)
+    prov = args.provenance or os.path.splitext(args.output)[0] + ".provenance.json"
+    speech = os.path.splitext(args.output)[0] + ".wav" if args.output.lower().endswith(".glb") else None
+    check_outputs({"-o": args.output, "--provenance": prov, "--npz": args.npz, "--render": args.render,
+                   "speech beside the .glb": speech},
+                  [args.db, args.audio, args.transcript, getattr(args, "target_skeleton", None)])
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
     from contextlib import nullcontext
@@ -93,7 +102,6 @@ def run(args) -> int:
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
     motion = apply_target(args, motion)
     write_motion(args.output, motion)
-    prov = args.provenance or os.path.splitext(args.output)[0] + ".provenance.json"
     res.write_provenance(prov)
     written = [args.output, prov]
     from gesturedb.cli.retarget import speech_beside

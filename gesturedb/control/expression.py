@@ -40,6 +40,11 @@ _BAD_OPS = {
     "=<": "did you mean '<='?",
 }
 _CHAR_HINTS = {"&": "use 'and'", "|": "use 'or'", "!": "use 'not'", "~": "use 'not'"}
+#: explicit limits, so a hostile expression gets a one-line error instead of a RecursionError
+#: (the tree is walked recursively): nesting of '(' and 'not', and terms (comparisons and mask names)
+MAX_EXPRESSION_DEPTH = 64
+MAX_EXPRESSION_TERMS = 256
+MAX_EXPRESSION_CHARS = 10_000
 _OPS = {"<": np.less, "<=": np.less_equal, ">": np.greater, ">=": np.greater_equal}
 
 
@@ -153,6 +158,17 @@ class _Parser:
         self.text = text
         self.toks = _tokenize(text)
         self.pos = 0
+        self.depth = 0
+        terms = [t for t in self.toks if t.kind == "name"]
+        if len(terms) > MAX_EXPRESSION_TERMS:
+            raise self.error(terms[MAX_EXPRESSION_TERMS], f"more than {MAX_EXPRESSION_TERMS} terms "
+                             f"(comparisons and mask names; the limit is MAX_EXPRESSION_TERMS)")
+
+    def enter(self, tok: _Tok) -> None:
+        self.depth += 1
+        if self.depth > MAX_EXPRESSION_DEPTH:
+            raise self.error(tok, f"nested more than {MAX_EXPRESSION_DEPTH} deep ('(' and 'not'; "
+                             f"the limit is MAX_EXPRESSION_DEPTH)")
 
     def peek(self) -> _Tok:
         return self.toks[self.pos]
@@ -196,13 +212,18 @@ class _Parser:
         t = self.peek()
         if t.kind == "kw" and t.text == "not":
             self.take()
-            return _Not(self.not_expr(), t.col)
+            self.enter(t)
+            node = _Not(self.not_expr(), t.col)
+            self.depth -= 1
+            return node
         return self.primary()
 
     def primary(self):
         t = self.take()
         if t.kind == "lpar":
+            self.enter(t)
             node = self.or_expr()
+            self.depth -= 1
             close = self.peek()
             if close.kind != "rpar":
                 raise self.error(
@@ -316,6 +337,9 @@ def parse_mask_expression(text: str) -> MaskExpression:
     if not isinstance(text, str):
         raise ParameterError(f"mask expression: expected a string; got {type(text).__name__}")
     text = text.strip()
+    if len(text) > MAX_EXPRESSION_CHARS:
+        raise ParameterError(f"mask expression: expected at most {MAX_EXPRESSION_CHARS} characters "
+                             f"(MAX_EXPRESSION_CHARS), got {len(text)}")
     tree = _Parser(text).parse()
     nodes = list(_walk(tree))
     features = tuple(dict.fromkeys(n.feature for n in nodes if isinstance(n, _Cmp)))

@@ -337,6 +337,8 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
 
     motion = read_motion(source.motion)
     src_fps = float(motion.fps)
+    if not 1.0 <= src_fps <= 1000.0:
+        raise InputFileError(source.motion, f"frame rate: expected 1 to 1000 fps, got {src_fps:.6g}")
     motion_dur = motion.rotations.shape[0] / src_fps
     samples, sr = read_audio(source.audio, sr=cfg.sample_rate)
     audio_dur = samples.shape[0] / sr
@@ -367,6 +369,7 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
     motion = motion.resample(cfg.fps)
     # one audio analysis serves the recording and its mirrored copy
     audio_raw = audio_features(samples, sr, fps=cfg.fps, n_frames=motion.n_frames, n_mfcc=cfg.n_mfcc).astype(np.float64)
+    _check_finite(source.audio, "audio features", audio_raw)
     out = [_features_for(motion, audio_raw, words, cfg, source, mirrored=False, source_fps=src_fps)]
     if cfg.mirror:
         mirrored = motion.mirror()
@@ -404,7 +407,7 @@ def _process_star(args):
     return process_recording(*args)
 
 
-def _single_threaded_worker() -> None:
+def _single_threaded_worker(parent_pid: int | None = None) -> None:
     """Worker-process initializer: one BLAS/OpenMP thread per process.
 
     Parallelism comes from the processes; letting each one's BLAS also use
@@ -414,6 +417,45 @@ def _single_threaded_worker() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
+    _exit_with_parent(parent_pid)
+
+
+def _exit_with_parent(parent: int | None = None) -> None:
+    """Make this worker die when the build process dies (even by SIGKILL), not linger for minutes.
+
+    Linux: prctl(PR_SET_PDEATHSIG, SIGKILL). Elsewhere (or if prctl is unavailable) a
+    daemon thread polls the parent pid once a second.
+    """
+    import signal
+    import sys
+    import threading
+
+    # the pid is taken in the parent before the fork: read here, a parent killed during the fork
+    # would already have been replaced by the reaper and the check below would pass
+    parent = os.getppid() if parent is None else parent
+    if os.getppid() != parent:
+        os._exit(1)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            PR_SET_PDEATHSIG = 1
+            if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0:
+                if os.getppid() != parent:  # the parent died before prctl took effect
+                    os._exit(1)
+                return
+        except (OSError, AttributeError):
+            pass
+
+    def watch():
+        import time
+
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="gesturedb-parent-watch", daemon=True).start()
 
 
 # --------------------------------------------------------------------------
@@ -581,6 +623,11 @@ def build(
             "inputs: expected at least one recording (a motion file .bvh/.npz and a .wav with the same stem), "
             f"found none in {', '.join(map(str, inputs))}" + ("\n" + pairing.summary() if pairing.skipped else "")
         )
+    from gesturedb.io.outputs import check_outputs
+
+    for r in pairing.recordings:
+        schema.check_name(f"recording name of {r.motion}", r.name, schema.RECORDING_NAME_PATTERN)
+    check_outputs({"output": out_path}, [p for r in pairing.recordings for p in (r.motion, r.audio, r.transcript)])
     if cfg.gap_s == "auto":
         cfg = dataclasses.replace(cfg, gap_s=_auto_gap(pairing.recordings))
     recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler)
@@ -656,7 +703,7 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
             from concurrent.futures import ProcessPoolExecutor
 
             with ProcessPoolExecutor(max_workers=min(workers, len(sources)),
-                                     initializer=_single_threaded_worker) as ex:
+                                     initializer=_single_threaded_worker, initargs=(os.getpid(),)) as ex:
                 # map keeps input order, so the database content does not depend on scheduling
                 for s, res in zip(sources, ex.map(_process_star, [(s, cfg) for s in sources])):
                     out += res

@@ -106,7 +106,7 @@ class Database:
         except OSError as exc:
             raise InputFileError(self.path, f"not an HDF5 file ({exc})") from None
         try:
-            schema.check_version(self._h5, self.path)
+            schema.check_file(self._h5, self.path)
         except Exception:
             self._h5.close()
             raise
@@ -299,12 +299,22 @@ class Database:
     @functools.cached_property
     def masks(self) -> dict[str, np.ndarray]:
         """Saved masks: name -> packed uint64 bitset over frames."""
-        g = self._h5.get(schema.MASKS_GROUP)
+        g = self._masks_group()
         return {} if g is None else {k: np.asarray(g[k][()], dtype=np.uint64) for k in sorted(g)}
+
+    def _masks_group(self):
+        import h5py
+
+        g = self._h5.get(schema.MASKS_GROUP)
+        for k in ([] if g is None else g):
+            if not isinstance(g[k], h5py.Dataset):
+                raise SchemaError(self.path, f"{schema.MASKS_GROUP}/{k}: expected a saved mask (a dataset), got a "
+                                  f"group (a mask name with '/'?); repair with `gesturedb masks DB remove {k}`")
+        return g
 
     @functools.cached_property
     def mask_definitions(self) -> dict[str, str]:
-        g = self._h5.get(schema.MASKS_GROUP)
+        g = self._masks_group()
         return {} if g is None else {k: str(g[k].attrs.get("definition", "")) for k in sorted(g)}
 
     # -- motion out -----------------------------------------------------------

@@ -62,6 +62,7 @@ def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = 
     from gesturedb.db.database import Database
     from gesturedb.errors import ParameterError
 
+    schema.check_name("mask name", name, schema.MASK_NAME_PATTERN)
     with Database(path) as db:
         if name in db.masks and not replace:
             raise ParameterError(f"mask {name!r} already exists in {db.path} "
@@ -82,12 +83,24 @@ def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = 
 
 
 def remove_mask(path: str | os.PathLike, name: str) -> None:
-    """Delete a saved mask."""
-    from gesturedb.db.database import Database
+    """Delete a saved mask.
+
+    Also repairs a database damaged by an older version that accepted names
+    with '/' (stored as nested groups): ``remove_mask(db, "a/b")`` or
+    ``remove_mask(db, "a")`` deletes them, whatever the name.
+    """
     from gesturedb.errors import ParameterError
 
-    with Database(path) as db:
-        if name not in db.masks:
-            raise ParameterError(f"mask {name!r}: no such mask in {db.path}; masks: {', '.join(db.masks) or 'none'}")
+    if not isinstance(name, str) or not name or name.strip("/.") == "":
+        raise ParameterError(f"mask name: expected a mask name, got {name!r}")
     with edit(path) as h5:
-        del h5[schema.MASKS_GROUP][name]
+        g = h5.get(schema.MASKS_GROUP)
+        # the raw HDF5 group, not Database.masks: a damaged entry must still be removable
+        if g is None or name not in g:
+            names = sorted(g) if g is not None else []
+            raise ParameterError(f"mask {name!r}: no such mask in {path}; masks: {', '.join(names) or 'none'}")
+        del g[name]
+        parent = name.rsplit("/", 1)[0] if "/" in name.strip("/") else None
+        while parent and parent in g and len(g[parent]) == 0:  # empty groups left by a nested name
+            del g[parent]
+            parent = parent.rsplit("/", 1)[0] if "/" in parent else None

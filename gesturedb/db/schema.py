@@ -193,6 +193,10 @@ def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str,
         if arr.size and arr.dtype.kind != want.kind and not (arr.dtype.kind in "iub" and want.kind in "iub"):
             raise SchemaError("<writing>", f"{path}: expected {want}, got {arr.dtype}")
         arr = arr.astype(want, copy=False)
+        if want.kind == "f" and arr.size and not np.isfinite(arr).all():
+            idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
+            raise SchemaError("<writing>", f"{path}: expected finite values, got {arr[idx]} at index {idx}; "
+                                           "refusing to write a database with non-finite data")
     _check_shape(field, arr, dims)
     ds = h5.create_dataset(path, data=arr, dtype=_np_dtype(field.dtype))
     ds.attrs["unit"] = field.unit
@@ -224,7 +228,13 @@ def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: 
     name = os.fspath(filename) if filename is not None else h5.filename
     if "schema_version" not in h5.attrs:
         raise SchemaError(name, "attribute 'schema_version' is missing: not a gesturedb database")
-    got = int(h5.attrs["schema_version"])
+    raw = h5.attrs["schema_version"]
+    try:
+        got = int(raw)
+        if got != float(raw):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise SchemaError(name, f"schema_version: expected the integer {SCHEMA_VERSION}, got {raw!r}") from None
     if upgradable and got == 1:
         return got
     if got == 1 and SCHEMA_VERSION == 2:
@@ -241,6 +251,168 @@ def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: 
             f"with this version or open it with the version that wrote it",
         )
     return got
+
+
+#: groups every database has (the motion graph, the style model etc. are optional: exported keyword
+#: databases, ``--no-graph`` builds and version-1 files lack them)
+_CORE_GROUPS = ("recordings", "frames", "audio", "skeleton", "chunks", "clips", "words")
+
+#: rows of each per-frame array read by :func:`check_file` (spread over the file): the check stays cheap
+CHECK_SAMPLE_ROWS = 2000
+
+
+def check_file(h5, filename: str | os.PathLike | None = None) -> None:
+    """Cheap invariants of an opened database; :class:`SchemaError` naming the dataset if one fails.
+
+    Checked: root attributes (``fps`` in 1-1000, ``n_frames``, ``config`` and
+    ``feature_joints`` JSON), every declared dataset present with its dtype kind
+    and shape, index ranges (recordings, chunks, clips, words, skeleton parents),
+    finite audio statistics, and finite values / non-zero quaternions in up to
+    :data:`CHECK_SAMPLE_ROWS` rows of each per-frame array.
+    """
+    h5py = _h5py()
+    name = os.fspath(filename) if filename is not None else h5.filename
+
+    def fail(problem):
+        raise SchemaError(name, problem)
+
+    check_version(h5, name)
+    try:
+        fps = float(h5.attrs.get("fps"))
+    except (TypeError, ValueError):
+        fail(f"fps: expected a frame rate in Hz, got {h5.attrs.get('fps')!r}")
+    if not (np.isfinite(fps) and 1.0 <= fps <= 1000.0):
+        fail(f"fps: expected a frame rate from 1 to 1000 Hz, got {fps}")
+    try:
+        n_frames = int(h5.attrs.get("n_frames"))
+    except (TypeError, ValueError):
+        fail(f"n_frames: expected an integer, got {h5.attrs.get('n_frames')!r}")
+    for attr in ("config", "feature_joints"):
+        if attr not in h5.attrs:  # optional: Database reads it with a default
+            continue
+        try:
+            value = json.loads(h5.attrs[attr])
+        except (TypeError, ValueError):
+            fail(f"{attr}: expected a JSON object, got {str(h5.attrs[attr])[:60]!r}")
+        if not isinstance(value, dict):
+            fail(f"{attr}: expected a JSON object, got {type(value).__name__}")
+    dims: dict[str, int] = {"F": n_frames}
+    for f in FIELDS:
+        ds = h5.get(f.path)
+        if ds is None:
+            # a file written by build holds every dataset; a hand-made partial file (tests) meets read()'s check
+            # (the motion graph is optional: exported keyword databases and version-1 files have none)
+            if "gesturedb_version" in h5.attrs and f.path.split("/")[0] in _CORE_GROUPS:
+                fail(f"{f.path}: dataset missing ({f.doc})")
+            continue
+        if not isinstance(ds, h5py.Dataset):
+            fail(f"{f.path}: expected a dataset, got a group")
+        is_str = ds.dtype.kind in "OSU"
+        if (f.dtype == STR) != is_str or (not is_str and np.dtype(f.dtype).kind != ds.dtype.kind):
+            fail(f"{f.path}: expected dtype {f.dtype}, got {ds.dtype}")
+        if len(ds.shape) != len(f.shape):
+            fail(f"{f.path}: expected shape {f.shape}, got {ds.shape}")
+        for want, got in zip(f.shape, ds.shape):
+            if isinstance(want, int) and want != got:
+                fail(f"{f.path}: expected shape {f.shape}, got {ds.shape}")
+            if isinstance(want, str) and dims.setdefault(want, got) != got:
+                fail(f"{f.path}: dimension {want} expected {dims[want]} (from the other datasets), got {got}")
+    R, F, J, W = (dims.get(k, 0) for k in "RFJW")
+
+    def have(*paths):
+        return all(p in h5 for p in paths)
+
+    if have("recordings/name") and (R < 1 or F < 1):
+        fail(f"recordings/name: expected at least one recording and frame, got {R} recordings, {F} frames")
+
+    def ints(path):
+        return np.asarray(h5[path][()])
+
+    start, n = (ints(p) if have(p) else np.zeros(0, np.int64) for p in ("recordings/start_frame", "recordings/n_frames"))
+    if start.shape != n.shape:
+        fail(f"recordings/start_frame: expected {n.shape[0]} entries like recordings/n_frames, got {start.shape[0]}")
+    if (n < 1).any() or (start < 0).any() or (start + n > F).any():
+        i = int(np.flatnonzero((n < 1) | (start < 0) | (start + n > F))[0])
+        fail(f"recordings/start_frame, n_frames: recording {i} spans frames {start[i]}..{start[i] + n[i]}, "
+             f"expected within 0..{F}")
+    parents = ints("skeleton/parents") if have("skeleton/parents") else np.full(J, -1)[:1]
+    J = len(parents)
+    bad = np.flatnonzero(~((parents >= -1) & (parents < np.arange(J))) | ((np.arange(J) == 0) != (parents == -1)))
+    if bad.size:
+        fail(f"skeleton/parents: joint {int(bad[0])} has parent {int(parents[bad[0]])}, expected -1 for joint 0 "
+             f"and a smaller index for the others")
+    ej = ints("skeleton/end_site_joints") if have("skeleton/end_site_joints") else np.zeros(0, np.int64)
+    if ((ej < 0) | (ej >= J)).any():
+        fail(f"skeleton/end_site_joints: expected indices in 0..{J - 1}, got {ej[(ej < 0) | (ej >= J)][0]}")
+    for group, total in (("chunks", F), ("clips", F)):
+        if not have(f"{group}/start", f"{group}/length", f"{group}/recording"):
+            continue
+        s, ln, rec = ints(f"{group}/start"), ints(f"{group}/length"), ints(f"{group}/recording")
+        bad = np.flatnonzero((s < 0) | (ln < 1) | (s + ln > total) | (rec < 0) | (rec >= R))
+        if bad.size:
+            i = int(bad[0])
+            fail(f"{group}/start, length, recording: entry {i} is frames {s[i]}..{s[i] + ln[i]} of recording "
+                 f"{rec[i]}, expected frames within 0..{total} and a recording in 0..{R - 1}")
+    ws, we = (ints(p) if have(p) else np.zeros(0, np.int64) for p in ("clips/word_start", "clips/word_end"))
+    if ((ws < 0) | (we < ws) | (we > W)).any():
+        i = int(np.flatnonzero((ws < 0) | (we < ws) | (we > W))[0])
+        fail(f"clips/word_start, word_end: clip {i} has words {ws[i]}..{we[i]}, expected within 0..{W}")
+    wr = ints("words/recording") if have("words/recording") else np.zeros(0, np.int64)
+    if ((wr < 0) | (wr >= R)).any():
+        fail(f"words/recording: expected recordings in 0..{R - 1}, got {int(wr[(wr < 0) | (wr >= R)][0])}")
+    for path in ("audio/mean", "audio/std", "skeleton/offsets", "recordings/source_fps"):
+        if not have(path):
+            continue
+        a = ints(path)
+        if not np.isfinite(a).all():
+            fail(f"{path}: expected finite values, got {a[~np.isfinite(a)][0]}")
+    if have("audio/std") and (ints("audio/std") <= 0).any():
+        fail("audio/std: expected positive standard deviations")
+    rows = np.unique(np.linspace(0, F - 1, min(F, CHECK_SAMPLE_ROWS)).astype(np.int64))
+    for path in ("frames/pose_features", "frames/audio_features", "frames/joint_positions",
+                 "frames/local_rotations", "frames/root_positions"):
+        if not have(path) or F < 1:
+            continue
+        a = h5[path][rows]
+        if not np.isfinite(a).all():
+            r = int(rows[np.argwhere(~np.isfinite(a))[0][0]])
+            fail(f"{path}: expected finite values, got a non-finite value at frame {r}")
+        if path == "frames/local_rotations":
+            norm = np.linalg.norm(a.astype(np.float64), axis=-1)
+            if (np.abs(norm - 1.0) > 1e-2).any():
+                r, j = (int(v) for v in np.argwhere(np.abs(norm - 1.0) > 1e-2)[0])
+                fail(f"{path}: expected unit quaternions, got norm {norm[r, j]:.3g} at frame {int(rows[r])}, joint {j}")
+    fr = h5["frames/recording"][rows] if have("frames/recording") and F >= 1 else np.zeros(0, np.int64)
+    if ((fr < 0) | (fr >= R)).any():
+        fail(f"frames/recording: expected recordings in 0..{R - 1}, got {int(fr[(fr < 0) | (fr >= R)][0])}")
+    B = (F + 63) // 64
+    for group, want_shape, kind in ((CONTROLS_GROUP, (F,), "f"), (MASKS_GROUP, (B,), "u")):
+        g = h5.get(group)
+        for k in ([] if g is None else g):
+            ds = g[k]
+            if not isinstance(ds, h5py.Dataset):
+                fail(f"{group}/{k}: expected a dataset, got a group (a name with '/'?); repair with "
+                     f"`gesturedb masks DB remove {k}`" if group == MASKS_GROUP else f"{group}/{k}: expected a dataset")
+            if ds.shape != want_shape or ds.dtype.kind != kind:
+                fail(f"{group}/{k}: expected shape {want_shape} of kind {kind!r}, got {ds.dtype} {ds.shape}")
+
+
+#: names of saved masks: an identifier the mask language can refer to, at most 64 characters
+#: (no '/', which HDF5 would turn into nested groups, no '.', no spaces)
+MASK_NAME_PATTERN = r"[A-Za-z_][A-Za-z0-9_]{0,63}"
+#: names of recordings (file stems): no ',' (``--exclude`` separates with commas), no '/' and no control characters
+RECORDING_NAME_PATTERN = r"[^,/\x00-\x1f\x7f]{1,255}"
+
+
+def check_name(kind: str, name, pattern: str) -> str:
+    """Return ``name`` if it matches ``pattern`` entirely, else raise :class:`ParameterError`."""
+    import re
+
+    from gesturedb.errors import ParameterError
+
+    if not isinstance(name, str) or not re.fullmatch(pattern, name):
+        raise ParameterError(f"{kind}: expected a name matching {pattern}, got {name!r}")
+    return name
 
 
 def write_json_attr(obj, name: str, value: Any) -> None:

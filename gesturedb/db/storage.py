@@ -1,28 +1,172 @@
-"""Atomic storage: every database file is written to a temporary file beside it and renamed.
+"""Atomic, locked storage: every database file is written to a temporary file beside it and renamed.
 
 The one place that creates or replaces database files. A failed or interrupted
 build or edit leaves the previous file exactly as it was and no half-written
 file behind: the temporary file lives in the same folder, so the rename is
-atomic, and it is removed on any failure (including KeyboardInterrupt).
+atomic, and it is removed on any failure (including KeyboardInterrupt and
+SIGTERM, which is turned into the same interruption).
+
+Concurrency: every write (a build to a path, an edit of a database) holds an
+exclusive lock on ``.<name>.lock`` beside the database for its whole
+read-modify-rename, so two concurrent ``masks add`` both survive. Readers take
+no lock: they open either the old or the new file, never a half-written one.
+
+Kills: temporary files are named ``.<name>.<pid>.<random>.tmp``. A process
+killed with SIGKILL cannot remove its own; the next writer of the same path
+(holding the lock) removes those whose pid is no longer alive.
 """
 from __future__ import annotations
 
 import contextlib
+import errno
+import glob
 import os
+import re
 import shutil
+import signal
 import tempfile
+import threading
 from typing import Callable
 
 from gesturedb.db import schema
-from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.errors import GestureDBError, InputFileError, ParameterError
+
+#: seconds a writer waits for another writer of the same database before giving up
+LOCK_TIMEOUT_S = 600.0
+
+
+def lock_path(path: str | os.PathLike) -> str:
+    """The lock file of a database: ``.<name>.lock`` in the same folder."""
+    path = os.path.abspath(os.fspath(path))
+    return os.path.join(os.path.dirname(path), "." + os.path.basename(path) + ".lock")
+
+
+@contextlib.contextmanager
+def locked(path: str | os.PathLike, *, timeout_s: float | None = None):
+    """Hold the exclusive write lock of database ``path`` (other writers wait; readers do not)."""
+    import filelock
+
+    lp = lock_path(path)
+    lock = filelock.FileLock(lp, timeout=LOCK_TIMEOUT_S if timeout_s is None else timeout_s)
+    try:
+        lock.acquire()
+    except filelock.Timeout:
+        raise InputFileError(path, f"another gesturedb process is writing this database (lock {lp} held "
+                             f"for more than {lock.timeout:g} s)") from None
+    except OSError as exc:
+        raise InputFileError(path, f"cannot create the lock file {lp}: {exc.strerror or exc}") from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+def _tmp_prefix(path: str) -> str:
+    return "." + os.path.basename(path) + "."
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
+    """Remove temporary files of ``path`` left by dead processes (call with the lock held).
+
+    Returns the files removed.
+    """
+    path = os.path.abspath(os.fspath(path))
+    folder = os.path.dirname(path)
+    pat = re.compile(re.escape(_tmp_prefix(path)) + r"(\d+)\.[^.]+\.tmp$")
+    removed = []
+    for f in glob.glob(os.path.join(glob.escape(folder), glob.escape(_tmp_prefix(path)) + "*.tmp")):
+        m = pat.match(os.path.basename(f))
+        if m and int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1))):
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(f)
+                removed.append(f)
+    return removed
+
+
+def _remove_own_temporaries(path: str) -> None:
+    """Remove every temporary file of ``path`` made by this process (also one whose name a signal lost)."""
+    path = os.path.abspath(path)
+    pattern = os.path.join(glob.escape(os.path.dirname(path)), glob.escape(f"{_tmp_prefix(path)}{os.getpid()}.") + "*.tmp")
+    for f in glob.glob(pattern):
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(f)
+
+
+def _mkstemp(path: str) -> str:
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}.", suffix=".tmp", dir=folder)
+    except OSError as exc:
+        raise _os_error(path, exc) from None
+    os.close(fd)
+    return tmp
+
+
+def _os_error(path: str, exc: OSError) -> GestureDBError:
+    """One line for an OSError while writing ``path``; ENOSPC says so in plain words."""
+    if exc.errno == errno.ENOSPC or "No space left" in str(exc):
+        return InputFileError(path, "no space left on device while writing it; the previous file (if any) is "
+                              "unchanged")
+    if exc.errno == errno.EDQUOT:
+        return InputFileError(path, "disk quota exceeded while writing it; the previous file (if any) is unchanged")
+    return InputFileError(path, f"cannot write: {exc.strerror or exc}")
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Turn SIGTERM into KeyboardInterrupt in the main thread, so cleanup runs as for Ctrl-C.
+
+    Yields a list that records the signals received: a KeyboardInterrupt raised inside a
+    finalizer (h5py closing objects) is swallowed by Python, so writers check the list
+    once more before their rename.
+    """
+    got: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield got
+        return
+
+    def handler(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    try:
+        old = signal.signal(signal.SIGTERM, handler)
+    except (ValueError, OSError):  # not settable here (embedded interpreter): nothing to restore
+        yield got
+        return
+    try:
+        yield got
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _is_disk_error(exc: BaseException) -> OSError | None:
+    """The OSError behind ``exc`` if it is a disk-full/quota error (h5py wraps them in OSError text)."""
+    e = exc
+    while e is not None:
+        if isinstance(e, OSError) and (e.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left" in str(e)):
+            return e
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
     """Create an HDF5 file by writing a temporary file beside ``out_path`` and renaming it.
 
     The temporary file is in the same folder so the rename is atomic; it is
-    removed on any failure (including KeyboardInterrupt), so a failed build
-    leaves nothing behind and an existing database untouched.
+    removed on any failure (including KeyboardInterrupt and SIGTERM), so a
+    failed build leaves nothing behind and an existing database untouched. The
+    write lock of ``out_path`` is held throughout.
     """
     import h5py
 
@@ -30,28 +174,38 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
     folder = os.path.dirname(os.path.abspath(out_path))
     if not os.path.isdir(folder):
         raise ParameterError(f"output: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(out_path) + ".", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w", track_order=True) as h5:
-            fill(h5)
-        # mkstemp makes the file 0600; give it the mode a plain open() would
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, out_path)
-    except BaseException:
+    if os.path.isdir(out_path):
+        raise ParameterError(f"output: {out_path} is a folder; expected a file name such as DB.h5")
+    with sigterm_as_interrupt() as signals, locked(out_path):
+        remove_stale_temporaries(out_path)
         try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+            tmp = _mkstemp(out_path)
+            with h5py.File(tmp, "w", track_order=True) as h5:
+                fill(h5)
+            if signals:
+                raise KeyboardInterrupt("SIGTERM")
+            # mkstemp makes the file 0600; give it the mode a plain open() would
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)
+            os.replace(tmp, out_path)
+        except BaseException as exc:
+            # by pattern, not by name: a SIGTERM inside mkstemp leaves a file whose name we never got
+            _remove_own_temporaries(out_path)
+            disk = _is_disk_error(exc)
+            if disk is not None:
+                raise _os_error(out_path, disk) from None
+            if isinstance(exc, OSError) and not isinstance(exc, GestureDBError):
+                raise _os_error(out_path, exc) from None
+            raise
 
 
 @contextlib.contextmanager
 def edit(path: str | os.PathLike, *, upgrade: bool = False):
     """Yield a writable :class:`h5py.File` on a copy of ``path``; replace ``path`` on success.
 
+    The database's write lock is held from before the copy until after the
+    rename, so concurrent edits serialise instead of losing each other.
     ``upgrade=True`` also opens a version-1 file (the caller brings it to the current version).
 
     Examples
@@ -64,17 +218,24 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise InputFileError(path, "no such file")
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
-        shutil.copyfile(path, tmp)
-        shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
-        with h5py.File(tmp, "r+") as h5:
-            schema.check_version(h5, path, upgradable=upgrade)
-            yield h5
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    with sigterm_as_interrupt() as signals, locked(path):
+        remove_stale_temporaries(path)
+        try:
+            tmp = _mkstemp(path)
+            try:
+                shutil.copyfile(path, tmp)
+                shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
+            except OSError as exc:
+                raise _os_error(path, exc) from None
+            with h5py.File(tmp, "r+") as h5:
+                schema.check_version(h5, path, upgradable=upgrade)
+                yield h5
+            if signals:
+                raise KeyboardInterrupt("SIGTERM")
+            os.replace(tmp, path)
+        except BaseException as exc:
+            _remove_own_temporaries(path)
+            disk = _is_disk_error(exc)
+            if disk is not None and not isinstance(exc, GestureDBError):
+                raise _os_error(path, disk) from None
+            raise

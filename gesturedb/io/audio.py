@@ -14,7 +14,11 @@ import soxr
 
 from gesturedb.errors import InputFileError, ParameterError
 
-__all__ = ["read_audio"]
+__all__ = ["read_audio", "MAX_AUDIO_PEAK"]
+
+#: largest |sample| accepted. Full scale is 1; float WAVs may overshoot a little, but a peak
+#: far outside [-1, 1] (1e30) makes the MFCC statistics of the whole database overflow to NaN
+MAX_AUDIO_PEAK = 16.0
 
 
 def read_audio(path, *, sr: int | None = 16000) -> tuple[np.ndarray, int]:
@@ -61,6 +65,11 @@ def read_audio(path, *, sr: int | None = 16000) -> tuple[np.ndarray, int]:
     if bad.any():
         i, c = (int(v) for v in np.argwhere(bad)[0])
         raise InputFileError(path, f"sample {i} (t = {i / sr_file:.3f} s, channel {c}) is not finite: {data[i, c]}")
+    peak = float(np.abs(data).max())
+    if peak > MAX_AUDIO_PEAK:
+        i, c = (int(v) for v in np.unravel_index(int(np.abs(data).argmax()), data.shape))
+        raise InputFileError(path, f"peak {peak:.6g} at sample {i} (t = {i / sr_file:.3f} s, channel {c}): expected "
+                                   f"samples within +-{MAX_AUDIO_PEAK:g} (full scale is +-1); not speech audio")
     mono = data[:, 0] if data.shape[1] == 1 else data.mean(axis=1, dtype=np.float32)
     if sr is None or sr == sr_file:
         return np.ascontiguousarray(mono, dtype=np.float32), int(sr_file)

@@ -87,6 +87,14 @@ def _tokens(lines, start, stop):
                     yield piece, i + 1
 
 
+#: deepest joint chain accepted (a human skeleton with fingers is ~10-30 deep); a limit, not a RecursionError
+MAX_BVH_DEPTH = 200
+#: largest |OFFSET| component accepted, in file units (1e6 m even for a file in micrometres)
+MAX_BVH_OFFSET = 1e12
+#: frame rates accepted from ``Frame Time`` (1 / Frame Time), Hz
+MIN_FPS, MAX_FPS = 1.0, 1000.0
+
+
 def _parse_hierarchy(path, lines, start, stop):
     toks = list(_tokens(lines, start, stop))
     pos = 0
@@ -114,11 +122,16 @@ def _parse_hierarchy(path, lines, start, stop):
             fail(f"{what}: expected a number, got {tok.lstrip(chr(0))!r}", ln)
         if not math.isfinite(v):
             fail(f"{what}: expected a finite number, got {tok!r}", ln)
+        if abs(v) > MAX_BVH_OFFSET:
+            # forward kinematics of such bones overflows to inf/NaN far from here; say it where it is
+            fail(f"{what}: expected a length within +-{MAX_BVH_OFFSET:g} file units, got {tok}", ln)
         return v
 
     joints: list[_Joint] = []
 
-    def parse_joint(parent, kw_line):
+    def parse_joint(parent, kw_line, depth=0):
+        if depth >= MAX_BVH_DEPTH:
+            fail(f"JOINT: nested more than {MAX_BVH_DEPTH} deep (MAX_BVH_DEPTH); not a body skeleton", kw_line)
         tok, ln = take()
         if not tok.startswith("\0") or not tok[1:]:
             fail("ROOT/JOINT: expected a joint name", kw_line)
@@ -155,7 +168,7 @@ def _parse_hierarchy(path, lines, start, stop):
                          f"channels, got {' '.join(chans)}", n_ln)
                 jt.channels = chans
             elif key == "JOINT":
-                parse_joint(me, ln)
+                parse_joint(me, ln, depth + 1)
             elif key == "END":
                 take("Site")
                 take("{")
@@ -214,6 +227,9 @@ def _motion_header(path, lines, m_line):
         ft = float("nan")
     if not (math.isfinite(ft) and ft > 0):
         raise InputFileError(path, f"line {ln}: Frame Time: expected a positive number of seconds, got {txt!r}")
+    if not MIN_FPS <= 1.0 / ft <= MAX_FPS:
+        raise InputFileError(path, f"line {ln}: Frame Time: expected {1 / MAX_FPS:g} to {1 / MIN_FPS:g} s "
+                                   f"({MIN_FPS:g}-{MAX_FPS:g} fps), got {txt} s ({1 / ft:.6g} fps)")
     return n_frames, ft, i
 
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -142,13 +143,45 @@ def smplx_skeleton() -> Skeleton:
                     [CHANNEL_ORDER] * _N_JOINTS, ends, 1.0)
 
 
+def _check_declared_size(path, data, key) -> None:
+    """Refuse an array whose header declares more bytes than its archive entry can hold, before allocating.
+
+    numpy allocates the declared shape first and reads after; a 1 KB file can declare
+    a (10**12, 165) array. Deflate expands at most ~1032:1, so the declared size must
+    fit the entry's uncompressed size and its compressed size times 1100.
+    """
+    import numpy.lib.format as fmt
+
+    name = key + ".npy"
+    if getattr(data, "zip", None) is None or name not in data.zip.namelist():
+        return
+    info = data.zip.getinfo(name)
+    with data.zip.open(name) as f:
+        version = fmt.read_magic(f)
+        reader = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(version)
+        if reader is None:
+            raise InputFileError(path, f"{key}: unsupported .npy format version {version}")
+        shape, _fortran, dtype = reader(f)
+    n = 1
+    for d in shape:
+        n *= int(d)
+    declared = n * dtype.itemsize
+    limit = min(info.file_size, 1100 * info.compress_size + 4096)
+    if declared > limit:
+        raise InputFileError(path, f"{key}: header declares {dtype} {tuple(shape)} ({declared} bytes), but the "
+                                   f"archive entry holds at most {limit} bytes; damaged or hostile file")
+
+
 def _array(path, data, key, shape_desc):
     if key not in data.files:
         raise InputFileError(path, f"{key}: missing (expected {shape_desc}); the file has keys "
                                    f"{', '.join(sorted(data.files)) or 'none'}")
     try:
+        _check_declared_size(path, data, key)
         return np.asarray(data[key])
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+    # zlib.error: a corrupt deflate stream (found by tests/fuzz/fuzz_npz.py); NotImplementedError:
+    # an unsupported zip compression; RuntimeError: an encrypted entry; EOFError: a truncated entry
+    except (ValueError, OSError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError, EOFError) as exc:
         raise InputFileError(path, f"{key}: unreadable ({exc})") from None
 
 
@@ -175,7 +208,8 @@ def read_smplx(path) -> Motion:
     """
     try:
         data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    # NotImplementedError: a zip "version needed" this Python cannot read (found by tests/fuzz/fuzz_npz.py)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, NotImplementedError, zlib.error) as exc:
         raise InputFileError(path, f"cannot read as .npz: {exc}") from None
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise InputFileError(path, "expected an .npz archive with poses, trans and mocap_frame_rate; "

@@ -182,7 +182,8 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
         tg = textgrid.openTextgrid(os.fspath(path), includeEmptyIntervals=False, reportingMode="silence")
     except (praat_errors.PraatioException, ValueError, IndexError, KeyError, UnicodeError, AttributeError,
             TypeError) as exc:
-        raise InputFileError(path, f"cannot parse as a Praat TextGrid: {type(exc).__name__}: {exc}") from None
+        raise InputFileError(path, f"cannot parse as a Praat TextGrid: {type(exc).__name__}: "
+                                   f"{' '.join(str(exc).split())}")  # praatio's messages span lines: keep one from None
     names = list(tg.tierNames)
     match = [n for n in names if n.strip().lower() == tier.lower()]
     if not match:
@@ -244,6 +245,10 @@ def read_genea_tsv(path) -> Words:
 _JSON_KEYS = {"start": ("start", "start_s", "begin"), "end": ("end", "end_s", "stop"), "word": ("word", "text")}
 
 
+#: largest JSON transcript read (an hour of words is ~1 MB)
+MAX_TRANSCRIPT_BYTES = 64 * 2**20
+
+
 def read_json_words(path) -> Words:
     """Read word timings from JSON.
 
@@ -265,12 +270,20 @@ def read_json_words(path) -> Words:
         message names the entry and key.
     """
     try:
+        size = os.path.getsize(path)
+        if size > MAX_TRANSCRIPT_BYTES:
+            raise InputFileError(path, f"expected a transcript of at most {MAX_TRANSCRIPT_BYTES} bytes "
+                                       f"(MAX_TRANSCRIPT_BYTES), got {size}")
         with open(path, "r", encoding="utf-8-sig") as f:
             doc = json.load(f)
     except (OSError, UnicodeError) as exc:
         raise InputFileError(path, f"cannot read: {exc}") from None
     except json.JSONDecodeError as exc:
         raise InputFileError(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
+    except RecursionError:
+        raise InputFileError(path, "invalid JSON: nested too deeply (more than Python's recursion limit)") from None
+    except ValueError as exc:  # e.g. a number of more than 4300 digits
+        raise InputFileError(path, f"invalid JSON: {str(exc).splitlines()[0]}") from None
     items = doc.get("words") if isinstance(doc, dict) else doc
     if not isinstance(items, list):
         raise InputFileError(path, "expected {\"words\": [{\"start\": s, \"end\": e, \"word\": w}, ...]} or a list "

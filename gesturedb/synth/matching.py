@@ -213,6 +213,18 @@ class Searcher:
             raise ParameterError(f"step: expected a positive number of frames, got {step!r}")
         if not isinstance(blend_frames, (int, np.integer)) or blend_frames < 0:
             raise ParameterError(f"blend_frames: expected a non-negative number of frames, got {blend_frames!r}")
+        n_seg = len(self.seg_start)
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= max(n_seg, 1):
+            raise ParameterError(f"k: expected an integer from 1 to the number of {self.segments_kind} of "
+                                 f"{db.path} ({n_seg}), got {k!r}")
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+                                 or not 0 <= seed < 2**63):
+            raise ParameterError(f"seed: expected an integer from 0 to 2**63-1, got {seed!r}")
+        if isinstance(transcript, (str, os.PathLike)):
+            # a given file is always read and checked, even when no keyword sub-database will use it
+            from gesturedb.io.transcripts import read_transcript
+
+            transcript = read_transcript(transcript)
         query = self.query_features(samples, sr)
         T = query.shape[0]
         if T < step:
