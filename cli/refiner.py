@@ -38,8 +38,12 @@ def run(args) -> int:
     import gesturedb
     from gesturedb.refiner import require_torch
 
+    from gesturedb.io.outputs import check_outputs
+
     torch = require_torch()
     if args.op == "train":
+        # the training-window cache is written beside the checkpoint
+        check_outputs({"-o": args.output, "-o (cache)": args.output + ".data.npz"}, [args.db])
         from gesturedb.refiner.train import TrainConfig, train
 
         for name in ("iterations", "batch", "threads"):
@@ -64,6 +68,7 @@ def run(args) -> int:
     from gesturedb.refiner import load_refiner
     from gesturedb.synth import Searcher
 
+    check_outputs({"-o": args.output}, [args.refiner, args.db, args.audio, args.input])
     with gesturedb.open(args.db) as db:
         refiner = load_refiner(args.refiner, db)
         motion = read_motion(args.input)

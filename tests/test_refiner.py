@@ -228,3 +228,12 @@ def test_refining_keeps_the_root_and_the_planted_legs(scott_db):
     assert np.array_equal(out.root_positions, motion.root_positions)
     arms = [j for j in joints if j not in set(legs)]
     assert not np.allclose(out.rotations[:, arms], motion.rotations[:, arms])
+
+
+def test_refiner_commands_never_write_over_their_inputs(scott_db_path, tmp_path):
+    from gesturedb.cli.main import main
+
+    assert main(["refiner", "train", str(scott_db_path), "-o", str(scott_db_path)]) == 2
+    assert main(["refiner", "apply", str(tmp_path / "r.pt"), "--db", str(scott_db_path), "--audio", "a.wav",
+                 "--input", str(scott_db_path), "-o", str(scott_db_path)]) == 2
+    assert scott_db_path.is_file()
