@@ -15,7 +15,10 @@ def add_parser(sub) -> None:
         description="Pair motion (.bvh/.npz), speech (.wav) and transcripts (.TextGrid/.tsv/.json) by file stem "
         "and build a gesture database (HDF5).",
     )
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="files or folders")
+    p.add_argument("inputs", nargs="*", metavar="INPUT", help="files or folders (paired by file stem)")
+    p.add_argument("--pairs", default=None, metavar="PAIRS.csv",
+                   help="a CSV file listing recordings: header motion,audio[,transcript,speaker,name]; "
+                   "paths relative to the file")
     p.add_argument("-o", "--output", required=True, metavar="DB.h5")
     p.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1), help="processes (default: %(default)s)")
     p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
@@ -30,7 +33,12 @@ def add_parser(sub) -> None:
     p.add_argument("--pose-window", type=int, default=4)
     p.add_argument("--pose-stride", type=int, default=2)
     p.add_argument("--mirror", action="store_true", help="add left/right mirrored copies")
-    p.add_argument("--speaker", default=None, help="speaker name (default: from the file names)")
+    p.add_argument("--speaker", default=None,
+                   help="speaker name of every recording (default: a --pairs speaker column, BEAT's "
+                   "<id>_<name>_... file names, else the folder name)")
+    p.add_argument("--length-unit", default=None, metavar="cm|m|mm|inch|METRES",
+                   help="length unit of the BVH files (default: guessed from the skeleton's height, "
+                   "said in the report)")
     p.add_argument("--joint-map", default=None, metavar="JSON",
                    help='role -> joint name override, e.g. \'{"left_index1": "LeftHandThumb1"}\' or a .json file')
     p.add_argument("--max-mismatch", type=float, default=1.0, dest="max_mismatch_s",
@@ -59,17 +67,30 @@ def _joint_map(text):
 
 
 def run(args) -> int:
-    from gesturedb.db.build import build, pair_inputs
+    from gesturedb.db.build import build, pair_inputs, read_pairing_file
+    from gesturedb.errors import ParameterError
+    from gesturedb.io.bvh import parse_length_unit
 
-    if not args.quiet:
-        print(pair_inputs(args.inputs, recursive=args.recursive).summary(), file=sys.stderr)
+    if not args.inputs and not args.pairs:
+        raise ParameterError("inputs: expected files or folders, or --pairs PAIRS.csv; got neither")
+    unit = None if args.length_unit is None else parse_length_unit(args.length_unit)
+    listed = read_pairing_file(args.pairs) if args.pairs else []
+    pairing = pair_inputs(args.inputs, recursive=args.recursive)
+    pairing.recordings = sorted(pairing.recordings + listed, key=lambda r: r.name)
+    # without recordings the build's error carries this report: print it once
+    if not args.quiet and pairing.recordings:
+        print(pairing.summary(), file=sys.stderr)
     db = build(
-        args.inputs, args.output, workers=args.workers, recursive=args.recursive, progress=not args.quiet,
+        list(args.inputs) + listed, args.output, workers=args.workers, recursive=args.recursive,
+        progress=not args.quiet, length_unit_m=unit,
         scheduler=args.scheduler,
         fps=args.fps, chunk_frames=args.chunk_frames, gap_s=args.gap_s, pose_window=args.pose_window,
         pose_stride=args.pose_stride, mirror=args.mirror, speaker=args.speaker,
         joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s, graph=not args.no_graph,
     )
+    if not args.quiet:
+        for line in db.pairing.notes:
+            print(line, file=sys.stderr)
     with db:
         print(f"wrote {args.output}: {len(db.recordings)} recording(s), {db.n_frames} frames "
               f"({db.n_frames / db.fps:.1f} s at {db.fps:g} fps), {len(db.chunks)} chunks, {len(db.clips)} clips")

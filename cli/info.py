@@ -6,7 +6,7 @@ import json
 
 def add_parser(sub) -> None:
     p = sub.add_parser("info", help="summarise a gesture database")
-    p.add_argument("db", metavar="DB.h5")
+    p.add_argument("db", metavar="DB.h5", nargs="?", help="the database (not needed with --schema)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--schema", action="store_true", help="print the file schema instead")
     p.set_defaults(run=run)
@@ -14,6 +14,8 @@ def add_parser(sub) -> None:
 
 def summary(db) -> dict:
     import numpy as np
+
+    from gesturedb.db.keywords import subdatabases
 
     recs = db.recordings
     chunks, clips = db.chunks, db.clips
@@ -36,6 +38,8 @@ def summary(db) -> dict:
                      "audio": int(db.h5["frames/audio_features"].shape[1])},
         "controls": {k: db.control_units[k] for k in db.controls},
         "masks": db.mask_definitions,
+        "keywords": {w: {"occurrences": len(sd), "seconds": round(sd.n_frames / db.fps, 3)}
+                     for w, sd in subdatabases(db).items()},
         "config": db.config,
     }
 
@@ -47,6 +51,10 @@ def run(args) -> int:
     if args.schema:
         print(schema.describe())
         return 0
+    if args.db is None:
+        from gesturedb.errors import ParameterError
+
+        raise ParameterError("DB.h5: expected a database to summarise (or --schema for the file layout)")
     with gesturedb.open(args.db) as db:
         s = summary(db)
     if args.json:
@@ -69,6 +77,14 @@ def run(args) -> int:
         print("  controls     " + ", ".join(f"{k} [{u}]" for k, u in s["controls"].items()))
     if s["masks"]:
         print(f"  masks        {len(s['masks'])}: " + ", ".join(s["masks"]))
+    kw = s["keywords"]
+    if kw:
+        print(f"  keywords     {len(kw)} keyword sub-database(s): " + ", ".join(
+            f"{w} ({k['occurrences']} x, {k['seconds']:.1f} s)" for w, k in kw.items())
+            + "; used when the transcript says them")
+    else:
+        print(f"  keywords     none (gesturedb keywords {s['path']} add WORD: gestures from the speaker's own WORDs "
+              "whenever the speech says WORD)")
     cfg = s["config"]
     print("  config       " + ", ".join(f"{k}={cfg[k]}" for k in sorted(cfg)))
     return 0

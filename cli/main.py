@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = make_parser()
     args = parser.parse_args(argv)
+    _one_line_warnings(args.command)
     try:
         rc = int(args.run(args) or 0)
         sys.stdout.flush()  # inside the try: a closed pipe surfaces here, not at interpreter exit
@@ -70,6 +71,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gesturedb {args.command}: error: out of memory (an input declares or needs more memory "
               "than this machine has)", file=sys.stderr)
         return 2
+
+
+def _one_line_warnings(command: str) -> None:
+    """Warnings as one line like errors (``gesturedb synth: warning: ...``), not a source excerpt."""
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        kind = "" if category.__name__ in ("GestureDBWarning", "UserWarning") else f" ({category.__name__})"
+        print(f"gesturedb {command}: warning{kind}: {message}", file=sys.stderr if file is None else file)
+
+    warnings.showwarning = show
 
 
 if __name__ == "__main__":

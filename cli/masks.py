@@ -5,10 +5,11 @@ from __future__ import annotations
 def add_parser(sub) -> None:
     p = sub.add_parser("masks", help="list, save or remove control masks; recompute control features",
                        description="Masks restrict the search to database frames that satisfy an expression over "
-                       "the control features, e.g. 'left_wrist_height > p85 and not fast'.")
+                       "the control features, e.g. 'left_wrist_height > p85 and not left_wrist_fast' "
+                       "(`gesturedb masks DB.h5 list` shows the names there are).")
     p.add_argument("db", metavar="DB.h5")
     ops = p.add_subparsers(dest="op", metavar="OP", required=True)
-    ops.add_parser("list", help="masks and control features with their definitions")
+    ops.add_parser("list", help="control features, built-in mask names and saved masks with their definitions")
     a = ops.add_parser("add", help="save a mask expression under a name")
     a.add_argument("name")
     a.add_argument("expr")
@@ -25,6 +26,7 @@ def run(args) -> int:
     import gesturedb
     from gesturedb import control as masks
     from gesturedb.db import edit as dbedit
+    from gesturedb.errors import GestureDBError
 
     if args.op == "add":
         res = dbedit.save_mask(args.db, args.name, args.expr, replace=args.replace)
@@ -41,8 +43,19 @@ def run(args) -> int:
             for k, v in db.controls.items():
                 p15, p50, p85 = (float(x) for x in np.percentile(v, [15, 50, 85]))
                 print(f"  {k:<22} [{db.control_units[k]:>3}]  p15 {p15:8.3f}  p50 {p50:8.3f}  p85 {p85:8.3f}")
-            print("masks:")
-            for k, w in db.masks.items():
+            saved = db.masks
+            builtin = {k: v for k, v in masks.DEFAULT_NAMED.items() if k not in saved}
+            if db.controls:
+                print("built-in names (usable in any expression):")
+                for k, expr in builtin.items():
+                    try:
+                        n = int(masks.count_bits(masks.compile_mask(expr, controls=db.controls, named=saved).words))
+                        share = f"{100 * n / db.n_frames:5.1f}%"
+                    except GestureDBError:  # a database without that control feature
+                        share = "    -"
+                    print(f"  {k:<28} {share}  {expr}")
+            print("masks in the database (the <feature>_high/_low percentile masks and those saved with `masks add`):")
+            for k, w in saved.items():
                 n = int(masks.count_bits(w))
                 print(f"  {k:<28} {100 * n / db.n_frames:5.1f}%  {db.mask_definitions[k]}")
     return 0

@@ -39,6 +39,9 @@ def add_parser(sub) -> None:
     p.add_argument("--no-keywords", action="store_true", help="ignore keyword sub-databases")
     p.add_argument("--keywords", default=None, help="comma-separated keywords to use (default: all)")
     p.add_argument("--exclude", default=None, help="comma-separated recordings to leave out of the search")
+    p.add_argument("--speaker", default=None, help="search only this speaker's recordings (gesturedb info lists them)")
+    p.add_argument("--repeat-guard", type=float_range(0, 1e6), default=None, metavar="SECONDS", dest="repeat_guard_s",
+                   help="k-NN: do not play a database window again within this many seconds (default: 4; 0 = off)")
     p.add_argument("--export-fps", type=float_range(1, 1000), default=None, help="resample the BVH/npz to this frame rate")
     p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="search over --parts shards on Dask workers (same output)")
@@ -84,13 +87,17 @@ def run(args) -> int:
             from gesturedb.errors import ParameterError
             from gesturedb.synth.graph import GraphSynthesizer
 
-            if refiner is not None or args.scheduler:
-                raise ParameterError("--method graph: --refiner and --scheduler work with the k-NN method only")
+            if refiner is not None or args.scheduler or args.repeat_guard_s is not None:
+                raise ParameterError("--method graph: --refiner, --scheduler and --repeat-guard work with the k-NN "
+                                     "method only")
+            exclude = args.exclude.split(",") if args.exclude else None
+            if args.speaker is not None:  # the graph leaves recordings out by name
+                mine = {r.name for r in db.speaker_recordings(args.speaker)}
+                exclude = (exclude or []) + [r.name for r in db.recordings if r.name not in mine]
             res = GraphSynthesizer(db).synthesize(
                 args.audio, transcript=args.transcript, gap_s=args.gap_s,
                 blend_frames=8 if args.blend_frames is None else args.blend_frames,
-                smooth=not args.no_smooth, control=args.control, keywords=keywords,
-                exclude=args.exclude.split(",") if args.exclude else None)
+                smooth=not args.no_smooth, control=args.control, keywords=keywords, exclude=exclude)
         else:
             res = Searcher(db, segments=args.segments, client=client, parts=args.parts).synthesize(
                 args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
@@ -98,6 +105,8 @@ def run(args) -> int:
                 smooth=not args.no_smooth,
                 control=args.control,
                 keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None, refiner=refiner,
+                speaker=args.speaker,
+                **({} if args.repeat_guard_s is None else {"repeat_guard_s": args.repeat_guard_s}),
             )
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
     motion = apply_target(args, motion)
@@ -119,6 +128,9 @@ def run(args) -> int:
         written.append(args.render)
     n_ctl = sum(1 for s in res.steps if s["control"])
     n_kw = sum(1 for s in res.steps if s["keyword"])
+    rep = res.repeats
+    again = "" if rep is None else (f"; {rep['distinct']} distinct windows, {rep['repeats']} played again "
+                                    f"(at most {rep['max_plays']} times; guard {rep['guard_s']:g} s)")
     print(f"synthesized {res.n_frames} frames ({res.n_frames / res.fps:.2f} s at {res.fps:g} fps) in "
-          f"{len(res.steps)} steps ({n_ctl} controlled, {n_kw} keyword); wrote {', '.join(written)}")
+          f"{len(res.steps)} steps ({n_ctl} controlled, {n_kw} keyword{again}); wrote {', '.join(written)}")
     return 0

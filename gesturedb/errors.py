@@ -43,3 +43,7 @@ class SchemaError(InputFileError):
 
 class SearchError(GestureDBError):
     """A search step found no candidate (for example a control mask left nothing)."""
+
+
+class GestureDBWarning(UserWarning):
+    """Something works but is probably not what was meant (the CLI prints it as one line)."""

@@ -82,7 +82,7 @@ def test_bad_inputs_exit_2_with_one_line(scott_dir, data_dir, tmp_path, capsys):
     from gesturedb.io import read_bvh
 
     src, back = read_bvh(d / "walk.bvh"), read_bvh(tmp_path / "walk_out.bvh")
-    assert back.skeleton.length_unit_m == src.skeleton.length_unit_m == 0.01
+    assert back.skeleton.length_unit_m == src.skeleton.length_unit_m == 0.0254  # guessed: inches
     np.testing.assert_allclose(back.skeleton.offsets, src.skeleton.offsets, atol=1e-6)
     np.testing.assert_allclose(back.positions[0], src.resample(15.0).positions[15], atol=1e-4)
 

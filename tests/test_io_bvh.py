@@ -77,21 +77,22 @@ def test_foreign_bvh_reads_like_the_file_says(foreign_path):
     assert m.n_frames == 1064 and m.fps == 120.0
     assert sk.n_joints == 23 and sk.names[:3] == ["Hips", "Spine", "Head"]
     assert sk.channel_orders == ["XYZ"] * 23
-    assert sk.length_unit_m == 0.01  # rest height 56 units > 3: centimetres
+    # 60.6 units from toe to head End Site: 0.61 m in centimetres, 1.54 m in inches (guess_length_unit)
+    assert sk.length_unit_m == 0.0254
     assert len(sk.end_sites) == 7
-    np.testing.assert_allclose(sk.offsets[sk.index("LeftArm")], [0.073084, 0, 0])
-    np.testing.assert_allclose(m.root_positions[0], [-0.065115, 0.355548, -1.630160])
+    np.testing.assert_allclose(sk.offsets[sk.index("LeftArm")], [0.073084 * 2.54, 0, 0])
+    np.testing.assert_allclose(m.root_positions[0], np.array([-0.065115, 0.355548, -1.630160]) * 2.54)
     frames = [0, 517, 1063]
     ref = _reference_positions(foreign_path, frames)
     pos = m.positions
     for name, p in ref.items():
-        np.testing.assert_allclose(pos[frames, sk.index(name)], p * 0.01, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(pos[frames, sk.index(name)], p * 0.0254, atol=1e-9, err_msg=name)
 
 
 def test_length_unit_can_be_given(foreign_path):
-    cm = read_bvh(foreign_path)
-    inch = read_bvh(foreign_path, length_unit_m=0.0254)
-    assert inch.skeleton.length_unit_m == 0.0254
+    inch = read_bvh(foreign_path)
+    cm = read_bvh(foreign_path, length_unit_m=0.01)
+    assert cm.skeleton.length_unit_m == 0.01
     np.testing.assert_allclose(inch.positions[:50], cm.positions[:50] * 2.54, atol=1e-12)
     with pytest.raises(ParameterError, match="length_unit_m: expected a positive number"):
         read_bvh(foreign_path, length_unit_m=0)
@@ -108,8 +109,8 @@ def test_foreign_write_then_read(foreign_path, tmp_path):
     write_bvh(out, m)
     back = read_bvh(out)
     assert back.skeleton.names == m.skeleton.names and back.fps == m.fps
-    assert back.skeleton.length_unit_m == 0.01
-    assert "OFFSET 7.308400 0.000000 0.000000" in out.read_text()  # written back in centimetres
+    assert back.skeleton.length_unit_m == 0.0254
+    assert "OFFSET 7.308400 0.000000 0.000000" in out.read_text()  # written back in the file's unit
     tol = 1e-4 * m.skeleton.scale()
     np.testing.assert_allclose(back.positions, m.positions, atol=tol)
     # the same motion written in metres reads back (unit inferred as metres) to the same positions

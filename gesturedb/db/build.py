@@ -62,8 +62,12 @@ class BuildConfig:
     max_mismatch_s : float
         Largest allowed difference between audio and motion durations (s).
     speaker : str or None
-        Speaker name for every recording; None infers it from BEAT-style stems
-        (``2_scott_0_1_1`` -> ``scott``) or the folder name.
+        Speaker name for every recording that does not name its own (a pairing
+        file's ``speaker`` column); None infers it (:func:`infer_speaker`).
+    length_unit_m : float or None
+        Metres per length unit of the BVH files; None guesses it per file from
+        the skeleton's height (:func:`gesturedb.io.bvh.guess_length_unit`) and
+        the build report says what was guessed.
     graph : bool
         Also build the motion graph and style predictor (:mod:`gesturedb.db.graph`).
     """
@@ -80,6 +84,7 @@ class BuildConfig:
     max_mismatch_s: float = 1.0
     speaker: str | None = None
     graph: bool = True
+    length_unit_m: float | None = None
 
     def __post_init__(self):
         def bad(name, expected):
@@ -97,6 +102,9 @@ class BuildConfig:
             bad("max_mismatch_s", "a non-negative number of seconds")
         if self.joint_map is not None and not isinstance(self.joint_map, dict):
             bad("joint_map", "a dict role -> joint name")
+        if self.length_unit_m is not None and (isinstance(self.length_unit_m, bool) or not isinstance(
+                self.length_unit_m, (int, float)) or not (np.isfinite(self.length_unit_m) and self.length_unit_m > 0)):
+            bad("length_unit_m", "a positive number of metres per BVH length unit or None (guessed)")
 
     @classmethod
     def from_kwargs(cls, **config) -> "BuildConfig":
@@ -122,7 +130,8 @@ class RecordingSource:
 
     ``span_s`` optionally keeps only ``[start, end)`` seconds of the recording
     (motion, audio and words alike), e.g. to hold a stretch out for evaluation;
-    word times are then relative to ``start``.
+    word times are then relative to ``start``. ``speaker`` names the speaker
+    (None: ``BuildConfig.speaker``, else :func:`infer_speaker`).
     """
 
     name: str
@@ -130,6 +139,7 @@ class RecordingSource:
     audio: str
     transcript: str | None
     span_s: tuple[float, float] | None = None
+    speaker: str | None = None
 
 
 @dataclass(frozen=True)
@@ -142,12 +152,15 @@ class Skipped:
 class Pairing:
     recordings: list[RecordingSource] = field(default_factory=list)
     skipped: list[Skipped] = field(default_factory=list)
+    #: lines of the build report written while processing (unit guessed, skeleton sides that differ)
+    notes: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         lines = [f"paired {len(self.recordings)} recording(s):"]
         for r in self.recordings:
             t = os.path.basename(r.transcript) if r.transcript else "no transcript: one clip, no words"
-            lines.append(f"  {r.name}: {os.path.basename(r.motion)} + {os.path.basename(r.audio)} + {t}")
+            who = f" (speaker {r.speaker})" if r.speaker else ""
+            lines.append(f"  {r.name}: {os.path.basename(r.motion)} + {os.path.basename(r.audio)} + {t}{who}")
         if self.skipped:
             lines.append(f"skipped {len(self.skipped)} file(s):")
             lines += [f"  {s.path}: {s.reason}" for s in self.skipped]
@@ -230,12 +243,79 @@ def pair_inputs(inputs: Iterable[str | os.PathLike], *, recursive: bool = False)
     return out
 
 
+# BEAT / BEAT2 file names: <speaker id>_<name>_<take type>_<start>_<end>, e.g. 2_scott_0_1_1
+_BEAT_STEM = re.compile(r"^\d+_([A-Za-z]+)_\d+_\d+_\d+$")
+
+
 def infer_speaker(source: RecordingSource) -> str:
-    """Speaker from a BEAT-style stem (``2_scott_0_1_1`` -> ``scott``), else the folder name."""
-    m = re.match(r"^\d+_([A-Za-z]+)_", source.name)
+    """The speaker of a recording: its own ``speaker``, else from a naming scheme we know, else the folder.
+
+    Only BEAT's ``<id>_<name>_<type>_<start>_<end>`` stems name the speaker
+    (``2_scott_0_1_1`` -> ``scott``); any other stem (``067_Speech_2_x_1_0``)
+    says nothing about who speaks, so the motion file's folder name is used.
+    """
+    if source.speaker:
+        return source.speaker
+    m = _BEAT_STEM.match(source.name)
     if m:
         return m.group(1).lower()
     return Path(source.motion).resolve().parent.name
+
+
+PAIRING_COLUMNS = ("motion", "audio", "transcript", "speaker", "name")
+
+
+def read_pairing_file(path) -> list[RecordingSource]:
+    """Recordings listed in a CSV pairing file.
+
+    The first line names the columns: ``motion`` and ``audio`` (required),
+    ``transcript``, ``speaker`` and ``name`` (optional; the name defaults to the
+    motion file's stem). Relative paths are relative to the pairing file's folder;
+    an empty transcript cell means none.
+
+    Raises
+    ------
+    InputFileError
+        Unreadable file, missing or unknown columns, a row without motion or
+        audio, a listed file that does not exist; the message names the line.
+    """
+    import csv
+
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputFileError(path, f"cannot read the pairing file: {exc}") from None
+    rows = [(i + 1, r) for i, r in enumerate(rows) if any(c.strip() for c in r)]
+    if not rows:
+        raise InputFileError(path, "pairing file: expected a header line (motion,audio[,transcript,speaker,name]), "
+                                   "got an empty file")
+    header = [c.strip().lower() for c in rows[0][1]]
+    unknown = [c for c in header if c not in PAIRING_COLUMNS]
+    missing = [c for c in ("motion", "audio") if c not in header]
+    if unknown or missing or len(set(header)) != len(header):
+        raise InputFileError(path, f"line {rows[0][0]}: header: expected the columns motion, audio and optionally "
+                                   f"transcript, speaker, name (each once); got {','.join(header)}")
+    out = []
+    for ln, row in rows[1:]:
+        if len(row) != len(header):
+            raise InputFileError(path, f"line {ln}: expected {len(header)} values (as the header), got {len(row)}")
+        cell = {k: v.strip() for k, v in zip(header, row)}
+        for k in ("motion", "audio", "transcript"):
+            if cell.get(k):
+                p = Path(cell[k])
+                p = p if p.is_absolute() else path.parent / p
+                if not p.is_file():
+                    raise InputFileError(path, f"line {ln}: {k}: no such file {str(p)!r}")
+                cell[k] = str(p)
+            elif k != "transcript":
+                raise InputFileError(path, f"line {ln}: {k}: expected a file, got an empty cell")
+        out.append(RecordingSource(cell.get("name") or Path(cell["motion"]).stem, cell["motion"], cell["audio"],
+                                   cell.get("transcript") or None, speaker=cell.get("speaker") or None))
+    if not out:
+        raise InputFileError(path, "pairing file: expected at least one recording after the header, got none")
+    return out
 
 
 # --------------------------------------------------------------------------
@@ -263,6 +343,7 @@ class RecordingData:
     chunks: tuple               # (start, length) local
     clips: dict                 # start, length, word_start, word_end (local), rhythm_audio, rhythm_motion, style
     words: tuple                # (start_s, end_s, text)
+    notes: list = field(default_factory=list)  # (topic, file name, text) for the build report
 
 
 def _check_finite(path: str, what: str, arr: np.ndarray) -> None:
@@ -306,7 +387,7 @@ def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingS
     name = source.name + ("~mirror" if mirrored else "")
     return RecordingData(
         name=name,
-        speaker=cfg.speaker or infer_speaker(source),
+        speaker=source.speaker or cfg.speaker or infer_speaker(source),
         source=source,
         source_fps=source_fps,
         mirrored=mirrored,
@@ -335,7 +416,15 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
     """
     from gesturedb.io import read_audio, read_motion, read_transcript
 
-    motion = read_motion(source.motion)
+    is_bvh = Path(source.motion).suffix.lower() == ".bvh"
+    motion = read_motion(source.motion, length_unit_m=cfg.length_unit_m if is_bvh else None)
+    notes = []
+    if is_bvh:
+        from gesturedb.io.bvh import describe_length_unit
+
+        how = "guessed" if cfg.length_unit_m is None else "given"
+        notes.append(("unit", os.path.basename(source.motion), f"{how} {describe_length_unit(motion.skeleton)}"
+                      + ("; --length-unit overrides" if cfg.length_unit_m is None else "")))
     src_fps = float(motion.fps)
     if not 1.0 <= src_fps <= 1000.0:
         raise InputFileError(source.motion, f"frame rate: expected 1 to 1000 fps, got {src_fps:.6g}")
@@ -371,19 +460,75 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
     audio_raw = audio_features(samples, sr, fps=cfg.fps, n_frames=motion.n_frames, n_mfcc=cfg.n_mfcc).astype(np.float64)
     _check_finite(source.audio, "audio features", audio_raw)
     out = [_features_for(motion, audio_raw, words, cfg, source, mirrored=False, source_fps=src_fps)]
+    out[0].notes += notes
     if cfg.mirror:
-        mirrored = motion.mirror()
-        if not mirrored.skeleton.same_as(motion.skeleton, atol_m=0.01 * motion.skeleton.scale()):
-            raise InputFileError(
-                source.motion,
-                "mirror: expected a left/right symmetric skeleton (bone offsets equal within 1% of its size "
-                "after swapping sides), got an asymmetric one; build without mirroring",
-            )
-        # a nearly symmetric skeleton keeps the original bones, so one skeleton serves the whole database
-        mirrored = type(motion)(skeleton=motion.skeleton, fps=motion.fps, rotations=mirrored.rotations,
-                                root_positions=mirrored.root_positions)
+        mirrored, note = mirrored_copy(motion, source.motion)
+        if note:
+            out[0].notes.append(("mirror", os.path.basename(source.motion), note))
         out.append(_features_for(mirrored, audio_raw, words, cfg, source, mirrored=True, source_fps=src_fps))
     return out
+
+
+#: left/right bone-length differences up to this fraction pass without a note in the build report
+MIRROR_NOTE_REL = 0.01
+
+
+def mirrored_copy(motion, path) -> tuple:
+    """The left/right mirrored performance on the captured skeleton, and a note for the build report.
+
+    Every captured actor's skeleton differs a little between its sides, so the
+    mirrored copy **keeps the skeleton and swaps the rotations**
+    (:meth:`gesturedb.motion.Motion.mirror`, then the original bones): the
+    mirrored performer's left arm moves as the original right arm did,
+    reflected, with the left arm's bone lengths. One skeleton then serves the
+    whole database. A symmetric skeleton gives exactly the reflected positions;
+    one whose sides differ by a few percent gives positions off by about that
+    fraction of a limb (tested).
+
+    Parameters
+    ----------
+    motion : Motion
+    path : str
+        The motion file, for messages.
+
+    Returns
+    -------
+    mirrored : Motion
+        Same skeleton as ``motion``.
+    note : str or None
+        Says how much the sides differ, when more than 1 %.
+
+    Raises
+    ------
+    InputFileError
+        If the skeleton has no left/right joint pairs (names such as
+        ``LeftArm``/``RightArm``, ``l_wrist``/``r_wrist``), or swapping them does
+        not map the hierarchy onto itself.
+    """
+    from gesturedb.motion import Motion
+
+    sk = motion.skeleton
+    perm = sk.mirror_permutation()
+    if np.array_equal(perm, np.arange(sk.n_joints)):
+        raise InputFileError(path, f"mirror: expected left/right joint pairs (e.g. LeftArm/RightArm, l_wrist/r_wrist), "
+                                   f"got none among the {sk.n_joints} joints ({', '.join(sk.names[:8])}"
+                                   f"{', ...' if sk.n_joints > 8 else ''}); build without --mirror")
+    try:
+        flipped = motion.mirror()
+    except ParameterError as exc:
+        raise InputFileError(path, f"mirror: {exc}") from None
+    mirrored = Motion(skeleton=sk, fps=motion.fps, rotations=flipped.rotations, root_positions=flipped.root_positions)
+    bone = np.linalg.norm(sk.offsets, axis=1)
+    bone[0] = 0.0  # the root's offset is where it rests, no bone
+    diff = np.abs(bone - bone[perm]) / np.maximum(np.maximum(bone, bone[perm]), 1e-6 * sk.scale())
+    diff[bone + bone[perm] < 1e-3 * sk.scale()] = 0.0  # zero-length helpers
+    j = int(np.argmax(diff))
+    note = None
+    if diff[j] > MIRROR_NOTE_REL:
+        note = (f"left/right bones differ by up to {diff[j]:.1%} ({sk.names[j]} {bone[j]:.3f} m vs "
+                f"{sk.names[perm[j]]} {bone[perm[j]]:.3f} m); the mirrored copy keeps the captured skeleton "
+                "and swaps the rotations")
+    return mirrored, note
 
 
 def _trim(source: RecordingSource, motion, samples, sr, words):
@@ -618,6 +763,12 @@ def build(
     given = [x for x in inputs if isinstance(x, RecordingSource)]
     pairing = pair_inputs([x for x in inputs if not isinstance(x, RecordingSource)], recursive=recursive)
     pairing.recordings = sorted(pairing.recordings + given, key=lambda r: r.name)
+    names = [r.name for r in pairing.recordings]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        first = next(r for r in pairing.recordings if r.name == twice[0])
+        raise InputFileError(first.motion, f"recording name: expected each name once, got {twice[0]!r} for more than "
+                                           "one recording (name them apart, e.g. with a pairing file's name column)")
     if not pairing.recordings:
         raise ParameterError(
             "inputs: expected at least one recording (a motion file .bvh/.npz and a .wav with the same stem), "
@@ -639,12 +790,26 @@ def build(
                 f"got a different one ({len(r.skeleton.names)} joints); build one database per skeleton",
             )
     write_atomically(out_path, lambda h5: _write(h5, recs, cfg))
+    pairing.notes = report_notes(recs)
 
     from gesturedb.db.database import Database
 
     db = Database(out_path)
     db.pairing = pairing
     return db
+
+
+def report_notes(recs: list[RecordingData]) -> list[str]:
+    """The build report's lines from every recording's notes; the same text for many files is one line."""
+    by_text: dict[tuple[str, str], list[str]] = {}
+    for r in recs:
+        for topic, name, text in r.notes:
+            by_text.setdefault((topic, text), []).append(name)
+    out = []
+    for (topic, text), files in by_text.items():
+        who = files[0] if len(files) == 1 else f"{len(files)} files ({files[0]}, ...)"
+        out.append(f"{topic}: {who}: {text}")
+    return out
 
 
 def _auto_gap(sources: list[RecordingSource]) -> float:

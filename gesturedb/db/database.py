@@ -223,6 +223,14 @@ class Database:
             for i in range(len(cols["name"]))
         ]
 
+    def speaker_recordings(self, speaker: str) -> list[Recording]:
+        """The recordings of one speaker (mirrored copies included); the error lists the speakers there are."""
+        recs = [r for r in self.recordings if r.speaker == speaker]
+        if not recs:
+            raise ParameterError(f"speaker: no recording of speaker {speaker!r} in {self.path}; speakers: "
+                                 f"{', '.join(sorted({r.speaker for r in self.recordings}))}")
+        return recs
+
     def recording(self, name_or_index) -> Recording:
         """Look a recording up by name or index; the error lists the names there are."""
         recs = self.recordings

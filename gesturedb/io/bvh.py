@@ -12,10 +12,13 @@ Reading
     they actually move.
 
 Units
-    Lengths are converted to metres. ``length_unit_m=None`` infers the unit from
-    the rest skeleton: taller than 3.0 file units (max - min of the rest joint
-    heights) means centimetres (0.01 m per unit), otherwise metres. The factor
-    is kept in `Skeleton.length_unit_m` and `write_bvh` writes back in it.
+    Lengths are converted to metres. ``length_unit_m=None`` guesses the unit
+    from the height of the rest skeleton (`guess_length_unit`): a standing adult
+    is 1.5-2 m tall, so the first of metres, centimetres and millimetres that
+    makes a skeleton with legs 0.9-2.5 m tall (one without legs 0.3-1.3 m) is
+    taken, then inches (1.2-2.2 m), else the common unit nearest to 1.6 m
+    (0.75 m without legs). The factor is kept in `Skeleton.length_unit_m` and
+    `write_bvh` writes back in it; `describe_length_unit` says what was guessed.
 
 Writing
     Joints are written depth first, the root with ``Xposition Yposition
@@ -39,7 +42,8 @@ from gesturedb import rotations as rot
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.motion import Motion, Skeleton
 
-__all__ = ["read_bvh", "write_bvh"]
+__all__ = ["LENGTH_UNITS", "describe_length_unit", "guess_length_unit", "parse_length_unit", "read_bvh",
+           "write_bvh"]
 
 _CHANNEL_NAMES = {
     "xposition": ("pos", 0), "yposition": ("pos", 1), "zposition": ("pos", 2),
@@ -48,9 +52,6 @@ _CHANNEL_NAMES = {
 # Printed frame times have ~6 significant digits (0.008333 for 120 fps): a frame rate
 # this close to a whole number is taken to be that number.
 _FPS_SNAP_REL = 2e-4
-# Rest skeletons taller than this many file units are taken to be in centimetres.
-_CM_THRESHOLD = 3.0
-
 
 class _Joint:
     __slots__ = ("name", "parent", "offset", "channels", "line", "end_site")
@@ -269,13 +270,109 @@ def _diagnose_frames(path, data_lines, first_line, n_values, labels):
     raise InputFileError(path, f"line {first_line}: frame data could not be parsed")
 
 
-def _infer_unit(offsets_file: np.ndarray, parents: np.ndarray) -> float:
-    rest = np.empty_like(offsets_file)
-    rest[0] = offsets_file[0]
+#: length units a BVH file may be in: name -> metres per unit (the names `--length-unit` takes)
+LENGTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+_UNIT_WORDS = {"m": "metres", "cm": "centimetres", "mm": "millimetres", "in": "inches"}
+_UNIT_ALIASES = {"metre": "m", "metres": "m", "meter": "m", "meters": "m", "centimetres": "cm", "centimeters": "cm",
+                 "millimetres": "mm", "millimeters": "mm", "inch": "in", "inches": "in"}
+# Plausible joint heights (lowest joint or End Site to highest), metres: a standing adult is
+# 1.5-2 m tall, a joint skeleton a little less; without legs, pelvis to head is about 0.6-0.9 m.
+# The common units get a wide range, inches a narrow one (they are rare in capture files).
+_HEIGHT_RANGE_M = {True: (0.9, 2.5), False: (0.3, 1.3)}
+_INCH_RANGE_M = {True: (1.2, 2.2), False: (0.5, 1.0)}
+_HEIGHT_TYPICAL_M = {True: 1.6, False: 0.75}
+_LEG_KEYS = ("_upleg", "_leg", "_foot")
+
+
+def parse_length_unit(text) -> float:
+    """Metres per unit from ``"cm"``, ``"inch"``, ``"m"``, ``"mm"`` or a number of metres (``"0.0254"``).
+
+    Raises
+    ------
+    ParameterError
+        Anything else, or a number that is not positive and finite.
+    """
+    key = str(text).strip().lower()
+    key = _UNIT_ALIASES.get(key, key)
+    if key in LENGTH_UNITS:
+        return LENGTH_UNITS[key]
+    try:
+        v = float(key)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v > 0):
+        raise ParameterError(f"length unit: expected one of {', '.join(LENGTH_UNITS)}, 'inch' or a positive number "
+                             f"of metres per unit; got {text!r}")
+    return v
+
+
+def _height_units(offsets, parents, end_sites) -> float:
+    """Vertical extent of the rest joints and End Sites, in the units of ``offsets``."""
+    rest = np.empty_like(offsets)
+    rest[0] = offsets[0]
     for j in range(1, len(parents)):
-        rest[j] = rest[parents[j]] + offsets_file[j]
-    height = float(rest[:, 1].max() - rest[:, 1].min())
-    return 0.01 if height > _CM_THRESHOLD else 1.0
+        rest[j] = rest[parents[j]] + offsets[j]
+    ys = list(rest[:, 1]) + [rest[j, 1] + off[1] for j, off in end_sites.items()]
+    return float(max(ys) - min(ys))
+
+
+def _has_legs(names) -> bool:
+    from gesturedb.io.joints import body_keys
+
+    return any(k.endswith(_LEG_KEYS) for k in body_keys(names).values())
+
+
+def guess_length_unit(offsets, parents, names, end_sites=None) -> float:
+    """Metres per file unit of a BVH skeleton, from its height.
+
+    Parameters
+    ----------
+    offsets : ndarray [shape=(J, 3)], file units
+    parents : ndarray [shape=(J,)], int
+    names : sequence of str [length J]
+        Joint names: a skeleton with legs (``LeftUpLeg``, ``b_l_leg``,
+        ``left_knee``...) is expected to be 0.9-2.5 m tall, one without 0.3-1.3 m.
+    end_sites : dict of int to ndarray [shape=(3,)], optional
+        End Site offsets (file units); the head's gives the top of the head.
+
+    Returns
+    -------
+    float
+        1.0 (metres), 0.01 (centimetres), 0.001 (millimetres) or 0.0254 (inches):
+        the first of m, cm, mm that gives a plausible height, then inches, else
+        the common unit nearest the typical height.
+    """
+    h = _height_units(np.asarray(offsets, dtype=np.float64), np.asarray(parents), end_sites or {})
+    legs = _has_legs(names)
+    lo, hi = _HEIGHT_RANGE_M[legs]
+    common = ("m", "cm", "mm")
+    for u in common:
+        if lo <= h * LENGTH_UNITS[u] <= hi:
+            return LENGTH_UNITS[u]
+    lo, hi = _INCH_RANGE_M[legs]
+    if lo <= h * LENGTH_UNITS["in"] <= hi:
+        return LENGTH_UNITS["in"]
+    if h <= 0:
+        return 1.0
+    typical = _HEIGHT_TYPICAL_M[legs]
+    return LENGTH_UNITS[min(common, key=lambda u: abs(math.log(h * LENGTH_UNITS[u] / typical)))]
+
+
+def describe_length_unit(skeleton) -> str:
+    """What the unit of a skeleton read from BVH means for its size, for a build report.
+
+    E.g. ``"inches (0.0254 m per unit): the skeleton is 60.6 units = 1.54 m tall
+    (0.61 m in centimetres)"``.
+    """
+    unit = float(skeleton.length_unit_m)
+    h_m = _height_units(skeleton.offsets, skeleton.parents, skeleton.end_sites)
+    h_units = h_m / unit
+    name = next((u for u, v in LENGTH_UNITS.items() if abs(v - unit) <= 1e-12 * v), None)
+    what = f"{_UNIT_WORDS[name]} ({unit:g} m per unit)" if name else f"{unit:g} m per unit"
+    others = [f"{h_units * LENGTH_UNITS[u]:.2f} m in {_UNIT_WORDS[u]}" for u in ("cm", "in", "m")
+              if u != name and 0.05 <= h_units * LENGTH_UNITS[u] <= 20]
+    return (f"{what}: the skeleton is {h_units:.4g} units = {h_m:.2f} m tall"
+            + (f" ({', '.join(others)})" if others else ""))
 
 
 def read_bvh(path, *, length_unit_m: float | None = None) -> Motion:
@@ -286,8 +383,7 @@ def read_bvh(path, *, length_unit_m: float | None = None) -> Motion:
     path : str or os.PathLike
     length_unit_m : float or None
         Metres per file length unit (0.01 for centimetres, 0.0254 for inches).
-        ``None`` infers it: a rest skeleton taller than 3.0 units is taken to be
-        in centimetres, otherwise in metres.
+        ``None`` guesses it from the skeleton's height (`guess_length_unit`).
 
     Returns
     -------
@@ -405,7 +501,11 @@ def _to_motion(path, joints, data, frame_time, length_unit_m):
                               f"{spread:.4g} file units; bone lengths are fixed, so their mean is used",
                               stacklevel=3)
 
-    unit = _infer_unit(offsets, parents) if length_unit_m is None else length_unit_m
+    ends_file = {j: np.asarray(jt.end_site, dtype=np.float64) for j, jt in enumerate(joints) if jt.end_site is not None}
+    if length_unit_m is None:
+        unit = guess_length_unit(offsets, parents, [jt.name for jt in joints], ends_file)
+    else:
+        unit = length_unit_m
 
     rotations = np.empty((n_f, n_j, 4))
     rotations[..., 0] = 1.0
@@ -419,8 +519,7 @@ def _to_motion(path, joints, data, frame_time, length_unit_m):
     else:
         root = np.repeat(offsets[:1] * unit, n_f, axis=0)
 
-    ends = {j: np.asarray(jt.end_site, dtype=np.float64) * unit
-            for j, jt in enumerate(joints) if jt.end_site is not None}
+    ends = {j: off * unit for j, off in ends_file.items()}
     skel = Skeleton([jt.name for jt in joints], parents, offsets * unit, orders, ends, unit)
     return Motion(skel, _frame_rate(frame_time), rotations, root)
 

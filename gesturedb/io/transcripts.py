@@ -315,6 +315,50 @@ def read_json_words(path) -> Words:
 _READERS = {".textgrid": read_textgrid, ".tsv": read_genea_tsv, ".json": read_json_words}
 
 
+#: a transcript may run this many seconds past the end of its audio before a warning says so
+MAX_OVERRUN_S = 1.0
+
+
+def check_words_fit(words: Words, duration_s: float, *, audio=None) -> None:
+    """Check that word timings belong to speech of ``duration_s`` seconds.
+
+    A transcript of another file, or of a longer take, silently shifts every
+    keyword step; so this warns (:class:`gesturedb.errors.GestureDBWarning`)
+    when the last word ends more than ``MAX_OVERRUN_S`` (1 s) after the audio,
+    and refuses a transcript with no word starting inside the audio.
+
+    Parameters
+    ----------
+    words : Words
+    duration_s : float
+        Length of the speech, seconds.
+    audio : str, optional
+        The speech file, for the messages.
+
+    Raises
+    ------
+    InputFileError
+        If words exist but none starts before ``duration_s``.
+    """
+    import warnings
+
+    from gesturedb.errors import GestureDBWarning
+
+    if len(words) == 0:
+        return
+    where = words.source or "transcript"
+    of = f" ({audio})" if audio else ""
+    first, last = float(words.start_s.min()), float(words.end_s.max())
+    if first >= duration_s:
+        raise InputFileError(where, f"words: expected words inside the audio{of}, which lasts {duration_s:.2f} s; "
+                                    f"got {len(words)} words from {first:.2f} to {last:.2f} s (another file's transcript?)")
+    if last > duration_s + MAX_OVERRUN_S:
+        inside = int((words.start_s < duration_s).sum())
+        warnings.warn(GestureDBWarning(
+            f"{where}: the words run to {last:.2f} s but the audio{of} lasts {duration_s:.2f} s; "
+            f"{len(words) - inside} of {len(words)} words start after it and are ignored"), stacklevel=2)
+
+
 def read_transcript(path) -> Words:
     """Read word timings, choosing the reader by extension.
 

@@ -124,7 +124,10 @@ class GraphSynthesizer:
         if transcript is not None:
             from gesturedb.io.transcripts import Words, read_transcript
 
+            from gesturedb.io.transcripts import check_words_fit
+
             words = transcript if isinstance(transcript, Words) else read_transcript(transcript)
+            check_words_fit(words, samples.shape[0] / sr)
             ws, we = np.asarray(words.start_s, float), np.asarray(words.end_s, float)
         else:
             ws, we = voiced_segments(samples, sr)

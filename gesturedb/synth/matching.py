@@ -24,6 +24,7 @@ import numpy as np
 
 from gesturedb.errors import ParameterError, SearchError
 from gesturedb.synth.assemble import assemble_frames
+from gesturedb.synth.repeats import DEFAULT_REPEAT_GUARD_S, check_guard_s, guarded_search, repeat_of, repeat_stats
 from gesturedb.synth.result import SynthResult
 
 
@@ -163,6 +164,8 @@ class Searcher:
         keywords=True,
         exclude=None,
         refiner=None,
+        speaker: str | None = None,
+        repeat_guard_s: float = DEFAULT_REPEAT_GUARD_S,
     ) -> SynthResult:
         """Synthesize gestures for speech.
 
@@ -196,6 +199,14 @@ class Searcher:
             :class:`gesturedb.refiner.train.Refiner` (``audio`` is the query's
             standardised features and their deltas, (T, 28)). Any object with
             that method works, so synthesis does not depend on the refiner stage.
+        speaker : str, optional
+            Search only this speaker's recordings (``recordings/speaker``) of a
+            multi-speaker database.
+        repeat_guard_s : float
+            A database window used within this many seconds of output is taken out
+            of the step's allowed set (:mod:`gesturedb.synth.repeats`; 0 = off, the
+            paper's search). Steps the guard would leave without a candidate run
+            without it.
 
         Returns
         -------
@@ -203,7 +214,10 @@ class Searcher:
             ``steps[i]`` holds: ``step``, ``out_start``/``out_end`` (output frames),
             ``time_s``, ``recording``, ``source_start_s``/``source_end_s``, ``segment``,
             ``segment_start``, ``db_frame``, ``pose_dist``, ``audio_dist``, ``pose_rank``,
-            ``audio_rank``, ``control`` and ``keyword`` (None when unconstrained).
+            ``audio_rank``, ``control`` and ``keyword`` (None when unconstrained),
+            ``repeat_of`` (the latest earlier step whose window overlaps this one's,
+            or None) and ``guard_relaxed``; ``repeats`` summarises them
+            (:func:`gesturedb.synth.repeats.repeat_stats`).
         """
         from gesturedb.search import rank_sum_search
 
@@ -225,6 +239,10 @@ class Searcher:
             from gesturedb.io.transcripts import read_transcript
 
             transcript = read_transcript(transcript)
+        if transcript is not None:
+            from gesturedb.io.transcripts import check_words_fit
+
+            check_words_fit(transcript, samples.shape[0] / sr, audio=audio_path)
         query = self.query_features(samples, sr)
         T = query.shape[0]
         if T < step:
@@ -240,24 +258,46 @@ class Searcher:
         n_steps = (T + step - 1) // step
         allowed, labels, keyword_bits = self._step_masks(control, transcript, keywords, n_steps=n_steps, step=step, T=T)
         excl = self.exclude_recordings(exclude)
+        if speaker is not None:
+            others = ~np.isin(self.seg_recording, [r.index for r in db.speaker_recordings(speaker)])
+            excl = others if excl is None else (excl | others)
+        guard_s = check_guard_s(repeat_guard_s)
         init_pose = self.initial_pose(init, seed=seed)
-        try:
+
+        def search(q, prev, allowed_now):
             if self._client is not None:
                 if self._sharded is None:
                     from gesturedb.db.shards import ShardedSearch
 
                     self._sharded = ShardedSearch(db.pose_features, db.audio_features, self.seg_start,
                                                   self.seg_len, client=self._client, parts=self._parts)
-                res = self._sharded.search(query, init_pose, step=step, k=k, preselect=preselect,
-                                           allowed=allowed, exclude=excl)
+                return self._sharded.search(q, prev, step=step, k=k, preselect=preselect,
+                                            allowed=allowed_now, exclude=excl)
+            return rank_sum_search(
+                db.pose_features, db.audio_features, self.seg_start, self.seg_len, q, prev,
+                step=step, k=k, preselect=preselect, allowed=allowed_now, exclude=excl, pose_f16=self._half,
+                pose_proj=self.pose_projection() if preselect == "pose" else None,
+            )
+
+        relaxed = np.zeros(n_steps, dtype=bool)
+        try:
+            if guard_s > 0:
+                # the guard's mask for a step depends on the windows before it: one kernel call per step
+                from gesturedb.control import full_mask
+                from gesturedb.search import SearchResult, _no_candidate_error
+
+                d = guarded_search(search, query=query, init_pose=init_pose, pose=db.pose_features, step=step,
+                                   allowed=allowed, full=full_mask(db.n_frames),
+                                   guard_frames=int(round(guard_s * db.fps)),
+                                   no_candidate=lambda i, t, n, row: _no_candidate_error(
+                                       i, t, n, self.seg_len, excl, None if allowed is None else row))
+                relaxed = d.pop("relaxed")
+                res = SearchResult(n_frames=T, **d)
             else:
-                res = rank_sum_search(
-                    db.pose_features, db.audio_features, self.seg_start, self.seg_len, query, init_pose,
-                    step=step, k=k, preselect=preselect, allowed=allowed, exclude=excl, pose_f16=self._half,
-                    pose_proj=self.pose_projection() if preselect == "pose" else None,
-                )
+                res = search(query, init_pose, allowed)
         except SearchError as exc:
             raise self._explain(exc, labels, keyword_bits=keyword_bits, exclude=excl, step=step, T=T) from None
+        rep_of = repeat_of(res.frames, res.lengths)
 
         source = res.frame_map()
         steps = []
@@ -284,6 +324,8 @@ class Searcher:
                 "candidates": int(res.n_candidates[i]),
                 "control": label[0] if label else None,
                 "keyword": label[1] if label else None,
+                "repeat_of": rep_of[i],
+                "guard_relaxed": bool(relaxed[i]),
             })
         starts = np.asarray(res.out_frames, dtype=np.int64)
         motion = self.assemble(source, starts, blend_frames=blend_frames, smooth=smooth)
@@ -295,9 +337,12 @@ class Searcher:
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        segments=self.segments_kind, database=db.path,
-                       refiner=None if refiner is None else str(getattr(refiner, "path", None) or type(refiner).__name__))
+                       refiner=None if refiner is None else str(getattr(refiner, "path", None) or type(refiner).__name__),
+                       speaker=speaker, repeat_guard_s=guard_s)
+        repeats = dict(repeat_stats(res.frames, res.lengths, out_frames=res.out_frames, fps=db.fps),
+                       guard_s=guard_s, guard_relaxed=int(relaxed.sum()))
         return SynthResult(motion=motion, source_frames=source, boundaries=starts[1:], steps=steps,
-                           fps=db.fps, audio_path=audio_path, options=options)
+                           fps=db.fps, audio_path=audio_path, options=options, repeats=repeats)
 
     # -- masks ------------------------------------------------------------------
     def _step_masks(self, control, transcript, keywords, *, n_steps, step, T):

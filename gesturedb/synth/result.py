@@ -31,6 +31,8 @@ class SynthResult:
     fps: float
     audio_path: str | None = None
     options: dict = field(default_factory=dict)
+    #: how often database windows are played again (:func:`gesturedb.synth.repeats.repeat_stats`), or None
+    repeats: dict | None = None
 
     @property
     def n_frames(self) -> int:
@@ -48,6 +50,7 @@ class SynthResult:
             "n_frames": self.n_frames,
             "duration_s": self.n_frames / self.fps,
             "options": self.options,
+            **({"repeats": self.repeats} if self.repeats is not None else {}),
             "steps": self.steps,
         }
 
