@@ -129,8 +129,8 @@ def run(args) -> int:
     n_ctl = sum(1 for s in res.steps if s["control"])
     n_kw = sum(1 for s in res.steps if s["keyword"])
     rep = res.repeats
-    again = "" if rep is None else (f"; {rep['distinct']} distinct windows, {rep['repeats']} played again "
-                                    f"(at most {rep['max_plays']} times; guard {rep['guard_s']:g} s)")
+    again = "" if rep is None else (f"; {rep['distinct']} distinct windows, {rep['repeats']} repeats (a window "
+                                    f"at most {rep['max_plays']} times, repeat guard {rep['guard_s']:g} s)")
     print(f"synthesized {res.n_frames} frames ({res.n_frames / res.fps:.2f} s at {res.fps:g} fps) in "
           f"{len(res.steps)} steps ({n_ctl} controlled, {n_kw} keyword{again}); wrote {', '.join(written)}")
     return 0
