@@ -182,3 +182,19 @@ def test_cli_reports_repeats(scott_db_path, scott_dir, tmp_path, capsys):
     assert main(["synth", str(scott_db_path), "--audio", str(scott_dir / INPUT), "-o", str(out),
                  "--method", "graph", "--repeat-guard", "6"]) == 2
     assert "--repeat-guard" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_eval_motion_counts_repeats(scott_db, scott_dir):
+    from gesturedb.eval.evaluate import evaluate_inputs
+
+    wav = scott_dir / "inputs/2_scott_0_3_3.wav"
+    ev = evaluate_inputs(scott_db, [wav], systems=["random", "ranksum_pose"])
+    rows = ev.inputs[0].metrics
+    # from the evaluation's frame maps, the same numbers as the synthesis' own provenance
+    res = Searcher(scott_db).synthesize(wav)
+    assert (rows["ranksum_pose"]["repeats"], rows["ranksum_pose"]["max_plays"]) == \
+        (res.repeats["repeats"], res.repeats["max_plays"])
+    assert rows["random"]["max_plays"] >= 1
+    text = ev.to_text()
+    assert "repeats" in text and "max plays" in text

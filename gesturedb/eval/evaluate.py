@@ -100,6 +100,8 @@ METRIC_COLUMNS = (
     ("inside_jerk_m_s3", "inside jerk", ".1f"),
     ("seam_ratio", "seam/inside", ".2f"),
     ("rhythm_hamming", "rhythm Ham", ".2f"),
+    ("repeats", "repeats", ".1f"),      # windows that overlap an earlier one (gesturedb.synth.repeats)
+    ("max_plays", "max plays", ".1f"),  # the most often one window is played
 )
 
 from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
@@ -356,7 +358,8 @@ def system_metrics(
         (NaN without ground truth), ``speed_hellinger_db`` (vs ``reference_counts``),
         ``beat_align`` (motion beats -> speech onsets), ``beat_align_audio_to_motion``,
         ``l1_diversity_m``, ``seam_jerk_m_s3``, ``inside_jerk_m_s3``, ``seam_ratio``,
-        ``n_frames``, ``duration_s``.
+        ``n_frames``, ``duration_s``; for systems made of database windows ``repeats``
+        and ``max_plays`` (:func:`gesturedb.synth.repeats.repeat_stats`).
     speed_counts : dict name -> ndarray (n_bins,)
         Speed histograms (0.01 m/s bins up to 2 m/s) for plots.
     """
@@ -375,6 +378,11 @@ def system_metrics(
                               names=list(names), audio_beats_s=abeats)
         rows[n] = _flatten(rep["generated"])
         rows[n]["speed_hellinger_gt"] = rep["comparison"]["speed_hellinger"] if rep["comparison"] else float("nan")
+        if outputs[n].source_frames is not None:
+            from gesturedb.synth.repeats import repeat_stats, windows_of
+
+            st = repeat_stats(*windows_of(outputs[n].source_frames, b)[:2])
+            rows[n].update(repeats=st["repeats"], max_plays=st["max_plays"])
         if gt_part is None and rep["ground_truth"] is not None:
             gt_part = rep["ground_truth"]
     if gt is not None:
