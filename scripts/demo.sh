@@ -5,6 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${GESTUREDB_DATA:-../shared/data}
 bash scripts/setup.sh
+. scripts/venv.sh  # the environment setup.sh installed into
 mkdir -p out
 gesturedb build "$DATA/beat2-scott" -o out/scott.h5 --mirror
 gesturedb info out/scott.h5

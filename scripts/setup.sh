@@ -1,5 +1,8 @@
 #!/usr/bin/env bash
-# Install gesturedb and everything it needs on a fresh machine (idempotent).
+# Install gesturedb and everything it needs (idempotent): into the active virtual environment,
+# else into the project's own .venv (created here), never into the system's Python.
+# pip runs only when setup.py, pyproject.toml or csrc/ changed since the last install (a stamp
+# file in the environment), so a second run takes a second.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -15,12 +18,44 @@ if ((${#need[@]})); then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}"
 fi
 
-python3 -m pip install --quiet --disable-pip-version-check -e ".[test,refiner]"
+. scripts/venv.sh
+if [ ! -x "$GESTUREDB_VENV/bin/python" ]; then
+  echo "setup: creating the virtual environment $GESTUREDB_VENV" >&2
+  python3 -m venv "$GESTUREDB_VENV"
+fi
+PY="$GESTUREDB_VENV/bin/python"
+
+# every extra setup.py declares (test, refiner, ...): the test suite exercises them all
+extras=$("$PY" - <<'PYEOF'
+import ast
+tree = ast.parse(open("setup.py").read())
+for node in ast.walk(tree):
+    if isinstance(node, ast.keyword) and node.arg == "extras_require" and isinstance(node.value, ast.Dict):
+        print(",".join(sorted(k.value for k in node.value.keys if isinstance(k, ast.Constant))))
+        break
+PYEOF
+)
+# what the install depends on: the build files, the C++ sources, the extras and the interpreter
+stamp="$GESTUREDB_VENV/.gesturedb-install-stamp"
+want=$( { echo "extras=$extras"; "$PY" -c 'import sys; print(sys.version)';
+          cat setup.py pyproject.toml; find csrc -type f | LC_ALL=C sort | xargs cat; } | sha256sum | cut -d' ' -f1 )
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && "$PY" -c 'import gesturedb._core' 2>/dev/null; then
+  echo "setup: gesturedb is up to date in $GESTUREDB_VENV (nothing changed since the last install)" >&2
+else
+  echo "setup: installing gesturedb[$extras] into $GESTUREDB_VENV" >&2
+  rm -f "$stamp"
+  "$PY" -m pip install --quiet --disable-pip-version-check -e ".${extras:+[$extras]}"
+  echo "$want" > "$stamp"
+fi
 
 # Blender as a Python module (bpy, for tests/test_blender.py): it pins numpy < 2 and needs
 # Python 3.11, so it gets an environment of its own; where it cannot install, that test skips and says why.
 if python3 -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
-  { [ -x .venv-blender/bin/python ] || python3 -m venv .venv-blender; } &&
-    .venv-blender/bin/python -m pip install --quiet --disable-pip-version-check "bpy>=4.2,<6" ||
-    echo "setup: bpy did not install; tests/test_blender.py will be skipped" >&2
+  if [ -x .venv-blender/bin/python ] && .venv-blender/bin/python -c 'import bpy' 2>/dev/null; then
+    :
+  else
+    { [ -x .venv-blender/bin/python ] || python3 -m venv .venv-blender; } &&
+      .venv-blender/bin/python -m pip install --quiet --disable-pip-version-check "bpy>=4.2,<6" ||
+      echo "setup: bpy did not install; tests/test_blender.py will be skipped" >&2
+  fi
 fi
