@@ -248,7 +248,7 @@ def test_build_mirrors_an_asymmetric_take(clip, tmp_path):
         lw, rw = db.joint_names.index("left_wrist"), db.joint_names.index("right_wrist")
         # the mirrored performer's left wrist follows the reflected right wrist, off by the bone differences
         d = np.abs(P[b.start_frame:b.stop_frame, lw] - P[:a.n_frames, rw] * np.array([-1, 1, 1]))
-        assert d.max() < 0.05 and np.median(d) < 0.03
+        assert d.max() < 0.025 and np.median(d) < 0.02  # 1.8 cm at most on this take (1.2 cm with 2 %)
         # the mirrored copy's left-wrist height control is the original's right one, near enough
         np.testing.assert_allclose(db.controls["left_wrist_height"][b.start_frame:b.stop_frame],
                                    db.controls["right_wrist_height"][:a.n_frames], atol=0.05)
