@@ -8,7 +8,6 @@ import re
 import shutil
 import warnings
 
-import numpy as np
 import pytest
 import soundfile as sf
 
