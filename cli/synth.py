@@ -117,8 +117,11 @@ def run(args) -> int:
 
     written += [w for w in [speech_beside(args.output, args.audio)] if w]
     if args.npz:
-        np.savez_compressed(args.npz, positions=motion.positions.astype(np.float32), fps=motion.fps,
-                            parents=np.asarray(motion.skeleton.parents), names=np.asarray(motion.skeleton.names))
+        from gesturedb.io.atomic import atomic_open
+
+        with atomic_open(args.npz, "wb") as f:
+            np.savez_compressed(f, positions=motion.positions.astype(np.float32), fps=motion.fps,
+                                parents=np.asarray(motion.skeleton.parents), names=np.asarray(motion.skeleton.names))
         written.append(args.npz)
     if args.render:
         from gesturedb.render import render_file

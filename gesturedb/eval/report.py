@@ -28,6 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.io.atomic import write_text
 
 __all__ = [
     "plot_speed_histograms",
@@ -406,7 +407,7 @@ def _write_html(path: Path, ev, files: dict) -> Path:
                  f"{len(s['joints'])} upper-body joints. All numbers: <a href='metrics.json'>metrics.json</a>, "
                  "<a href='metrics.txt'>metrics.txt</a>.</p>")
     parts.append("</body></html>")
-    path.write_text("\n".join(parts), encoding="utf-8")
+    write_text(path, "\n".join(parts))
     return path
 
 
@@ -433,10 +434,9 @@ def write_motion_report(ev, out_dir, *, render: bool = True, video: str | None =
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    with open(out / "metrics.json", "w") as f:
-        json.dump(ev.to_dict(), f, indent=1)
+    write_text(out / "metrics.json", json.dumps(ev.to_dict(), indent=1))
     written.append(out / "metrics.json")
-    (out / "metrics.txt").write_text(ev.to_text(), encoding="utf-8")
+    write_text(out / "metrics.txt", ev.to_text())
     written.append(out / "metrics.txt")
 
     files: dict = {}
@@ -474,11 +474,10 @@ def write_controls_report(report, *, json_path=None, md_path=None, plot_path=Non
     """
     written = []
     if json_path:
-        with open(json_path, "w") as f:
-            json.dump(report.to_dict(), f, indent=1)
+        write_text(json_path, json.dumps(report.to_dict(), indent=1))
         written.append(Path(json_path))
     if md_path:
-        Path(md_path).write_text(report.to_markdown(), encoding="utf-8")
+        write_text(md_path, report.to_markdown())
         written.append(Path(md_path))
     if plot_path:
         written.append(plot_controls(plot_path, report))

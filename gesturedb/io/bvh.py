@@ -33,13 +33,13 @@ import io
 import math
 import os
 import re
-import uuid
 import warnings
 
 import numpy as np
 
 from gesturedb import rotations as rot
 from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.io.atomic import atomic_open
 from gesturedb.motion import Motion, Skeleton
 
 __all__ = ["LENGTH_UNITS", "describe_length_unit", "guess_length_unit", "parse_length_unit", "read_bvh",
@@ -606,21 +606,8 @@ def write_bvh(path, motion: Motion, *, length_unit_m: float | None = None) -> No
     data = np.concatenate(columns, axis=1)
     out += ["MOTION", f"Frames: {motion.n_frames}", f"Frame Time: {1.0 / motion.fps:.10g}"]
 
-    path = os.fspath(path)
-    # a sibling temporary file (opened with "x", so it gets the usual umask permissions)
-    # renamed over the target: a failed write never leaves half a BVH
-    tmp = f"{path}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    try:
-        with open(tmp, "x", encoding="utf-8", newline="\n") as f:
-            f.write("\n".join(out) + "\n")
-            # "+ 0.0" folds -0.0 to 0.0 so untouched channels do not print as -0.000000
-            np.savetxt(f, data + 0.0, fmt="%.6f", delimiter=" ")
-        os.replace(tmp, path)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise InputFileError(path, f"cannot write: {exc.strerror or exc}") from None
-        raise
+    # a failed write never leaves half a BVH
+    with atomic_open(path, "w", newline="\n") as f:
+        f.write("\n".join(out) + "\n")
+        # "+ 0.0" folds -0.0 to 0.0 so untouched channels do not print as -0.000000
+        np.savetxt(f, data + 0.0, fmt="%.6f", delimiter=" ")

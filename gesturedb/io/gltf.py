@@ -22,12 +22,12 @@ Reading (`read_gltf_rig`, `read_gltf`)
 from __future__ import annotations
 
 import os
-import uuid
 
 import numpy as np
 
 from gesturedb import rotations as rot
 from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.io.atomic import atomic_open
 from gesturedb.motion import Motion, Skeleton
 
 __all__ = ["read_gltf", "read_gltf_rig", "write_glb"]
@@ -168,21 +168,9 @@ def write_glb(path, motion: Motion, *, mesh: bool = True) -> None:
     gl.buffers.append(g.Buffer(byteLength=len(blob)))
     gl.set_binary_blob(bytes(blob))
 
-    path = os.fspath(path)
-    tmp = f"{path}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    try:
-        data = b"".join(gl.save_to_bytes())
-        with open(tmp, "xb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise InputFileError(path, f"cannot write: {exc.strerror or exc}") from None
-        raise
+    data = b"".join(gl.save_to_bytes())
+    with atomic_open(path, "wb") as f:
+        f.write(data)
 
 
 # --- reading -------------------------------------------------------------------------------------

@@ -57,11 +57,11 @@ class SynthResult:
     def write_provenance(self, path: str | os.PathLike) -> None:
         """Write the provenance as strict JSON (a NaN or inf distance is an error, never ``NaN`` in the file)."""
         from gesturedb.errors import InputFileError
+        from gesturedb.io.atomic import write_text
 
         try:
             text = json.dumps(self.provenance(), indent=1, allow_nan=False)
         except ValueError as exc:
             raise InputFileError(path, f"provenance: expected finite numbers ({exc}); the database's features "
                                        "are not finite") from None
-        with open(path, "w") as f:
-            f.write(text)
+        write_text(path, text)
