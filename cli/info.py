@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 
 def add_parser(sub) -> None:
@@ -41,6 +42,7 @@ def summary(db) -> dict:
         "keywords": {w: {"occurrences": len(sd), "seconds": round(sd.n_frames / db.fps, 3)}
                      for w, sd in subdatabases(db).items()},
         "config": db.config,
+        "shards": [{"file": e["file"], "frames": list(e["frames"])} for e in db.shard_entries],
     }
 
 
@@ -68,6 +70,9 @@ def run(args) -> int:
     for r in s["recordings"]:
         print(f"    {r['name']:<32} {r['duration_s']:8.2f} s  {r['frames']:7d} frames  (source {r['source_fps']:g} fps"
               f"{', mirrored' if r['mirrored'] else ''})")
+    if s["shards"]:
+        print(f"  shards       {len(s['shards'])} file(s) beside this index: " + ", ".join(
+            f"{os.path.basename(e['file'])} (frames {e['frames'][0]}..{e['frames'][1]})" for e in s["shards"]))
     print(f"  chunks       {s['chunks']['count']} x {s['chunks']['frames']} frames")
     print(f"  clips        {s['clips']['count']} word-gap clips, mean {s['clips']['mean_s']:.2f} s;  {s['words']} words")
     print(f"  skeleton     {s['skeleton']['joints']} joints, root {s['skeleton']['root']}")

@@ -22,6 +22,7 @@ COMMANDS = {
     "retarget": "retarget",
     "refiner": "refiner",
     "graph": "graph",
+    "shard": "shard",
 }
 
 

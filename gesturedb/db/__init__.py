@@ -8,5 +8,7 @@
 ``edit``           saved masks and control features of an existing file
 ``keywords``       keyword sub-databases (stored in the file)
 ``export``         a keyword sub-database as a database file of its own
+``shardfiles``     ``gesturedb shard``: shard files of whole recordings + an index file
+``shards``         rank-sum search over shards resident on Dask workers
 =================  ==========================================================
 """

@@ -148,6 +148,14 @@ class Database:
         """role -> joint name used for the features."""
         return schema.read_json_attr(self._h5, "feature_joints", {})
 
+    @functools.cached_property
+    def shard_entries(self) -> list[dict]:
+        """The shard files of an index file (``gesturedb shard``), ``[]`` for a single-file database.
+
+        Each entry: ``{"file": absolute path, "frames": (f0, f1), "token": str}``, in frame order.
+        """
+        return schema.shard_entries(self._h5, self.path)
+
     @property
     def gesturedb_version(self) -> str:
         return str(self._h5.attrs.get("gesturedb_version", "?"))

@@ -124,6 +124,16 @@ CONTROLS_GROUP = "controls"  # controls/<name>: float32 (F,), attrs unit, doc
 MASKS_GROUP = "masks"  # masks/<name>: uint64 (B,), attrs definition, thresholds (JSON)
 SUBDB_GROUP = "subdatabases"  # subdatabases/<name>/{start,length,recording} + attrs definition
 
+#: A database split over several files (``gesturedb shard``): the per-frame arrays below live in shard
+#: files of whole recordings; the index file holds everything else and these arrays as HDF5 virtual
+#: datasets over the shards, so the index reads exactly like the single file (gesturedb/db/shardfiles.py).
+SHARDED_FIELDS = ("frames/pose_features", "frames/audio_features", "frames/audio_deltas", "frames/joint_positions",
+                  "frames/local_rotations", "frames/root_positions", "frames/recording")
+#: root attribute of an index file: JSON list of {"file": name beside the index, "frames": [f0, f1], "token": str}
+SHARDS_ATTR = "shards"
+#: root attribute of a shard file: JSON {"token", "part" (1-based), "parts", "frames": [f0, f1], "index": name}
+SHARD_OF_ATTR = "shard_of"
+
 #: Root attributes (name -> meaning). `config` and `feature_joints` are JSON.
 ROOT_ATTRS = {
     "schema_version": "int: SCHEMA_VERSION of the writer",
@@ -132,6 +142,8 @@ ROOT_ATTRS = {
     "n_frames": "int: F",
     "config": "JSON: the complete build configuration",
     "feature_joints": "JSON: role -> joint name used for the features",
+    SHARDS_ATTR: "JSON (index files only): the shard files holding the per-frame arrays, in frame order",
+    SHARD_OF_ATTR: "JSON (shard files only): which part of which index the file is",
     "skeleton/length_unit_m": "float (attribute of the skeleton group): metres per length unit of the source files",
 }
 
@@ -226,6 +238,11 @@ def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: 
     :func:`gesturedb.db.graph.add_graph`.
     """
     name = os.fspath(filename) if filename is not None else h5.filename
+    if SHARD_OF_ATTR in h5.attrs:
+        of = _json_or(h5, SHARD_OF_ATTR, {})
+        of = of if isinstance(of, dict) else {}
+        raise SchemaError(name, f"{SHARD_OF_ATTR}: this is part {of.get('part', '?')} of {of.get('parts', '?')} of a "
+                                f"sharded database, not a database; open its index file {of.get('index', '?')!r}")
     if "schema_version" not in h5.attrs:
         raise SchemaError(name, "attribute 'schema_version' is missing: not a gesturedb database")
     raw = h5.attrs["schema_version"]
@@ -277,6 +294,8 @@ def check_file(h5, filename: str | os.PathLike | None = None) -> None:
         raise SchemaError(name, problem)
 
     check_version(h5, name)
+    if SHARDS_ATTR in h5.attrs:
+        check_shards(h5, name)
     try:
         fps = float(h5.attrs.get("fps"))
     except (TypeError, ValueError):
@@ -397,6 +416,71 @@ def check_file(h5, filename: str | os.PathLike | None = None) -> None:
                 fail(f"{group}/{k}: expected shape {want_shape} of kind {kind!r}, got {ds.dtype} {ds.shape}")
 
 
+def shard_entries(h5, filename: str | os.PathLike | None = None) -> list[dict]:
+    """The shard list of an index file (``[]`` for a single-file database), validated in form.
+
+    Returns
+    -------
+    list of dict
+        ``{"file": absolute path, "frames": (f0, f1), "token": str}`` in frame order.
+    """
+    if SHARDS_ATTR not in h5.attrs:
+        return []
+    name = os.fspath(filename) if filename is not None else h5.filename
+    raw = _json_or(h5, SHARDS_ATTR, None)
+    folder = os.path.dirname(os.path.abspath(name))
+    out, f_end = [], 0
+    if not isinstance(raw, list) or not raw:
+        raise SchemaError(name, f"{SHARDS_ATTR}: expected a non-empty JSON list of shard files, got {str(raw)[:60]!r}")
+    for i, e in enumerate(raw):
+        ok = (isinstance(e, dict) and isinstance(e.get("file"), str) and isinstance(e.get("token"), str)
+              and isinstance(e.get("frames"), list) and len(e["frames"]) == 2
+              and all(isinstance(v, int) for v in e["frames"]))
+        if not ok or os.path.basename(e["file"]) != e["file"] or e["frames"][0] != f_end or e["frames"][1] <= f_end:
+            raise SchemaError(name, f"{SHARDS_ATTR}[{i}]: expected {{'file': a name beside the index, 'frames': "
+                                    f"[{f_end}, f1 > {f_end}], 'token': str}}, got {str(e)[:80]!r}")
+        f_end = e["frames"][1]
+        out.append({"file": os.path.join(folder, e["file"]), "frames": tuple(e["frames"]), "token": e["token"]})
+    return out
+
+
+def check_shards(h5, filename: str | os.PathLike | None = None) -> None:
+    """An index file's shards exist, are the parts it was written with, and cover its frames.
+
+    A missing shard would otherwise read as fill values (HDF5 virtual datasets do not fail),
+    so every shard file is opened here and its ``shard_of`` attribute compared with the index.
+    """
+    h5py = _h5py()
+    name = os.fspath(filename) if filename is not None else h5.filename
+    entries = shard_entries(h5, name)
+    n_frames = int(h5.attrs.get("n_frames", -1))
+    if entries[-1]["frames"][1] != n_frames:
+        raise SchemaError(name, f"{SHARDS_ATTR}: expected shards covering frames 0..{n_frames}, got 0.."
+                                f"{entries[-1]['frames'][1]}")
+    for i, e in enumerate(entries):
+        where = f"{SHARDS_ATTR}[{i}] ({os.path.basename(e['file'])})"
+        if not os.path.isfile(e["file"]):
+            raise SchemaError(name, f"{where}: shard file {e['file']} is missing (an index needs every shard "
+                                    f"beside it)")
+        try:
+            with h5py.File(e["file"], "r") as sh:
+                of = _json_or(sh, SHARD_OF_ATTR, None)
+                of = of if isinstance(of, dict) else None
+                shapes = {p: sh[p].shape for p in SHARDED_FIELDS if p in sh}
+        except OSError as exc:
+            raise SchemaError(name, f"{where}: cannot read the shard file {e['file']} ({exc})") from None
+        want = {"token": e["token"], "part": i + 1, "parts": len(entries), "frames": list(e["frames"])}
+        got = {k: (of or {}).get(k) for k in want}
+        if got != want:
+            raise SchemaError(name, f"{where}: expected the shard {want} of this index, got {got} in "
+                                    f"{e['file']} (a shard of another sharding; shard the database again)")
+        n = e["frames"][1] - e["frames"][0]
+        for p in SHARDED_FIELDS:
+            if p in h5 and (p not in shapes or shapes[p][:1] != (n,) or shapes[p][1:] != h5[p].shape[1:]):
+                raise SchemaError(name, f"{where}: {p}: expected shape {(n,) + h5[p].shape[1:]}, got "
+                                        f"{shapes.get(p, 'no dataset')}")
+
+
 #: names of saved masks: an identifier the mask language can refer to, at most 64 characters
 #: (no '/', which HDF5 would turn into nested groups, no '.', no spaces)
 MASK_NAME_PATTERN = r"[A-Za-z_][A-Za-z0-9_]{0,63}"
@@ -417,6 +501,14 @@ def check_name(kind: str, name, pattern: str) -> str:
 
 def write_json_attr(obj, name: str, value: Any) -> None:
     obj.attrs[name] = json.dumps(value, sort_keys=True)
+
+
+def _json_or(obj, name: str, bad: Any) -> Any:
+    """A JSON attribute, or ``bad`` when it is not valid JSON (the caller's check names the field)."""
+    try:
+        return read_json_attr(obj, name, bad)
+    except (TypeError, ValueError):
+        return bad
 
 
 def read_json_attr(obj, name: str, default: Any = None) -> Any:

@@ -36,6 +36,15 @@ def _make_shard(pose, audio, seg_start, seg_len, projection):
     return _Shard(pose, audio, seg_start, seg_len, projection)
 
 
+def _load_shard(path, seg_start, seg_len, projection):
+    """On the worker: read a shard file's features (``gesturedb shard``) and keep them resident."""
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        pose, audio = h5["frames/pose_features"][()], h5["frames/audio_features"][()]
+    return _Shard(pose, audio, seg_start, seg_len, projection)
+
+
 def _shard_table(shard, prev, q, preselect, allowed_bits, exclude, threads):
     allowed = None if allowed_bits is None else _pack(allowed_bits)
     return search.preselect_table(shard.pose, shard.audio, shard.seg_start, shard.seg_len, prev, q,
@@ -102,6 +111,56 @@ class ShardedSearch:
             args = [client.scatter(x, workers=w) for x in
                     (pose[f0:f1], audio[f0:f1], seg_start[a:b] - f0, seg_len[a:b])]
             self.shards.append(client.submit(_make_shard, *args, projection, workers=w, pure=False))
+
+    @classmethod
+    def from_shard_files(cls, entries, seg_start, seg_len, *, n_frames: int, Dp: int, Da: int, client,
+                         projection: bool = True, threads: int = 1) -> "ShardedSearch":
+        """One shard per shard file of an index (``gesturedb shard``), each read by its worker.
+
+        The client never holds the feature matrices: each worker opens its shard file,
+        so the files must be reachable at the same paths from the workers (a shared or
+        copied folder).
+
+        Parameters
+        ----------
+        entries : list of dict
+            :attr:`gesturedb.db.database.Database.shard_entries` (``file``, ``frames``).
+        seg_start, seg_len : ndarray of int64, shape (M,)
+            Segments in frame order; each must lie inside one shard (true of every
+            segment kind: shards hold whole recordings).
+        n_frames, Dp, Da : int
+            The database's frame count and feature sizes.
+        """
+        seg_start = np.ascontiguousarray(seg_start, dtype=np.int64)
+        seg_len = np.ascontiguousarray(seg_len, dtype=np.int64)
+        f0s = np.array([e["frames"][0] for e in entries], dtype=np.int64)
+        f1s = np.array([e["frames"][1] for e in entries], dtype=np.int64)
+        owner = np.searchsorted(f0s, seg_start, side="right") - 1
+        bad = np.flatnonzero((owner < 0) | (seg_start + seg_len > f1s[np.maximum(owner, 0)]))
+        if bad.size:
+            m = int(bad[0])
+            raise ParameterError(f"segment {m} (frames {seg_start[m]}..{seg_start[m] + seg_len[m]}): expected it "
+                                 f"inside one shard file, but it crosses a shard boundary")
+        if (np.diff(owner) < 0).any():
+            raise ParameterError("seg_start: expected segments in frame order for a sharded search")
+        self = cls.__new__(cls)
+        self.client = client
+        self.F, self.Dp, self.Da = int(n_frames), int(Dp), int(Da)
+        self.seg_start, self.seg_len = seg_start, seg_len
+        self.threads = int(threads)
+        workers = sorted(client.scheduler_info()["workers"])
+        self.seg_ranges, self.frame_ranges, self.shards = [], [], []
+        for i, e in enumerate(entries):
+            a, b = (int(v) for v in np.searchsorted(owner, [i, i + 1], side="left"))
+            if b == a:
+                continue  # a shard without segments of this kind takes no part in the search
+            f0 = int(e["frames"][0])
+            self.seg_ranges.append((a, b))
+            self.frame_ranges.append((f0, int(e["frames"][1])))
+            w = [workers[len(self.shards) % len(workers)]] if workers else None
+            self.shards.append(client.submit(_load_shard, e["file"], seg_start[a:b] - f0, seg_len[a:b], projection,
+                                             workers=w, pure=False))
+        return self
 
     def search(self, query_audio, init_pose, *, step=8, k=1, preselect="pose", allowed=None,
                exclude=None) -> search.SearchResult:

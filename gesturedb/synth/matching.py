@@ -69,7 +69,9 @@ class Searcher:
         (:class:`gesturedb.db.shards.ShardedSearch`, built at the first
         search): exactly the same output as the search in this process.
     parts : int
-        Number of shards with ``client``.
+        Number of shards with ``client``. A database opened from an index file
+        (``gesturedb shard``) is searched over its own shard files instead, each
+        read by a worker (:meth:`ShardedSearch.from_shard_files`).
     """
 
     def __init__(self, db, *, segments: str = "chunks", half_precision: bool = False,
@@ -269,8 +271,14 @@ class Searcher:
                 if self._sharded is None:
                     from gesturedb.db.shards import ShardedSearch
 
-                    self._sharded = ShardedSearch(db.pose_features, db.audio_features, self.seg_start,
-                                                  self.seg_len, client=self._client, parts=self._parts)
+                    if db.shard_entries:  # an index file: each worker reads its own shard file
+                        self._sharded = ShardedSearch.from_shard_files(
+                            db.shard_entries, self.seg_start, self.seg_len, n_frames=db.n_frames,
+                            Dp=db.h5["frames/pose_features"].shape[1], Da=db.h5["frames/audio_features"].shape[1],
+                            client=self._client)
+                    else:
+                        self._sharded = ShardedSearch(db.pose_features, db.audio_features, self.seg_start,
+                                                      self.seg_len, client=self._client, parts=self._parts)
                 return self._sharded.search(q, prev, step=step, k=k, preselect=preselect,
                                             allowed=allowed_now, exclude=excl)
             return rank_sum_search(

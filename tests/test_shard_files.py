@@ -1,0 +1,201 @@
+"""`gesturedb shard`: shard files of whole recordings + an index file that reads like the database."""
+from __future__ import annotations
+
+import os
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+import gesturedb
+from gesturedb.db import schema
+from gesturedb.db import shardfiles
+from gesturedb.db.shardfiles import plan_shards, shard_database
+from gesturedb.errors import ParameterError, SchemaError
+
+STEM = "2_scott_0_1_1"
+
+
+@pytest.fixture(scope="module")
+def four_recordings(scott_dir, tmp_path_factory) -> str:
+    """The real take under two names, mirrored: 4 recordings (enough for 2 and 3 shards)."""
+    src = tmp_path_factory.mktemp("rec")
+    for name in ("2_scott_0_1_1", "2_scott_0_9_9"):
+        for ext in (".npz", ".wav", ".TextGrid"):
+            os.symlink(scott_dir / f"{STEM}{ext}", src / f"{name}{ext}")
+    out = tmp_path_factory.mktemp("db") / "four.h5"
+    gesturedb.build([src], out, mirror=True).close()
+    return str(out)
+
+
+@pytest.fixture()
+def db_copy(four_recordings, tmp_path) -> str:
+    p = tmp_path / "four.h5"
+    shutil.copyfile(four_recordings, p)
+    return str(p)
+
+
+def _datasets(h5) -> dict:
+    out = {}
+    h5.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def _same_file_contents(a: str, b: str) -> None:
+    with h5py.File(a, "r") as x, h5py.File(b, "r") as y:
+        dx, dy = _datasets(x), _datasets(y)
+        assert sorted(dx) == sorted(dy)
+        for k in dx:
+            assert np.array_equal(dx[k], dy[k]), k
+        assert {k: v for k, v in x.attrs.items()} == {k: v for k, v in y.attrs.items()
+                                                       if k != schema.SHARDS_ATTR}
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7])
+def test_plan_covers_recordings_in_order_and_balances_frames(n):
+    rng = np.random.default_rng(n)
+    for _ in range(50):
+        frames = rng.integers(1, 1000, size=int(rng.integers(n, 30)))
+        ranges = plan_shards(frames, n)
+        assert len(ranges) == n and ranges[0][0] == 0 and ranges[-1][1] == len(frames)
+        assert all(a < b for a, b in ranges) and all(ranges[i][1] == ranges[i + 1][0] for i in range(n - 1))
+        sizes = [frames[a:b].sum() for a, b in ranges]
+        # each cut is the recording boundary nearest its ideal place (when there is room for the rest)
+        assert max(sizes) <= frames.sum() / n + 2 * frames.max() or len(frames) < 2 * n
+
+
+def test_plan_refuses_more_parts_than_recordings():
+    with pytest.raises(ParameterError, match="parts: expected an int from 1 to 2 .*whole recordings.*got 3"):
+        plan_shards([10, 20], 3)
+
+
+@pytest.mark.parametrize("parts", [1, 3])
+def test_index_reads_exactly_like_the_database(db_copy, parts):
+    rep = shard_database(db_copy, parts)
+    assert rep.index == db_copy[:-3] + ".index.h5" and len(rep.shards) == parts
+    _same_file_contents(db_copy, rep.index)
+    with gesturedb.open(db_copy) as a, gesturedb.open(rep.index) as b:
+        starts = [r.start_frame for r in a.recordings] + [a.n_frames]
+        for (f0, f1), (r0, r1) in zip(rep.frames, rep.recordings):
+            assert (f0, f1) == (starts[r0], starts[r1])  # whole recordings
+        assert [e["frames"] for e in b.shard_entries] == [tuple(f) for f in rep.frames]
+        with h5py.File(rep.index, "r") as h5:
+            assert all(h5[p].is_virtual for p in schema.SHARDED_FIELDS)
+    # the frames live in the shards: the index is small
+    assert os.path.getsize(rep.index) < 0.1 * os.path.getsize(db_copy)
+    assert sorted(os.listdir(os.path.dirname(db_copy))) == sorted(
+        ["four.h5", os.path.basename(rep.index)] + [os.path.basename(s) for s in rep.shards]
+        + [f".{os.path.basename(rep.index)}.lock"])
+
+
+def test_synth_on_the_index_writes_the_same_bvh(db_copy, scott_dir, tmp_path):
+    from gesturedb.cli.main import main
+
+    rep = shard_database(db_copy, 2)
+    speech = str(scott_dir / "inputs/2_scott_0_3_3.wav")
+    a, b = tmp_path / "a.bvh", tmp_path / "b.bvh"
+    assert main(["synth", db_copy, "--audio", speech, "-o", str(a)]) == 0
+    assert main(["synth", rep.index, "--audio", speech, "-o", str(b)]) == 0
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_workers_read_their_own_shard_files(db_copy, scott_dir, dask_client, monkeypatch):
+    from gesturedb.db.shards import ShardedSearch
+    from gesturedb.synth import Searcher
+
+    rep = shard_database(db_copy, 3)
+    speech = scott_dir / "inputs/2_scott_0_2_2.wav"
+    built = []
+    real = ShardedSearch.from_shard_files.__func__
+    monkeypatch.setattr(ShardedSearch, "from_shard_files",
+                        classmethod(lambda cls, *a, **k: built.append(a[0]) or real(cls, *a, **k)))
+    with gesturedb.open(db_copy) as one, gesturedb.open(rep.index) as idx:
+        want = Searcher(one).synthesize(speech, k=2, smooth=False)
+        s = Searcher(idx, client=dask_client)
+        got = s.synthesize(speech, k=2, smooth=False)
+        assert len(built) == 1 and [e["file"] for e in built[0]] == rep.shards
+        # what each worker holds is its shard file's rows (it was given the file name, not the arrays)
+        assert [tuple(f) for f in s._sharded.frame_ranges] == [tuple(f) for f in rep.frames]
+        for shard, path in zip(dask_client.gather(s._sharded.shards), rep.shards):
+            with h5py.File(path, "r") as h5:
+                np.testing.assert_array_equal(shard.pose, h5["frames/pose_features"][()])
+        s._sharded.close()
+    assert want.steps == got.steps
+    np.testing.assert_array_equal(want.positions, got.positions)
+
+
+def test_the_set_moves_together(db_copy, tmp_path):
+    rep = shard_database(db_copy, 2)
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    for f in [rep.index, *rep.shards]:
+        shutil.move(f, moved / os.path.basename(f))
+    with gesturedb.open(db_copy) as a, gesturedb.open(moved / os.path.basename(rep.index)) as b:
+        np.testing.assert_array_equal(a.local_rotations, b.local_rotations)
+
+
+def test_a_missing_or_foreign_shard_is_a_clear_error(db_copy, tmp_path):
+    rep = shard_database(db_copy, 2)
+    with pytest.raises(SchemaError, match=r"this is part 2 of 2 of a sharded database.*four.index.h5"):
+        gesturedb.open(rep.shards[1])
+    # a shard of another sharding (same place in the set, other token) is refused, not read
+    other = shard_database(db_copy, 2, index=str(tmp_path / "other.h5"))
+    shutil.copyfile(other.shards[0], rep.shards[0])
+    with pytest.raises(SchemaError, match=r"shards\[0\] .*expected the shard .*another sharding"):
+        gesturedb.open(rep.index)
+    os.unlink(rep.shards[0])
+    with pytest.raises(SchemaError) as err:
+        gesturedb.open(rep.index)
+    assert str(err.value).startswith(f"{rep.index}: shards[0]") and "is missing" in str(err.value)
+
+
+def test_cli_shard_and_one_line_errors(db_copy, capsys):
+    from gesturedb.cli.main import main
+
+    assert main(["shard", db_copy, "--parts", "2", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "index of 2 shard(s)" in out and "recordings 0..1" in out and "recordings 2..3" in out
+    assert main(["info", db_copy[:-3] + ".index.h5"]) == 0
+    assert "shards       2 file(s) beside this index" in capsys.readouterr().out
+    assert main(["shard", db_copy, "--parts", "5", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "parts: expected an int from 1 to 4" in err and "got 5" in err
+
+
+def test_resharding_in_place_replaces_the_old_shards(db_copy):
+    first = shard_database(db_copy, 3, index=db_copy)  # the database itself becomes an index
+    assert first.index == db_copy and all(os.path.isfile(s) for s in first.shards)
+    second = shard_database(db_copy, 2, index=db_copy)
+    assert sorted(second.removed) == sorted(first.shards)
+    assert not any(os.path.exists(s) for s in first.shards)
+    with gesturedb.open(db_copy) as db:
+        assert [e["file"] for e in db.shard_entries] == second.shards
+
+
+def test_an_interrupted_sharding_leaves_the_previous_set(db_copy, monkeypatch):
+    first = shard_database(db_copy, 2)
+    before = sorted(os.listdir(os.path.dirname(db_copy)))
+    index_bytes = open(first.index, "rb").read()
+
+    def stop(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(shardfiles, "_fill_index", stop)
+    with pytest.raises(KeyboardInterrupt):
+        shard_database(db_copy, 3)
+    assert sorted(os.listdir(os.path.dirname(db_copy))) == before
+    assert open(first.index, "rb").read() == index_bytes
+    with gesturedb.open(first.index) as db:
+        assert len(db.shard_entries) == 2
+
+
+def test_edits_keep_the_index_an_index(db_copy):
+    from gesturedb.cli.main import main
+
+    rep = shard_database(db_copy, 2)
+    assert main(["masks", rep.index, "add", "calm", "left_wrist_speed < p50"]) == 0
+    assert main(["keywords", rep.index, "add", "time"]) == 0
+    with gesturedb.open(rep.index) as db, h5py.File(rep.index, "r") as h5:
+        assert "calm" in db.masks and len(db.shard_entries) == 2
+        assert all(h5[p].is_virtual for p in schema.SHARDED_FIELDS)
