@@ -147,6 +147,65 @@ def test_planted_feet_stay_planted(scott_db, mirrored_db, which):
     assert speeds[True] < 0.12, speeds
 
 
+def _drifting_foot(T=90, v=0.01):
+    """An ankle that creeps along x at v m per frame (the body moving over a planted foot), planted throughout."""
+    free = np.zeros((T, 3))
+    free[:, 0] = v * np.arange(T)
+    free[:, 1] = 0.08
+    return free, np.ones(T, dtype=bool)
+
+
+def test_a_planted_ankle_holds_its_anchor_then_steps_without_a_jump():
+    from gesturedb.synth import contacts as C
+
+    free, planted = _drifting_foot()
+    target, weight = C._ankle_targets(free, planted)
+    assert weight.all()
+    step = np.linalg.norm(np.diff(target[:, [0, 2]], axis=0), axis=-1)
+    held = step < 1e-12
+    # most frames hold still; the anchor never lags the motion by more than the drift bound plus one frame's creep
+    assert held.mean() > 0.6
+    assert np.linalg.norm((target - free)[:, [0, 2]], axis=-1).max() <= C.MAX_ANCHOR_DRIFT_M + 0.01 + 1e-9
+    # steps: no frame moves more than the step's distance spread over its frames (a sampled smoothstep peaks
+    # at about 1.5x the mean)
+    dist = C.MAX_ANCHOR_DRIFT_M + 0.01 * C.STEP_FRAMES + 0.01
+    assert step.max() <= 1.6 * dist / C.STEP_FRAMES, step.max()
+    # and a stepping ankle lifts (at most STEP_HEIGHT_M) while a held one stays at the motion's height
+    lift = target[:, 1] - free[:, 1]
+    assert lift.max() == pytest.approx(C.STEP_HEIGHT_M, rel=0.1)
+    assert lift.min() >= -1e-12
+    assert not np.any(held & (lift[1:] > 0) & (lift[:-1] > 0))  # a lifted ankle is always moving
+
+
+def test_a_released_ankle_eases_back_to_the_motion():
+    from gesturedb.synth import contacts as C
+
+    free, planted = _drifting_foot(T=40)
+    planted[10:] = False
+    target, weight = C._ankle_targets(free, planted)
+    np.testing.assert_allclose(target[:10, 0], free[0, 0])           # held where the contact began
+    assert weight[10:10 + C.RELEASE_FRAMES].all() and not weight[10 + C.RELEASE_FRAMES + 1:].any()
+    gap = np.abs(target[10:10 + C.RELEASE_FRAMES, 0] - free[10:10 + C.RELEASE_FRAMES, 0])
+    assert np.all(np.diff(gap) < 0)                                   # the lag shrinks every frame...
+    np.testing.assert_allclose(target[10 + C.RELEASE_FRAMES + 1:], free[10 + C.RELEASE_FRAMES + 1:])  # ...to none
+
+
+def test_holding_feet_adds_no_ankle_jump_on_real_speech(scott_db, scott_dir):
+    """On real speech the leg IK (holds, steps, releases, re-plants) makes no ankle move further in one
+    frame than the motion without it already does (a re-plant during a release once jumped 0.22 m)."""
+    audio, sr = sf.read(str(scott_dir / "inputs" / "2_scott_0_2_2.wav"), dtype="float32")
+    res = Searcher(scott_db).synthesize(audio, sr=sr)
+    feet = foot_joints(scott_db.skeleton)
+    starts = np.r_[0, res.boundaries]
+    steps = {}
+    for lock in (False, True):
+        m = assemble_frames(scott_db, res.source_frames, starts, lock_feet=lock)
+        steps[lock] = np.linalg.norm(np.diff(m.positions[:, feet[:, 0]], axis=0), axis=-1)
+    np.testing.assert_allclose(m.positions, res.positions)  # the synthesis is this assembly
+    assert steps[True].max() <= steps[False].max() + 0.005, (steps[True].max(), steps[False].max())
+    assert np.percentile(steps[True], 99) <= 1.1 * np.percentile(steps[False], 99)
+
+
 def test_leg_ik_only_touches_the_legs(scott_db):
     db = scott_db
     src = np.arange(100, 260)

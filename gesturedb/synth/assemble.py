@@ -24,12 +24,17 @@ its recording was.
 Foot contacts (:mod:`gesturedb.synth.contacts`). A foot (ankle + toe) is planted
 in a source frame when its lowest point is within ``CONTACT_HEIGHT_M`` of the
 floor (the lowest foot point of all pieces) and its ankle moves horizontally
-slower than ``CONTACT_SPEED_M_S``; contacts are computed on every piece's own
+slower than ``CONTACT_SPEED_M_S`` (or, nearly still, within ``RESTING_HEIGHT_M``:
+a foot on its heel or toe); contacts are computed on every piece's own
 forward kinematics, so mirrored recordings and time-warped clips are handled
 the same way (or given as ``Piece.contacts``). After blending, smoothing and the
 pulls, a two-bone leg IK (hip, knee) holds each planted ankle where its contact
-began, and the ankle keeps its world orientation; the root is not moved, so the
-cross-fade's slide is absorbed by the legs instead of the feet.
+began, and the ankle keeps its world orientation; when the motion carries a
+planted foot more than ``MAX_ANCHOR_DRIFT_M`` away, the foot takes a short
+lifted step there. The root is not moved, so the cross-fade's slide is absorbed
+by the legs instead of the feet (moving the root against the slip, which an
+earlier version did, doubled the root's jerk and raised the pelvis speed by a
+quarter on the four BEAT2 inputs).
 
 Seams. After each piece boundary a short cross-fade (``blend_frames``, default
 4) slerps (rotations) and lerps (root) from the previous piece's natural
@@ -49,7 +54,7 @@ import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.motion import Motion
-from gesturedb.synth.contacts import foot_contacts, foot_joints, pin_root, plant_feet
+from gesturedb.synth.contacts import foot_contacts, foot_joints, plant_feet
 
 __all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "foot_contacts", "foot_joints",
            "placed_frames", "savgol_smooth"]
@@ -287,7 +292,6 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
     if cont:
         rot, root = _pull(rot, root, fps)
         if feet.shape[0]:
-            root = pin_root(skeleton, fps, rot, root, contacts)
             rot = plant_feet(skeleton, fps, rot, root, contacts)
     return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
 

@@ -14,7 +14,7 @@ from gesturedb import rotations as R
 from gesturedb.motion import Motion
 
 __all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "foot_contacts", "foot_joints", "leg_joints",
-           "plant_feet", "pin_root", "two_bone_ik"]
+           "plant_feet", "two_bone_ik"]
 
 #: A foot's lowest point within this height (m) of the floor can be planted.
 CONTACT_HEIGHT_M = 0.05
@@ -22,8 +22,17 @@ CONTACT_HEIGHT_M = 0.05
 CONTACT_SPEED_M_S = 0.3
 #: Frames over which a released foot returns from its anchor to where the motion puts it.
 RELEASE_FRAMES = 6
-#: A contact whose anchor drifts further than this (m, horizontally) from the foot is re-anchored.
-MAX_ANCHOR_DRIFT_M = 0.3
+#: A foot that is nearly still (ankle slower than this, m/s) is planted up to ``RESTING_HEIGHT_M`` above the
+#: floor: a foot resting on its heel or toe has its lowest joint a few centimetres higher than one flat on the
+#: floor, and left unplanted it slides with every seam blend around it.
+RESTING_SPEED_M_S = 0.1
+RESTING_HEIGHT_M = 0.10
+#: A planted foot whose anchor is further than this (m, horizontally) from where the motion puts the foot
+#: takes a step: the leg would otherwise stretch straight (and its knee snap) to hold it.
+MAX_ANCHOR_DRIFT_M = 0.2
+#: Frames of such a step, and how high (m) the ankle lifts at its middle: a short arc, not a slide.
+STEP_FRAMES = 10
+STEP_HEIGHT_M = 0.05
 
 
 def foot_joints(skeleton) -> np.ndarray:
@@ -79,58 +88,8 @@ def foot_contacts(positions: np.ndarray, *, fps: float, feet: np.ndarray, floor_
         speed[1:-1] = 0.5 * (d[1:] + d[:-1])
     else:
         speed = np.zeros((T, 2))
-    return (low <= floor_y + height_m) & (speed < speed_m_s)
-
-
-def pin_root(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, contacts: np.ndarray, *,
-             leak_s: float = 6.0, max_step_m_s: float = 0.15) -> np.ndarray:
-    """Move the root horizontally so that planted ankles do not slide.
-
-    Parameters
-    ----------
-    skeleton : gesturedb.motion.Skeleton
-    fps : float
-    rotations : ndarray [shape=(T, J, 4)]
-    root : ndarray [shape=(T, 3)], metres
-    contacts : ndarray [shape=(T, 2)], bool
-        Left, right planted.
-    leak_s : float
-        Time constant (s) with which the accumulated correction decays back to
-        zero (so the speaker does not wander; the decay is a slow, even slide of
-        at most ``correction / (leak_s * fps)`` per frame).
-    max_step_m_s : float
-        Largest correction speed (m/s): a faster slide (a seam) is left to the leg IK
-        of :func:`plant_feet` rather than turned into a jump of the whole body.
-
-    Returns
-    -------
-    ndarray [shape=(T, 3)], metres
-        Root with a horizontal correction ``c[t] = (1 - k) c[t-1] - d[t]`` where
-        ``d[t]`` is the mean horizontal step of the planted ankles (planted in both
-        t-1 and t) and 0 when no foot is planted: a step of a planted foot becomes
-        a step of the body the other way, as when the capture stands on that foot.
-    """
-    feet = foot_joints(skeleton)
-    T = root.shape[0]
-    if feet.shape[0] == 0 or T < 2 or not contacts.any():
-        return root
-    pos = Motion(skeleton=skeleton, fps=fps, rotations=rotations, root_positions=root).positions
-    ank = pos[:, feet[:, 0]][:, :, [0, 2]]  # (T, 2, 2)
-    step = np.diff(ank, axis=0)  # (T-1, 2, 2)
-    both = (contacts[1:] & contacts[:-1]).astype(np.float64)  # (T-1, 2)
-    n = both.sum(axis=1)
-    d = (step * both[..., None]).sum(axis=1) / np.maximum(n, 1)[:, None]
-    mag = np.linalg.norm(d, axis=-1, keepdims=True)
-    lim = max_step_m_s / fps
-    d = d * np.minimum(1.0, lim / np.maximum(mag, 1e-12))
-    k = 1.0 / (leak_s * fps)
-    c = np.zeros((T, 2))
-    for t in range(1, T):
-        c[t] = (1 - k) * c[t - 1] - d[t - 1]
-    out = root.copy()
-    out[:, 0] += c[:, 0]
-    out[:, 2] += c[:, 1]
-    return out
+    return (((low <= floor_y + height_m) & (speed < speed_m_s))
+            | ((low <= floor_y + RESTING_HEIGHT_M) & (speed < RESTING_SPEED_M_S)))
 
 
 def leg_joints(skeleton) -> np.ndarray:
@@ -212,6 +171,61 @@ def two_bone_ik(rotations: np.ndarray, global_rot: np.ndarray, positions: np.nda
     return out
 
 
+def _smoothstep(x):
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def _ankle_targets(free: np.ndarray, planted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where one ankle should be (T, 3) and whether the IK applies (T,) bool, for :func:`plant_feet`.
+
+    ``free`` is the ankle where the motion puts it, ``planted`` its contacts. Horizontal
+    targets only, except during a step, which also lifts the ankle.
+    """
+    T = free.shape[0]
+    target = free.copy()
+    weight = np.zeros(T, dtype=bool)
+    anchor = None
+    since_release = RELEASE_FRAMES + 1
+    t = 0
+    while t < T:
+        if planted[t]:
+            if anchor is None:
+                anchor = free[t].copy()
+            elif since_release > 0:
+                # planted again while easing back from the last anchor: the new contact starts where the
+                # ankle is now (going back to the old anchor would be a jump)
+                anchor = target[t - 1].copy()
+            if np.linalg.norm((free[t] - anchor)[[0, 2]]) > MAX_ANCHOR_DRIFT_M:
+                # a step: from the anchor to where the motion has the foot at the step's end
+                end = min(t + STEP_FRAMES, T - 1)
+                n = end - t + 1
+                u = np.arange(1, n + 1) / n
+                w = _smoothstep(u)[:, None]
+                start = anchor[[0, 2]]
+                target[t:end + 1, 0] = (1 - w[:, 0]) * start[0] + w[:, 0] * free[end, 0]
+                target[t:end + 1, 2] = (1 - w[:, 0]) * start[1] + w[:, 0] * free[end, 2]
+                target[t:end + 1, 1] = free[t:end + 1, 1] + STEP_HEIGHT_M * np.sin(np.pi * u)
+                weight[t:end + 1] = True
+                anchor = free[end].copy()
+                since_release = 0 if planted[end] else 1
+                t = end + 1
+                continue
+            target[t, [0, 2]] = anchor[[0, 2]]
+            weight[t] = True
+            since_release = 0
+        elif anchor is not None:
+            since_release += 1
+            w = 1.0 - _smoothstep(since_release / (RELEASE_FRAMES + 1))
+            if since_release <= RELEASE_FRAMES:
+                target[t, [0, 2]] = w * anchor[[0, 2]] + (1 - w) * free[t, [0, 2]]
+                weight[t] = True
+            else:
+                anchor = None
+        t += 1
+    return target, weight
+
+
 def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, contacts: np.ndarray) -> np.ndarray:
     """Hold each planted ankle where its contact began (horizontally), by leg IK.
 
@@ -229,8 +243,13 @@ def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, co
     ndarray [shape=(T, J, 4)]
         Local rotations with the legs adjusted; the root and every other joint unchanged.
         After a contact the ankle returns to the motion's own path over
-        ``RELEASE_FRAMES`` frames; a contact whose anchor is more than
-        ``MAX_ANCHOR_DRIFT_M`` from the motion's ankle is re-anchored there.
+        ``RELEASE_FRAMES`` frames (smoothstep). When the motion carries a planted
+        foot more than ``MAX_ANCHOR_DRIFT_M`` from its anchor (the body moved
+        over it, or a seam changed the stance), the foot steps: over
+        ``STEP_FRAMES`` frames the ankle follows a smoothstep from the anchor to
+        where the motion puts it at the end of the step, lifted by up to
+        ``STEP_HEIGHT_M``, and is planted again there (before, it was re-anchored
+        in one frame: a jump of up to 0.3 m).
     """
     legs = leg_joints(skeleton)
     T = rotations.shape[0]
@@ -240,26 +259,7 @@ def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, co
     out = rotations
     for side in range(2):
         hip, knee, ankle = (int(j) for j in legs[side])
-        free = pos[:, ankle]
-        target = free.copy()
-        weight = np.zeros(T)
-        anchor = None
-        since_release = RELEASE_FRAMES + 1
-        for t in range(T):
-            if contacts[t, side]:
-                if anchor is None or np.linalg.norm((free[t] - anchor)[[0, 2]]) > MAX_ANCHOR_DRIFT_M:
-                    anchor = free[t].copy()
-                target[t, [0, 2]] = anchor[[0, 2]]
-                weight[t] = 1.0
-                since_release = 0
-            elif anchor is not None:
-                since_release += 1
-                w = 1.0 - since_release / (RELEASE_FRAMES + 1)
-                if w > 0:
-                    target[t, [0, 2]] = w * anchor[[0, 2]] + (1 - w) * free[t, [0, 2]]
-                    weight[t] = 1.0
-                else:
-                    anchor = None
+        target, weight = _ankle_targets(pos[:, ankle], contacts[:, side])
         sel = np.flatnonzero(weight > 0)
         if sel.size == 0:
             continue
