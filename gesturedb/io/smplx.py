@@ -27,6 +27,7 @@ Export
 from __future__ import annotations
 
 import math
+import tokenize
 import zipfile
 import zlib
 
@@ -161,7 +162,12 @@ def _check_declared_size(path, data, key) -> None:
         reader = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(version)
         if reader is None:
             raise InputFileError(path, f"{key}: unsupported .npy format version {version}")
-        shape, _fortran, dtype = reader(f)
+        try:
+            shape, _fortran, dtype = reader(f)
+        # numpy parses the header dict with Python's tokenizer and literal_eval: a damaged one raises
+        # tokenize.TokenError (found by tests/fuzz/fuzz_npz.py with numpy 2.4) or SyntaxError, not ValueError
+        except (tokenize.TokenError, SyntaxError) as exc:
+            raise InputFileError(path, f"{key}: unreadable .npy header ({exc})") from None
     n = 1
     for d in shape:
         n *= int(d)
