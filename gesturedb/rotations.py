@@ -180,8 +180,16 @@ def apply(q, v) -> np.ndarray:
     w = q[..., :1]
     u = q[..., 1:]
     # v + 2w (u x v) + 2 u x (u x v): two cross products instead of a 3x3 matrix per element
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * _cross(u, v)
+    return v + w * t + _cross(u, t)
+
+
+def _cross(a, b):
+    """``np.cross`` over the last axis (length 3) without its axis bookkeeping, which cost the synthesis
+    more than the arithmetic on its many small arrays (0.03 ms per call, 1600 calls a minute of output)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def from_axis_angle(rotvec) -> np.ndarray:
