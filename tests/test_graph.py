@@ -286,3 +286,41 @@ def test_build_without_transcript_cuts_at_voiced_pauses(scott_dir, tmp_path):
         np.testing.assert_allclose(np.asarray(words.start_s), vs[vs < db.n_frames / db.fps])
         assert len(db.clips) > 1
         GraphSynthesizer(db).synthesize(scott_dir / "inputs" / "2_scott_0_2_2.wav")
+
+
+def test_graph_keyword_clips_take_phrases_with_the_speakers_own_keyword(mirrored_db, scott_dir, tmp_path):
+    """Where the input says 'time', the clip is filled by a node that overlaps one of the speaker's
+    own 'time's wherever the graph's edges allow; every other clip is unconstrained."""
+    from gesturedb.db.keywords import add_keyword
+
+    db_path = tmp_path / "kw.h5"
+    shutil.copy(mirrored_db, db_path)
+    add_keyword(db_path, "time")
+    wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
+    tg = scott_dir / "inputs" / "2_scott_0_2_2.TextGrid"
+    with gesturedb.open(db_path) as db:
+        synth = GraphSynthesizer(db)
+        on = np.unpackbits(db.h5["subdatabases/time/mask"][()].view(np.uint8), bitorder="little")[:db.n_frames]
+        for gap in (None, "auto"):
+            res = synth.synthesize(wav, transcript=tg, gap_s=gap)
+            words = gesturedb.io.read_transcript(tg)
+            said = [float(s) for s, w in zip(words.start_s, words.text) if w.lower() == "time"]
+            n_kw = 0
+            for s in res.steps:
+                a_s, b_s = s["out_start"] / db.fps, s["out_end"] / db.fps
+                overlap = on[synth.start[s["node"]]:synth.start[s["node"]] + synth.length[s["node"]]].sum()
+                if s["keyword"] is None:
+                    assert not any(a_s <= t < b_s for t in said), (gap, s)  # no 'time' starts in it
+                    continue
+                assert s["keyword"].startswith("time")
+                if s["keyword"] == "time":
+                    n_kw += 1
+                    assert overlap > 0, (gap, s)
+                else:
+                    assert s["keyword"] == "time (no node)" and overlap == 0
+            assert n_kw >= 1, gap
+            # without keywords nothing is labelled, and the choice differs
+            res0 = synth.synthesize(wav, transcript=tg, gap_s=gap, keywords=False)
+            assert all(s["keyword"] is None for s in res0.steps)
+            if gap == "auto":
+                assert [s["node"] for s in res0.steps] != [s["node"] for s in res.steps]

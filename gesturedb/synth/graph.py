@@ -15,8 +15,10 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
 3. **Data term** ``C_d = l5 * |style_in - style_d| + l6 * Hamming(rhythm_in, rhythm_motion_d)
    + l_dur * |log(len_d / len_i)|`` (+1000 if the clip cannot be fitted even with its
    continuation in its recording: never impossible, always avoided). ``+inf`` where a
-   control mask or keyword excludes the node (rule: node ``d`` is allowed for clip ``i``
-   when at least half of ``d``'s frames are in the mask active at ``i``'s middle frame).
+   control mask or keyword excludes the node (rules: for a control, node ``d`` is allowed for
+   clip ``i`` when at least half of ``d``'s frames are in the mask active at ``i``'s middle
+   frame; a clip that speaks a keyword of a keyword sub-database takes a node that overlaps
+   one of the speaker's own occurrences of it, see ``GraphSynthesizer._apply_masks``).
 4. **Search.** :func:`viterbi` minimises ``l3 * sum C_d + l4 * sum T`` exactly
    (``../shared/spec/graph.md``). Defaults from Sec. 5: l3 = 1, l4 = 3, l5 = 1, l6 = 0.1.
    The graph has no self-edges, so the same clip is never played twice in a row.
@@ -47,6 +49,10 @@ __all__ = ["viterbi", "GraphSynthesizer", "voiced_segments", "MAX_SPEED"]
 MAX_SPEED = 1.25
 #: penalty added to C_d when a clip cannot be fitted even with its continuation
 UNFIT_PENALTY = 1000.0
+#: Added to the data cost of a node without the keyword for a clip that speaks one: far above the
+#: style, rhythm and duration terms (a few units), below UNFIT_PENALTY (a clip that cannot be fitted
+#: is worse than a phrase without the keyword).
+KEYWORD_MISS_PENALTY = 100.0
 #: seam cross-fade of the graph (frames): its seams are seconds apart, so it can afford twice
 #: the k-NN's 4; measured on the 4 scott inputs, seam/inside jerk 2.33 (4), 1.31 (8), 1.19 (12)
 GRAPH_BLEND_FRAMES = 8
@@ -210,9 +216,12 @@ class GraphSynthesizer:
         T = query.shape[0]
         bounds, onsets, n_words = self.input_clips(samples, sr, T, transcript=transcript, gap_s=gap_s)
         unary, terms = self.data_terms(query, bounds, onsets, n_words, l5=l5, l6=l6, l_dur=l_dur)
-        labels = self._apply_masks(unary, searcher, bounds, T, control=control, transcript=transcript,
-                                   keywords=keywords, exclude=exclude)
+        labels, kw_ok = self._apply_masks(unary, searcher, bounds, T, control=control, transcript=transcript,
+                                          keywords=keywords, exclude=exclude)
         path, total = viterbi(unary, self.indptr, self.indices, self.edge_cost, w_data=w_data, w_trans=w_trans)
+        for i, ok in enumerate(kw_ok):
+            if ok is not None and not ok[path[i]]:  # no path through a node with the keyword: say so
+                labels[i] = (labels[i][0], labels[i][1] + " (no node)")
         motion, source, steps = self._assemble(path, bounds, terms, unary, labels, blend_frames=blend_frames,
                                                smooth=smooth)
         options = dict(method="graph", gap_s=self.last_gap_s, w_data=w_data, w_trans=w_trans, l5=l5, l6=l6, l_dur=l_dur,
@@ -224,26 +233,62 @@ class GraphSynthesizer:
                            fps=db.fps, audio_path=audio_path, options=options)
 
     def _apply_masks(self, unary, searcher, bounds, T, *, control, transcript, keywords, exclude):
-        """Set ``+inf`` where a control/keyword mask or an excluded recording forbids a node; labels per clip."""
+        """Set ``+inf`` where a control/keyword mask or an excluded recording forbids a node; labels per clip.
+
+        Control: node ``d`` is allowed for clip ``i`` when at least half of its frames are in the
+        mask active at ``i``'s middle frame. Keywords: a clip whose speech contains a keyword of a
+        keyword sub-database is filled by a node that overlaps one of the speaker's own
+        occurrences of that keyword (a frame of its sub-database) wherever the graph's edges allow
+        it: the other nodes cost ``KEYWORD_MISS_PENALTY`` more (a penalty, not a mask: on a small
+        graph two keyword clips in a row can leave no edge between allowed nodes). A clip is a
+        phrase, so the keyword decides which phrase, not where in it the gesture falls.
+
+        Returns the labels per clip and, per clip, the bool array of nodes that overlap one of
+        its keywords (None for a clip without keyword).
+        """
         n = unary.shape[0]
         labels = [None] * n
         excl = searcher.exclude_recordings(exclude) if exclude else None
         if excl is not None:  # bool per clip (the searcher is over clips)
             unary[:, excl] = np.inf
-        if not control and not (keywords and transcript is not None):
-            return labels
-        allowed, lab, _ = searcher._step_masks(control, transcript, keywords, n_steps=T, step=1, T=T)
-        if allowed is None:
-            return labels
         F = self.db.n_frames
-        mid = (bounds[:-1] + bounds[1:]) // 2
-        for i, t in enumerate(mid):
-            bits = np.unpackbits(np.ascontiguousarray(allowed[int(t)]).view(np.uint8), bitorder="little")[:F]
-            cs = np.concatenate([[0], np.cumsum(bits, dtype=np.int64)])
-            inside = cs[self.start + self.length] - cs[self.start]
-            unary[i, 2 * inside < self.length] = np.inf  # at least half of the node's frames allowed
-            labels[i] = lab[int(t)] if lab is not None else None
-        return labels
+
+        def node_frames_in(bits):
+            """Frames of every node inside a packed bitset (n_nodes,)."""
+            on = np.unpackbits(np.ascontiguousarray(bits).view(np.uint8), bitorder="little")[:F]
+            cs = np.concatenate([[0], np.cumsum(on, dtype=np.int64)])
+            return cs[self.start + self.length] - cs[self.start]
+
+        ctl_labels = [None] * n
+        if control:
+            allowed, lab, _ = searcher._step_masks(control, None, False, n_steps=T, step=1, T=T)
+            if allowed is not None:
+                mid = (bounds[:-1] + bounds[1:]) // 2
+                for i, t in enumerate(mid):
+                    unary[i, 2 * node_frames_in(allowed[int(t)]) < self.length] = np.inf
+                    ctl_labels[i] = lab[int(t)][0] if lab is not None and lab[int(t)] else None
+        kw_labels = [None] * n
+        kw_ok = [None] * n
+        if keywords and transcript is not None:
+            from gesturedb.db import keywords as kw
+
+            res = kw.keyword_step_masks(self.db, transcript, n_steps=T, step=1, n_out_frames=T,
+                                        only=None if keywords is True else list(keywords))
+            if res is not None:
+                bits, lab = res
+                for i in range(n):
+                    frames = [t for t in range(int(bounds[i]), int(bounds[i + 1])) if lab[t] is not None]
+                    if not frames:
+                        continue
+                    words = list(dict.fromkeys(lab[t] for t in frames))
+                    union = np.bitwise_or.reduce(np.asarray(bits)[frames], axis=0)
+                    kw_ok[i] = node_frames_in(union) > 0
+                    unary[i, ~kw_ok[i]] += KEYWORD_MISS_PENALTY
+                    kw_labels[i] = ", ".join(words)
+        for i in range(n):
+            if ctl_labels[i] is not None or kw_labels[i] is not None:
+                labels[i] = (ctl_labels[i], kw_labels[i])
+        return labels, kw_ok
 
     def _assemble(self, path, bounds, terms, unary, labels, *, blend_frames, smooth):
         from gesturedb import rotations as R
