@@ -202,9 +202,7 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray) -> tuple[np.ndarray, n
                 n = end - t + 1
                 u = np.arange(1, n + 1) / n
                 w = _smoothstep(u)[:, None]
-                start = anchor[[0, 2]]
-                target[t:end + 1, 0] = (1 - w[:, 0]) * start[0] + w[:, 0] * free[end, 0]
-                target[t:end + 1, 2] = (1 - w[:, 0]) * start[1] + w[:, 0] * free[end, 2]
+                target[t:end + 1, [0, 2]] = (1 - w) * anchor[[0, 2]] + w * free[end, [0, 2]]
                 target[t:end + 1, 1] = free[t:end + 1, 1] + STEP_HEIGHT_M * np.sin(np.pi * u)
                 weight[t:end + 1] = True
                 anchor = free[end].copy()
