@@ -205,3 +205,18 @@ def test_real_speech_is_fast_and_louder_inside_words(scott_dir):
     assert inside.sum() > 1000 and pauses.sum() > 30
     energy = feat[:, 13]
     assert np.median(energy[inside]) > np.median(energy[pauses]) + 2.0  # well over 10 dB louder
+
+
+def test_features_do_not_depend_on_the_blas_thread_count():
+    """A database must not depend on how it was built: workers run BLAS on one thread, a local build
+    on all of them (librosa's mel projection through OpenBLAS differed by 3e-5 between the two)."""
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(0)
+    sr = 16000
+    y = (0.3 * rng.standard_normal(sr * 8)).astype(np.float32)
+    out = []
+    for n in (1, 2):
+        with threadpool_limits(n):
+            out.append(audio_features(y, sr, fps=15.0, n_frames=120))
+    np.testing.assert_array_equal(out[0], out[1])

@@ -322,19 +322,7 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
     Raises :class:`InputFileError` naming the file and field for bad input:
     unreadable or truncated files, NaN, audio and motion durations that differ by
     more than ``cfg.max_mismatch_s``.
-
-    Runs with one BLAS thread wherever it runs (this process, a worker process, a
-    Dask worker): OpenBLAS rounds differently with other thread counts (audio
-    features differed by 5e-7 between a 1- and a 2-worker build), and a database
-    must not depend on how it was built.
     """
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(1):
-        return _process_recording(source, cfg)
-
-
-def _process_recording(source: RecordingSource, cfg: BuildConfig) -> list[RecordingData]:
     from gesturedb.io import read_audio, read_motion, read_transcript
 
     is_bvh = Path(source.motion).suffix.lower() == ".bvh"

@@ -187,20 +187,14 @@ def audio_features(
 
     fmax = min(FMAX_HZ, sr / 2.0)
     fmin = min(FMIN_HZ, fmax / 2.0)
-    mel = librosa.feature.melspectrogram(
-        y=y,
-        sr=sr,
-        n_fft=n_fft,
-        hop_length=hop,
-        win_length=win,
-        window="hann",
-        center=True,
-        pad_mode="constant",
-        power=2.0,
-        n_mels=N_MELS,
-        fmin=fmin,
-        fmax=fmax,
-    )
+    power = np.abs(librosa.stft(y, n_fft=n_fft, hop_length=hop, win_length=win, window="hann", center=True,
+                                pad_mode="constant")) ** 2
+    basis = librosa.filters.mel(sr=sr, n_fft=n_fft, n_mels=N_MELS, fmin=fmin, fmax=fmax)
+    # librosa.feature.melspectrogram, but the projection without BLAS (optimize=False: numpy's own
+    # loop): OpenBLAS rounds it differently with other thread counts, and BLAS thread limits are
+    # per process while builds run recordings in threads (Dask) or processes; a database must not
+    # depend on how it was built (a 1-worker and a 2-worker build differed by 3e-5 here)
+    mel = np.einsum("mf,ft->mt", basis, power, optimize=False)
     log_mel = librosa.power_to_db(mel, ref=1.0, amin=_FLOOR, top_db=None)
     mfcc = librosa.feature.mfcc(S=log_mel, n_mfcc=n_mfcc, dct_type=2, norm="ortho")  # (n_mfcc, n_fine')
 
