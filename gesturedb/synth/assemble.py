@@ -54,7 +54,7 @@ import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.motion import Motion
-from gesturedb.synth.contacts import foot_contacts, foot_joints, plant_feet
+from gesturedb.synth.contacts import foot_contacts, foot_joints, plant_feet, smoothstep
 
 __all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "foot_contacts", "foot_joints",
            "placed_frames", "savgol_smooth"]
@@ -277,7 +277,7 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
             if n_bl == 0:
                 continue
             x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
-            w = x * x * (3 - 2 * x)
+            w = smoothstep(x)
             rot[a:a + n_bl] = R.slerp(c_rot[:n_bl], rot[a:a + n_bl], w)
             root[a:a + n_bl] = (1 - w) * c_root[:n_bl] + w * root[a:a + n_bl]
     if src_pos:

@@ -14,7 +14,7 @@ from gesturedb import rotations as R
 from gesturedb.motion import Motion
 
 __all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "foot_contacts", "foot_joints", "leg_joints",
-           "plant_feet", "two_bone_ik"]
+           "plant_feet", "smoothstep", "two_bone_ik"]
 
 #: A foot's lowest point within this height (m) of the floor can be planted.
 CONTACT_HEIGHT_M = 0.05
@@ -171,7 +171,8 @@ def two_bone_ik(rotations: np.ndarray, global_rot: np.ndarray, positions: np.nda
     return out
 
 
-def _smoothstep(x):
+def smoothstep(x):
+    """``3x^2 - 2x^3`` on [0, 1] (clipped): zero slope at both ends."""
     x = np.clip(x, 0.0, 1.0)
     return x * x * (3 - 2 * x)
 
@@ -201,7 +202,7 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray) -> tuple[np.ndarray, n
                 end = min(t + STEP_FRAMES, T - 1)
                 n = end - t + 1
                 u = np.arange(1, n + 1) / n
-                w = _smoothstep(u)[:, None]
+                w = smoothstep(u)[:, None]
                 target[t:end + 1, [0, 2]] = (1 - w) * anchor[[0, 2]] + w * free[end, [0, 2]]
                 target[t:end + 1, 1] = free[t:end + 1, 1] + STEP_HEIGHT_M * np.sin(np.pi * u)
                 weight[t:end + 1] = True
@@ -214,7 +215,7 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray) -> tuple[np.ndarray, n
             since_release = 0
         elif anchor is not None:
             since_release += 1
-            w = 1.0 - _smoothstep(since_release / (RELEASE_FRAMES + 1))
+            w = 1.0 - smoothstep(since_release / (RELEASE_FRAMES + 1))
             if since_release <= RELEASE_FRAMES:
                 target[t, [0, 2]] = w * anchor[[0, 2]] + (1 - w) * free[t, [0, 2]]
                 weight[t] = True

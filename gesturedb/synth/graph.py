@@ -270,21 +270,17 @@ class GraphSynthesizer:
         kw_labels = [None] * n
         kw_ok = [None] * n
         if keywords and transcript is not None:
-            from gesturedb.db import keywords as kw
-
-            res = kw.keyword_step_masks(self.db, transcript, n_steps=T, step=1, n_out_frames=T,
-                                        only=None if keywords is True else list(keywords))
-            if res is not None:
-                bits, lab = res
+            _, lab, bits = searcher._step_masks(None, transcript, keywords, n_steps=T, step=1, T=T)
+            if bits is not None:
+                word = [x[1] if x else None for x in lab]  # the keyword said at each output frame
                 for i in range(n):
-                    frames = [t for t in range(int(bounds[i]), int(bounds[i + 1])) if lab[t] is not None]
+                    frames = [t for t in range(int(bounds[i]), int(bounds[i + 1])) if word[t] is not None]
                     if not frames:
                         continue
-                    words = list(dict.fromkeys(lab[t] for t in frames))
                     union = np.bitwise_or.reduce(np.asarray(bits)[frames], axis=0)
                     kw_ok[i] = node_frames_in(union) > 0
                     unary[i, ~kw_ok[i]] += KEYWORD_MISS_PENALTY
-                    kw_labels[i] = ", ".join(words)
+                    kw_labels[i] = ", ".join(dict.fromkeys(word[t] for t in frames))
         for i in range(n):
             if ctl_labels[i] is not None or kw_labels[i] is not None:
                 labels[i] = (ctl_labels[i], kw_labels[i])
