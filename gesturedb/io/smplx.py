@@ -162,12 +162,7 @@ def _check_declared_size(path, data, key) -> None:
         reader = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(version)
         if reader is None:
             raise InputFileError(path, f"{key}: unsupported .npy format version {version}")
-        try:
-            shape, _fortran, dtype = reader(f)
-        # numpy parses the header dict with Python's tokenizer and literal_eval: a damaged one raises
-        # tokenize.TokenError (found by tests/fuzz/fuzz_npz.py with numpy 2.4) or SyntaxError, not ValueError
-        except (tokenize.TokenError, SyntaxError) as exc:
-            raise InputFileError(path, f"{key}: unreadable .npy header ({exc})") from None
+        shape, _fortran, dtype = reader(f)
     n = 1
     for d in shape:
         n *= int(d)
@@ -178,6 +173,14 @@ def _check_declared_size(path, data, key) -> None:
                                    f"archive entry holds at most {limit} bytes; damaged or hostile file")
 
 
+#: What numpy raises on a damaged .npz or .npy (each found by tests/fuzz/fuzz_npz.py): zlib.error, a corrupt
+#: deflate stream; NotImplementedError, a zip compression or "version needed" this Python cannot read;
+#: RuntimeError, an encrypted entry; EOFError, a truncated entry; tokenize.TokenError and SyntaxError,
+#: a damaged header dict (numpy 2.4 parses it with Python's tokenizer and literal_eval).
+_NPZ_ERRORS = (OSError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError, EOFError,
+               tokenize.TokenError, SyntaxError)
+
+
 def _array(path, data, key, shape_desc):
     if key not in data.files:
         raise InputFileError(path, f"{key}: missing (expected {shape_desc}); the file has keys "
@@ -185,9 +188,7 @@ def _array(path, data, key, shape_desc):
     try:
         _check_declared_size(path, data, key)
         return np.asarray(data[key])
-    # zlib.error: a corrupt deflate stream (found by tests/fuzz/fuzz_npz.py); NotImplementedError:
-    # an unsupported zip compression; RuntimeError: an encrypted entry; EOFError: a truncated entry
-    except (ValueError, OSError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError, EOFError) as exc:
+    except _NPZ_ERRORS as exc:
         raise InputFileError(path, f"{key}: unreadable ({exc})") from None
 
 
@@ -214,8 +215,7 @@ def read_smplx(path) -> Motion:
     """
     try:
         data = np.load(path, allow_pickle=False)
-    # NotImplementedError: a zip "version needed" this Python cannot read (found by tests/fuzz/fuzz_npz.py)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, NotImplementedError, zlib.error) as exc:
+    except _NPZ_ERRORS as exc:
         raise InputFileError(path, f"cannot read as .npz: {exc}") from None
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise InputFileError(path, "expected an .npz archive with poses, trans and mocap_frame_rate; "
