@@ -176,6 +176,8 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "trained 3 iterations" in r.stdout
     assert read_checkpoint(ck)["iteration"] == 3
+    # checkpoint and cache went through temporary siblings that were renamed: nothing else is left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["refiner.pt", "refiner.pt.data.npz"]
 
     wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
     plain, refined = tmp_path / "knn.bvh", tmp_path / "refined.bvh"

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.io.atomic import atomic_open
 from gesturedb.refiner.representation import moving_joints, to_channels
 
 WINDOW = 64
@@ -88,10 +89,10 @@ class TrainingData:
     ks: np.ndarray
 
     def save(self, path, identity: str) -> None:
-        tmp = f"{path}.tmp.npz"
-        np.savez(tmp, identity=np.array(identity), **{k: getattr(self, k) for k in
-                 ("audio", "real", "knn", "joints", "starts", "ks")})
-        os.replace(tmp, path)
+        # a temporary sibling with a unique name (two trainings sharing a cache never write one file)
+        with atomic_open(path, "wb") as f:
+            np.savez(f, identity=np.array(identity), **{k: getattr(self, k) for k in
+                     ("audio", "real", "knn", "joints", "starts", "ks")})
 
     @classmethod
     def load(cls, path, identity: str) -> "TrainingData | None":

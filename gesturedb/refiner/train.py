@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError
+from gesturedb.io.atomic import atomic_open
 from gesturedb.refiner.data import TrainingData, database_identity, feature_identity, make_training_data
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty
 from gesturedb.refiner.representation import from_channels, to_channels
@@ -151,10 +152,8 @@ class Trainer:
         }
 
     def save(self, path) -> None:
-        path = os.fspath(path)
-        tmp = f"{path}.tmp"
-        torch.save(self.state(), tmp)
-        os.replace(tmp, path)
+        with atomic_open(path, "wb") as f:
+            torch.save(self.state(), f)
 
     def restore(self, ck: dict) -> None:
         self.G.load_state_dict(ck["generator"])
