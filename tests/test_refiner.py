@@ -16,7 +16,8 @@ from gesturedb.refiner.data import (  # noqa: E402
     TrainingData, database_identity, exclusion, feature_identity, window_starts,
 )
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty  # noqa: E402
-from gesturedb.refiner.representation import from_channels, moving_joints, to_channels  # noqa: E402
+from gesturedb.refiner.representation import (  # noqa: E402
+    from_channels, from_channels_torch, moving_joints, to_channels, to_channels_torch)
 from gesturedb.refiner.train import Refiner, TrainConfig, Trainer, read_checkpoint  # noqa: E402
 
 
@@ -146,6 +147,40 @@ def test_any_six_numbers_give_a_rotation():
     out = from_channels(rng.standard_normal((5, 12)), base, np.array([1, 3]))
     assert np.allclose(np.linalg.norm(out, axis=-1), 1.0)
     assert np.array_equal(out[:, [0, 2]], base[:, [0, 2]])
+
+
+def test_torch_conversions_agree_with_numpy_in_every_shepperd_branch(scott_db):
+    # refining uses float32 torch versions of to/from_channels; the numpy ones are the oracle
+    rng = np.random.default_rng(2)
+    q = np.asarray(scott_db.local_rotations[:200], dtype=np.float64)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    joints = moving_joints(scott_db.local_rotations)
+    x = to_channels_torch(q, joints)
+    assert x.dtype == torch.float32 and tuple(x.shape) == (1, 6 * len(joints), 200)
+    assert np.allclose(x[0].numpy().T, to_channels(q, joints), atol=1e-6)
+    # random 6D numbers (any branch), and near-180-degree turns about x, y, z: branches 1, 2, 3,
+    # where w ~ 0 and picking the wrong branch would lose all precision
+    six = rng.standard_normal((200, 6 * len(joints)))
+    cases = [six]
+    for axis in range(3):
+        turn = np.zeros((200, len(joints), 4))
+        turn[..., 1 + axis] = 1.0
+        turn[..., 0] = rng.uniform(-1e-3, 1e-3, turn.shape[:2])
+        turn[..., 1 + (axis + 1) % 3] = rng.uniform(-1e-3, 1e-3, turn.shape[:2])
+        turn /= np.linalg.norm(turn, axis=-1, keepdims=True)
+        full = q.copy()
+        full[:, joints] = turn
+        cases.append(to_channels(full, joints))
+    for c in cases:
+        expect = from_channels(c, q, joints)
+        got = from_channels_torch(torch.from_numpy(c.T.astype(np.float32)), q, joints)
+        # the same quaternion, same sign (both keep the base's hemisphere), to float32 precision
+        assert np.abs(got - expect).max() < 1e-5
+        assert np.array_equal(got[:, 0], q[:, 0])
+    # a cropped (strided) view, as the generator returns, gives the same numbers
+    padded = torch.from_numpy(np.pad(six.T, ((0, 0), (0, 8))).astype(np.float32))[:, :200]
+    assert np.array_equal(from_channels_torch(padded, q, joints),
+                          from_channels_torch(torch.from_numpy(six.T.astype(np.float32)), q, joints))
 
 
 # -- training data (real database) ---------------------------------------------------

@@ -82,3 +82,83 @@ def from_channels(channels: np.ndarray, base_rotations: np.ndarray, joints: np.n
     q *= np.where(np.einsum("...i,...i->...", q, out[:, joints])[..., None] < 0, -1.0, 1.0)
     out[:, joints] = q
     return out
+
+
+# -- the same conversions on torch tensors, for refining ---------------------------
+# Refining a minute of output converts 50k rotations each way; numpy's float64
+# pipeline above (matrices, then Shepperd's branches by gathers) took 9 of the
+# refiner's 16 ms, more than the generator itself. These do the same arithmetic
+# component-wise on (Jm, T) float32 planes laid out as the generator reads and
+# writes them (channels first), so nothing is transposed or gathered. Float32 is
+# the generator's own precision; they agree with the numpy functions to ~1e-6
+# (tested). Training keeps the numpy functions (its windows are made once).
+
+def to_channels_torch(rotations: np.ndarray, joints: np.ndarray):
+    """Local rotations (T, J, 4) -> the generator's input, a (1, 6 * Jm, T) float32 tensor.
+
+    Same channels as :func:`to_channels` (transposed), in float32.
+    """
+    import torch
+
+    q = torch.from_numpy(np.ascontiguousarray(np.asarray(rotations)[:, joints].transpose(2, 1, 0), dtype=np.float32))
+    q = q / torch.sqrt((q * q).sum(0))  # (4, Jm, T), normalised as R.to_matrix does
+    w, x, y, z = q
+    out = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y),   # column 0
+                       2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)],  # column 1
+                      dim=1)  # (Jm, 6, T)
+    return out.reshape(1, -1, q.shape[-1])
+
+
+def from_channels_torch(channels, base_rotations: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """The generator's output (6 * Jm, T) tensor -> local rotations (T, J, 4) float64.
+
+    As :func:`from_channels` (Gram-Schmidt, Shepperd's method, ``w >= 0`` then the
+    base's hemisphere), in float32; every branch of Shepperd's method is computed
+    for every element and the well-conditioned one selected (four cheap planes
+    instead of gathers).
+    """
+    import torch
+
+    T = base_rotations.shape[0]
+    if tuple(channels.shape) != (6 * len(joints), T):
+        raise ParameterError(f"channels: expected ({6 * len(joints)}, {T}); got {tuple(channels.shape)}")
+    # six contiguous (Jm, T) planes first: the generator's output is a cropped view, and
+    # arithmetic on strided planes runs several times slower
+    a0, a1, a2, b0, b1, b2 = channels.reshape(len(joints), 6, T).transpose(0, 1).contiguous()
+    n = torch.clamp(torch.sqrt(a0 * a0 + a1 * a1 + a2 * a2), min=1e-12)
+    a0, a1, a2 = a0 / n, a1 / n, a2 / n
+    d = a0 * b0 + a1 * b1 + a2 * b2
+    b0, b1, b2 = b0 - d * a0, b1 - d * a1, b2 - d * a2
+    n = torch.clamp(torch.sqrt(b0 * b0 + b1 * b1 + b2 * b2), min=1e-12)
+    b0, b1, b2 = b0 / n, b1 / n, b2 / n
+    c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    # matrix m[row][col]: column 0 = a, column 1 = b, column 2 = c
+    m00, m10, m20, m01, m11, m21, m02, m12, m22 = a0, a1, a2, b0, b1, b2, c0, c1, c2
+    # Shepperd's case per element (numpy's argmax over [trace, m00, m11, m22], first on ties)
+    # as four 0/1 planes: selecting by multiply-add is several times faster than torch.where
+    # or argmax across a stacked axis at this size
+    tr = m00 + m11 + m22
+    e0 = tr >= torch.maximum(torch.maximum(m00, m11), m22)
+    e1 = ~e0 & (m00 >= torch.maximum(m11, m22))
+    e2 = ~e0 & ~e1 & (m11 >= m22)
+    e3 = ~(e0 | e1 | e2)
+    e0, e1, e2, e3 = (e.to(m00.dtype) for e in (e0, e1, e2, e3))
+    t = 1 + e0 * tr + e1 * (m00 - m11 - m22) + e2 * (m11 - m00 - m22) + e3 * (m22 - m00 - m11)
+    t = torch.sqrt(torch.clamp(t, min=0.0))
+    s = 0.5 / torch.clamp(t, min=1e-12)
+    h = 0.5 * t
+    d21, d02, d10 = m21 - m12, m02 - m20, m10 - m01
+    p01, p02, p12 = m01 + m10, m02 + m20, m12 + m21
+    w = e0 * h + (e1 * d21 + e2 * d02 + e3 * d10) * s
+    x = e1 * h + (e0 * d21 + e2 * p01 + e3 * p02) * s
+    y = e2 * h + (e0 * d02 + e1 * p01 + e3 * p12) * s
+    z = e3 * h + (e0 * d10 + e1 * p02 + e2 * p12) * s
+    out = np.array(base_rotations, dtype=np.float64, copy=True)
+    bw, bx, by, bz = torch.from_numpy(np.ascontiguousarray(out[:, joints].transpose(2, 1, 0), dtype=np.float32))
+    # unit length, then the base's hemisphere (so nothing flips sign in time): one factor
+    n = torch.sqrt(w * w + x * x + y * y + z * z)
+    far = (w * bw + x * bx + y * by + z * bz < 0).to(n.dtype)
+    n = n - 2 * far * n
+    q = torch.stack([w / n, x / n, y / n, z / n], dim=-1)  # (Jm, T, 4)
+    out[:, joints] = q.permute(1, 0, 2).double().numpy()
+    return out
