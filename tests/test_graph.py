@@ -19,24 +19,36 @@ from gesturedb.synth.viterbi import check_csr
 INPUTS = ["2_scott_0_2_2", "2_scott_0_3_3", "2_scott_0_4_4", "2_scott_0_5_5"]
 
 
-def _direct_cost(pos, rot, root, fa, fb, l1, l2):
-    """T between frame lists fa (end of p) and fb (start of q) by explicit loops (the oracle)."""
+def _direct_cost(pos, rot, root, fa, fb, l1, l2, joints=None, part="whole"):
+    """T between frame lists fa (end of p) and fb (start of q) by explicit loops (the oracle).
+
+    part "whole"/"lower": positions in the heading frame; "upper": in the pelvis frame (the root's
+    whole rotation removed); "lower" adds the pelvis tilt (root rotation without heading).
+    """
+    joints = np.arange(pos.shape[1]) if joints is None else np.asarray(joints)
     tp = tr = 0.0
     for a, b in zip(fa, fb):
-        local = []
+        local, quats = [], []
         for f in (a, b):
             fwd = R.apply(rot[f, 0], np.array([0.0, 0.0, 1.0]))
             yaw = np.arctan2(fwd[0], fwd[2])
             c, s = np.cos(yaw), np.sin(yaw)
             m = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])  # rotation about y by -yaw
-            local.append((pos[f] - root[f]) @ m.T)
+            if part == "upper":
+                m = R.to_matrix(rot[f, 0]).T  # world -> pelvis frame
+            local.append((pos[f, joints] - root[f]) @ m.T)
+            q = [rot[f, j] for j in joints if j != 0]
+            if part == "lower":
+                q.append(R.multiply(np.array([np.cos(-yaw / 2), 0, np.sin(-yaw / 2), 0]), rot[f, 0]))
+            q = np.array(q)
+            quats.append(q * np.sign(q[:, :1] + 1e-300))  # w >= 0 hemisphere
         tp += float(np.sum((local[0] - local[1]) ** 2))
-        qa, qb = (rot[f, 1:] * np.sign(rot[f, 1:, :1] + 1e-300) for f in (a, b))  # w >= 0 hemisphere
-        tr += float(np.sum(1 - np.sum(qa * qb, -1)))
+        tr += float(np.sum(1 - np.sum(quats[0] * quats[1], -1)))
     return l1 * tp + l2 * tr
 
 
-def test_transition_costs_match_direct_loops():
+@pytest.mark.parametrize("part,joints", [("whole", None), ("upper", [2, 3, 4]), ("lower", [0, 1])])
+def test_transition_costs_match_direct_loops(part, joints):
     rng = np.random.default_rng(0)
     F, J, K, m = 40, 5, 6, 2
     pos = rng.normal(size=(F, J, 3))
@@ -44,14 +56,46 @@ def test_transition_costs_match_direct_loops():
     rot = R.normalize(rng.normal(size=(F, J, 4)))
     ends = rng.integers(0, F, (K, m))
     starts = rng.integers(0, F, (K, m))
-    ex = G.transition_features(pos, rot, root, ends, l1=0.7, l2=0.3)
-    sx = G.transition_features(pos, rot, root, starts, l1=0.7, l2=0.3)
+    kw = dict(l1=0.7, l2=0.3, joints=joints, part=part)
+    ex = G.transition_features(pos, rot, root, ends, **kw)
+    sx = G.transition_features(pos, rot, root, starts, **kw)
     T = G.transition_costs(ex, sx)
     assert T.dtype == np.float64 and T.shape == (K, K)
     for p in range(K):
         for q in range(K):
             # the matmul runs in float32: relative error ~1e-6 of the feature norms
-            assert T[p, q] == pytest.approx(_direct_cost(pos, rot, root, ends[p], starts[q], 0.7, 0.3), rel=1e-4, abs=1e-3)
+            want = _direct_cost(pos, rot, root, ends[p], starts[q], 0.7, 0.3, joints, part)
+            assert T[p, q] == pytest.approx(want, rel=1e-4, abs=1e-3)
+
+
+def test_each_body_graph_sees_only_its_own_joints(scott_db):
+    """Changing the arms leaves the lower-body costs alone, changing the legs the upper-body ones."""
+    upper, lower = G.body_parts(scott_db.skeleton.names, scott_db.skeleton.parents)
+    names = scott_db.skeleton.names
+    assert names[0] == "pelvis" and {names[j] for j in lower} == {
+        "pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_foot",
+        "right_foot"}
+    assert len(upper) + len(lower) == len(names) and not set(upper) & set(lower)
+    from gesturedb.motion import Motion
+
+    frames = np.arange(40).reshape(20, 2)
+    motion = scott_db.motion(scott_db.recordings[0].name, 0.0, 4.0)
+    rng = np.random.default_rng(5)
+
+    def costs(rotations, part, joints):
+        m = Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=rotations, root_positions=motion.root_positions)
+        x = G.transition_features(m.positions, m.rotations, m.root_positions, frames, joints=joints, part=part)
+        return G.transition_costs(x[::2], x[1::2])
+
+    base = np.asarray(motion.rotations, dtype=np.float64)
+    for changed, same_part, same_joints, other_part, other_joints in (
+            (upper[upper != 3], "lower", lower, "upper", upper),  # arms etc. (spine1 kept: it is a child of the root)
+            (lower[lower != 0], "upper", upper, "lower", lower)):  # legs
+        rot = base.copy()
+        rot[:, changed] = R.normalize(rot[:, changed] + 0.3 * rng.normal(size=rot[:, changed].shape))
+        np.testing.assert_allclose(costs(rot, same_part, same_joints), costs(base, same_part, same_joints),
+                                   rtol=1e-5, atol=1e-6)
+        assert not np.allclose(costs(rot, other_part, other_joints), costs(base, other_part, other_joints))
 
 
 @pytest.mark.parametrize("K,max_out", [(30, 32), (60, 8)])
@@ -102,39 +146,49 @@ def test_voiced_segments_find_bursts():
 def test_real_graph_is_stored_and_consistent(scott_db_path):
     with h5py.File(scott_db_path, "r") as h5:
         K = h5["clips/start"].shape[0]
-        indptr, indices, cost = (schema.read(h5, f"graph/{k}") for k in ("indptr", "indices", "cost"))
-        check_csr(indptr, indices, cost, K)
-        assert np.all(np.diff(indptr) >= min(G.MIN_OUT, K - 1))
-        attrs = dict(h5["graph"].attrs)
-        assert attrs["l1"] == 0.7 and attrs["l2"] == 0.3
-        # one edge recomputed from the frames by the direct loop
         st, ln = h5["clips/start"][()], h5["clips/length"][()]
-        p, q = 0, int(indices[indptr[0]])
-        m = int(attrs["transition_frames"])
         pos, rot, root = (h5[f"frames/{k}"][()].astype(np.float64) for k in ("joint_positions", "local_rotations",
                                                                               "root_positions"))
-        want = _direct_cost(pos, rot, root, st[p] + ln[p] - m + np.arange(m), st[q] + np.arange(m), 0.7, 0.3)
-        assert cost[indptr[0]] == pytest.approx(want, rel=1e-4)
+        upper, lower = G.body_parts(schema.read(h5, "skeleton/names"), schema.read(h5, "skeleton/parents"))
+        for group, part, joints in (("graph", "upper", upper), ("graph_lower", "lower", lower)):
+            indptr, indices, cost = (schema.read(h5, f"{group}/{k}") for k in ("indptr", "indices", "cost"))
+            check_csr(indptr, indices, cost, K)
+            assert np.all(np.diff(indptr) >= min(G.MIN_OUT, K - 1))
+            attrs = dict(h5[group].attrs)
+            assert attrs["l1"] == 0.7 and attrs["l2"] == 0.3 and attrs["body"] == part
+            # every edge recomputed from the frames by the direct loop
+            m = int(attrs["transition_frames"])
+            for p in range(K):
+                for e in range(indptr[p], indptr[p + 1]):
+                    q = int(indices[e])
+                    want = _direct_cost(pos, rot, root, st[p] + ln[p] - m + np.arange(m), st[q] + np.arange(m),
+                                        0.7, 0.3, joints, part)
+                    # float32 matmul: absolute error ~1e-7 of the squared feature norms (~100)
+                    assert cost[e] == pytest.approx(want, rel=1e-4, abs=1e-4), (group, p, q)
         sm = dict(h5["style_model"].attrs)
         assert np.isfinite(sm["heldout_rmse"]) or K < 7
 
 
-def test_old_file_is_a_clear_error_and_graph_command_upgrades(scott_db_path, tmp_path, capsys):
+@pytest.mark.parametrize("version", [1, 2])
+def test_old_file_is_a_clear_error_and_graph_command_upgrades(scott_db_path, tmp_path, capsys, version):
     from gesturedb.cli.main import main
 
     old = tmp_path / "old.h5"
     shutil.copy(scott_db_path, old)
     with h5py.File(old, "r+") as h5:
-        want = {k: h5[f"graph/{k}"][()] for k in ("indptr", "indices", "cost")}
-        del h5["graph"], h5["style_model"]
-        h5.attrs["schema_version"] = 1
-    with pytest.raises(SchemaError, match=r"old.h5: schema_version: expected 2, got 1 .*gesturedb graph"):
+        want = {f"{g}/{k}": h5[f"{g}/{k}"][()] for g in ("graph", "graph_lower") for k in ("indptr", "indices", "cost")}
+        del h5["graph_lower"]
+        if version == 1:
+            del h5["graph"], h5["style_model"]
+        h5.attrs["schema_version"] = version
+    what = "no motion graph" if version == 1 else "one motion graph over the whole body"
+    with pytest.raises(SchemaError, match=rf"old.h5: schema_version: expected 3, got {version} \({what}.*gesturedb graph"):
         gesturedb.open(old)
     assert main(["graph", str(old)]) == 0
     assert "edges" in capsys.readouterr().out
     with gesturedb.open(old) as db, h5py.File(old, "r") as h5:
         for k, v in want.items():
-            np.testing.assert_array_equal(h5[f"graph/{k}"][()], v)  # same graph as the build made
+            np.testing.assert_array_equal(h5[k][()], v)  # the same graphs as the build made
         GraphSynthesizer(db)
 
 
@@ -324,3 +378,32 @@ def test_graph_keyword_clips_take_phrases_with_the_speakers_own_keyword(mirrored
             assert all(s["keyword"] is None for s in res0.steps)
             if gap == "auto":
                 assert [s["node"] for s in res0.steps] != [s["node"] for s in res.steps]
+
+
+def test_upper_body_follows_one_path_and_root_and_legs_the_other(mirrored_db, scott_dir):
+    """Split synthesis (Sec. 4.1-4.2): upper-body joints from the upper path's clips, the pelvis from the lower path's."""
+    wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
+    with gesturedb.open(mirrored_db) as db:
+        synth = GraphSynthesizer(db)
+        res = synth.synthesize(wav, blend_frames=0, smooth=False)
+        upper, lower = synth.upper_joints, synth.lower_joints
+        rot = res.motion.rotations
+        up_nodes = [s["node"] for s in res.steps]
+        low_nodes = [s["lower"]["node"] for s in res.steps]
+        assert up_nodes != low_nodes  # two searches, two paths (transitions alone pick other clips here)
+        tilt = lambda q: R.multiply(G._yaw_inverse(q), q)  # noqa: E731  the pelvis without its heading
+        for s in res.steps:
+            a = s["out_start"]  # the clip's first frame is its node's first frame exactly (no blend, no smoothing)
+            src_up = np.asarray(db.local_rotations[synth.start[s["node"]]], dtype=np.float64)
+            src_low = np.asarray(db.local_rotations[synth.start[s["lower"]["node"]]], dtype=np.float64)
+            np.testing.assert_allclose(np.abs(np.sum(rot[a, upper] * src_up[upper], -1)), 1.0, atol=1e-6)
+            assert abs(abs(float(np.dot(tilt(rot[a, 0]), tilt(src_low[0])))) - 1.0) < 1e-6
+            assert res.motion.root_positions[a, 1] == pytest.approx(
+                float(db.root_positions[synth.start[s["lower"]["node"]], 1]), abs=1e-6)
+        # the lower path's cost, recomputed from the provenance (transitions and duration fit only)
+        o = res.options
+        low = [s["lower"] for s in res.steps]
+        total = o["w_data"] * sum(x["data_cost"] for x in low) + o["w_trans"] * sum(x["transition_cost"] for x in low[1:])
+        assert total == pytest.approx(o["total_cost_lower"], rel=1e-9)
+        assert all(x["data_cost"] == pytest.approx(o["l_dur"] * abs(np.log(
+            synth.length[x["node"]] / (s["out_end"] - s["out_start"]))), abs=1e-9) for x, s in zip(low, res.steps))

@@ -250,7 +250,7 @@ def test_without_torch_the_commands_say_how_to_install(tmp_path):
 
 
 def test_refining_keeps_the_root_and_the_planted_legs(scott_db):
-    from gesturedb.refiner.train import _leg_joints
+    from gesturedb.io.joints import leg_joints
 
     joints = moving_joints(scott_db.local_rotations)
     G = Generator(6 * len(joints), width=8)
@@ -259,8 +259,8 @@ def test_refining_keeps_the_root_and_the_planted_legs(scott_db):
     motion = scott_db.motion(scott_db.recordings[0].name, 0.0, 6.0)
     audio = np.random.default_rng(0).standard_normal((motion.n_frames, 28)).astype(np.float32)
     out = ref.refine(motion, audio)
-    legs = _leg_joints(scott_db.skeleton)
-    assert len(legs) >= 8
+    legs = leg_joints(scott_db.skeleton.names, scott_db.skeleton.parents)
+    assert len(legs) == 8  # SMPL-X: hip, knee, ankle, foot per side
     assert np.array_equal(out.rotations[:, legs], np.asarray(motion.rotations, dtype=np.float64)[:, legs])
     assert np.array_equal(out.root_positions, motion.root_positions)
     arms = [j for j in joints if j not in set(legs)]

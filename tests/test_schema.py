@@ -33,7 +33,7 @@ def test_write_checks_dtype_and_shapes_across_datasets(tmp_path):
 
 
 def test_every_declared_field_has_unit_doc_and_known_dims():
-    known = {"F", "J", "R", "C", "K", "W", "E", "Dp", "Da", "B", "S", "X", "K1", "G", "P"}
+    known = {"F", "J", "R", "C", "K", "W", "E", "Dp", "Da", "B", "S", "X", "K1", "G", "GL", "P"}
     for f in schema.FIELDS:
         assert f.doc
         assert all(isinstance(d, int) or d in known for d in f.shape), f

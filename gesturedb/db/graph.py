@@ -57,7 +57,24 @@ def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
 
 
-def transition_features(positions, rotations, root, frames, *, l1: float = L1, l2: float = L2) -> np.ndarray:
+def body_parts(names, parents) -> tuple[np.ndarray, np.ndarray]:
+    """Joint indices of the upper body and the lower body (Sec. 4.1: one graph for each).
+
+    Lower body: the root (joint 0: its rotation and position, i.e. where the speaker stands
+    and how the pelvis tilts) and both legs (:func:`gesturedb.io.joints.leg_joints`); upper
+    body: everything else (spine, arms, hands, head). Both int64, ascending, disjoint, covering
+    all joints. A rig without recognisable hips has a lower body of the root alone.
+    """
+    from gesturedb.io.joints import leg_joints
+
+    J = len(names)
+    lower = np.union1d([0], leg_joints(names, parents)).astype(np.int64)
+    upper = np.setdiff1d(np.arange(J), lower).astype(np.int64)
+    return upper, lower
+
+
+def transition_features(positions, rotations, root, frames, *, l1: float = L1, l2: float = L2,
+                        joints=None, part: str = "whole") -> np.ndarray:
     """Weighted body-frame features of the given frames: ``T = |x_end(p) - x_start(q)|^2``.
 
     Parameters
@@ -67,22 +84,42 @@ def transition_features(positions, rotations, root, frames, *, l1: float = L1, l
     root : ndarray [shape=(F, 3)], metres
     frames : ndarray [shape=(K, m)], int
         Frames of each clip's transition window.
+    joints : int array, optional
+        The joints whose positions and local rotations count (default: all; the root's own
+        local rotation never counts as a joint rotation).
+    part : {"whole", "upper", "lower"}
+        The frame the positions are measured in, and the root's share:
+
+        - ``"whole"``/``"lower"``: root position subtracted, root heading removed (where the
+          speaker stood or faced does not matter); ``"lower"`` adds the root's rotation without
+          its heading (the pelvis' tilt) as one more rotation term.
+        - ``"upper"``: root position subtracted and the root's *whole* rotation removed: the
+          upper body is played on another clip's pelvis in split synthesis, so only its own
+          chain above the pelvis may decide its transitions.
 
     Returns
     -------
-    ndarray [shape=(K, m * (J * 3 + (J - 1) * 4))], float64
-        ``sqrt(l1)`` x body-frame joint positions, then ``sqrt(l2 / 2)`` x the non-root
-        local quaternions on the ``w >= 0`` hemisphere.
+    ndarray [shape=(K, m * (Jp * 3 + Jr * 4))], float64
+        ``sqrt(l1)`` x the joint positions, then ``sqrt(l2 / 2)`` x the local quaternions
+        (and the tilt) on the ``w >= 0`` hemisphere.
     """
     from gesturedb import rotations as R
 
+    if part not in ("whole", "upper", "lower"):
+        raise ParameterError(f"part: expected 'whole', 'upper' or 'lower', got {part!r}")
     K, m = frames.shape
     f = frames.reshape(-1)
-    p = np.asarray(positions[f], dtype=np.float64) - np.asarray(root[f], dtype=np.float64)[:, None, :]
+    J = positions.shape[1]
+    joints = np.arange(J) if joints is None else np.asarray(joints, dtype=np.int64)
+    p = np.asarray(positions[f][:, joints], dtype=np.float64) - np.asarray(root[f], dtype=np.float64)[:, None, :]
     q = np.asarray(rotations[f], dtype=np.float64)
     yinv = _yaw_inverse(q[:, 0])
-    p = R.apply(np.repeat(yinv[:, None, :], p.shape[1], axis=1), p)
-    qq = q[:, 1:, :] * np.where(q[:, 1:, :1] < 0, -1.0, 1.0)
+    frame_inv = R.inverse(q[:, 0]) if part == "upper" else yinv
+    p = R.apply(np.repeat(frame_inv[:, None, :], p.shape[1], axis=1), p)
+    qq = q[:, joints[joints != 0], :]
+    if part == "lower":
+        qq = np.concatenate([qq, R.multiply(yinv, q[:, 0])[:, None, :]], axis=1)
+    qq = qq * np.where(qq[..., :1] < 0, -1.0, 1.0)
     x = np.concatenate([np.sqrt(l1) * p.reshape(len(f), -1), np.sqrt(l2 / 2) * qq.reshape(len(f), -1)], axis=1)
     return x.reshape(K, -1)
 
@@ -238,9 +275,12 @@ def predict_style(model: dict, X: np.ndarray) -> np.ndarray:
 
 
 def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = TRANSITION_FRAMES,
-                delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
+                delta_T: float | None = None, delta_T_lower: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
                 max_out: int = MAX_OUT) -> dict:
-    """Compute the motion graph and the style model of an open, writable database file and store them.
+    """Compute the motion graphs (upper and lower body) and the style model of an open, writable database file.
+
+    ``delta_T`` is the upper-body graph's edge threshold, ``delta_T_lower`` the lower-body one's
+    (their costs are over different joints; default for each: its ``delta_quantile`` quantile).
 
     Called by the build (inside :func:`gesturedb.db.storage.write_atomically`) and by
     :func:`add_graph` (inside :func:`gesturedb.db.storage.edit`). Returns a summary dict.
@@ -264,21 +304,26 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     need = np.unique(np.concatenate([last.ravel(), first.ravel()]))
     pos_a, rot_a, root_a = pos[need], rot[need], root[need]
     idx = lambda f: np.searchsorted(need, f)  # noqa: E731
-    ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2)
-    sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2)
-    T = transition_costs(ex, sx)
-    indptr, indices, cost, dT = edges_from_costs(T, delta_T=delta_T, delta_quantile=delta_quantile,
-                                                 min_out=min_out, max_out=max_out)
-
+    upper, lower = body_parts(schema.read(h5, "skeleton/names"), schema.read(h5, "skeleton/parents"))
     dims = {"K": K}
-    schema.write(h5, "graph/indptr", indptr, dims)
-    schema.write(h5, "graph/indices", indices, dims)
-    schema.write(h5, "graph/cost", cost, dims)
-    g = h5["graph"]
-    for k, v in dict(l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
-                     delta_quantile=float(delta_quantile), min_out=int(min_out),
-                     max_out=int(max_out)).items():
-        g.attrs[k] = v
+    summary = {}
+    for group, part, joints, dt in (("graph", "upper", upper, delta_T), ("graph_lower", "lower", lower, delta_T_lower)):
+        ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2, joints=joints, part=part)
+        sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2, joints=joints, part=part)
+        T = transition_costs(ex, sx)
+        del ex, sx
+        indptr, indices, cost, dT = edges_from_costs(T, delta_T=dt, delta_quantile=delta_quantile,
+                                                     min_out=min_out, max_out=max_out)
+        del T
+        schema.write(h5, f"{group}/indptr", indptr, dims)
+        schema.write(h5, f"{group}/indices", indices, dims)
+        schema.write(h5, f"{group}/cost", cost, dims)
+        g = h5[group]
+        for k, v in dict(body=part, n_joints=len(joints), l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
+                         delta_quantile=float(delta_quantile), min_out=int(min_out),
+                         max_out=int(max_out)).items():
+            g.attrs[k] = v
+        summary[part] = dict(n_edges=int(indices.shape[0]), delta_T=dT)
 
     n_words = r("clips/word_end") - r("clips/word_start")
     X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
@@ -295,19 +340,20 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     for k in ("heldout_rmse", "mean_rmse", "n_heldout"):
         sm.attrs[k] = model[k]
     sm.attrs["alpha"] = RIDGE_ALPHA
-    return dict(n_nodes=K, n_edges=int(indices.shape[0]), delta_T=dT, heldout_rmse=model["heldout_rmse"],
-                mean_rmse=model["mean_rmse"])
+    return dict(n_nodes=K, n_edges=summary["upper"]["n_edges"], delta_T=summary["upper"]["delta_T"],
+                n_edges_lower=summary["lower"]["n_edges"], delta_T_lower=summary["lower"]["delta_T"],
+                heldout_rmse=model["heldout_rmse"], mean_rmse=model["mean_rmse"])
 
 
 def add_graph(path, **options) -> dict:
-    """Add (or replace) the motion graph of an existing database file, upgrading a version-1 file.
+    """Add (or replace) the motion graphs of an existing database file, upgrading a version-1 or -2 file.
 
     Written through :func:`gesturedb.db.storage.edit` (temporary copy + rename).
     """
     from gesturedb.db import schema, storage
 
     with storage.edit(path, upgrade=True) as h5:
-        for grp in ("graph", "style_model"):
+        for grp in ("graph", "graph_lower", "style_model"):
             if grp in h5:
                 del h5[grp]
         summary = write_graph(h5, **options)

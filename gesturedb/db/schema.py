@@ -20,7 +20,8 @@ B     bitset words over frames, ceil(F / 64)
 S     style-signature size (3: speed m/s, radius m, height m)
 X     control features
 K1    K + 1 (CSR row pointer of the motion graph)
-G     motion-graph edges
+G     upper-body motion-graph edges
+GL    lower-body motion-graph edges
 P     style-predictor inputs (2 Da + 1)
 ====  =====================================================================
 
@@ -37,8 +38,12 @@ import numpy as np
 
 from gesturedb.errors import SchemaError
 
-#: 2: adds graph/ and style_model/ (GestureMaster motion graph); `gesturedb graph DB.h5` upgrades a version-1 file
-SCHEMA_VERSION = 2
+#: 2: adds graph/ and style_model/ (GestureMaster motion graph)
+#: 3: graph/ is the upper-body graph (it was over the whole body) and graph_lower/ the lower-body one
+#:    (Sec. 4.1); `gesturedb graph DB.h5` upgrades a version-1 or -2 file
+SCHEMA_VERSION = 3
+#: versions `gesturedb graph` brings to SCHEMA_VERSION (they differ only in the motion graph)
+UPGRADABLE_VERSIONS = (1, 2)
 
 #: HDF5 variable-length UTF-8 strings
 STR = "str"
@@ -103,9 +108,12 @@ FIELDS: tuple[Field, ...] = (
     Field("clips/rhythm_motion", "uint32", ("K",), "", "32-bit rhythm signature of hand-speed minima (bin 0 = LSB)"),
     Field("clips/style", "float32", ("K", "S"), "m/s, m, m", "mean hand speed, radius and height"),
     # --- motion graph over the clips (GestureMaster Sec. 4.1; gesturedb/db/graph.py) ----------
-    Field("graph/indptr", "int64", ("K1",), "", "CSR row pointer over the source clip; attrs l1, l2, delta_T, min_out, transition_frames"),
-    Field("graph/indices", "int64", ("G",), "", "target clip of each edge, strictly increasing within a row, no self-edges"),
-    Field("graph/cost", "float64", ("G",), "1", "transition cost T = l1 * T_p (m^2) + l2 * T_r of each edge"),
+    Field("graph/indptr", "int64", ("K1",), "", "upper-body graph: CSR row pointer over the source clip; attrs body, l1, l2, delta_T, min_out, max_out, transition_frames"),
+    Field("graph/indices", "int64", ("G",), "", "upper-body graph: target clip of each edge, strictly increasing within a row, no self-edges"),
+    Field("graph/cost", "float64", ("G",), "1", "upper-body graph: transition cost T = l1 * T_p (m^2) + l2 * T_r over the joints above the pelvis, in the pelvis frame"),
+    Field("graph_lower/indptr", "int64", ("K1",), "", "lower-body graph (root and legs): CSR row pointer, attrs as graph/"),
+    Field("graph_lower/indices", "int64", ("GL",), "", "lower-body graph: target clip of each edge, strictly increasing within a row, no self-edges"),
+    Field("graph_lower/cost", "float64", ("GL",), "1", "lower-body graph: transition cost over the legs (heading frame) and the pelvis tilt"),
     Field("style_model/coef", "float64", ("P", "S"), "", "ridge weights: standardised clip audio inputs -> style"),
     Field("style_model/intercept", "float64", ("S",), "m/s, m, m", "style of the mean input"),
     Field("style_model/x_mean", "float64", ("P",), "", "input mean (audio mean, audio std, words/frame)"),
@@ -234,8 +242,8 @@ def read(h5, path: str) -> np.ndarray:
 def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: bool = False) -> int:
     """Raise :class:`SchemaError` unless the file was written with :data:`SCHEMA_VERSION`.
 
-    ``upgradable=True`` also accepts version 1 (which only lacks the motion graph), for
-    :func:`gesturedb.db.graph.add_graph`.
+    ``upgradable=True`` also accepts :data:`UPGRADABLE_VERSIONS` (which differ only in the
+    motion graph), for :func:`gesturedb.db.graph.add_graph`.
     """
     name = os.fspath(filename) if filename is not None else h5.filename
     if SHARD_OF_ATTR in h5.attrs:
@@ -252,13 +260,14 @@ def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: 
             raise ValueError
     except (TypeError, ValueError):
         raise SchemaError(name, f"schema_version: expected the integer {SCHEMA_VERSION}, got {raw!r}") from None
-    if upgradable and got == 1:
+    if upgradable and got in UPGRADABLE_VERSIONS:
         return got
-    if got == 1 and SCHEMA_VERSION == 2:
+    if got in UPGRADABLE_VERSIONS:
+        what = "no motion graph" if got == 1 else "one motion graph over the whole body, no lower-body graph"
         raise SchemaError(
             name,
-            f"schema_version: expected {SCHEMA_VERSION}, got 1 (no motion graph); run `gesturedb graph {name}` "
-            f"to add it, or rebuild the database",
+            f"schema_version: expected {SCHEMA_VERSION}, got {got} ({what}); run `gesturedb graph {name}` "
+            f"to add the upper- and lower-body graphs, or rebuild the database",
         )
     if got != SCHEMA_VERSION:
         raise SchemaError(

@@ -206,7 +206,7 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
 
     The database's write lock is held from before the copy until after the
     rename, so concurrent edits serialise instead of losing each other.
-    ``upgrade=True`` also opens a version-1 file (the caller brings it to the current version).
+    ``upgrade=True`` also opens a file of :data:`schema.UPGRADABLE_VERSIONS` (the caller brings it to the current version).
 
     Examples
     --------

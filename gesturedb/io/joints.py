@@ -22,7 +22,7 @@ import re
 
 from gesturedb.errors import InputFileError, ParameterError
 
-__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints"]
+__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints", "leg_joints"]
 
 FEATURE_ROLES = ("left_wrist", "right_wrist", "left_elbow", "right_elbow",
                  "left_index1", "right_index1", "left_pinky1", "right_pinky1")
@@ -255,3 +255,32 @@ def body_keys(names) -> dict[int, str]:
     for i, j in enumerate(spine):
         keys[j] = f"spine{i}"
     return keys
+
+
+def leg_joints(names, parents) -> "np.ndarray":
+    """The joints of both legs: each hip joint (role ``left_hip``/``right_hip``) and everything below it.
+
+    Parameters
+    ----------
+    names : sequence of str [length J]
+    parents : sequence of int [length J], -1 for the root
+
+    Returns
+    -------
+    ndarray [shape=(L,)], int64, ascending; empty when the rig has no recognisable hips.
+    """
+    import numpy as np
+
+    try:
+        hips = set(find_joints(names, ("left_hip", "right_hip")).values())
+    except (InputFileError, ParameterError):
+        return np.zeros(0, dtype=np.int64)
+    parents = [int(p) for p in parents]
+    out = []
+    for j in range(len(parents)):
+        k = j
+        while k >= 0 and k not in hips:
+            k = parents[k]
+        if k >= 0:
+            out.append(j)
+    return np.asarray(out, dtype=np.int64)

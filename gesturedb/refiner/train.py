@@ -27,6 +27,7 @@ import torch
 
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError
 from gesturedb.io.atomic import atomic_open
+from gesturedb.io.joints import leg_joints
 from gesturedb.refiner.data import TrainingData, database_identity, feature_identity, make_training_data
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
@@ -276,25 +277,6 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _leg_joints(skeleton) -> np.ndarray:
-    """Joints below the hips (both legs, hips included); empty when the skeleton has no recognisable hips."""
-    from gesturedb.io.joints import find_joints
-
-    try:
-        hips = find_joints(skeleton.names, ("left_hip", "right_hip"))
-    except GestureDBError:
-        return np.zeros(0, dtype=np.int64)
-    parents = np.asarray(skeleton.parents)
-    out = []
-    for j in range(len(parents)):
-        k = j
-        while k >= 0 and k not in hips.values():
-            k = int(parents[k])
-        if k >= 0:
-            out.append(j)
-    return np.asarray(out, dtype=np.int64)
-
-
 class Refiner:
     """A trained generator that refines whole motions of any length in one pass.
 
@@ -354,6 +336,6 @@ class Refiner:
             rot = from_channels_torch(self.G(a, x)[0], motion.rotations, self.joints)
         # the legs stay the k-NN's: assembly planted the feet with leg IK, and a refined
         # leg would slide them again (measured: skating 0.05 -> 0.18 m/s on held-out speech)
-        legs = _leg_joints(motion.skeleton)
+        legs = leg_joints(motion.skeleton.names, motion.skeleton.parents)
         rot[:, legs] = np.asarray(motion.rotations, dtype=np.float64)[:, legs]
         return Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=rot, root_positions=motion.root_positions)

@@ -29,14 +29,20 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
    then a Savitzky-Golay filter per joint group (Sec. 4.2: window 7, order 2 for arms,
    hands and head; 7, 1 for the rest and the root).
 
-Not done from the paper: the separate lower-body graph (Sec. 4.1); the whole body follows
-the upper-body search.
+Two graphs (Sec. 4.1), one path each over the same input clips: the upper body (spine, arms,
+hands, head) follows the path that minimises the whole cost above over the upper-body graph;
+the lower body (root and legs: where the speaker stands, the pelvis' tilt, the stance) follows
+the path of least transition cost over the lower-body graph, its data term only the duration
+fit (the paper sets the lower body's data term to 0; a node that cannot be warped to its clip
+must still be avoided). The two motions are joined: upper-body local rotations from the
+first, root and legs from the second (feet planted on those), then smoothed.
 """
 from __future__ import annotations
 
 
 import numpy as np
 
+from gesturedb.db.graph import body_parts
 from gesturedb.errors import ParameterError, SchemaError
 from gesturedb.features.pauses import voiced_segments
 from gesturedb.synth.assemble import Piece, assemble_pieces, continuation, placed_frames
@@ -99,11 +105,14 @@ class GraphSynthesizer:
 
         self.db = db
         h5 = db.h5
-        if "graph/indptr" not in h5 or "style_model/coef" not in h5:
-            raise SchemaError(db.path, f"graph: no motion graph in this database; run `gesturedb graph {db.path}`")
+        if "graph/indptr" not in h5 or "graph_lower/indptr" not in h5 or "style_model/coef" not in h5:
+            raise SchemaError(db.path, f"graph: no motion graphs in this database; run `gesturedb graph {db.path}`")
+        # upper body: rhythm, style and transitions; lower body (root and legs): transitions only
         self.indptr = schema.read(h5, "graph/indptr")
         self.indices = schema.read(h5, "graph/indices")
         self.edge_cost = schema.read(h5, "graph/cost")
+        self.lower_graph = tuple(schema.read(h5, f"graph_lower/{k}") for k in ("indptr", "indices", "cost"))
+        self.upper_joints, self.lower_joints = body_parts(db.skeleton.names, db.skeleton.parents)
         self.style_model = {k: schema.read(h5, f"style_model/{k}") for k in ("coef", "intercept", "x_mean", "x_std")}
         c = db.clips
         self.start = np.asarray(c.start, dtype=np.int64)
@@ -222,10 +231,17 @@ class GraphSynthesizer:
         for i, ok in enumerate(kw_ok):
             if ok is not None and not ok[path[i]]:  # no path through a node with the keyword: say so
                 labels[i] = (labels[i][0], labels[i][1] + " (no node)")
-        motion, source, steps = self._assemble(path, bounds, terms, unary, labels, blend_frames=blend_frames,
-                                               smooth=smooth)
+        # the lower body's own path: its data term is only the fit of durations (the paper sets it to 0;
+        # a node that cannot be warped to its clip must still be avoided), excluded recordings stay out;
+        # controls and keywords are about the arms and do not restrict it
+        unary_low = l_dur * terms["duration"] + UNFIT_PENALTY * terms["unfit"]
+        if exclude:
+            unary_low[:, searcher.exclude_recordings(exclude)] = np.inf
+        path_low, total_low = viterbi(unary_low, *self.lower_graph, w_data=w_data, w_trans=w_trans)
+        motion, source, steps = self._assemble(path, path_low, bounds, terms, unary, unary_low, labels,
+                                               blend_frames=blend_frames, smooth=smooth)
         options = dict(method="graph", gap_s=self.last_gap_s, w_data=w_data, w_trans=w_trans, l5=l5, l6=l6, l_dur=l_dur,
-                       blend_frames=blend_frames, smooth=smooth, total_cost=total,
+                       blend_frames=blend_frames, smooth=smooth, total_cost=total, total_cost_lower=total_low,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        transcript=transcript is not None, database=db.path)
@@ -286,12 +302,12 @@ class GraphSynthesizer:
                 labels[i] = (ctl_labels[i], kw_labels[i])
         return labels, kw_ok
 
-    def _assemble(self, path, bounds, terms, unary, labels, *, blend_frames, smooth):
+    def _pieces(self, path, bounds, terms, blend_frames):
+        """The time-warped source pieces of a path, their source frames (T,) and warp times per clip."""
         from gesturedb import rotations as R
 
         db = self.db
-        recs = db.recordings
-        pieces, steps = [], []
+        pieces, times = [], []
         source = np.empty(int(bounds[-1]), dtype=np.int64)
         prev_last = None
         for i, d in enumerate(path):
@@ -315,26 +331,61 @@ class GraphSynthesizer:
             pieces.append(Piece(out_start=a, rotations=rot, root=root, lead_in=lead))
             source[a:b] = np.rint(t).astype(np.int64).clip(max=hi)
             prev_last = int(f1[-1])
+            times.append(t)
+        return pieces, source, times
+
+    def _edge(self, graph, p, q):
+        indptr, indices, cost = graph
+        row = indices[indptr[p]:indptr[p + 1]]
+        return float(cost[indptr[p] + np.searchsorted(row, q)])
+
+    def _assemble(self, path, path_low, bounds, terms, unary, unary_low, labels, *, blend_frames, smooth):
+        """Upper body from ``path``, root and legs from ``path_low``, joined into one motion (Sec. 4.2).
+
+        Each path's pieces go through :func:`assemble_pieces` (placement, seam cross-fades; feet
+        planted on the lower body's); the result takes the local rotations of the upper-body
+        joints from the first and the root and the legs from the second: the upper body rides on
+        the lower body's pelvis.
+        """
+        from gesturedb.motion import Motion
+
+        db = self.db
+        recs = db.recordings
+        T = int(bounds[-1])
+        up_pieces, source, up_t = self._pieces(path, bounds, terms, blend_frames)
+        low_pieces, _, low_t = self._pieces(path_low, bounds, terms, blend_frames)
+        upper = assemble_pieces(db.skeleton, db.fps, up_pieces, n_frames=T, blend_frames=blend_frames, smooth=False,
+                                lock_feet=False)  # its legs are dropped
+        lower = assemble_pieces(db.skeleton, db.fps, low_pieces, n_frames=T, blend_frames=blend_frames, smooth=False)
+        rot = np.array(lower.rotations, dtype=np.float64, copy=True)
+        rot[:, self.upper_joints] = upper.rotations[:, self.upper_joints]
+        motion = Motion(skeleton=db.skeleton, fps=db.fps, rotations=rot, root_positions=lower.root_positions)
+        up_graph = (self.indptr, self.indices, self.edge_cost)
+
+        def where(d, t):
             rec = recs[int(self.recording[d])]
-            e = None
-            if i > 0:
-                p = int(path[i - 1])
-                row = self.indices[self.indptr[p]:self.indptr[p + 1]]
-                e = float(self.edge_cost[self.indptr[p] + np.searchsorted(row, d)])
+            return rec.name, round((float(t[0]) - rec.start_frame) / db.fps, 4), \
+                round((float(t[-1]) + 1 - rec.start_frame) / db.fps, 4)
+
+        steps = []
+        for i, (d, e) in enumerate(zip(path, path_low)):
+            a, b = int(bounds[i]), int(bounds[i + 1])
+            name, s0, s1 = where(d, up_t[i])
+            lname, l0, l1 = where(e, low_t[i])
             lab = labels[i]
             steps.append({
                 "step": i, "out_start": a, "out_end": b, "time_s": round(a / db.fps, 4),
-                "node": int(d), "recording": rec.name,
-                "source_start_s": round((float(t[0]) - rec.start_frame) / db.fps, 4),
-                "source_end_s": round((float(t[-1]) + 1 - rec.start_frame) / db.fps, 4),
-                "speed": round(speed, 4),
+                "node": int(d), "recording": name, "source_start_s": s0, "source_end_s": s1,
+                "speed": round(float(terms["speed"][i, d]), 4),
                 "style_cost": float(terms["style"][i, d]), "rhythm_cost": float(terms["rhythm"][i, d]),
                 "duration_cost": float(terms["duration"][i, d]), "unfit": bool(terms["unfit"][i, d]),
-                "data_cost": float(unary[i, d]), "transition_cost": e,
+                "data_cost": float(unary[i, d]),
+                "transition_cost": self._edge(up_graph, int(path[i - 1]), int(d)) if i else None,
                 "control": lab[0] if lab else None, "keyword": lab[1] if lab else None,
+                "lower": {"node": int(e), "recording": lname, "source_start_s": l0, "source_end_s": l1,
+                          "speed": round(float(terms["speed"][i, e]), 4), "data_cost": float(unary_low[i, e]),
+                          "transition_cost": self._edge(self.lower_graph, int(path_low[i - 1]), int(e)) if i else None},
             })
-        motion = assemble_pieces(db.skeleton, db.fps, pieces, n_frames=int(bounds[-1]),
-                                 blend_frames=blend_frames, smooth=False)
         if smooth:
             motion = self._smooth(motion)
         return motion, source, steps
