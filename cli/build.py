@@ -27,7 +27,7 @@ def add_parser(sub) -> None:
     p.add_argument("-r", "--recursive", action="store_true", help="also take files in sub-folders")
     p.add_argument("--fps", type=float_range(1, 1000), default=15.0, help="database frame rate (default: %(default)s)")
     p.add_argument("--chunk-frames", type=int, default=64, help="fixed chunk length (default: %(default)s)")
-    p.add_argument("--gap", type=_gap, default=0.4, dest="gap_s",
+    p.add_argument("--gap", type=_gap, default="auto", dest="gap_s",
                    help="word gap that splits clips, s, or 'auto' (clips of about 3 s from the speakers' own pauses; "
                    "default: %(default)s)")
     p.add_argument("--pose-window", type=int, default=4)

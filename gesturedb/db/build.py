@@ -48,9 +48,11 @@ class BuildConfig:
     chunk_frames : int
         Length of the fixed chunks (the paper's T_match = 64 frames).
     gap_s : float or "auto"
-        Word-gap clips split where the pause between words exceeds this (s); 0.4 in GestureMaster.
-        ``"auto"``: chosen from the recordings' own pauses so that clips last about 3 s
-        (:func:`gesturedb.db.graph.suggest_gap_s`); the number chosen is what the file stores.
+        Word-gap clips split where the pause between words exceeds this (s). ``"auto"``
+        (default): chosen from the recordings' own pauses so that clips last about 3 s
+        (:func:`gesturedb.db.graph.suggest_gap_s`, at most GestureMaster's 0.4 s: Sec. 3.1 ties
+        the threshold to the speaker's speech rate and aims at clips of a few seconds); the
+        number chosen is what the file stores.
     pose_window, pose_stride : int
         Pose feature = feature joints at frames f, f - stride, ..., f - (window-1)*stride.
     sample_rate : int
@@ -76,7 +78,7 @@ class BuildConfig:
 
     fps: float = 15.0
     chunk_frames: int = 64
-    gap_s: float = 0.4
+    gap_s: float | str = "auto"
     pose_window: int = 4
     pose_stride: int = 2
     sample_rate: int = 16000
