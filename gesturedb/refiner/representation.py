@@ -91,7 +91,8 @@ def from_channels(channels: np.ndarray, base_rotations: np.ndarray, joints: np.n
 # component-wise on (Jm, T) float32 planes laid out as the generator reads and
 # writes them (channels first), so nothing is transposed or gathered. Float32 is
 # the generator's own precision; they agree with the numpy functions to ~1e-6
-# (tested). Training keeps the numpy functions (its windows are made once).
+# (tested). Training keeps to_channels (its windows are made once); from_channels is
+# the tests' oracle for from_channels_torch.
 
 def to_channels_torch(rotations: np.ndarray, joints: np.ndarray):
     """Local rotations (T, J, 4) -> the generator's input, a (1, 6 * Jm, T) float32 tensor.

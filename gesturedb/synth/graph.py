@@ -20,9 +20,10 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
    frame; a clip that speaks a keyword of a keyword sub-database takes a node that overlaps
    one of the speaker's own occurrences of it, see ``GraphSynthesizer._apply_masks``).
 4. **Search.** :func:`viterbi` minimises ``l3 * sum C_d + l4 * sum T`` exactly
-   (``../shared/spec/graph.md``). Defaults from Sec. 5: l3 = 1, l4 = 3, l5 = 1, l6 = 0.1.
-   The graph has no self-edges, so the same clip is never played twice in a row.
-5. **Fitting.** Each chosen clip is played at speed ``clamp(len_d / len_i, 1/1.25, 1.25)``
+   (``../shared/spec/graph.md``) over the upper-body graph. Defaults from Sec. 5: l3 = 1,
+   l4 = 3, l5 = 1, l6 = 0.1. The graph has no self-edges, so the same clip is never played
+   twice in a row. The lower body has its own search (below).
+5. **Fitting.** Each chosen upper-body clip is played at speed ``clamp(len_d / len_i, 1/1.25, 1.25)``
    (rotations slerped between source frames, root lerped); where it is still longer it is
    trimmed, where shorter it runs on into its recording's following frames. Pieces go
    through :func:`gesturedb.synth.assemble.assemble_pieces` (placement, seam cross-fades),
@@ -111,11 +112,10 @@ class GraphSynthesizer:
         h5 = db.h5
         if "graph/indptr" not in h5 or "graph_lower/indptr" not in h5 or "style_model/coef" not in h5:
             raise SchemaError(db.path, f"graph: no motion graphs in this database; run `gesturedb graph {db.path}`")
-        # upper body: rhythm, style and transitions; lower body (root and legs): transitions only
-        self.indptr = schema.read(h5, "graph/indptr")
-        self.indices = schema.read(h5, "graph/indices")
-        self.edge_cost = schema.read(h5, "graph/cost")
-        self.lower_graph = tuple(schema.read(h5, f"graph_lower/{k}") for k in ("indptr", "indices", "cost"))
+        # (indptr, indices, cost) of each: upper body = rhythm, style and transitions; lower body
+        # (root and legs) = transitions only
+        self.upper_graph, self.lower_graph = (tuple(schema.read(h5, f"{g}/{k}") for k in ("indptr", "indices", "cost"))
+                                              for g in ("graph", "graph_lower"))
         self.upper_joints, self.lower_joints = body_parts(db.skeleton.names, db.skeleton.parents)
         self.style_model = {k: schema.read(h5, f"style_model/{k}") for k in ("coef", "intercept", "x_mean", "x_std")}
         c = db.clips
@@ -231,16 +231,13 @@ class GraphSynthesizer:
         unary, terms = self.data_terms(query, bounds, onsets, n_words, l5=l5, l6=l6, l_dur=l_dur)
         labels, kw_ok = self._apply_masks(unary, searcher, bounds, T, control=control, transcript=transcript,
                                           keywords=keywords, exclude=exclude)
-        path, total = viterbi(unary, self.indptr, self.indices, self.edge_cost, w_data=w_data, w_trans=w_trans)
+        path, total = viterbi(unary, *self.upper_graph, w_data=w_data, w_trans=w_trans)
         for i, ok in enumerate(kw_ok):
             if ok is not None and not ok[path[i]]:  # no path through a node with the keyword: say so
                 labels[i] = (labels[i][0], labels[i][1] + " (no node)")
-        # the lower body's own path: its data term is only the fit of durations (the paper sets it to 0;
-        # a node that cannot be warped to its clip must still be avoided), excluded recordings stay out;
-        # controls and keywords are about the arms and do not restrict it
-        # it plays at its own speed (see the module doc), so a node fits when its recording has the clip's
-        # length from the node's start; the duration term still prefers nodes whose own end is near the
-        # seam, where the transition cost was measured
+        # the lower body's own path (module doc): duration term, plus the penalty where the node's
+        # recording ends before the clip does (it plays at its own speed); excluded recordings stay
+        # out; controls and keywords are about the arms and do not restrict it
         lens = np.diff(bounds)
         unary_low = l_dur * terms["duration"] + UNFIT_PENALTY * (lens[:, None] > self.avail[None, :])
         if exclude:
@@ -371,7 +368,6 @@ class GraphSynthesizer:
         rot = np.array(lower.rotations, dtype=np.float64, copy=True)
         rot[:, self.upper_joints] = upper.rotations[:, self.upper_joints]
         motion = Motion(skeleton=db.skeleton, fps=db.fps, rotations=rot, root_positions=lower.root_positions)
-        up_graph = (self.indptr, self.indices, self.edge_cost)
 
         def where(d, t):
             rec = recs[int(self.recording[d])]
@@ -391,7 +387,7 @@ class GraphSynthesizer:
                 "style_cost": float(terms["style"][i, d]), "rhythm_cost": float(terms["rhythm"][i, d]),
                 "duration_cost": float(terms["duration"][i, d]), "unfit": bool(terms["unfit"][i, d]),
                 "data_cost": float(unary[i, d]),
-                "transition_cost": self._edge(up_graph, int(path[i - 1]), int(d)) if i else None,
+                "transition_cost": self._edge(self.upper_graph, int(path[i - 1]), int(d)) if i else None,
                 "control": lab[0] if lab else None, "keyword": lab[1] if lab else None,
                 "lower": {"node": int(e), "recording": lname, "source_start_s": l0, "source_end_s": l1,
                           "speed": 1.0, "data_cost": float(unary_low[i, e]),
