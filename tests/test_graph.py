@@ -127,6 +127,22 @@ def test_style_model_beats_the_mean_on_learnable_data():
     # a clip and its mirrored copy are held out together
     mg = G.fit_style_model(X, Y, groups=np.arange(200) // 2)
     assert mg["n_heldout"] == 2 * (100 // 5)
+    assert m["alpha"] <= 1.0 and mg["alpha"] <= 1.0  # cross-validation keeps the fit where it predicts
+
+
+def test_style_model_falls_back_to_the_mean_where_audio_does_not_predict_style():
+    """Pure noise inputs and few clips (as on one short recording): the cross-validated strength is
+    strong, the predictions stay close to the training mean, and the held-out error is about that
+    of the mean (a fixed weak ridge does worse than the mean here)."""
+    rng = np.random.default_rng(5)
+    X, Y = rng.normal(size=(30, 29)), rng.normal(size=(30, 3))
+    groups = np.arange(30) // 2
+    m = G.fit_style_model(X, Y, groups=groups)
+    assert m["alpha"] >= 100
+    assert np.all(G.predict_style(m, X).std(0) < 0.4 * Y.std(0))  # close to the mean everywhere
+    assert m["heldout_rmse"] <= 1.05 * m["mean_rmse"]
+    weak = G.fit_style_model(X, Y, groups=groups, alpha=0.1)
+    assert weak["alpha"] == 0.1 and weak["heldout_rmse"] > 1.1 * weak["mean_rmse"]
 
 
 def test_voiced_segments_find_bursts():
@@ -137,7 +153,7 @@ def test_voiced_segments_find_bursts():
     for a, b in truth:
         sel = (t >= a) & (t < b)
         x[sel] += 0.3 * np.sin(2 * np.pi * 220 * t[sel])
-    s, e = voiced_segments(x, sr)
+    s, e = voiced_segments(x, sr, method="energy")
     assert len(s) == 3
     np.testing.assert_allclose(s, [a for a, _ in truth], atol=0.02)
     np.testing.assert_allclose(e, [b for _, b in truth], atol=0.02)
@@ -249,8 +265,28 @@ def test_cli_graph_synth_and_missing_graph(mirrored_db, scott_dir, tmp_path, cap
                  "--npz", str(tmp_path / "g.npz")]) == 0
     prov = json.loads((tmp_path / "g.provenance.json").read_text())
     assert prov["options"]["method"] == "graph" and prov["steps"][0]["node"] >= 0
+    assert prov["options"]["vad"] == "silero" and prov["options"]["transcript"] is False
     pos = np.load(tmp_path / "g.npz")["positions"]
     assert pos.shape[0] == prov["n_frames"] and np.isfinite(pos).all()
+    # the input clips follow the detector asked for: the energy detector cuts where it hears pauses
+    from gesturedb.features.pauses import voiced_segments
+    from gesturedb.io.audio import read_audio
+
+    assert main(["synth", str(mirrored_db), "--method", "graph", "--audio", str(wav), "-o", str(tmp_path / "e.bvh"),
+                 "--vad", "energy", "--gap", "0.4"]) == 0
+    pe = json.loads((tmp_path / "e.provenance.json").read_text())
+    assert pe["options"]["vad"] == "energy"
+    x, sr = read_audio(wav, sr=16000)
+    s, e = voiced_segments(x, sr, method="energy")
+    gap = s[1:] - e[:-1] > 0.4
+    cuts = {int(round((a + b) / 2 * 15.0)) for a, b in zip(e[:-1][gap], s[1:][gap])}
+    starts = {step["out_start"] for step in pe["steps"]}
+    assert len(cuts) >= 2 and cuts <= starts  # every pause it hears cuts (long clips may be split further)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["synth", str(mirrored_db), "--method", "graph", "--audio", str(wav), "-o", str(tmp_path / "b.bvh"),
+              "--vad", "webrtc"])
+    assert ex.value.code == 2 and "--vad: invalid choice: 'webrtc'" in capsys.readouterr().err
     nog = tmp_path / "nog.h5"
     assert main(["build", str(scott_dir), "-o", str(nog), "--no-graph", "-q"]) == 0
     capsys.readouterr()

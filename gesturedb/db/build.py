@@ -74,6 +74,10 @@ class BuildConfig:
         the build report says what was guessed.
     graph : bool
         Also build the motion graph and style predictor (:mod:`gesturedb.db.graph`).
+    vad : "silero" or "energy"
+        How a recording without a transcript is cut at its pauses
+        (:func:`gesturedb.features.pauses.voiced_segments`); the same detector as the graph
+        synthesis's default, so database and input clips are cut alike.
     """
 
     fps: float = 15.0
@@ -89,6 +93,7 @@ class BuildConfig:
     speaker: str | None = None
     graph: bool = True
     length_unit_m: float | None = None
+    vad: str = "silero"
 
     def __post_init__(self):
         def bad(name, expected):
@@ -102,6 +107,10 @@ class BuildConfig:
                 bad(name, "a positive integer")
         if self.gap_s != "auto" and not (isinstance(self.gap_s, (int, float)) and self.gap_s > 0):
             bad("gap_s", "a positive number of seconds")
+        from gesturedb.features.pauses import VAD_METHODS
+
+        if self.vad not in VAD_METHODS:
+            bad("vad", "one of " + ", ".join(VAD_METHODS))
         if not (self.max_mismatch_s >= 0):
             bad("max_mismatch_s", "a non-negative number of seconds")
         if self.joint_map is not None and not isinstance(self.joint_map, dict):
@@ -355,7 +364,7 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
         from gesturedb.features.pauses import voiced_segments
         from gesturedb.io.transcripts import Words
 
-        vs, ve = voiced_segments(samples, sr)
+        vs, ve = voiced_segments(samples, sr, method=cfg.vad)
         words = Words(start_s=vs, end_s=ve, text=[""] * len(vs), source=None)
     if source.span_s is not None:
         motion, samples, words, motion_dur = _trim(source, motion, samples, sr, words)

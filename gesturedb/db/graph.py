@@ -45,7 +45,8 @@ TRANSITION_FRAMES = 2
 DELTA_QUANTILE = 0.10
 MIN_OUT = 4
 MAX_OUT = 32
-RIDGE_ALPHA = 10.0
+#: ridge strengths the style predictor chooses from by cross-validation (fit_style_model)
+RIDGE_ALPHAS = (0.1, 1.0, 10.0, 100.0, 1e3, 1e4, 1e6)
 
 
 def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
@@ -225,25 +226,33 @@ def clip_audio_inputs(audio_features: np.ndarray, starts, lengths, n_words) -> n
     return out
 
 
-def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float = RIDGE_ALPHA, groups=None) -> dict:
-    """Ridge regression ``Y ~ X`` on standardised inputs; held-out error vs the mean predictor.
+def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float | None = None, groups=None) -> dict:
+    """Ridge regression ``Y ~ X`` on standardised inputs, its strength chosen by cross-validation;
+    held-out error vs the mean predictor.
 
     ``groups`` (K,) int: clips of one group are held out together (a clip and its mirrored
     copy share audio and nearly share style: splitting them would leak). Every 5th group
     (by order of first appearance) is held out; default: every clip its own group.
 
+    ``alpha`` None (default): the ridge strength from :data:`RIDGE_ALPHAS` chosen by
+    leave-one-group-out error on the clips it is fitted on, the strongest within one standard
+    error of the best (for the held-out estimate, on the training groups only, so the held-out
+    clips choose nothing). The largest strength is
+    practically the mean predictor, so where audio does not predict style on a database (a
+    single short recording), the fit falls back to the mean rather than doing worse than it.
+
     Returns a dict with ``coef (P, S)``, ``intercept (S,)``, ``x_mean (P,)``, ``x_std (P,)``,
-    ``heldout_rmse`` and ``mean_rmse`` (RMS over held-out clips and the S outputs, each
-    output divided by its standard deviation), ``n_heldout``.
+    ``alpha``, ``heldout_rmse`` and ``mean_rmse`` (RMS over held-out clips and the S outputs,
+    each output divided by its standard deviation), ``n_heldout``.
     """
     X = np.asarray(X, dtype=np.float64)
     Y = np.asarray(Y, dtype=np.float64)
 
-    def fit(Xt, Yt):
+    def fit(Xt, Yt, a):
         mu, sd = Xt.mean(0), np.maximum(Xt.std(0), 1e-9)
         Z = (Xt - mu) / sd
         ym = Yt.mean(0)
-        A = Z.T @ Z + alpha * np.eye(Z.shape[1])
+        A = Z.T @ Z + a * np.eye(Z.shape[1])
         coef = np.linalg.solve(A, Z.T @ (Yt - ym))
         return coef, ym, mu, sd
 
@@ -251,21 +260,38 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float = RIDGE_ALPHA,
         coef, ym, mu, sd = m
         return ((Xq - mu) / sd) @ coef + ym
 
+    ysd = np.maximum(Y.std(0), 1e-9)
+
+    def choose(Xt, Yt, gt):
+        if alpha is not None:
+            return float(alpha)
+        ug = np.unique(gt)
+        if ug.size < 3:  # too few groups to cross-validate: the strongest shrinkage
+            return float(RIDGE_ALPHAS[-1])
+        err = np.array([[(((predict(fit(Xt[gt != k], Yt[gt != k], a), Xt[gt == k]) - Yt[gt == k]) / ysd) ** 2).mean()
+                         for k in ug] for a in RIDGE_ALPHAS])  # (alphas, groups)
+        mean, se = err.mean(1), err.std(1) / np.sqrt(ug.size)
+        best = int(np.argmin(mean))
+        # the one-standard-error rule (glmnet's lambda.1se): the strongest shrinkage within one
+        # standard error of the best, so that a few clips that happen to fit do not buy a
+        # predictor the held-out clips find worse than the mean
+        return float(RIDGE_ALPHAS[int(np.flatnonzero(mean <= mean[best] + se[best]).max())])
+
     K = X.shape[0]
     groups = np.arange(K) if groups is None else np.asarray(groups)
     _, first, inv = np.unique(groups, return_index=True, return_inverse=True)
     rank = np.argsort(np.argsort(first))  # group number in order of first appearance
     held = rank[inv] % 5 == 4
-    ysd = np.maximum(Y.std(0), 1e-9)
     if held.sum() >= 1 and (~held).sum() >= 2:
-        m = fit(X[~held], Y[~held])
+        m = fit(X[~held], Y[~held], choose(X[~held], Y[~held], inv[~held]))
         err = ((predict(m, X[held]) - Y[held]) / ysd) ** 2
         base = ((Y[~held].mean(0) - Y[held]) / ysd) ** 2
         heldout, mean_err = float(np.sqrt(err.mean())), float(np.sqrt(base.mean()))
     else:
         heldout = mean_err = float("nan")
-    coef, ym, mu, sd = fit(X, Y)
-    return dict(coef=coef, intercept=ym, x_mean=mu, x_std=sd, heldout_rmse=heldout, mean_rmse=mean_err,
+    a = choose(X, Y, inv)
+    coef, ym, mu, sd = fit(X, Y, a)
+    return dict(coef=coef, intercept=ym, x_mean=mu, x_std=sd, alpha=a, heldout_rmse=heldout, mean_rmse=mean_err,
                 n_heldout=int(held.sum()))
 
 
@@ -339,7 +365,7 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     sm = h5["style_model"]
     for k in ("heldout_rmse", "mean_rmse", "n_heldout"):
         sm.attrs[k] = model[k]
-    sm.attrs["alpha"] = RIDGE_ALPHA
+    sm.attrs["alpha"] = model["alpha"]
     return dict(n_nodes=K, n_edges=summary["upper"]["n_edges"], delta_T=summary["upper"]["delta_T"],
                 n_edges_lower=summary["lower"]["n_edges"], delta_T_lower=summary["lower"]["delta_T"],
                 heldout_rmse=model["heldout_rmse"], mean_rmse=model["mean_rmse"])

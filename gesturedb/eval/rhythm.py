@@ -11,16 +11,17 @@ from __future__ import annotations
 import numpy as np
 
 
-def input_words(samples: np.ndarray, sr: int, transcript=None) -> tuple[np.ndarray, np.ndarray]:
-    """Word start and end times (s) from a transcript (path or Words) or from the audio's energy."""
+def input_words(samples: np.ndarray, sr: int, transcript=None, *, vad: str = "silero") -> tuple[np.ndarray, np.ndarray]:
+    """Word start and end times (s) from a transcript (path or Words) or, without one, voiced stretches
+    found by :func:`gesturedb.features.pauses.voiced_segments` (detector ``vad``)."""
     if transcript is not None:
         from gesturedb.io.transcripts import Words, read_transcript
 
         w = transcript if isinstance(transcript, Words) else read_transcript(transcript)
         return np.asarray(w.start_s, dtype=np.float64), np.asarray(w.end_s, dtype=np.float64)
-    from gesturedb.synth.graph import voiced_segments
+    from gesturedb.features.pauses import voiced_segments
 
-    return voiced_segments(samples, sr)
+    return voiced_segments(samples, sr, method=vad)
 
 
 def rhythm_hamming(positions: np.ndarray, *, word_start_s, word_end_s, fps: float, joints, gap_s: float = 0.4) -> float:

@@ -5,9 +5,9 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
 
 1. **Input clips.** The speech is split at pauses longer than ``gap_s`` (default: the
    database's own ``gap_s``), from the transcript when given. Without a transcript, pauses
-   and word-like onsets come from a simple energy detector (:func:`voiced_segments`:
-   10 ms RMS in dB, voiced above 35 % of the way from the 10th to the 95th percentile,
-   voiced runs separated by >= 80 ms of silence count as "words"). Input clips longer
+   and word-like onsets come from a voice-activity detector (:func:`voiced_segments`: Silero
+   VAD by default, or the energy detector; voiced stretches separated by >= 80 ms of silence
+   count as "words"; measured accuracy in :mod:`gesturedb.features.pauses`). Input clips longer
    than the longest database clip are split at their deepest pause (or in the middle),
    so every clip has a node that can be warped to it.
 2. **Signatures.** Rhythm: word onsets over 32 bins (Sec. 3.2). Style: predicted from the
@@ -49,7 +49,7 @@ import numpy as np
 
 from gesturedb.db.graph import body_parts
 from gesturedb.errors import ParameterError, SchemaError
-from gesturedb.features.pauses import voiced_segments
+from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
 from gesturedb.synth.assemble import Piece, assemble_pieces, continuation, placed_frames
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.viterbi import viterbi
@@ -128,7 +128,7 @@ class GraphSynthesizer:
         self.avail = rec_end[self.recording] - self.start  # frames from clip start to its recording's end
 
     # -- input side -----------------------------------------------------------
-    def input_clips(self, samples, sr, T, *, transcript=None, gap_s=None):
+    def input_clips(self, samples, sr, T, *, transcript=None, gap_s=None, vad=DEFAULT_VAD):
         """Input clip boundaries (n+1,) in frames, word onsets (s), and words per clip (n,)."""
         from gesturedb.features.segments import word_gap_clips
 
@@ -149,7 +149,7 @@ class GraphSynthesizer:
             check_words_fit(words, samples.shape[0] / sr)
             ws, we = np.asarray(words.start_s, float), np.asarray(words.end_s, float)
         else:
-            ws, we = voiced_segments(samples, sr)
+            ws, we = voiced_segments(samples, sr, method=vad)
         order = np.argsort(ws, kind="stable")
         ws, we = ws[order], we[order]
         if gap_s == "auto":  # from this speech's own pauses, clips of about 3 s (as the build's "auto")
@@ -190,7 +190,7 @@ class GraphSynthesizer:
     # -- synthesis ------------------------------------------------------------
     def synthesize(self, audio, *, sr=None, transcript=None, gap_s=None, w_data=1.0, w_trans=3.0,
                    l5=1.0, l6=0.1, l_dur=0.5, blend_frames=GRAPH_BLEND_FRAMES, smooth=True, control=None, keywords=True,
-                   exclude=None) -> SynthResult:
+                   exclude=None, vad=DEFAULT_VAD) -> SynthResult:
         """Synthesize gestures for speech by the best path through the motion graph.
 
         Parameters
@@ -198,6 +198,8 @@ class GraphSynthesizer:
         audio : path or ndarray [shape=(n,)]
         transcript : path, Words or None
             Word timings; without them pauses come from :func:`voiced_segments`.
+        vad : "silero" or "energy"
+            The detector :func:`voiced_segments` uses when there is no transcript.
         gap_s : float or "auto", optional
             Pause that splits the input (default: the database's ``gap_s``; "auto": from the
             input's own pauses, clips of about 3 s, :func:`gesturedb.db.graph.suggest_gap_s`).
@@ -227,7 +229,7 @@ class GraphSynthesizer:
         searcher = Searcher(db, segments="clips")
         query = searcher.query_features(samples, sr)
         T = query.shape[0]
-        bounds, onsets, n_words = self.input_clips(samples, sr, T, transcript=transcript, gap_s=gap_s)
+        bounds, onsets, n_words = self.input_clips(samples, sr, T, transcript=transcript, gap_s=gap_s, vad=vad)
         unary, terms = self.data_terms(query, bounds, onsets, n_words, l5=l5, l6=l6, l_dur=l_dur)
         labels, kw_ok = self._apply_masks(unary, searcher, bounds, T, control=control, transcript=transcript,
                                           keywords=keywords, exclude=exclude)
@@ -249,7 +251,8 @@ class GraphSynthesizer:
                        blend_frames=blend_frames, smooth=smooth, total_cost=total, total_cost_lower=total_low,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
-                       transcript=transcript is not None, database=db.path)
+                       transcript=transcript is not None, vad=None if transcript is not None else vad,
+                       database=db.path)
         return SynthResult(motion=motion, source_frames=source, boundaries=bounds[1:-1], steps=steps,
                            fps=db.fps, audio_path=audio_path, options=options)
 
