@@ -297,6 +297,16 @@ def test_holdout_metrics_cross_check_the_metric_functions(holdout):
     np.testing.assert_array_equal(b, np.arange(8, inp.n_frames, 8))
     assert inp.metrics["ground_truth"]["seam_ratio"] == pytest.approx(
         M.seam_jerk(gt_pos, fps=15, boundaries=b, joints=joints)["ratio"])
+    # FGD*: the evaluation's encoder, recomputed from the codes of the two outputs
+    fgd = ev.reference.get("fgd")
+    if fgd is not None:
+        from gesturedb.eval.fgd import frechet_distance
+
+        assert inp.metrics["ground_truth"]["fgd_self_gt"] == pytest.approx(0.0, abs=1e-6)
+        assert inp.metrics["random"]["fgd_self_gt"] == pytest.approx(
+            frechet_distance(fgd.codes(sys_pos), fgd.codes(gt_pos)))
+        assert inp.metrics["random"]["fgd_self_db"] == pytest.approx(frechet_distance(fgd.codes(sys_pos), fgd.db_codes))
+        assert all(inp.metrics[n]["fgd_self_gt"] > 0 for n in E.SYSTEMS[1:])
 
 
 def test_holdout_report_files(holdout, tmp_path):

@@ -102,6 +102,10 @@ METRIC_COLUMNS = (
     ("rhythm_hamming", "rhythm Ham", ".2f"),
     ("repeats", "repeats", ".1f"),      # windows that overlap an earlier one (gesturedb.synth.repeats)
     ("max_plays", "max plays", ".1f"),  # the most often one window is played
+    # Fréchet distance with an autoencoder trained on this database (gesturedb.eval.fgd): not comparable
+    # with published FGD values
+    ("fgd_self_gt", "FGD* vs GT", ".2f"),
+    ("fgd_self_db", "FGD* vs DB", ".2f"),
 )
 
 from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
@@ -465,7 +469,7 @@ class MotionEvaluation:
         return out
 
     def reference_row(self) -> dict:
-        return {k: v for k, v in self.reference.items() if k not in ("speed_counts", "speed_edges")}
+        return {k: v for k, v in self.reference.items() if k not in ("speed_counts", "speed_edges", "fgd")}
 
     def to_dict(self) -> dict:
         """Everything as plain JSON types (NaN and inf become None)."""
@@ -509,7 +513,8 @@ class MotionEvaluation:
             f"step {s['step']} frames, blend {s['blend_frames']} frames, seed {s['seed']}",
             "positions: root's horizontal position removed; joints: upper body "
             f"({len(s['joints'])} joints); BeatAlign: wrist speed minima vs speech onsets (sigma 0.3 s); "
-            "H(speed): Hellinger distance of joint-speed histograms",
+            "H(speed): Hellinger distance of joint-speed histograms; FGD*: Frechet distance of 32-frame windows "
+            "in the codes of an autoencoder trained on this database, NOT comparable with published FGD values",
             "",
         ]
         for inp in self.inputs:
@@ -561,6 +566,17 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
                                  database_counts=CV.database_genea_counts(db, joints=joints, root=root))
     for n in rows:
         rows[n].update(conv[n])
+    from gesturedb.eval.fgd import frechet_distance
+
+    fgd = reference.get("fgd")
+    rel = {n: metric_positions(o.positions, root) for n, o in outputs.items()}
+    gt_codes = fgd.codes(rel["ground_truth"]) if fgd is not None and "ground_truth" in rel else None
+    for n in rows:  # FGD* (gesturedb/eval/fgd.py): NaN without torch or ground truth
+        codes = fgd.codes(rel[n]) if fgd is not None else None
+        ok = codes is not None and codes.shape[0] >= 2
+        rows[n]["fgd_self_db"] = frechet_distance(codes, fgd.db_codes) if ok else float("nan")
+        rows[n]["fgd_self_gt"] = (frechet_distance(codes, gt_codes) if ok and gt_codes is not None
+                                  and gt_codes.shape[0] >= 2 else float("nan"))
     fj = feature_joint_indices(db)
     from gesturedb.eval.rhythm import input_words, rhythm_hamming
 
@@ -584,6 +600,10 @@ def _common(db, opts, controls, control_audio):
     root = fj["root"]
     joints = upper_body_joints(db.skeleton.parents, root=root, hips=[fj["left_hip"], fj["right_hip"]])
     reference = database_reference(db, joints=joints, root=root)
+    from gesturedb.eval.fgd import SelfFGD
+
+    fgd = SelfFGD.try_build(db, joints=joints, root=root)  # trained once per evaluation (about 5 s)
+    reference.update(fgd=fgd, fgd_self_gt=float("nan"), fgd_self_db=0.0 if fgd is not None else float("nan"))
     if "left_wrist_height" not in db.controls:
         raise InputFileError(db.path, f"controls: expected 'left_wrist_height', got {sorted(db.controls)}")
     lwh = np.asarray(db.controls["left_wrist_height"], dtype=np.float64)

@@ -1,0 +1,128 @@
+"""Self-trained Fréchet gesture distance (FGD*): GENEA's recipe with an autoencoder trained on the database.
+
+The FGD of the GENEA challenges is the Fréchet distance between Gaussians fitted to the
+autoencoder codes of real and generated motion windows. Here the autoencoder
+(:mod:`gesturedb.refiner.autoencoder`, torch) is trained on the database's own motion
+when an evaluation starts, so the numbers compare systems with each other on this
+database and are **not comparable with published FGD values** (other training data,
+joints, window length and code size). Reported as ``fgd_self_gt`` (against the ground
+truth's windows) and ``fgd_self_db`` (against the database's), marked FGD* in tables.
+
+Windows: 32 frames of the upper-body joints' positions with the root's horizontal
+position removed (the arrays the other upper-body metrics use) and their velocities
+(m/s; without them the encoder, which smooths, scarcely sees jitter), every 4 frames.
+Codes are divided by the database codes' standard deviation per dimension, so a
+distance reads in units of the database's own spread (0: the same distribution).
+Without torch the columns are NaN (the refiner extra installs it).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import linalg
+
+from gesturedb.errors import ParameterError
+
+__all__ = ["frechet_distance", "motion_windows", "SelfFGD", "STRIDE"]
+
+#: frames between window starts
+STRIDE = 4
+_CACHE: dict = {}
+
+
+def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Fréchet distance between Gaussians fitted to two samples of codes (n, L) and (m, L).
+
+    ``|mu_a - mu_b|^2 + tr(C_a + C_b - 2 (C_a C_b)^(1/2))`` with the sample covariances;
+    the tiny imaginary part ``sqrtm`` can return from rounding is dropped, and a result
+    below 0 from rounding is 0.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1] or a.shape[0] < 2 or b.shape[0] < 2:
+        raise ParameterError(f"codes: expected two arrays (n >= 2, L) with the same L, got {a.shape} and {b.shape}")
+    mu = a.mean(0) - b.mean(0)
+    ca, cb = np.atleast_2d(np.cov(a, rowvar=False)), np.atleast_2d(np.cov(b, rowvar=False))
+    root, _ = linalg.sqrtm(ca @ cb, disp=False)
+    d = float(mu @ mu + np.trace(ca) + np.trace(cb) - 2 * np.trace(np.real(root)))
+    return max(d, 0.0)
+
+
+def motion_windows(positions: np.ndarray, *, joints, window: int, fps: float, stride: int = STRIDE) -> np.ndarray:
+    """Windows (n, window, 6 len(joints)) float32 of positions (T, J, 3) in metres and their
+    velocities in m/s (backward differences, the first frame's repeated), starts 0, stride, ...;
+    (0, window, D) when T < window."""
+    pos = np.asarray(positions, dtype=np.float64)[:, np.asarray(joints)]
+    T = pos.shape[0]
+    vel = np.diff(pos, axis=0, prepend=pos[:1]) * fps
+    if T > 1:
+        vel[0] = vel[1]
+    flat = np.concatenate([pos.reshape(T, -1), vel.reshape(T, -1)], axis=1).astype(np.float32)
+    starts = np.arange(0, T - window + 1, stride)
+    if starts.size == 0:
+        return np.zeros((0, window, flat.shape[1]), dtype=np.float32)
+    return np.stack([flat[s:s + window] for s in starts])
+
+
+class SelfFGD:
+    """The autoencoder trained on a database's recordings, and the codes of its windows.
+
+    Parameters
+    ----------
+    db : gesturedb.db.database.Database
+    joints : int array, the upper-body joints; root : int
+    seed : int, training seed (the distance is deterministic for a seed)
+    """
+
+    def __init__(self, db, *, joints, root: int, seed: int = 0):
+        from gesturedb.eval.common import metric_positions
+        from gesturedb.refiner.autoencoder import WINDOW, train_motion_encoder
+
+        self.joints = np.asarray(joints)
+        self.root = int(root)
+        self.window = WINDOW
+        self.fps = float(db.fps)
+        wins = [motion_windows(metric_positions(db.joint_positions[r.start_frame:r.stop_frame], root),
+                               joints=self.joints, window=WINDOW, fps=self.fps)
+                for r in db.recordings]  # within recordings: no window spans two
+        wins = np.concatenate(wins) if wins else np.zeros((0, WINDOW, 6 * len(self.joints)), np.float32)
+        if wins.shape[0] < 8:
+            raise ParameterError(f"database: expected at least 8 windows of {WINDOW} frames for the FGD "
+                                 f"autoencoder, got {wins.shape[0]}")
+        self.model = train_motion_encoder(wins, seed=seed)
+        raw = self.model.encode(wins)
+        self.code_std = np.maximum(raw.std(0), 1e-9)
+        self.db_codes = raw / self.code_std
+
+    @classmethod
+    def try_build(cls, db, *, joints, root: int, seed: int = 0):
+        """A SelfFGD, or None when torch is not installed (the columns are then NaN).
+
+        Kept per process for a database file (path, size, modification time), joints and
+        seed, so repeated evaluations of one database train once.
+        """
+        import importlib.util
+        import os
+
+        if importlib.util.find_spec("torch") is None:  # looked up, not imported: only the refiner imports torch
+            return None
+        try:
+            st = os.stat(db.path)
+            key = (os.path.abspath(db.path), st.st_size, st.st_mtime_ns, tuple(int(j) for j in joints), int(root),
+                   int(seed))
+        except (OSError, TypeError):
+            key = None
+        if key is not None and key in _CACHE:
+            return _CACHE[key]
+        out = cls(db, joints=joints, root=root, seed=seed)
+        if key is not None:
+            _CACHE.clear()  # one database at a time: the codes and network are small, but need not pile up
+            _CACHE[key] = out
+        return out
+
+    def codes(self, positions: np.ndarray) -> np.ndarray:
+        """Codes (n, LATENT), in database standard deviations, of root-relative positions (T, J, 3)
+        (``metric_positions``) at the database's frame rate."""
+        w = motion_windows(positions, joints=self.joints, window=self.window, fps=self.fps)
+        if w.shape[0] == 0:
+            return np.zeros((0, self.db_codes.shape[1]))
+        return self.model.encode(w) / self.code_std
