@@ -22,10 +22,12 @@ Prints, in one run:
 (d) the real-time factor of a 24 s synthesis at 15 fps (360 frames, 45 steps);
 (e) the batched search with every segment's audio as a query (64 frames =
     8 steps each), against a loop of single searches timed on a subset and
-    extrapolated (said so in the output), with a check that they agree.
+    extrapolated (said so in the output), with a check that they agree; then
+    the same batch with the PoseProjection (what the refiner's training data
+    uses) in the same run, the ratio, and a check that all results are identical.
 
 Usage:  python benchmarks/bench_search.py [--reps 41] [--loop-subset 24] [--skip-batch]
-                                          [--data motion|random]
+                                          [--batch-reps 1] [--data motion|random]
 The machine is shared: every timing is a median over interleaved repetitions,
 and (e) also reports CPU time, which other processes do not inflate.
 """
@@ -146,6 +148,8 @@ def main(argv=None):
     ap.add_argument("--loop-subset", type=int, default=24,
                     help="queries timed one by one to extrapolate the loop in (e)")
     ap.add_argument("--skip-batch", action="store_true", help="skip (e)")
+    ap.add_argument("--batch-reps", type=int, default=1,
+                    help="interleaved runs of the batch without and with the projection in (e) (median)")
     ap.add_argument("--data", choices=("motion", "random"), default="motion",
                     help="synthetic pose data: structured motion (default) or i.i.d. Gaussian")
     args = ap.parse_args(argv)
@@ -261,15 +265,32 @@ def main(argv=None):
           f"pose pre-selection:")
     print(f"  loop of single searches: {1e3 * t_loop:.0f} ms per query, timed on {len(sub)} "
           f"queries and EXTRAPOLATED to {M}: {t_loop * M:.0f} s ({cpu_loop * M:.0f} CPU s)")
-    c0, t = cpu_seconds(), time.perf_counter()
-    batch = search.rank_sum_search_batch(pose, audio, st, ln, queries, init, step=N)
-    t_batch = time.perf_counter() - t
-    cpu_batch = cpu_seconds() - c0
-    same = all(np.array_equal(batch[i].frames, r.frames) and np.array_equal(batch[i].pose_dist, r.pose_dist)
+    # without and with the projection, interleaved (the machine is shared)
+    runs = {"plain": [], "proj": []}
+    for _ in range(args.batch_reps):
+        for key, pj in (("plain", None), ("proj", proj)):
+            c0, t = cpu_seconds(), time.perf_counter()
+            res_b = search.rank_sum_search_batch(pose, audio, st, ln, queries, init, step=N, pose_proj=pj)
+            runs[key].append((time.perf_counter() - t, cpu_seconds() - c0))
+            if key == "plain":
+                batch = res_b
+            else:
+                batch_p = res_b
+    t_batch, cpu_batch = (float(np.median([r[i] for r in runs["plain"]])) for i in (0, 1))
+    t_bp, cpu_bp = (float(np.median([r[i] for r in runs["proj"]])) for i in (0, 1))
+    fields = ("segments", "starts", "frames", "pose_dist", "audio_dist", "pose_rank", "audio_rank",
+              "n_candidates")
+    same = all(all(np.array_equal(getattr(batch[i], f), getattr(r, f)) for f in fields)
                for i, r in zip(sub, loop))
-    print(f"  batched (measured on all {M}): {t_batch:.1f} s wall, {cpu_batch:.1f} CPU s "
+    med = " (median of %d)" % args.batch_reps if args.batch_reps > 1 else ""
+    print(f"  batched (measured on all {M}){med}: {t_batch:.1f} s wall, {cpu_batch:.1f} CPU s "
           f"({cpu_batch / max(t_batch, 1e-9):.2f} cores busy); loop/batch = {t_loop * M / t_batch:.1f}x; "
           f"same results on the timed subset: {same}")
+    same_p = all(all(np.array_equal(getattr(a, f), getattr(b, f)) for f in fields)
+                 for a, b in zip(batch, batch_p))
+    print(f"  batched with PoseProjection{med}: {t_bp:.1f} s wall, {cpu_bp:.1f} CPU s; "
+          f"without/with = {t_batch / t_bp:.2f}x (CPU {cpu_batch / max(cpu_bp, 1e-9):.2f}x); "
+          f"identical to the batch without it on all {M} queries: {same_p}")
     c0, t = cpu_seconds(), time.perf_counter()
     batch_a = search.rank_sum_search_batch(pose, audio, st, ln, queries, init, step=N, preselect="audio")
     t_ba = time.perf_counter() - t

@@ -10,6 +10,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <limits>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -253,6 +254,94 @@ PYBIND11_MODULE(_core, m) {
         return d;
     }, py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(),
        py::arg("isa"), "||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, one instruction set.");
+
+    m.def("l2sq_pairs_f32", [](const F32& rows, const F32& vs, const I64& ri, const I64& vi,
+                               const std::string& isa) {
+        const Kernels& k = kernels_for(isa.c_str());
+        const Span2<const float> r = span2(rows, "rows"), v = span2(vs, "vs");
+        if (v.cols != r.cols) throw std::invalid_argument("vs: expected " + std::to_string(r.cols) + " columns");
+        require_ndim(ri, 1, "ri");
+        require_ndim(vi, 1, "vi");
+        const int64_t n = ri.shape(0);
+        if (vi.shape(0) != n) throw std::invalid_argument("vi: expected the length of ri");
+        std::vector<const float*> pr(n), pv(n);
+        for (int64_t i = 0; i < n; ++i) {
+            if (ri.data()[i] < 0 || ri.data()[i] >= r.rows || vi.data()[i] < 0 || vi.data()[i] >= v.rows)
+                throw std::invalid_argument("ri/vi: index out of range");
+            pr[i] = r.row(ri.data()[i]);
+            pv[i] = v.row(vi.data()[i]);
+        }
+        py::array_t<float> out(n);
+        float* o = out.mutable_data();
+        {
+            py::gil_scoped_release release;
+            k.l2sq_pairs_f32(pr.data(), pv.data(), n, r.cols, o);
+        }
+        return out;
+    }, py::arg("rows").noconvert(), py::arg("vs").noconvert(), py::arg("ri").noconvert(),
+       py::arg("vi").noconvert(), py::arg("isa"),
+       "out[i] = ||rows[ri[i]] - vs[vi[i]]||^2 through the batch's pair kernel of one instruction set.");
+
+    m.def("cosdots_pairs_f32", [](const F32& audio, const I64& starts, const F32& qs, const I64& qi,
+                                  const std::string& isa) {
+        const Kernels& k = kernels_for(isa.c_str());
+        const Span2<const float> a = span2(audio, "audio"), q = span2(qs, "qs");
+        require_ndim(starts, 1, "starts");
+        require_ndim(qi, 1, "qi");
+        const int64_t n = starts.shape(0), len = q.cols;
+        if (qi.shape(0) != n) throw std::invalid_argument("qi: expected the length of starts");
+        std::vector<const float*> pw(n), pq(n);
+        for (int64_t i = 0; i < n; ++i) {
+            const int64_t g = starts.data()[i];
+            if (g < 0 || g * a.cols + len > a.rows * a.cols || qi.data()[i] < 0 || qi.data()[i] >= q.rows)
+                throw std::invalid_argument("starts/qi: index out of range");
+            pw[i] = a.row(g);
+            pq[i] = q.row(qi.data()[i]);
+        }
+        py::array_t<float> out(n);
+        float* o = out.mutable_data();
+        {
+            py::gil_scoped_release release;
+            k.cosdots_pairs_f32(pw.data(), pq.data(), n, len, o);
+        }
+        return out;
+    }, py::arg("audio").noconvert(), py::arg("starts").noconvert(), py::arg("qs").noconvert(),
+       py::arg("qi").noconvert(), py::arg("isa"),
+       "qa[i] = <qs[qi[i]], the len(qs[0]) values of audio from frame starts[i]> through the batch's pair kernel.");
+
+    m.def("projfilter_f32", [](const F32& z, const F32& nrow, const F32& rres, const F32& x, const F32& lanes,
+                               const std::string& isa) {
+        const Kernels& k = kernels_for(isa.c_str());
+        const Span2<const float> zr = span2(z, "z"), xs = span2(x, "x"), par = span2(lanes, "lanes");
+        const int64_t n = zr.rows, J = zr.cols, nl = xs.rows;
+        check_vector(nrow, n, "nrow");
+        check_vector(rres, n, "rres");
+        if (xs.cols != J || par.rows != 6 || par.cols != nl || nl < 1)
+            throw std::invalid_argument("x: expected (lanes, J) and lanes (6, lanes)");
+        const int64_t qp = (nl + kQueryPanel - 1) / kQueryPanel * kQueryPanel;
+        // panels of 64 lanes as the batch packs them; padding lanes: zero x, aup = alo = 1
+        std::vector<float> xt(size_t(J) * qp, 0.0f), p(size_t(6) * qp, 0.0f);
+        for (int64_t l = 0; l < qp; ++l) p[1 * qp + l] = p[4 * qp + l] = 1.0f;
+        for (int64_t l = 0; l < nl; ++l) {
+            for (int64_t j = 0; j < J; ++j) xt[(l / 64) * 64 * J + j * 64 + l % 64] = xs(l, j);
+            for (int64_t c = 0; c < 6; ++c) p[c * qp + l] = par(c, l);
+        }
+        const ProjLanes L{&p[0], &p[qp], &p[2 * qp], &p[3 * qp], &p[4 * qp], &p[5 * qp]};
+        py::array_t<float> dh({n, qp}), umin(qp);
+        py::array_t<uint64_t> keep({n, qp / 64});
+        float *pd = dh.mutable_data(), *pu = umin.mutable_data();
+        uint64_t* pk = keep.mutable_data();
+        {
+            py::gil_scoped_release release;
+            std::fill(pu, pu + qp, std::numeric_limits<float>::infinity());
+            k.projfilter_f32(zr.data, n, J, nrow.data(), rres.data(), xt.data(), qp, L, pd, pu);
+            k.projkeep_f32(pd, n, qp, L, pu, pk);
+        }
+        return py::make_tuple(dh, umin, keep);
+    }, py::arg("z").noconvert(), py::arg("nrow").noconvert(), py::arg("rres").noconvert(),
+       py::arg("x").noconvert(), py::arg("lanes").noconvert(), py::arg("isa"),
+       "The batch's projection filter over rows z against lanes x; lanes = (nq, aup, bup, cup, alo, clo). "
+       "Returns (dh (n, qp), umin (qp,), keep bits (n, qp / 64)).");
 
     m.def("cosdots_f32", [](const F32& audio, const F32& q, const std::string& isa) {
         const Kernels& k = kernels_for(isa.c_str());

@@ -83,6 +83,48 @@ using FilterFn = void (*)(const float* c, int64_t n_rows, int64_t qp, const floa
                           const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
                           float eps, float* minhi, uint64_t* keep);
 
+// The exact distances of scattered (row, vector) pairs, for the batch's
+// recomputation of what its filter kept:
+//   out[i] = what l2sq_rows_f32 of the same ISA gives for rows[i] against vs[i],
+//            bit for bit (so the batch decides exactly as the single path)
+// rows[i], vs[i]: dim floats each, anywhere.
+using L2sqPairsFn = void (*)(const float* const* rows, const float* const* vs, int64_t n, int64_t dim,
+                             float* out);
+
+// The dot products of scattered (window, query) pairs, for the audio distance
+// of each lane's pre-selected candidate in the batch:
+//   qa[i] = the <q, a> that cosdots_f32 of the same ISA gives for window wins[i]
+//           and query qs[i] (len values each), bit for bit
+// (the window's <a, a> does not depend on the query: the caller computes it
+// once per window with cosdots_f32).
+using CosDotsPairsFn = void (*)(const float* const* wins, const float* const* qs, int64_t n, int64_t len,
+                                float* qa);
+
+// The pose projection filter of the blocked batch (see proj_query in search.cpp
+// for the constants and BlockedBatch for the bound). Per lane j (qp of them):
+struct ProjLanes {
+    const float* nq;   // |z_x|^2
+    const float* aup;  // upper bound: aup Dh + bup r_f + cup
+    const float* bup;
+    const float* cup;
+    const float* alo;  // lower bound: alo Dh - clo
+    const float* clo;
+};
+// Over rows z (n_rows, J) row-major (a frame's projection z_f) and the query
+// panel xt (packed as for DotsBlockFn, len = J):
+//   dh[r * qp + j] = nrow[r] + nq[j] - 2 <z_r, x_j>        (any order, FMA or not)
+//   umin[j] = min(umin[j], aup[j] dh + bup[j] rres[r] + cup[j])   (in/out)
+// nrow = |z_r|^2, or +inf for a row that must not count (dh and the bound are
+// then +inf). The caller guarantees that everything stays finite otherwise
+// (no NaN handling here; the bound covers the rounding of any order).
+using ProjFilterFn = void (*)(const float* z, int64_t n_rows, int64_t J, const float* nrow,
+                              const float* rres, const float* xt, int64_t qp, const ProjLanes& lanes,
+                              float* dh, float* umin);
+// Then keep (n_rows, qp / 64) words, overwritten: bit (r, j) set iff
+//   alo[j] dh[r * qp + j] - clo[j] <= umin[j].
+using ProjKeepFn = void (*)(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& lanes,
+                            const float* umin, uint64_t* keep);
+
 struct Kernels {
     const char* isa;      // "scalar", "avx2", "avx512"
     L2sqRowsFn l2sq_rows_f32;
@@ -92,6 +134,10 @@ struct Kernels {
     FilterFn cosfilter_f32;
     L2sqRowsF16Fn l2sq_rows_f16;
     L2sqBlocksFn l2sq_blocks_f32;
+    L2sqPairsFn l2sq_pairs_f32;
+    CosDotsPairsFn cosdots_pairs_f32;
+    ProjFilterFn projfilter_f32;
+    ProjKeepFn projkeep_f32;
 };
 
 // --- per-ISA implementations (declared here, defined in kernels_<isa>.cpp) --
@@ -104,6 +150,11 @@ void cosfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const fl
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_scalar(const uint16_t*, int64_t, int64_t, const float*, float*);
 void l2sq_blocks_f32_scalar(const float*, int64_t, int64_t, int64_t, const float*, float*);
+void l2sq_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
+void cosdots_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
+void projfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
+                          const ProjLanes&, float*, float*);
+void projkeep_f32_scalar(const float*, int64_t, int64_t, const ProjLanes&, const float*, uint64_t*);
 
 #if defined(__x86_64__) || defined(_M_X64)
 #define GESTUREDB_X86 1
@@ -116,6 +167,11 @@ void cosfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const floa
                         const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx2(const uint16_t*, int64_t, int64_t, const float*, float*);
 void l2sq_blocks_f32_avx2(const float*, int64_t, int64_t, int64_t, const float*, float*);
+void l2sq_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
+void cosdots_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
+void projfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
+                          const ProjLanes&, float*, float*);
+void projkeep_f32_avx2(const float*, int64_t, int64_t, const ProjLanes&, const float*, uint64_t*);
 void l2sq_rows_f32_avx512(const float*, int64_t, int64_t, const float*, float*);
 void cosdots_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, float*, float*);
 void dots_block_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, int64_t, float*);
@@ -125,6 +181,11 @@ void cosfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const fl
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx512(const uint16_t*, int64_t, int64_t, const float*, float*);
 void l2sq_blocks_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, float*);
+void l2sq_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
+void cosdots_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
+void projfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
+                          const ProjLanes&, float*, float*);
+void projkeep_f32_avx512(const float*, int64_t, int64_t, const ProjLanes&, const float*, uint64_t*);
 #endif
 
 // --- dispatch (dispatch.cpp) ------------------------------------------------

@@ -250,6 +250,98 @@ GDB_AVX2 void l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1, 
     }
 }
 
+// --- blocked batch: exact pairs and the projection filter ---------------------
+
+// The single-row kernel itself for each pair: bit-identical by construction.
+GDB_AVX2 void l2sq_pairs_f32_avx2(const float* const* rows, const float* const* vs, int64_t n,
+                                  int64_t dim, float* out) {
+    for (int64_t i = 0; i < n; ++i) l2sq_rows_f32_avx2(rows[i], 1, dim, vs[i], out + i);
+}
+
+GDB_AVX2 void cosdots_pairs_f32_avx2(const float* const* wins, const float* const* qs, int64_t n,
+                                     int64_t len, float* qa) {
+    for (int64_t i = 0; i < n; ++i) {
+        float aa;
+        cosdots_f32_avx2(wins[i], 1, 0, len, qs[i], qa + i, &aa);
+    }
+}
+
+namespace {
+
+// NR rows x 16 lanes, as dots_tile_avx2, with the bound formed in registers.
+template <int NR>
+GDB_AVX2 inline void proj_tile_avx2(const float* z, int64_t J, const float* nrow, const float* rres,
+                                    const float* panel, int64_t qp, int64_t j0, const ProjLanes& L,
+                                    float* dh, float* umin) {
+    __m256 acc[NR][2];
+    for (int i = 0; i < NR; ++i) acc[i][0] = acc[i][1] = _mm256_setzero_ps();
+    for (int64_t p = 0; p < J; ++p) {
+        const float* x = panel + p * 64;
+        const __m256 x0 = _mm256_loadu_ps(x), x1 = _mm256_loadu_ps(x + 8);
+        for (int i = 0; i < NR; ++i) {
+            const __m256 b = _mm256_broadcast_ss(z + i * J + p);
+            acc[i][0] = _mm256_fmadd_ps(b, x0, acc[i][0]);
+            acc[i][1] = _mm256_fmadd_ps(b, x1, acc[i][1]);
+        }
+    }
+    const __m256 two = _mm256_set1_ps(2.0f);
+    for (int k = 0; k < 2; ++k) {
+        const int64_t j = j0 + 8 * k;
+        const __m256 nq = _mm256_loadu_ps(L.nq + j), aup = _mm256_loadu_ps(L.aup + j);
+        const __m256 bup = _mm256_loadu_ps(L.bup + j), cup = _mm256_loadu_ps(L.cup + j);
+        __m256 mn = _mm256_loadu_ps(umin + j);
+        for (int i = 0; i < NR; ++i) {
+            const __m256 d = _mm256_fnmadd_ps(two, acc[i][k], _mm256_add_ps(_mm256_set1_ps(nrow[i]), nq));
+            _mm256_storeu_ps(dh + i * qp + j, d);
+            const __m256 ub = _mm256_fmadd_ps(aup, d, _mm256_fmadd_ps(bup, _mm256_set1_ps(rres[i]), cup));
+            mn = _mm256_min_ps(ub, mn);
+        }
+        _mm256_storeu_ps(umin + j, mn);
+    }
+}
+
+}  // namespace
+
+GDB_AVX2 void projfilter_f32_avx2(const float* z, int64_t n_rows, int64_t J, const float* nrow,
+                                  const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
+                                  float* dh, float* umin) {
+    constexpr int NR = 6;
+    for (int64_t j0 = 0; j0 < qp; j0 += 16) {
+        const float* panel = xt + (j0 / 64) * 64 * J + (j0 % 64);
+        int64_t r = 0;
+        for (; r + NR <= n_rows; r += NR)
+            proj_tile_avx2<NR>(z + r * J, J, nrow + r, rres + r, panel, qp, j0, L, dh + r * qp, umin);
+        const float* zr = z + r * J;
+        float* o = dh + r * qp;
+        switch (n_rows - r) {
+            case 5: proj_tile_avx2<5>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 4: proj_tile_avx2<4>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 3: proj_tile_avx2<3>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 2: proj_tile_avx2<2>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 1: proj_tile_avx2<1>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            default: break;
+        }
+    }
+}
+
+GDB_AVX2 void projkeep_f32_avx2(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L,
+                                const float* umin, uint64_t* keep) {
+    const int64_t words = qp / 64;
+    for (int64_t w = 0; w < words; ++w) {
+        for (int64_t r = 0; r < n_rows; ++r) {
+            uint64_t bits = 0;
+            for (int k = 0; k < 8; ++k) {
+                const int64_t j = 64 * w + 8 * k;
+                const __m256 lb = _mm256_fmsub_ps(_mm256_loadu_ps(L.alo + j), _mm256_loadu_ps(dh + r * qp + j),
+                                                  _mm256_loadu_ps(L.clo + j));
+                const __m256 m = _mm256_cmp_ps(lb, _mm256_loadu_ps(umin + j), _CMP_LE_OQ);
+                bits |= uint64_t(unsigned(_mm256_movemask_ps(m))) << (8 * k);
+            }
+            keep[r * words + w] = bits;
+        }
+    }
+}
+
 }  // namespace gesturedb
 
 #endif  // GESTUREDB_X86

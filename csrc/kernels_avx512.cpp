@@ -10,6 +10,9 @@
 // GCC 12 warns inside its own _mm512_reduce_add_ps (an intentionally undefined
 // upper half in _mm512_extractf64x4_pd); the value is never read.
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+// and, once inlined into a loop, inside _mm512_min_ps (its _mm512_undefined_ps
+// pass-through operand, unused without a mask)
+#pragma GCC diagnostic ignored "-Wuninitialized"
 #include <immintrin.h>
 
 #include <algorithm>
@@ -343,6 +346,134 @@ GDB_AVX512 void l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t 
         } else {
             _mm512_store_ps(tmp, acc);
             for (int64_t f = lo; f < hi; ++f) out[f - f0] = tmp[f - b * kFrameBlock];
+        }
+    }
+}
+
+// --- blocked batch: exact pairs and the projection filter ---------------------
+
+// Each pair goes through the same l2sq_lanes and tree as l2sq_rows_f32_avx512
+// gives a single row, so the values are bit-identical to it.
+GDB_AVX512 void l2sq_pairs_f32_avx512(const float* const* rows, const float* const* vs, int64_t n,
+                                      int64_t dim, float* out) {
+    const __mmask16 tail_mask = __mmask16((1u << (dim & 15)) - 1u);
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) {
+        __m512 lanes[16];
+        for (int k = 0; k < 16; ++k) lanes[k] = l2sq_lanes(rows[i + k], vs[i + k], dim, tail_mask);
+        _mm512_storeu_ps(out + i, reduce_tree16(lanes));
+    }
+    for (; i < n; ++i) out[i] = reduce_tree(l2sq_lanes(rows[i], vs[i], dim, tail_mask));
+}
+
+// The dot half of cosdots_f32_avx512, instruction for instruction (the same
+// two accumulators, masked tail and reduction), so qa is bit-identical.
+GDB_AVX512 void cosdots_pairs_f32_avx512(const float* const* wins, const float* const* qs, int64_t n,
+                                         int64_t len, float* qa) {
+    const int64_t tail = len & 15;
+    const __mmask16 tail_mask = __mmask16((1u << tail) - 1u);
+    for (int64_t i = 0; i < n; ++i) {
+        const float* a = wins[i];
+        const float* q = qs[i];
+        __m512 dot0 = _mm512_setzero_ps(), dot1 = _mm512_setzero_ps();
+        int64_t j = 0;
+        for (; j + 32 <= len; j += 32) {
+            dot0 = _mm512_fmadd_ps(_mm512_loadu_ps(q + j), _mm512_loadu_ps(a + j), dot0);
+            dot1 = _mm512_fmadd_ps(_mm512_loadu_ps(q + j + 16), _mm512_loadu_ps(a + j + 16), dot1);
+        }
+        if (j + 16 <= len) {
+            dot0 = _mm512_fmadd_ps(_mm512_loadu_ps(q + j), _mm512_loadu_ps(a + j), dot0);
+            j += 16;
+        }
+        if (tail)
+            dot1 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(tail_mask, q + j), _mm512_maskz_loadu_ps(tail_mask, a + j),
+                                   dot1);
+        qa[i] = _mm512_reduce_add_ps(_mm512_add_ps(dot0, dot1));
+    }
+}
+
+namespace {
+
+// NR rows x 64 lanes of the projection filter: the dot products stay in
+// registers (4 NR accumulators) and the bound is formed there, so only dh is
+// written; umin lives in memory (4 vectors per tile).
+template <int NR>
+GDB_AVX512 inline void proj_tile_avx512(const float* z, int64_t J, const float* nrow, const float* rres,
+                                        const float* panel, int64_t qp, int64_t j0, const ProjLanes& L,
+                                        float* dh, float* umin) {
+    __m512 acc[NR][4];
+    for (int i = 0; i < NR; ++i)
+        for (int k = 0; k < 4; ++k) acc[i][k] = _mm512_setzero_ps();
+    for (int64_t p = 0; p < J; ++p) {
+        const float* x = panel + p * 64;
+        const __m512 x0 = _mm512_loadu_ps(x), x1 = _mm512_loadu_ps(x + 16);
+        const __m512 x2 = _mm512_loadu_ps(x + 32), x3 = _mm512_loadu_ps(x + 48);
+        for (int i = 0; i < NR; ++i) {
+            const __m512 b = _mm512_set1_ps(z[i * J + p]);
+            acc[i][0] = _mm512_fmadd_ps(b, x0, acc[i][0]);
+            acc[i][1] = _mm512_fmadd_ps(b, x1, acc[i][1]);
+            acc[i][2] = _mm512_fmadd_ps(b, x2, acc[i][2]);
+            acc[i][3] = _mm512_fmadd_ps(b, x3, acc[i][3]);
+        }
+    }
+    const __m512 two = _mm512_set1_ps(2.0f);
+    for (int k = 0; k < 4; ++k) {
+        const int64_t j = j0 + 16 * k;
+        const __m512 nq = _mm512_loadu_ps(L.nq + j), aup = _mm512_loadu_ps(L.aup + j);
+        const __m512 bup = _mm512_loadu_ps(L.bup + j), cup = _mm512_loadu_ps(L.cup + j);
+        __m512 mn = _mm512_loadu_ps(umin + j);
+        for (int i = 0; i < NR; ++i) {
+            const __m512 d = _mm512_fnmadd_ps(two, acc[i][k], _mm512_add_ps(_mm512_set1_ps(nrow[i]), nq));
+            _mm512_storeu_ps(dh + i * qp + j, d);
+            const __m512 ub = _mm512_fmadd_ps(aup, d, _mm512_fmadd_ps(bup, _mm512_set1_ps(rres[i]), cup));
+            mn = _mm512_min_ps(ub, mn);
+        }
+        _mm512_storeu_ps(umin + j, mn);
+    }
+}
+
+}  // namespace
+
+GDB_AVX512 void projfilter_f32_avx512(const float* z, int64_t n_rows, int64_t J, const float* nrow,
+                                      const float* rres, const float* xt, int64_t qp,
+                                      const ProjLanes& L, float* dh, float* umin) {
+    constexpr int NR = 6;
+    for (int64_t j0 = 0; j0 < qp; j0 += 64) {
+        const float* panel = xt + j0 * J;
+        int64_t r = 0;
+        for (; r + NR <= n_rows; r += NR)
+            proj_tile_avx512<NR>(z + r * J, J, nrow + r, rres + r, panel, qp, j0, L, dh + r * qp, umin);
+        const float* zr = z + r * J;
+        float* o = dh + r * qp;
+        switch (n_rows - r) {
+            case 5: proj_tile_avx512<5>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 4: proj_tile_avx512<4>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 3: proj_tile_avx512<3>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 2: proj_tile_avx512<2>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            case 1: proj_tile_avx512<1>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
+            default: break;
+        }
+    }
+}
+
+GDB_AVX512 void projkeep_f32_avx512(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L,
+                                    const float* umin, uint64_t* keep) {
+    const int64_t words = qp / 64;
+    for (int64_t w = 0; w < words; ++w) {
+        __m512 alo[4], clo[4], mn[4];
+        for (int k = 0; k < 4; ++k) {
+            const int64_t j = 64 * w + 16 * k;
+            alo[k] = _mm512_loadu_ps(L.alo + j);
+            clo[k] = _mm512_loadu_ps(L.clo + j);
+            mn[k] = _mm512_loadu_ps(umin + j);
+        }
+        for (int64_t r = 0; r < n_rows; ++r) {
+            uint64_t bits = 0;
+            for (int k = 0; k < 4; ++k) {
+                const __m512 lb = _mm512_fmsub_ps(alo[k], _mm512_loadu_ps(dh + r * qp + 64 * w + 16 * k), clo[k]);
+                bits |= uint64_t(_mm512_cmp_ps_mask(lb, mn[k], _CMP_LE_OQ)) << (16 * k);
+            }
+            keep[r * words + w] = bits;
         }
     }
 }

@@ -158,4 +158,47 @@ void l2sq_blocks_f32_scalar(const float* blocks, int64_t f0, int64_t f1, int64_t
     }
 }
 
+
+// --- blocked batch: exact pairs and the projection filter -------------------
+
+void l2sq_pairs_f32_scalar(const float* const* rows, const float* const* vs, int64_t n, int64_t dim,
+                           float* out) {
+    for (int64_t i = 0; i < n; ++i) l2sq_rows_f32_scalar(rows[i], 1, dim, vs[i], out + i);
+}
+
+void cosdots_pairs_f32_scalar(const float* const* wins, const float* const* qs, int64_t n, int64_t len,
+                              float* qa) {
+    for (int64_t i = 0; i < n; ++i) {
+        float aa;
+        cosdots_f32_scalar(wins[i], 1, 0, len, qs[i], qa + i, &aa);
+    }
+}
+
+void projfilter_f32_scalar(const float* z, int64_t n_rows, int64_t J, const float* nrow,
+                           const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
+                           float* dh, float* umin) {
+    for (int64_t r = 0; r < n_rows; ++r) {
+        const float* row = z + r * J;
+        for (int64_t j = 0; j < qp; ++j) {
+            const float* x = xt + (j / 64) * J * 64 + j % 64;
+            double dot = 0.0;
+            for (int64_t p = 0; p < J; ++p) dot += double(row[p]) * double(x[p * 64]);
+            const float d = (nrow[r] + L.nq[j]) - 2.0f * float(dot);
+            dh[r * qp + j] = d;
+            const float ub = L.aup[j] * d + (L.bup[j] * rres[r] + L.cup[j]);
+            if (ub < umin[j]) umin[j] = ub;
+        }
+    }
+}
+
+void projkeep_f32_scalar(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L,
+                         const float* umin, uint64_t* keep) {
+    const int64_t words = qp / 64;
+    std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
+    for (int64_t r = 0; r < n_rows; ++r)
+        for (int64_t j = 0; j < qp; ++j)
+            if (L.alo[j] * dh[r * qp + j] - L.clo[j] <= umin[j])
+                keep[r * words + j / 64] |= uint64_t(1) << (j % 64);
+}
+
 }  // namespace gesturedb

@@ -86,6 +86,26 @@ inline double cosine_distance(float qa, float qq, float aa) {
     return 1.0 - double(qa) / std::sqrt(double(qq) * double(aa));
 }
 
+// cosine_distance over arrays, written without branches so that the compiler
+// vectorises the division and square root (both exactly rounded, so the values
+// are those of cosine_distance).
+void cosine_distances(const float* __restrict qa, const float* __restrict qq, const float* __restrict aa,
+                      double* __restrict out, int64_t n) {
+    for (int64_t i = 0; i < n; ++i) {
+        const double q2 = qq[i], a2 = aa[i];
+        const double den = std::sqrt(q2 * a2);
+        const double d = 1.0 - double(qa[i]) / den;
+        // 1 when either norm is 0, by masks: a ?: here is control flow to the vectoriser
+        const uint64_t zero = -uint64_t((q2 == 0.0) | (a2 == 0.0));
+        uint64_t bits, one_bits;
+        const double one = 1.0;
+        std::memcpy(&bits, &d, 8);
+        std::memcpy(&one_bits, &one, 8);
+        bits = (bits & ~zero) | (one_bits & zero);
+        std::memcpy(&out[i], &bits, 8);
+    }
+}
+
 // Bits f .. f+63 of a packed bitset (bits past the end read as 0).
 inline uint64_t bits64(const BitsetView& b, int64_t f) {
     const int64_t w = f >> 6;
@@ -331,10 +351,8 @@ private:
             pdp_[i] = (uint64_t(kdp_[i]) << 32) | uint32_t(i);
             pda_[i] = {kda_[i], i};
         }
-        std::nth_element(pdp_.begin(), pdp_.begin() + (kTop - 1), pdp_.end());
-        std::sort(pdp_.begin(), pdp_.begin() + kTop);
-        std::nth_element(pda_.begin(), pda_.begin() + (kTop - 1), pda_.end());
-        std::sort(pda_.begin(), pda_.begin() + kTop);
+        select_smallest(pdp_, kTop, [](uint64_t x) { return x; });
+        select_smallest(pda_, kTop, [](const std::pair<uint64_t, int32_t>& x) { return x.first; });
         rp_.assign(K, -1);
         for (int32_t r = 0; r < kTop; ++r) rp_[int32_t(pdp_[r] & 0xFFFFFFFFu)] = r;
         known_.clear();
@@ -351,6 +369,36 @@ private:
         rp_out = rp;
         ra_out = int64_t(key >> 32) - rp;
         return true;
+    }
+
+    // Moves the n smallest items of v (n < v.size(), unique under operator<) to
+    // its front, sorted. A radix pre-selection first: the keys of every item
+    // share the bits above the highest bit in which the smallest and the
+    // largest key differ, so the 11 bits below it order the items as their
+    // keys do; one histogram pass finds the digit of the n-th smallest, and
+    // only the items up to that digit (a few times n, typically) go through
+    // nth_element.
+    template <class T, class KeyFn>
+    void select_smallest(std::vector<T>& v, int32_t n, KeyFn key) {
+        uint64_t lo = ~uint64_t(0), hi = 0;
+        for (const T& x : v) {
+            const uint64_t k = key(x);
+            lo = k < lo ? k : lo;
+            hi = k > hi ? k : hi;
+        }
+        const uint64_t diff = lo ^ hi;
+        const int bits = diff ? 64 - __builtin_clzll(diff) : 0;
+        const int shift = std::max(0, bits - 11);
+        hist_.assign(2048, 0);
+        for (const T& x : v) ++hist_[(key(x) >> shift) & 2047];
+        uint32_t cum = 0, b = 0;
+        for (; b < 2048; ++b) {
+            cum += hist_[b];
+            if (cum >= uint32_t(n)) break;
+        }
+        const auto mid = std::partition(v.begin(), v.end(), [&](const T& x) { return ((key(x) >> shift) & 2047) <= b; });
+        std::nth_element(v.begin(), v.begin() + (n - 1), mid);
+        std::sort(v.begin(), v.begin() + n);
     }
 
     void full(int32_t K, int64_t k, int32_t& c, int64_t& rp_out, int64_t& ra_out) {
@@ -879,14 +927,42 @@ void check_search_args(const Database& db, Span2<const float> query, int64_t win
 // every candidate, the bound filter keeps the candidates that could still be
 // the lane's minimum, and those are recomputed with the exact kernels in
 // ascending s. Queries in their last, partial window take the single path.
+//
+// With a pose projection (Database::proj) and pose pre-selection, the blocked
+// dot product runs over the J projected columns instead of the Dp pose columns
+// (a quarter of the work at J = 24, Dp = 96) and the filter is the projection's
+// bound of proj_filter, widened by the error of the blocked form (see
+// lane_bounds): the same candidates-that-could-win are recomputed exactly, so
+// the results stay those of the single path.
 class BlockedBatch {
 public:
     static constexpr int64_t kRowTile = 128;  // candidates per dot-product call
+    // Projection filter: rows or lanes with |z|^2 above this take the exact scan,
+    // so that no value of the blocked bound can overflow (see lane_bounds).
+    static constexpr double kProjBig = 1e30;
 
     BlockedBatch(const Kernels& kern, const Database& db, int64_t window, Preselect pre,
                  const AllowedSchedule& allowed, int threads)
         : kern_(kern), db_(db), N_(window), pre_(pre), allowed_(allowed) {
         const int64_t F = db.n_frames(), Dp = db.pose.cols, Da = db.audio.cols;
+        proj_ = pre == Preselect::Pose && db.proj.data != nullptr;
+        if (pre == Preselect::Pose) {
+            // <a, a> of every N-frame audio window, for the audio distance of
+            // the pre-selected candidates: cosdots_f32's own value (it does not
+            // depend on the query), so the distances stay bit-identical
+            const int64_t n_win = std::max<int64_t>(F - N_ + 1, 0);
+            wnorm_.assign(std::max<int64_t>(n_win, 1), 0.0f);
+            const int64_t chunk = 1 << 14;
+            parallel_for((n_win + chunk - 1) / chunk, threads, [&](int64_t c, int) {
+                const int64_t r0 = c * chunk, r1 = std::min(n_win, r0 + chunk);
+                std::vector<float> zero(N_ * Da, 0.0f), qa(r1 - r0);
+                kern_.cosdots_f32(db.audio.row(r0), r1 - r0, Da, N_ * Da, zero.data(), qa.data(), &wnorm_[r0]);
+            });
+        }
+        if (proj_) {
+            setup_projection(threads);
+            return;
+        }
         // per-row quantities of the filter (they only widen or narrow the
         // bound, never decide: any rounding here is covered by eps)
         const int64_t n_rows = pre == Preselect::Pose ? F : std::max<int64_t>(F - N_ + 1, 0);
@@ -921,7 +997,8 @@ public:
     void run(BatchQuery* const* block, int64_t nq) {
         const int64_t M = db_.n_segments();
         const int64_t Dp = db_.pose.cols, Da = db_.audio.cols;
-        const int64_t len = pre_ == Preselect::Pose ? Dp : N_ * Da;
+        const int64_t J = db_.proj_dim;
+        const int64_t len = proj_ ? J : pre_ == Preselect::Pose ? Dp : N_ * Da;
         const int64_t qp = (nq + kQueryPanel - 1) / kQueryPanel * kQueryPanel;
         const int64_t words = qp / 64;
         std::vector<const float*> prev(nq);
@@ -945,7 +1022,26 @@ public:
         std::vector<float> best_dp(qp);
         std::vector<double> best_da(qp);
         std::vector<int64_t> lanes;  // lane -> index in block
+        std::vector<const bool*> lane_ex;  // lane -> its exclusion row (or null)
         std::vector<QueryStep> lane_step(qp);
+        // lanes whose kept candidates are recomputed in this segment (bit per
+        // lane), and the lanes that scan every segment exactly (projection
+        // bound not finite for their previous pose)
+        std::vector<uint64_t> live(words), lane_ok(words);
+        // projection filter: per-lane constants and the tile's masked |z|^2
+        std::vector<float> lane_par(size_t(6) * qp), nrow_tile(kRowTile);
+        const ProjLanes pl{&lane_par[0], &lane_par[qp], &lane_par[2 * qp], &lane_par[3 * qp],
+                           &lane_par[4 * qp], &lane_par[5 * qp]};
+        // the exact recomputation of one tile's kept (row, lane) pairs
+        std::vector<const float*> pair_row(size_t(kRowTile) * qp), pair_vec(size_t(kRowTile) * qp);
+        std::vector<int32_t> pair_lane(size_t(kRowTile) * qp), pair_i(size_t(kRowTile) * qp);
+        std::vector<float> pair_d(size_t(kRowTile) * qp);
+        // the other distance of each lane's pre-selected candidate in a segment
+        std::vector<const float*> fin_a(qp), fin_b(qp);
+        std::vector<int32_t> fin_lane(qp);
+        std::vector<int64_t> fin_g(qp);
+        std::vector<float> fin_qa(qp), fin_qq(qp), fin_aa(qp);
+        std::vector<double> fin_da(qp);
         std::unique_ptr<StepEngine> single;  // partial windows
         Ranker ranker;
 
@@ -972,11 +1068,19 @@ public:
             }
             const int64_t nl = int64_t(lanes.size());
             if (nl == 0) continue;
+            lane_ex.assign(nl, nullptr);
+            bool any_ex = false;
+            for (int64_t l = 0; l < nl; ++l) {
+                lane_ex[l] = block[lanes[l]]->exclude;
+                any_ex |= lane_ex[l] != nullptr;
+            }
 
             // the panel: one column per lane (padding lanes are zero and ignored)
             std::fill(xt.begin(), xt.end(), 0.0f);
             std::fill(nx.begin(), nx.end(), 0.0f);
             std::fill(rx.begin(), rx.end(), 0.0f);
+            std::fill(lane_ok.begin(), lane_ok.end(), uint64_t(0));
+            if (proj_) lane_defaults(lane_par, qp);
             for (int64_t l = 0; l < nl; ++l) {
                 const BatchQuery* bq = block[lanes[l]];
                 QueryStep& ls = lane_step[l];
@@ -984,17 +1088,26 @@ public:
                 ls.q = bq->audio.row(t);
                 ls.n = N_;
                 ls.qq = query_norm2(kern_, ls.q, N_ * Da);
-                const float* col = pre_ == Preselect::Pose ? ls.prev : ls.q;
                 float* panel = &xt[(l / 64) * 64 * len + (l % 64)];
-                for (int64_t p = 0; p < len; ++p) panel[p * 64] = col[p];
-                if (pre_ == Preselect::Pose) {
-                    double s = 0.0;
-                    for (int64_t p = 0; p < Dp; ++p) s += double(col[p]) * col[p];
-                    nx[l] = float(s);
-                    rx[l] = float(std::sqrt(s));
+                bool filtered = true;
+                if (proj_) {
+                    const ProjQuery pq = proj_query(db_, ls.prev);
+                    filtered = lane_bounds(pq, lane_par, qp, l);
+                    if (filtered)
+                        for (int64_t p = 0; p < J; ++p) panel[p * 64] = pq.zx[p];
                 } else {
-                    rx[l] = ls.qq > 0.0f ? 1.0f / std::sqrt(ls.qq) : 0.0f;
+                    const float* col = pre_ == Preselect::Pose ? ls.prev : ls.q;
+                    for (int64_t p = 0; p < len; ++p) panel[p * 64] = col[p];
+                    if (pre_ == Preselect::Pose) {
+                        double s = 0.0;
+                        for (int64_t p = 0; p < Dp; ++p) s += double(col[p]) * col[p];
+                        nx[l] = float(s);
+                        rx[l] = float(std::sqrt(s));
+                    } else {
+                        rx[l] = ls.qq > 0.0f ? 1.0f / std::sqrt(ls.qq) : 0.0f;
+                    }
                 }
+                if (filtered) lane_ok[l / 64] |= uint64_t(1) << (l % 64);
             }
 
             for (int64_t l = 0; l < nl; ++l)
@@ -1002,7 +1115,7 @@ public:
             for (int64_t m = 0; m < M; ++m) {
                 const int64_t n_cand = db_.seg_len[m] - N_;
                 const int64_t seg0 = db_.seg_start[m];
-                if (m + 1 < M) prefetch_other_rows(m + 1);
+                if (m + 1 < M) prefetch_rows(m + 1);
                 if (n_cand < 1) continue;
                 bool any = false;
                 const uint8_t* okp = nullptr;
@@ -1017,21 +1130,40 @@ public:
                     okp = ok.data();
                 }
                 if (!any) continue;
-                bool all_excluded = true;
-                for (int64_t l = 0; l < nl; ++l) {
-                    const bool* ex = block[lanes[l]]->exclude;
-                    if (ex == nullptr || !ex[m]) {
-                        all_excluded = false;
-                        break;
-                    }
+                // lanes that filter this segment: not excluded from it, bound usable
+                bool all_excluded = !any_ex ? false : true;
+                const bool seg_filtered = !(proj_ && seg_bad_[m]);
+                for (int64_t w = 0; w < words; ++w) live[w] = seg_filtered ? lane_ok[w] : 0;
+                for (int64_t l = 0; any_ex && l < nl; ++l) {
+                    const bool* ex = lane_ex[l];
+                    if (ex != nullptr && ex[m]) live[l / 64] &= ~(uint64_t(1) << (l % 64));
+                    else all_excluded = false;
                 }
                 if (all_excluded) continue;
+                bool any_live = false;
+                for (int64_t w = 0; w < words; ++w) any_live |= live[w] != 0;
 
                 std::fill(minhi.begin(), minhi.end(), std::numeric_limits<float>::infinity());
                 std::fill(best.begin(), best.begin() + nl, int64_t(-1));
-                for (int64_t i0 = 0; i0 < n_cand; i0 += kRowTile) {
+                for (int64_t i0 = 0; any_live && i0 < n_cand; i0 += kRowTile) {
                     const int64_t nr = std::min(kRowTile, n_cand - i0);
-                    if (pre_ == Preselect::Pose) {
+                    if (proj_) {
+                        // rows are the entry frames g - 1 = seg0 + i; a row that is
+                        // not a candidate gets |z|^2 = +inf: it neither bounds nor is kept
+                        const float* nrow = &pnrow_[seg0 + i0];
+                        if (okp) {
+                            const float inf = std::numeric_limits<float>::infinity();
+                            for (int64_t r = 0; r < nr; ++r) nrow_tile[r] = okp[i0 + r] ? nrow[r] : inf;
+                            nrow = nrow_tile.data();
+                        }
+                        if (tile_has_row(okp, i0, nr)) {
+                            kern_.projfilter_f32(&zrow_[(seg0 + i0) * J], nr, J, nrow, &rres_[seg0 + i0],
+                                                 xt.data(), qp, pl, c.data(), minhi.data());
+                            kern_.projkeep_f32(c.data(), nr, qp, pl, minhi.data(), keep.data());
+                        } else {
+                            std::fill(keep.begin(), keep.begin() + nr * words, uint64_t(0));
+                        }
+                    } else if (pre_ == Preselect::Pose) {
                         // rows are the entry frames g - 1 = seg0 + i
                         kern_.dots_block_f32(db_.pose.row(seg0 + i0), nr, Dp, Dp, xt.data(), qp, c.data());
                         kern_.l2filter_f32(c.data(), nr, qp, &nrow_[seg0 + i0], &rrow_[seg0 + i0],
@@ -1045,28 +1177,57 @@ public:
                                             minhi.data(), keep.data());
                     }
                     // exact values of the kept candidates, in ascending s per lane
+                    int64_t n_pairs = 0;
                     for (int64_t r = 0; r < nr; ++r) {
                         for (int64_t w = 0; w < words; ++w) {
-                            uint64_t bits = keep[r * words + w];
+                            uint64_t bits = keep[r * words + w] & live[w];
                             while (bits) {
                                 const int64_t l = w * 64 + __builtin_ctzll(bits);
                                 bits &= bits - 1;
-                                if (l >= nl) break;
-                                const bool* ex = block[lanes[l]]->exclude;
-                                if (ex != nullptr && ex[m]) continue;
-                                exact_update(m, i0 + r, lane_step[l], l, best, best_dp, best_da);
+                                if (pre_ == Preselect::Pose) {
+                                    pair_row[n_pairs] = db_.pose.row(seg0 + i0 + r);
+                                    pair_vec[n_pairs] = lane_step[l].prev;
+                                    pair_lane[n_pairs] = int32_t(l);
+                                    pair_i[n_pairs] = int32_t(i0 + r);
+                                    ++n_pairs;
+                                } else {
+                                    exact_update_audio(m, i0 + r, lane_step[l], l, best, best_da);
+                                }
                             }
                         }
                     }
+                    if (n_pairs > 0) {
+                        kern_.l2sq_pairs_f32(pair_row.data(), pair_vec.data(), n_pairs, Dp, pair_d.data());
+                        for (int64_t p = 0; p < n_pairs; ++p) {
+                            const int32_t l = pair_lane[p];
+                            const float d = pair_d[p], bd = best_dp[l];
+                            // nan_last_less with ties to the smaller s (the pairs come
+                            // in ascending s per lane); branch-free, as the outcome is
+                            // unpredictable
+                            // (masks rather than ?: so that the compiler does not
+                            // turn it back into branches)
+                            const int64_t better =
+                                int64_t(best[l] < 0) | int64_t(d < bd) | (int64_t(bd != bd) & int64_t(d == d));
+                            const int64_t mask = -better;
+                            best[l] = (int64_t(pair_i[p]) & mask) | (best[l] & ~mask);
+                            uint32_t db, bb;
+                            std::memcpy(&db, &d, 4);
+                            std::memcpy(&bb, &bd, 4);
+                            const uint32_t out = (db & uint32_t(mask)) | (bb & ~uint32_t(mask));
+                            std::memcpy(&best_dp[l], &out, 4);
+                        }
+                    }
                 }
+                int64_t n_fin = 0;
                 for (int64_t l = 0; l < nl; ++l) {
                     const int64_t qi = lanes[l];
-                    const bool* ex = block[qi]->exclude;
+                    const bool* ex = lane_ex[l];
                     if (ex != nullptr && ex[m]) continue;
                     Selection sel{&sel_s[qi * M], &sel_dp[qi * M], &sel_da[qi * M]};
                     int64_t b;
-                    if (!(minhi[l] < std::numeric_limits<float>::infinity())) {
-                        // a non-finite approximate distance: the bound says
+                    const bool filtered = (live[l / 64] >> (l % 64)) & 1;
+                    if (!filtered || !(minhi[l] < std::numeric_limits<float>::infinity())) {
+                        // a non-finite approximate distance or bound: it says
                         // nothing, so this lane scans the segment exactly
                         b = preselect_exact(kern_, db_, m, lane_step[l], pre_, allowed,
                                             scratch_a.data(), scratch_b.data(), sel);
@@ -1077,7 +1238,30 @@ public:
                     }
                     if (b < 0) continue;
                     sel.s[m] = b + 1;
-                    complete_other(kern_, db_, m, lane_step[l], pre_, sel);
+                    // the other distance, for all lanes at once below
+                    const int64_t g = seg0 + b + 1;
+                    fin_lane[n_fin] = int32_t(l);
+                    fin_g[n_fin] = g;
+                    if (pre_ == Preselect::Pose) {
+                        fin_a[n_fin] = db_.audio.row(g);
+                        fin_b[n_fin] = lane_step[l].q;
+                    } else {
+                        fin_a[n_fin] = db_.pose.row(g - 1);
+                        fin_b[n_fin] = lane_step[l].prev;
+                    }
+                    ++n_fin;
+                }
+                if (pre_ == Preselect::Pose) {
+                    kern_.cosdots_pairs_f32(fin_a.data(), fin_b.data(), n_fin, N_ * Da, fin_qa.data());
+                    for (int64_t i = 0; i < n_fin; ++i) {
+                        fin_qq[i] = lane_step[fin_lane[i]].qq;
+                        fin_aa[i] = wnorm_[fin_g[i]];
+                    }
+                    cosine_distances(fin_qa.data(), fin_qq.data(), fin_aa.data(), fin_da.data(), n_fin);
+                    for (int64_t i = 0; i < n_fin; ++i) sel_da[lanes[fin_lane[i]] * M + m] = fin_da[i];
+                } else {
+                    kern_.l2sq_pairs_f32(fin_a.data(), fin_b.data(), n_fin, Dp, fin_qa.data());
+                    for (int64_t i = 0; i < n_fin; ++i) sel_dp[lanes[fin_lane[i]] * M + m] = fin_qa[i];
                 }
             }
             for (int64_t l = 0; l < nl; ++l) {
@@ -1090,22 +1274,136 @@ public:
     }
 
 private:
-    // The winners' other distance reads rows the dot products did not touch
-    // (audio windows in pose mode, entry poses in audio mode), one per lane at
-    // scattered offsets; fetching the next segment's rows while this one is
-    // filtered turns those cache misses into hits.
-    void prefetch_other_rows(int64_t m) const {
+    // The projection in the layout of the blocked dot product (rows of J
+    // values), |z_f|^2 and r_f per frame, and which segments' candidates all
+    // have a finite, not huge |z_f| (the others are scanned exactly).
+    void setup_projection(int threads) {
+        const int64_t F = db_.n_frames(), J = db_.proj_dim, M = db_.n_segments();
+        zrow_.assign(size_t(std::max<int64_t>(F, 1)) * J, 0.0f);
+        pnrow_.assign(std::max<int64_t>(F, 1), 0.0f);
+        rres_.assign(std::max<int64_t>(F, 1), 0.0f);
+        std::vector<uint8_t> bad(std::max<int64_t>(F, 1), 0);
+        const int64_t chunk = 1 << 14;
+        const int64_t n_chunks = (F + chunk - 1) / chunk;
+        std::vector<double> zmax(std::max<int64_t>(n_chunks, 1), 0.0);
+        parallel_for(n_chunks, threads, [&](int64_t c, int) {
+            const int64_t f0 = c * chunk, f1 = std::min(F, f0 + chunk);
+            for (int64_t f = f0; f < f1; ++f) {
+                double s = 0.0;
+                for (int64_t j = 0; j < J; ++j) {
+                    const float v = db_.proj(f / kFrameBlock, kFrameBlock * j + f % kFrameBlock);
+                    zrow_[f * J + j] = v;
+                    s += double(v) * double(v);
+                }
+                rres_[f] = zrow_[f * J + J - 1];
+                if (!(s <= kProjBig) || !std::isfinite(double(rres_[f]))) {
+                    bad[f] = 1;
+                    pnrow_[f] = 0.0f;
+                } else {
+                    pnrow_[f] = float(s);
+                    zmax[c] = std::max(zmax[c], std::sqrt(s));
+                }
+            }
+        });
+        zmax_ = 0.0;
+        for (double z : zmax) zmax_ = std::max(zmax_, z);
+        zmax_ *= 1.0 + 1e-6;  // and the rounding of the sums
+        seg_bad_.assign(std::max<int64_t>(M, 1), 0);
+        for (int64_t m = 0; m < M; ++m) {
+            const int64_t seg0 = db_.seg_start[m], n_cand = db_.seg_len[m] - N_;
+            for (int64_t i = 0; i < n_cand; ++i)
+                if (bad[seg0 + i]) {
+                    seg_bad_[m] = 1;
+                    break;
+                }
+        }
+        const double u = std::ldexp(1.0, -24);
+        const double gamma = double(J + 8) * u / (1.0 - double(J + 8) * u);
+        proj_eps_ = 4.0 * gamma;
+    }
+
+    // Harmless constants for lanes that do not filter (padding, exact lanes):
+    // their bits are never read, and every value stays finite.
+    static void lane_defaults(std::vector<float>& par, int64_t qp) {
+        std::fill(par.begin(), par.end(), 0.0f);
+        std::fill(par.begin() + 1 * qp, par.begin() + 2 * qp, 1.0f);  // aup
+        std::fill(par.begin() + 4 * qp, par.begin() + 5 * qp, 1.0f);  // alo
+    }
+
+    // The constants of lane l's bounds for the blocked form of the projection
+    // filter; false when they are not usable (the lane scans exactly).
+    //
+    // proj_filter bounds the exact float32 distance by a_lo Lh - c_lo and
+    // a_up Lh + b_up r_f + c_up, Lh being a float32 sum within gk of
+    // D = |z_f - z_x|^2 (z_f, z_x the stored float32 values). Here D comes as
+    // Dh = |z_f|^2 + |z_x|^2 - 2 <z_f, z_x> from a blocked float32 dot product:
+    // each term and the dot product are within gamma_{J+2} (|z_f| + |z_x|)^2
+    // of their real values, so |Dh - D| <= b = 4 gamma_{J+8} (Zmax + |z_x|)^2
+    // (twice that margin; Zmax >= every |z_f| the filter reads), one constant
+    // per lane. With D in [Dh - b, Dh + b]:
+    //   lower  a_lo Dh - (c_lo + 2 a_lo b)   <= a_lo D - c_lo  (also when Dh < 0,
+    //          where the extra a_lo b covers a_lo's rounding margin),
+    //   upper  a_up Dh + b_up r_f + (c_up + 2 a_up b) >= a_up D + b_up r_f + c_up,
+    // the constants rounded outwards, and the float evaluation of each (three
+    // roundings) is covered as in proj_query by a_lo's (1 - 8u), a_up's
+    // (1 + 4u) and the factor 2 on the b terms. No value can overflow: every
+    // |z|^2 in play is at most kProjBig and the largest upper bound is checked.
+    bool lane_bounds(const ProjQuery& pq, std::vector<float>& par, int64_t qp, int64_t l) const {
+        if (!pq.ok) return false;
+        const int64_t J = db_.proj_dim;
+        double zx2 = 0.0;
+        for (int64_t p = 0; p < J; ++p) zx2 += double(pq.zx[p]) * double(pq.zx[p]);
+        if (!(zx2 <= kProjBig)) return false;
+        const double u = std::ldexp(1.0, -24);
+        const double zx = std::sqrt(zx2);
+        const double b = proj_eps_ * (zmax_ + zx) * (zmax_ + zx);
+        const float inf = std::numeric_limits<float>::infinity();
+        auto up = [&](double v) {
+            float f = float(v);
+            if (double(f) < v) f = std::nextafter(f, inf);
+            return f;
+        };
+        const double aup = pq.a_up, alo = pq.a_lo;
+        const float cup = up((double(pq.c_up) + 2.0 * aup * b) * (1.0 + 8.0 * u));
+        const float clo = up((double(pq.c_lo) + 2.0 * alo * b) * (1.0 + 8.0 * u));
+        // the largest value the upper bound can take (|Dh| <= (Zmax + |z_x|)^2 + b)
+        const double ub_max = aup * ((zmax_ + zx) * (zmax_ + zx) + b) + double(pq.b_up) * zmax_ + cup;
+        if (!(alo > 0.0) || !(aup > 0.0) || !(ub_max < 1e36) || !std::isfinite(double(clo))) return false;
+        par[0 * qp + l] = float(zx2);
+        par[1 * qp + l] = pq.a_up;
+        par[2 * qp + l] = pq.b_up;
+        par[3 * qp + l] = cup;
+        par[4 * qp + l] = pq.a_lo;
+        par[5 * qp + l] = clo;
+        return true;
+    }
+
+    static bool tile_has_row(const uint8_t* okp, int64_t i0, int64_t nr) {
+        if (okp == nullptr) return true;
+        for (int64_t r = 0; r < nr; ++r)
+            if (okp[i0 + r]) return true;
+        return false;
+    }
+
+    // The rows the next segment will read outside the streamed matrix: the
+    // winners' other distance (audio windows in pose mode, entry poses in audio
+    // mode), one per lane at scattered offsets, and with the projection the
+    // kept entry poses. Fetching them while this segment is filtered turns
+    // those cache misses into hits.
+    void prefetch_rows(int64_t m) const {
         const int64_t n_cand = db_.seg_len[m] - N_;
         if (n_cand < 1) return;
-        const char *p0, *p1;
+        auto fetch = [](const float* a, const float* b) {
+            for (const char* p = reinterpret_cast<const char*>(a); p < reinterpret_cast<const char*>(b); p += 64)
+                __builtin_prefetch(p);
+        };
+        const int64_t seg0 = db_.seg_start[m];
         if (pre_ == Preselect::Pose) {
-            p0 = reinterpret_cast<const char*>(db_.audio.row(db_.seg_start[m] + 1));
-            p1 = reinterpret_cast<const char*>(db_.audio.row(db_.seg_start[m] + 1 + n_cand + N_));
+            fetch(db_.audio.row(seg0 + 1), db_.audio.row(seg0 + 1 + n_cand + N_));
+            if (proj_) fetch(db_.pose.row(seg0), db_.pose.row(seg0 + n_cand));
         } else {
-            p0 = reinterpret_cast<const char*>(db_.pose.row(db_.seg_start[m]));
-            p1 = reinterpret_cast<const char*>(db_.pose.row(db_.seg_start[m] + n_cand));
+            fetch(db_.pose.row(seg0), db_.pose.row(seg0 + n_cand));
         }
-        for (const char* p = p0; p < p1; p += 64) __builtin_prefetch(p);
     }
 
     int64_t max_seg_len() const {
@@ -1114,27 +1412,17 @@ private:
         return mx;
     }
 
-    // The exact distance of candidate i of segment m for one lane, folded into
-    // the lane's running minimum (strict: ties keep the smaller s).
-    void exact_update(int64_t m, int64_t i, const QueryStep& qs, int64_t l, std::vector<int64_t>& best,
-                      std::vector<float>& best_dp, std::vector<double>& best_da) const {
+    // The exact audio distance of candidate i of segment m for one lane, folded
+    // into the lane's running minimum (strict: ties keep the smaller s).
+    void exact_update_audio(int64_t m, int64_t i, const QueryStep& qs, int64_t l, std::vector<int64_t>& best,
+                            std::vector<double>& best_da) const {
         const int64_t seg0 = db_.seg_start[m];
-        if (pre_ == Preselect::Pose) {
-            float d;
-            kern_.l2sq_rows_f32(db_.pose.row(seg0 + i), 1, db_.pose.cols, qs.prev, &d);
-            if (best[l] < 0 || nan_last_less(d, best_dp[l])) {
-                best[l] = i;
-                best_dp[l] = d;
-            }
-        } else {
-            float qa, aa;
-            kern_.cosdots_f32(db_.audio.row(seg0 + 1 + i), 1, db_.audio.cols, qs.n * db_.audio.cols,
-                              qs.q, &qa, &aa);
-            const double d = cosine_distance(qa, qs.qq, aa);
-            if (best[l] < 0 || nan_last_less(d, best_da[l])) {
-                best[l] = i;
-                best_da[l] = d;
-            }
+        float qa, aa;
+        kern_.cosdots_f32(db_.audio.row(seg0 + 1 + i), 1, db_.audio.cols, qs.n * db_.audio.cols, qs.q, &qa, &aa);
+        const double d = cosine_distance(qa, qs.qq, aa);
+        if (best[l] < 0 || nan_last_less(d, best_da[l])) {
+            best[l] = i;
+            best_da[l] = d;
         }
     }
 
@@ -1153,7 +1441,13 @@ private:
     Preselect pre_;
     AllowedSchedule allowed_;
     std::vector<float> nrow_, rrow_;
-    float eps_;
+    std::vector<float> wnorm_;  // pose mode: <a, a> of the N-frame audio window at each frame
+    float eps_ = 0.0f;
+    // the projection filter (proj_: pose pre-selection with Database::proj)
+    bool proj_ = false;
+    std::vector<float> zrow_, pnrow_, rres_;
+    std::vector<uint8_t> seg_bad_;
+    double zmax_ = 0.0, proj_eps_ = 0.0;
 };
 
 }  // namespace

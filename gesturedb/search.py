@@ -702,6 +702,12 @@ def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, in
     pose_f16 : HalfPose, optional
         Used by the single-query steps (``per_query``, and the partial last
         windows of the blocked method); same results.
+    pose_proj : PoseProjection, optional
+        Pose pre-selection filters through the projection (24 columns per
+        frame instead of 96) in every method: the blocked dot product then
+        runs over the projected columns, with the projection's bound widened
+        by the blocked form's rounding; same results. Worth it when its
+        ``keep_fraction`` is small (real pose features).
 
     Returns
     -------

@@ -227,3 +227,102 @@ def test_l2sq_blocks_rejects_bad_shapes():
         _core.l2sq_blocks_f32(np.zeros((2, 3, 8), np.float32), 0, 4, np.zeros(3, np.float32), "scalar")
     with pytest.raises(ValueError, match=r"\[f0, f1\): expected inside \[0, 32\)"):
         _core.l2sq_blocks_f32(b, 0, 33, np.zeros(3, np.float32), "scalar")
+
+
+# --- blocked batch: exact pairs and the projection filter --------------------
+
+@pytest.mark.parametrize("isa", ISAS)
+@pytest.mark.parametrize("dim", SIZES)
+def test_l2sq_pairs_bit_identical_to_single_rows(isa, dim):
+    """The batch decides on these values: they must be the single path's, bit for bit."""
+    rng = np.random.default_rng(500 + dim)
+    rows, _ = rows_and_vec(rng, 29, dim)
+    vs = rng.standard_normal((11, dim)).astype(np.float32)
+    for n in (1, 15, 16, 17, 40):  # groups of 16 and tails
+        ri = rng.integers(0, 29, n).astype(np.int64)
+        vi = rng.integers(0, 11, n).astype(np.int64)
+        got = _core.l2sq_pairs_f32(rows, vs, ri, vi, isa)
+        want = np.array([_core.l2sq_rows_f32(rows[r:r + 1], vs[v], isa)[0] for r, v in zip(ri, vi)])
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("isa", ISAS)
+@pytest.mark.parametrize("n", [1, 2, 3, 8])
+@pytest.mark.parametrize("da", [1, 3, 7, 14, 16, 17])
+def test_cosdots_pairs_bit_identical_to_cosdots(isa, n, da):
+    rng = np.random.default_rng(600 + 31 * n + da)
+    audio = rng.standard_normal((40, da)).astype(np.float32)
+    qs = rng.standard_normal((5, n * da)).astype(np.float32)
+    starts = rng.integers(0, 40 - n + 1, 23).astype(np.int64)
+    qi = rng.integers(0, 5, 23).astype(np.int64)
+    got = _core.cosdots_pairs_f32(audio, starts, qs, qi, isa)
+    for i, (g, q) in enumerate(zip(starts, qi)):
+        qa, _ = _core.cosdots_f32(audio[g:g + n], qs[q].reshape(n, da), isa)
+        assert got[i] == qa[0]
+
+
+def _proj_case(rng, n_rows, J, n_lanes):
+    z = rng.standard_normal((n_rows, J)).astype(np.float32)
+    x = rng.standard_normal((n_lanes, J)).astype(np.float32)
+    nrow = (z.astype(np.float64) ** 2).sum(1).astype(np.float32)
+    nrow[3::7] = np.inf  # rows that must not count (the caller keeps at least one that does)
+    rres = np.abs(z[:, -1])
+    lanes = np.empty((6, n_lanes), np.float32)
+    lanes[0] = (x.astype(np.float64) ** 2).sum(1)
+    lanes[1] = 1.0 + rng.random(n_lanes) * 1e-3  # aup
+    lanes[2] = rng.random(n_lanes)                # bup
+    lanes[3] = rng.random(n_lanes) * 1e-2         # cup
+    lanes[4] = 1.0 - rng.random(n_lanes) * 1e-3  # alo
+    lanes[5] = rng.random(n_lanes) * 1e-2         # clo
+    return z, nrow, rres, x, lanes
+
+
+@pytest.mark.parametrize("J", [2, 3, 8, 17, 24, 33])
+@pytest.mark.parametrize("n_rows", [1, 5, 6, 7, 13, 56])
+def test_projfilter_scalar_vs_float64(J, n_rows):
+    rng = np.random.default_rng(700 + J * 101 + n_rows)
+    z, nrow, rres, x, lanes = _proj_case(rng, n_rows, J, 70)
+    dh, umin, keep = _core.projfilter_f32(z, nrow, rres, x, lanes, "scalar")
+    assert dh.shape == (n_rows, 128) and keep.shape == (n_rows, 2)
+    d64 = ((z.astype(np.float64)[:, None, :] - x.astype(np.float64)[None]) ** 2).sum(-1)
+    ok = np.isfinite(nrow)
+    scale = (np.linalg.norm(z, axis=1)[:, None] + np.linalg.norm(x, axis=1)[None]) ** 2
+    np.testing.assert_array_less(np.abs(dh[ok, :70] - d64[ok]), 4 * (J + 8) * 2.0 ** -24 * scale[ok] + 1e-30)
+    assert np.all(np.isinf(dh[~ok, :70]))
+    ub = lanes[1] * d64 + (lanes[2] * rres[:, None] + lanes[3])
+    if ok.any():
+        # dh is within the cancellation bound of the distance, the bound's own arithmetic within 1e-6
+        atol = 1.01 * 4 * (J + 8) * 2.0 ** -24 * scale[ok].max(0)
+        np.testing.assert_array_less(np.abs(umin[:70] - ub[ok].min(0)), atol + 1e-6 * np.abs(ub[ok].min(0)))
+    else:
+        assert np.all(np.isinf(umin[:70]))
+    bits = (keep[:, :, None] >> np.arange(64, dtype=np.uint64)) & np.uint64(1)
+    kept = bits.reshape(n_rows, 128)[:, :70].astype(bool)
+    assert not kept[~ok].any()
+    # the row that gives the smallest upper bound is always kept
+    if ok.any():
+        lb = lanes[4] * dh[:, :70] - lanes[5]
+        np.testing.assert_array_equal(kept, lb <= umin[:70])
+
+
+@pytest.mark.parametrize("isa", SIMD)
+@pytest.mark.parametrize("J", [2, 3, 8, 17, 24, 33])
+@pytest.mark.parametrize("n_rows", [1, 5, 6, 7, 13, 56])
+def test_projfilter_simd_vs_scalar(isa, J, n_rows):
+    rng = np.random.default_rng(800 + J * 101 + n_rows)
+    z, nrow, rres, x, lanes = _proj_case(rng, n_rows, J, 130)
+    ref = _core.projfilter_f32(z, nrow, rres, x, lanes, "scalar")
+    got = _core.projfilter_f32(z, nrow, rres, x, lanes, isa)
+    ok = np.isfinite(nrow)
+    scale = (np.linalg.norm(z, axis=1)[:, None] + np.linalg.norm(x, axis=1)[None]) ** 2
+    tol = 4 * (J + 8) * 2.0 ** -24 * scale
+    np.testing.assert_array_less(np.abs(got[0][ok, :130] - ref[0][ok, :130]), tol[ok] + 1e-30)
+    assert np.all(np.isinf(got[0][~ok, :130]))
+    atol = 1.01 * 2 * tol[ok].max(0) if ok.any() else 0.0
+    np.testing.assert_array_less(np.abs(got[1][:130] - ref[1][:130]), atol + 1e-6 * np.abs(ref[1][:130]) + 1e-30)
+    # keep bits: the same rule on the kernel's own values
+    bits = (got[2][:, :, None] >> np.arange(64, dtype=np.uint64)) & np.uint64(1)
+    kept = bits.reshape(n_rows, -1)[:, :130].astype(bool)
+    lb = lanes[4] * got[0][:, :130] - lanes[5]
+    near = np.abs(lb - got[1][:130]) <= 1e-5 * np.abs(got[1][:130])
+    np.testing.assert_array_equal(kept[~near], (lb <= got[1][:130])[~near])

@@ -191,3 +191,96 @@ def test_keep_fraction_separates_motion_from_unstructured_rows(scott_db):
     assert noise.keep_fraction > 0.5
     P, _, _, _ = stacked_recordings(rng)
     assert search.PoseProjection(P).keep_fraction < 0.25
+
+
+# ---------------------------------------------------------------------------
+# the blocked batch through the projection: the same results as without it and
+# as each query alone
+
+
+def _batch_three_ways(P, A, st, ln, queries, init, proj, **kw):
+    """Blocked with and without the projection, and per query alone (no projection)."""
+    with_proj = search.rank_sum_search_batch(P, A, st, ln, queries, init, method="blocked",
+                                             pose_proj=proj, **kw)
+    plain = search.rank_sum_search_batch(P, A, st, ln, queries, init, method="blocked", **kw)
+    k = kw.pop("k", 1)
+    exclude = kw.pop("exclude", None)
+    for i, q in enumerate(queries):
+        ki = int(k[i]) if np.ndim(k) else k
+        ex = None if exclude is None else (exclude[i] if exclude.ndim == 2 else exclude)
+        one = search.rank_sum_search(P, A, st, ln, q, init[i], k=ki, exclude=ex, **kw)
+        assert_same_search(with_proj[i], one, f"query {i} (projection)")
+        assert_same_search(plain[i], one, f"query {i} (plain)")
+    return with_proj
+
+
+@pytest.mark.parametrize("preselect", ["pose", "audio"])
+def test_blocked_batch_with_projection_masks_and_exclusions(isa, preselect):
+    """70 queries (two panels of 64 lanes), partial last windows, per-query k,
+    per-query exclusion rows, a heavy shared mask and a per-step schedule."""
+    rng = np.random.default_rng(21)
+    P, A, st, ln = stacked_recordings(rng, n_rec=14)
+    proj = search.PoseProjection(P)
+    F, M, Q = P.shape[0], st.shape[0], 70
+    queries = [rng.standard_normal((int(rng.choice([24, 21, 40])), A.shape[1])).astype(np.float32)
+               for _ in range(Q)]
+    init = P[rng.integers(0, F, Q)]
+    init[0] = P[0]  # a clamped recording start
+    ks = rng.integers(1, 6, Q)
+    exclude = rng.random((Q, M)) < 0.3
+    kw = dict(k=ks, preselect=preselect, exclude=exclude)
+    _batch_three_ways(P, A, st, ln, queries, init, proj, **kw)
+    _batch_three_ways(P, A, st, ln, queries, init, proj, allowed=pack_bits(rng.random(F) < 0.15), **kw)
+    same_len = [q[:24] for q in queries]
+    sched = np.stack([pack_bits(rng.random(F) < 0.3) for _ in range(3)])
+    _batch_three_ways(P, A, st, ln, same_len, init, proj, allowed=sched, **kw)
+
+
+def test_blocked_batch_with_projection_ties_and_non_finite(isa):
+    """Integer data full of exact ties; NaN and huge rows (their segments are
+    scanned exactly); a huge initial pose (that lane scans everything exactly)."""
+    rng = np.random.default_rng(22)
+    P, A, st, ln = exact_db(rng, Dp=9, Da=3, n_segments=30)
+    Q = 20
+    queries = [rng.integers(-2, 3, size=(24, 3)).astype(np.float32) for _ in range(Q)]
+    init = P[rng.integers(0, P.shape[0], Q)]
+    for n_columns in (2, 5, 10):
+        _batch_three_ways(P, A, st, ln, queries, init, search.PoseProjection(P, n_columns=n_columns),
+                          k=rng.integers(1, 4, Q))
+    P2, A2, st2, ln2 = continuous_db(rng, Dp=20, n_segments=30)
+    P2[st2[3] + 2] = np.nan
+    P2[st2[5]:st2[5] + 4] *= 3e18  # |z|^2 beyond the filter's range
+    queries2 = [rng.standard_normal((32, A2.shape[1])).astype(np.float32) for _ in range(Q)]
+    init2 = P2[rng.integers(0, P2.shape[0], Q)]
+    init2[4] = P2[st2[5] + 2]  # a huge previous pose: that lane scans everything exactly
+    init2[6] = P2[st2[5] + 1]  # start next to the huge rows
+    with np.errstate(all="ignore"):
+        proj = search.PoseProjection(P2)
+        _batch_three_ways(P2, A2, st2, ln2, queries2, init2, proj)
+
+
+def test_blocked_batch_with_projection_on_the_real_database(scott_db):
+    """The refiner's self-search on the real recording: every chunk's audio as a
+    query, excluding its own neighbourhood, k from 1 to 15, with and without a mask."""
+    P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)
+    A = np.ascontiguousarray(scott_db.audio_features[:], dtype=np.float32)
+    st = np.ascontiguousarray(scott_db.h5["chunks/start"][:], dtype=np.int64)
+    ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
+    proj = search.PoseProjection(P)
+    rng = np.random.default_rng(23)
+    M = st.shape[0]
+    idx = rng.choice(M, size=min(M, 48), replace=False)
+    queries = [A[st[m]:st[m] + 64] for m in idx if ln[m] >= 64][:40]
+    idx = [m for m in idx if ln[m] >= 64][:40]
+    Q = len(queries)
+    init = P[rng.integers(0, P.shape[0], Q)]
+    exclude = np.zeros((Q, M), bool)
+    for i, m in enumerate(idx):
+        exclude[i, max(0, m - 1):m + 2] = True
+    ks = rng.integers(1, 16, Q)
+    for isa in ISAS:
+        with search.simd(isa):
+            _batch_three_ways(P, A, st, ln, queries, init, proj, k=ks, exclude=exclude)
+            _batch_three_ways(P, A, st, ln, queries, init, proj, k=ks, exclude=exclude,
+                              allowed=pack_bits(rng.random(P.shape[0]) < 0.25))
+            _batch_three_ways(P, A, st, ln, queries, init, proj, k=ks, exclude=exclude, preselect="audio")

@@ -143,7 +143,7 @@ def exclusion(db, starts: np.ndarray, *, window: int = WINDOW) -> np.ndarray:
 def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int = STRIDE,
                        progress=None) -> TrainingData:
     """Search the database for its own audio and pair every window with its k-NN synthesis."""
-    from gesturedb.search import rank_sum_search_batch
+    from gesturedb.search import PoseProjection, rank_sum_search_batch
     from gesturedb.synth.assemble import assemble_frames
 
     rng = np.random.default_rng(seed)
@@ -157,10 +157,14 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     init = np.ascontiguousarray(db.pose_features[rng.integers(0, db.n_frames, size=W)])
     excl = exclusion(db, starts, window=window)
     seg = db.chunks
+    # the batch's pose filter then reads 24 projected columns instead of 96 (same
+    # results); skipped, as in Searcher, where it would keep a quarter of the rows
+    proj = PoseProjection(db.pose_features)
     results = rank_sum_search_batch(db.pose_features, db.audio_features,
                                     np.ascontiguousarray(seg.start, dtype=np.int64),
                                     np.ascontiguousarray(seg.length, dtype=np.int64),
-                                    queries, init, step=8, k=ks, exclude=excl)
+                                    queries, init, step=8, k=ks, exclude=excl,
+                                    pose_proj=proj if proj.keep_fraction < 0.25 else None)
     joints = moving_joints(db.local_rotations)
     rot_all = np.asarray(db.local_rotations)
     C = 6 * len(joints)
