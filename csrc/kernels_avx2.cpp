@@ -91,10 +91,11 @@ namespace {
 
 // NR rows x 16 queries: 2 * NR accumulators (12 for NR = 6) plus two query
 // vectors and one broadcast fit the 16 YMM registers.
+// The dot products of NR rows (row i at base + i * stride, len values) with 16
+// panel lanes, left in acc; shared by the plain tile and the projection filter's.
 template <int NR>
-GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t len,
-                                    const float* panel, int64_t qp, float* out) {
-    __m256 acc[NR][2];
+GDB_AVX2 inline void tile_acc_avx2(const float* base, int64_t stride, int64_t len, const float* panel,
+                                   __m256 (&acc)[NR][2]) {
     for (int i = 0; i < NR; ++i) acc[i][0] = acc[i][1] = _mm256_setzero_ps();
     for (int64_t p = 0; p < len; ++p) {
         const float* x = panel + p * 64;
@@ -105,6 +106,13 @@ GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t l
             acc[i][1] = _mm256_fmadd_ps(b, x1, acc[i][1]);
         }
     }
+}
+
+template <int NR>
+GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t len,
+                                    const float* panel, int64_t qp, float* out) {
+    __m256 acc[NR][2];
+    tile_acc_avx2<NR>(base, stride, len, panel, acc);
     for (int i = 0; i < NR; ++i) {
         _mm256_storeu_ps(out + i * qp, acc[i][0]);
         _mm256_storeu_ps(out + i * qp + 8, acc[i][1]);
@@ -274,16 +282,7 @@ GDB_AVX2 inline void proj_tile_avx2(const float* z, int64_t J, const float* nrow
                                     const float* panel, int64_t qp, int64_t j0, const ProjLanes& L,
                                     float* dh, float* umin) {
     __m256 acc[NR][2];
-    for (int i = 0; i < NR; ++i) acc[i][0] = acc[i][1] = _mm256_setzero_ps();
-    for (int64_t p = 0; p < J; ++p) {
-        const float* x = panel + p * 64;
-        const __m256 x0 = _mm256_loadu_ps(x), x1 = _mm256_loadu_ps(x + 8);
-        for (int i = 0; i < NR; ++i) {
-            const __m256 b = _mm256_broadcast_ss(z + i * J + p);
-            acc[i][0] = _mm256_fmadd_ps(b, x0, acc[i][0]);
-            acc[i][1] = _mm256_fmadd_ps(b, x1, acc[i][1]);
-        }
-    }
+    tile_acc_avx2<NR>(z, J, J, panel, acc);
     const __m256 two = _mm256_set1_ps(2.0f);
     for (int k = 0; k < 2; ++k) {
         const int64_t j = j0 + 8 * k;

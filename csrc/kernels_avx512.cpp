@@ -152,10 +152,11 @@ namespace {
 // NR rows x 64 queries: 4 * NR accumulators stay in registers (24 of the 32 for
 // NR = 6) and every broadcast row value feeds 4 FMAs, so the loop is bound by
 // the FMA ports, not by loads.
+// The dot products of NR rows (row i at base + i * stride, len values) with 64
+// panel lanes, left in acc; shared by the plain tile and the projection filter's.
 template <int NR>
-GDB_AVX512 inline void dots_tile_avx512(const float* base, int64_t stride, int64_t len,
-                                        const float* panel, int64_t qp, float* out) {
-    __m512 acc[NR][4];
+GDB_AVX512 inline void tile_acc_avx512(const float* base, int64_t stride, int64_t len, const float* panel,
+                                       __m512 (&acc)[NR][4]) {
     for (int i = 0; i < NR; ++i)
         for (int k = 0; k < 4; ++k) acc[i][k] = _mm512_setzero_ps();
     for (int64_t p = 0; p < len; ++p) {
@@ -170,6 +171,13 @@ GDB_AVX512 inline void dots_tile_avx512(const float* base, int64_t stride, int64
             acc[i][3] = _mm512_fmadd_ps(b, x3, acc[i][3]);
         }
     }
+}
+
+template <int NR>
+GDB_AVX512 inline void dots_tile_avx512(const float* base, int64_t stride, int64_t len,
+                                        const float* panel, int64_t qp, float* out) {
+    __m512 acc[NR][4];
+    tile_acc_avx512<NR>(base, stride, len, panel, acc);
     for (int i = 0; i < NR; ++i)
         for (int k = 0; k < 4; ++k) _mm512_storeu_ps(out + i * qp + 16 * k, acc[i][k]);
 }
@@ -402,20 +410,7 @@ GDB_AVX512 inline void proj_tile_avx512(const float* z, int64_t J, const float* 
                                         const float* panel, int64_t qp, int64_t j0, const ProjLanes& L,
                                         float* dh, float* umin) {
     __m512 acc[NR][4];
-    for (int i = 0; i < NR; ++i)
-        for (int k = 0; k < 4; ++k) acc[i][k] = _mm512_setzero_ps();
-    for (int64_t p = 0; p < J; ++p) {
-        const float* x = panel + p * 64;
-        const __m512 x0 = _mm512_loadu_ps(x), x1 = _mm512_loadu_ps(x + 16);
-        const __m512 x2 = _mm512_loadu_ps(x + 32), x3 = _mm512_loadu_ps(x + 48);
-        for (int i = 0; i < NR; ++i) {
-            const __m512 b = _mm512_set1_ps(z[i * J + p]);
-            acc[i][0] = _mm512_fmadd_ps(b, x0, acc[i][0]);
-            acc[i][1] = _mm512_fmadd_ps(b, x1, acc[i][1]);
-            acc[i][2] = _mm512_fmadd_ps(b, x2, acc[i][2]);
-            acc[i][3] = _mm512_fmadd_ps(b, x3, acc[i][3]);
-        }
-    }
+    tile_acc_avx512<NR>(z, J, J, panel, acc);
     const __m512 two = _mm512_set1_ps(2.0f);
     for (int k = 0; k < 4; ++k) {
         const int64_t j = j0 + 16 * k;
