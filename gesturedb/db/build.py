@@ -27,6 +27,7 @@ from gesturedb.db.takes import (  # noqa: F401  (re-exported: build is where cal
     MIRROR_NOTE_REL, PAIRING_COLUMNS, RecordingSource, infer_speaker, mirrored_copy, read_pairing_file,
 )
 from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS, voiced_segments
 
 MOTION_EXTS = (".bvh", ".npz")
 AUDIO_EXTS = (".wav", ".flac")
@@ -93,7 +94,7 @@ class BuildConfig:
     speaker: str | None = None
     graph: bool = True
     length_unit_m: float | None = None
-    vad: str = "silero"
+    vad: str = DEFAULT_VAD
 
     def __post_init__(self):
         def bad(name, expected):
@@ -107,8 +108,6 @@ class BuildConfig:
                 bad(name, "a positive integer")
         if self.gap_s != "auto" and not (isinstance(self.gap_s, (int, float)) and self.gap_s > 0):
             bad("gap_s", "a positive number of seconds")
-        from gesturedb.features.pauses import VAD_METHODS
-
         if self.vad not in VAD_METHODS:
             bad("vad", "one of " + ", ".join(VAD_METHODS))
         if not (self.max_mismatch_s >= 0):
@@ -361,7 +360,6 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
     if words is None:
         # no transcript: voiced stretches of the speech stand in for words (empty text), so the
         # recording is still cut into clips at its pauses, as the graph synthesis cuts its input
-        from gesturedb.features.pauses import voiced_segments
         from gesturedb.io.transcripts import Words
 
         vs, ve = voiced_segments(samples, sr, method=cfg.vad)

@@ -560,7 +560,8 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
         rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
     from gesturedb.eval import conventions as CV, metrics as M
 
-    conv = CV.convention_metrics({n: metric_positions(o.positions, root) for n, o in outputs.items()}, fps=db.fps,
+    rel = {n: metric_positions(o.positions, root) for n, o in outputs.items()}  # conventions and FGD*
+    conv = CV.convention_metrics(rel, fps=db.fps,
                                  joints=joints, audio_beats_s=M.audio_beats(samples, sr=sr),
                                  reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
                                  database_counts=CV.database_genea_counts(db, joints=joints, root=root))
@@ -569,7 +570,6 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
     from gesturedb.eval.fgd import frechet_distance
 
     fgd = reference.get("fgd")
-    rel = {n: metric_positions(o.positions, root) for n, o in outputs.items()}
     gt_codes = fgd.codes(rel["ground_truth"]) if fgd is not None and "ground_truth" in rel else None
     for n in rows:  # FGD* (gesturedb/eval/fgd.py): NaN without torch or ground truth
         codes = fgd.codes(rel[n]) if fgd is not None else None

@@ -78,8 +78,6 @@ class SelfFGD:
         from gesturedb.refiner.autoencoder import WINDOW, train_motion_encoder
 
         self.joints = np.asarray(joints)
-        self.root = int(root)
-        self.window = WINDOW
         self.fps = float(db.fps)
         wins = [motion_windows(metric_positions(db.joint_positions[r.start_frame:r.stop_frame], root),
                                joints=self.joints, window=WINDOW, fps=self.fps)
@@ -122,7 +120,9 @@ class SelfFGD:
     def codes(self, positions: np.ndarray) -> np.ndarray:
         """Codes (n, LATENT), in database standard deviations, of root-relative positions (T, J, 3)
         (``metric_positions``) at the database's frame rate."""
-        w = motion_windows(positions, joints=self.joints, window=self.window, fps=self.fps)
+        from gesturedb.refiner.autoencoder import WINDOW
+
+        w = motion_windows(positions, joints=self.joints, window=WINDOW, fps=self.fps)
         if w.shape[0] == 0:
             return np.zeros((0, self.db_codes.shape[1]))
         return self.model.encode(w) / self.code_std

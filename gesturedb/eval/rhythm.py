@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
 
-def input_words(samples: np.ndarray, sr: int, transcript=None, *, vad: str = "silero") -> tuple[np.ndarray, np.ndarray]:
+
+def input_words(samples: np.ndarray, sr: int, transcript=None, *, vad: str = DEFAULT_VAD) -> tuple[np.ndarray, np.ndarray]:
     """Word start and end times (s) from a transcript (path or Words) or, without one, voiced stretches
     found by :func:`gesturedb.features.pauses.voiced_segments` (detector ``vad``)."""
     if transcript is not None:
@@ -19,8 +21,6 @@ def input_words(samples: np.ndarray, sr: int, transcript=None, *, vad: str = "si
 
         w = transcript if isinstance(transcript, Words) else read_transcript(transcript)
         return np.asarray(w.start_s, dtype=np.float64), np.asarray(w.end_s, dtype=np.float64)
-    from gesturedb.features.pauses import voiced_segments
-
     return voiced_segments(samples, sr, method=vad)
 
 

@@ -64,7 +64,7 @@ class MotionEncoder:
         w = np.asarray(windows, dtype=np.float32)
         if w.ndim != 3 or w.shape[1] != WINDOW or w.shape[2] != self.mean.shape[0]:
             raise ParameterError(f"windows: expected shape (n, {WINDOW}, {self.mean.shape[0]}), got {w.shape}")
-        x = torch.from_numpy(((w - self.mean) / self.std).transpose(0, 2, 1).copy())
+        x = _channels(torch, w, self.mean, self.std)
         with torch.no_grad():
             return self.encoder(x).double().numpy()
 
@@ -93,8 +93,13 @@ def train_motion_encoder(windows: np.ndarray, *, steps: int = 600, batch: int = 
         torch.set_num_threads(threads)
 
 
+def _channels(torch, w, mean, std):
+    """Standardised windows (n, WINDOW, D) as a float32 tensor (n, D, WINDOW), channels first for Conv1d."""
+    return torch.from_numpy(((w - mean) / std).transpose(0, 2, 1).copy())
+
+
 def _train(torch, w, mean, std, *, steps, batch, lr, hidden, latent, seed) -> MotionEncoder:
-    x = torch.from_numpy(((w - mean) / std).transpose(0, 2, 1).copy())
+    x = _channels(torch, w, mean, std)
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     enc, dec = _networks(w.shape[2], latent, hidden)
