@@ -10,6 +10,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <array>
 #include <limits>
 #include <optional>
 #include <stdexcept>
@@ -235,7 +236,7 @@ PYBIND11_MODULE(_core, m) {
        "||h - v||^2 per row of binary16 bit patterns h, with one instruction set.");
 
     m.def("l2sq_blocks_f32", [](const F32& blocks, int64_t f0, int64_t f1, const F32& v,
-                                const std::string& isa) {
+                                const std::string& isa, std::optional<std::array<float, 3>> up) {
         const Kernels& k = kernels_for(isa.c_str());
         require_ndim(blocks, 3, "blocks");
         if (blocks.shape(2) != kFrameBlock)
@@ -247,13 +248,16 @@ PYBIND11_MODULE(_core, m) {
                                         std::to_string(blocks.shape(0) * kFrameBlock) + ")");
         py::array_t<float> d(f1 - f0);
         float* pd = d.mutable_data();
+        float umin;
         {
             py::gil_scoped_release release;
-            k.l2sq_blocks_f32(blocks.data(), f0, f1, D, v.data(), pd);
+            umin = k.l2sq_blocks_f32(blocks.data(), f0, f1, D, v.data(), up ? up->data() : nullptr, pd);
         }
-        return d;
+        return py::make_tuple(d, umin);
     }, py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(),
-       py::arg("isa"), "||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, one instruction set.");
+       py::arg("isa"), py::arg("up") = py::none(),
+       "(||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, and with up = (a, b, c) the\n"
+       "smallest a d_f + b z_f[-1] + c, +inf without), with one instruction set.");
 
     m.def("l2sq_pairs_f32", [](const F32& rows, const F32& vs, const I64& ri, const I64& vi,
                                const std::string& isa) {

@@ -44,9 +44,15 @@ using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim
 // column and no row needs a horizontal sum. Only a filter (see proj_filter in
 // search.cpp): any summation order and FMA contraction are fine, the caller's
 // bound covers the float32 rounding of any order.
+// With up = (a, b, c) (or null: returns +inf), also the filter's smallest upper
+// bound, fused so that the rows are read once:
+//   returns min over f of  a out[f - f0] + b r_f + c,   r_f = the frame's last
+//   column (blocks[(f/16) * 16 dim + 16 (dim - 1) + f%16], the residual norm)
+// in float32 with any contraction (the caller's bound covers 3 roundings); a
+// NaN never lowers the minimum (+inf if every value is NaN).
 constexpr int64_t kFrameBlock = 16;
-using L2sqBlocksFn = void (*)(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
-                              const float* v, float* out);
+using L2sqBlocksFn = float (*)(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                               const float* v, const float* up, float* out);
 
 // --- batched search -------------------------------------------------------
 // The batch evaluates many queries against the same rows at once. It uses the
@@ -149,7 +155,7 @@ void l2filter_f32_scalar(const float*, int64_t, int64_t, const float*, const flo
 void cosfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_scalar(const uint16_t*, int64_t, int64_t, const float*, float*);
-void l2sq_blocks_f32_scalar(const float*, int64_t, int64_t, int64_t, const float*, float*);
+float l2sq_blocks_f32_scalar(const float*, int64_t, int64_t, int64_t, const float*, const float*, float*);
 void l2sq_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
@@ -166,7 +172,7 @@ void l2filter_f32_avx2(const float*, int64_t, int64_t, const float*, const float
 void cosfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
                         const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx2(const uint16_t*, int64_t, int64_t, const float*, float*);
-void l2sq_blocks_f32_avx2(const float*, int64_t, int64_t, int64_t, const float*, float*);
+float l2sq_blocks_f32_avx2(const float*, int64_t, int64_t, int64_t, const float*, const float*, float*);
 void l2sq_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
@@ -180,7 +186,7 @@ void l2filter_f32_avx512(const float*, int64_t, int64_t, const float*, const flo
 void cosfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const uint8_t*,
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx512(const uint16_t*, int64_t, int64_t, const float*, float*);
-void l2sq_blocks_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, float*);
+float l2sq_blocks_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, const float*, float*);
 void l2sq_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,

@@ -231,11 +231,18 @@ __attribute__((target("avx2,fma,f16c"))) void l2sq_rows_f16_avx2(
 }
 
 // 16 frames per block = two vectors of 8; a partial block at either end of
-// [f0, f1) is computed whole and only its frames in range are copied out
-GDB_AVX2 void l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
-                                   const float* v, float* out) {
-    if (f1 <= f0) return;
+// [f0, f1) is computed whole and only its frames in range are copied out (and
+// count towards the bound's minimum)
+GDB_AVX2 float l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                    const float* v, const float* up, float* out) {
+    const float inf = std::numeric_limits<float>::infinity();
+    if (f1 <= f0) return inf;
     alignas(32) float tmp[kFrameBlock];
+    alignas(32) float ubt[kFrameBlock];
+    __m256 umin0 = _mm256_set1_ps(inf), umin1 = umin0;
+    const __m256 ua = _mm256_set1_ps(up ? up[0] : 0.0f), ub = _mm256_set1_ps(up ? up[1] : 0.0f),
+                 uc = _mm256_set1_ps(up ? up[2] : 0.0f);
+    float tail_min = inf;
     for (int64_t b = f0 / kFrameBlock; b * kFrameBlock < f1; ++b) {
         const float* blk = blocks + b * kFrameBlock * dim;
         __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
@@ -246,16 +253,36 @@ GDB_AVX2 void l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1, 
             acc0 = _mm256_fmadd_ps(d0, d0, acc0);
             acc1 = _mm256_fmadd_ps(d1, d1, acc1);
         }
+        __m256 b0 = _mm256_setzero_ps(), b1 = b0;
+        if (up != nullptr) {
+            const float* r = blk + (dim - 1) * kFrameBlock;
+            b0 = _mm256_fmadd_ps(ua, acc0, _mm256_fmadd_ps(ub, _mm256_loadu_ps(r), uc));
+            b1 = _mm256_fmadd_ps(ua, acc1, _mm256_fmadd_ps(ub, _mm256_loadu_ps(r + 8), uc));
+        }
         const int64_t lo = std::max(f0, b * kFrameBlock), hi = std::min(f1, (b + 1) * kFrameBlock);
         if (lo == b * kFrameBlock && hi == lo + kFrameBlock) {
             _mm256_storeu_ps(out + (lo - f0), acc0);
             _mm256_storeu_ps(out + (lo - f0) + 8, acc1);
+            // min_ps returns its second operand when either is NaN: NaN never lowers it
+            umin0 = _mm256_min_ps(b0, umin0);
+            umin1 = _mm256_min_ps(b1, umin1);
         } else {
             _mm256_store_ps(tmp, acc0);
             _mm256_store_ps(tmp + 8, acc1);
-            for (int64_t f = lo; f < hi; ++f) out[f - f0] = tmp[f - b * kFrameBlock];
+            _mm256_store_ps(ubt, b0);
+            _mm256_store_ps(ubt + 8, b1);
+            for (int64_t f = lo; f < hi; ++f) {
+                out[f - f0] = tmp[f - b * kFrameBlock];
+                const float u = ubt[f - b * kFrameBlock];
+                tail_min = u < tail_min ? u : tail_min;
+            }
         }
     }
+    if (up == nullptr) return inf;
+    alignas(32) float m[8];
+    _mm256_store_ps(m, _mm256_min_ps(umin0, umin1));
+    for (float x : m) tail_min = x < tail_min ? x : tail_min;
+    return tail_min;
 }
 
 // --- blocked batch: exact pairs and the projection filter ---------------------

@@ -328,10 +328,13 @@ GDB_AVX512 void l2sq_rows_f16_avx512(const uint16_t* rows, int64_t n_rows, int64
 
 // 16 frames per block = one vector; partial blocks at the ends of [f0, f1)
 // are computed whole and only the frames in range are copied out
-GDB_AVX512 void l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
-                                       const float* v, float* out) {
-    if (f1 <= f0) return;
-    alignas(64) float tmp[kFrameBlock];
+GDB_AVX512 float l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                        const float* v, const float* up, float* out) {
+    const float inf = std::numeric_limits<float>::infinity();
+    if (f1 <= f0) return inf;
+    __m512 umin = _mm512_set1_ps(inf);
+    const __m512 ua = _mm512_set1_ps(up ? up[0] : 0.0f), ub = _mm512_set1_ps(up ? up[1] : 0.0f),
+                 uc = _mm512_set1_ps(up ? up[2] : 0.0f);
     for (int64_t b = f0 / kFrameBlock; b * kFrameBlock < f1; ++b) {
         const float* blk = blocks + b * kFrameBlock * dim;
         __m512 acc0 = _mm512_setzero_ps(), acc1 = _mm512_setzero_ps();
@@ -349,13 +352,23 @@ GDB_AVX512 void l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t 
         }
         const __m512 acc = _mm512_add_ps(acc0, acc1);
         const int64_t lo = std::max(f0, b * kFrameBlock), hi = std::min(f1, (b + 1) * kFrameBlock);
-        if (lo == b * kFrameBlock && hi == lo + kFrameBlock) {
+        // lanes [lo, hi) of this block
+        const __mmask16 in = __mmask16(((1u << (hi - lo)) - 1u) << (lo - b * kFrameBlock));
+        if (in == 0xFFFF) {
             _mm512_storeu_ps(out + (lo - f0), acc);
         } else {
+            alignas(64) float tmp[kFrameBlock];
             _mm512_store_ps(tmp, acc);
             for (int64_t f = lo; f < hi; ++f) out[f - f0] = tmp[f - b * kFrameBlock];
         }
+        if (up != nullptr) {
+            const __m512 bnd =
+                _mm512_fmadd_ps(ua, acc, _mm512_fmadd_ps(ub, _mm512_loadu_ps(blk + (dim - 1) * kFrameBlock), uc));
+            // min_ps returns its second operand when either is NaN: NaN never lowers it
+            umin = _mm512_mask_min_ps(umin, in, bnd, umin);
+        }
     }
+    return up == nullptr ? inf : _mm512_reduce_min_ps(umin);
 }
 
 // --- blocked batch: exact pairs and the projection filter ---------------------

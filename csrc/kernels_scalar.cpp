@@ -145,8 +145,9 @@ void l2sq_rows_f16_scalar(const uint16_t* rows, int64_t n_rows, int64_t dim, con
     }
 }
 
-void l2sq_blocks_f32_scalar(const float* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
-                            float* out) {
+float l2sq_blocks_f32_scalar(const float* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                             const float* up, float* out) {
+    float umin = std::numeric_limits<float>::infinity();
     for (int64_t f = f0; f < f1; ++f) {
         const float* col = blocks + (f / kFrameBlock) * kFrameBlock * dim + f % kFrameBlock;
         double acc = 0.0;
@@ -155,7 +156,12 @@ void l2sq_blocks_f32_scalar(const float* blocks, int64_t f0, int64_t f1, int64_t
             acc += e * e;
         }
         out[f - f0] = float(acc);
+        if (up != nullptr) {
+            const float ub = up[0] * out[f - f0] + up[1] * col[(dim - 1) * kFrameBlock] + up[2];
+            umin = ub < umin ? ub : umin;  // a NaN fails the comparison
+        }
     }
+    return umin;
 }
 
 

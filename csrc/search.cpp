@@ -650,28 +650,31 @@ bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const Query
     const float inf = std::numeric_limits<float>::infinity();
     float umin = inf;
     bool any = false;
+    const float up[3] = {pq.a_up, pq.b_up, pq.c_up};
     for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
         any = true;
         // candidate i's entry frame is seg0 + i
-        kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), dh + i0);
-        // a NaN never lowers umin (the comparison fails) and is caught by the
-        // finiteness test on dh below
-        for (int64_t i = i0; i < i1; ++i) {
-            const int64_t f = seg0 + i;
-            const float rf = db.proj(f / kFrameBlock, kFrameBlock * (J - 1) + f % kFrameBlock);
-            const float ub = pq.a_up * dh[i] + pq.b_up * rf + pq.c_up;
-            umin = ub < umin ? ub : umin;
-        }
+        // upper bounds a_up dh + b_up r_f + c_up, fused with the distances; a
+        // NaN never lowers umin and is caught by the finiteness test on dh below
+        const float u = kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0);
+        umin = u < umin ? u : umin;
     });
     if (!any) return true;
     if (!(umin < inf)) return false;
     bool bad = false;
     for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
+        // branch-free: a segment keeps 1-3 of its ~56 candidates
+        const size_t base = kept.size();
+        kept.resize(base + size_t(i1 - i0));
+        int32_t* out = kept.data() + base;
+        int64_t n = 0;
         for (int64_t i = i0; i < i1; ++i) {
             const float lb = pq.a_lo * dh[i] - pq.c_lo;
             bad |= !(dh[i] < inf);
-            if (lb <= umin) kept.push_back(int32_t(i));
+            out[n] = int32_t(i);
+            n += lb <= umin;
         }
+        kept.resize(base + size_t(n));
     });
     return !bad;
 }

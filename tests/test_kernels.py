@@ -204,8 +204,9 @@ def test_l2sq_blocks_scalar_vs_float64(dim):
     rng = np.random.default_rng(300 + dim)
     rows, v = rows_and_vec(rng, 53, dim)
     want = ((rows.astype(np.float64) - v.astype(np.float64)) ** 2).sum(axis=1)
-    got = _core.l2sq_blocks_f32(_blocks(rows), 0, 53, v, "scalar")
+    got, umin = _core.l2sq_blocks_f32(_blocks(rows), 0, 53, v, "scalar")
     np.testing.assert_allclose(got, want, rtol=2 ** -23, atol=0)
+    assert umin == np.inf  # no bound asked for
 
 
 @pytest.mark.parametrize("isa", SIMD)
@@ -214,11 +215,32 @@ def test_l2sq_blocks_simd_vs_scalar_on_awkward_ranges(isa, dim):
     rng = np.random.default_rng(400 + dim)
     rows, v = rows_and_vec(rng, 70, dim)
     b = _blocks(rows)
+    up = (1.5, 0.75, 0.125)
     for f0, f1 in [(0, 70), (0, 1), (3, 10), (15, 17), (16, 32), (5, 69), (31, 33), (64, 70), (20, 20)]:
-        ref = _core.l2sq_blocks_f32(b, f0, f1, v, "scalar").astype(np.float64)
-        got = _core.l2sq_blocks_f32(b, f0, f1, v, isa).astype(np.float64)
+        ref, _ = _core.l2sq_blocks_f32(b, f0, f1, v, "scalar")
+        got, umin = _core.l2sq_blocks_f32(b, f0, f1, v, isa, up)
         assert got.shape == (f1 - f0,)
         np.testing.assert_allclose(got, ref, rtol=(dim + 4) * 2.0 ** -24, atol=0)
+        # the fused upper bound: the minimum over exactly the frames in range
+        # (a frame outside it, however close, must not count), to the bound's
+        # own rounding (3 float32 operations)
+        ub = up[0] * ref.astype(np.float64) + up[1] * rows[f0:f1, -1].astype(np.float64) + up[2]
+        want = ub.min() if f1 > f0 else np.inf
+        assert umin == pytest.approx(want, rel=(dim + 8) * 2.0 ** -24)
+
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_l2sq_blocks_bound_ignores_nan_and_frames_out_of_range(isa):
+    rng = np.random.default_rng(7)
+    rows, v = rows_and_vec(rng, 48, 24)
+    rows[17] = v  # the nearest frame by far, but outside [18, 40)
+    rows[20, 3] = np.nan  # a NaN never lowers the bound ...
+    b = _blocks(rows)
+    d, umin = _core.l2sq_blocks_f32(b, 18, 40, v, isa, (1.0, 0.0, 0.0))
+    assert np.isnan(d[2])  # ... and shows in the distances, for the caller's finiteness test
+    assert umin == pytest.approx(np.nanmin(d), rel=1e-6)
+    d, umin = _core.l2sq_blocks_f32(b, 20, 21, v, isa, (1.0, 0.0, 0.0))
+    assert np.isnan(d[0]) and umin == np.inf
 
 
 def test_l2sq_blocks_rejects_bad_shapes():
