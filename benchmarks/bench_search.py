@@ -12,8 +12,9 @@ Prints, in one run:
 (a) latency of one step of the kernel (median of many), pose and audio pre-selection,
     pose pre-selection through a HalfPose (binary16 rows as a bounded filter,
     identical results, half the bytes) and through a PoseProjection (24 columns
-    per frame as a bounded filter, identical results, a quarter of the bytes;
-    what gesturedb's Searcher uses by default);
+    per frame as a bounded filter, identical results, a quarter of the bytes),
+    and through the same projection in binary16 (an eighth of the bytes; what
+    gesturedb's Searcher uses by default);
 (b) the same step written in vectorised numpy (what a user would write) and
     a check that it picks the same window;
 (c) the floors: the time to read the 96-wide pose matrix once at the memory
@@ -167,10 +168,11 @@ def main(argv=None):
     t = time.perf_counter()
     proj = search.PoseProjection(pose)
     t_proj = time.perf_counter() - t
+    proj16 = search.PoseProjection(pose, half=True)
     print(f"pose matrix {pose.nbytes / 1e6:.0f} MB, audio matrix {audio.nbytes / 1e6:.0f} MB, "
           f"HalfPose {half.data.nbytes / 1e6:.0f} MB (built once in {t_half:.2f} s), "
           f"PoseProjection {proj.blocks.nbytes / 1e6:.0f} MB (built once in {t_proj:.2f} s; "
-          f"median residual {np.median(proj.rows[:, -1]):.3f})")
+          f"median residual {np.median(proj.rows[:, -1]):.3f}), in binary16 {proj16.blocks.nbytes / 1e6:.0f} MB")
 
     # --- (a) + (c): kernel steps and the read floor, interleaved ----------------
     def step(pre, th=None, f16=None, pj=None):
@@ -178,16 +180,20 @@ def main(argv=None):
                                             pose_f16=f16, pose_proj=pj)
 
     flat24 = proj.blocks.reshape(-1)
+    flat24h = proj16.blocks.view(np.float32).reshape(-1)  # the same bytes: only the read is timed
     fns = {
         "floor C++ 2 threads": lambda: _core.stream_sum_f32(pose, 2),
         "floor C++ 1 thread": lambda: _core.stream_sum_f32(pose, 1),
         "floor numpy sum": lambda: pose.sum(),
         "floor 24-wide 2 thr": lambda: _core.stream_sum_f32(flat24, 2),
+        "floor 24 f16 2 thr": lambda: _core.stream_sum_f32(flat24h, 2),
         "step pose": step("pose"),
         "step pose 1 thread": step("pose", 1),
         "step pose HalfPose": step("pose", f16=half),
         "step pose Projection": step("pose", pj=proj),
         "step pose Proj 1 thr": step("pose", 1, pj=proj),
+        "step pose Proj f16": step("pose", pj=proj16),
+        "step pose Proj f16 1t": step("pose", 1, pj=proj16),
         "step audio": step("audio"),
     }
     res = interleaved(fns, args.reps)
@@ -214,6 +220,13 @@ def main(argv=None):
     same = search.rank_sum_step(pose, audio, st, ln, prev, q) == \
         search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj)
     print(f"  PoseProjection step returns the same StepResult: {same}")
+    step16, floor16 = res["step pose Proj f16"][0], res["floor 24 f16 2 thr"][0]
+    print(f"  PoseProjection in binary16 (Searcher's default): step {1e3 * step16:.2f} ms = today's pose step / "
+          f"{step_pose / step16:.2f} (1 thread: / {res['step pose 1 thread'][0] / res['step pose Proj f16 1t'][0]:.2f}),"
+          f" float32 projection step / {step_proj / step16:.2f}; step / its floor {step16 / floor16:.2f}")
+    same = search.rank_sum_step(pose, audio, st, ln, prev, q) == \
+        search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj16)
+    print(f"  binary16 PoseProjection step returns the same StepResult: {same}")
     print("  (a pose step reads the entry frames of every candidate, 56 of every 64 rows of the\n"
           "   pose matrix, and one audio window per segment; an audio step reads the audio matrix\n"
           "   and one pose row per segment)")
@@ -232,7 +245,8 @@ def main(argv=None):
         r = search.rank_sum_step(pose, audio, st, ln, prev, q, preselect=pre)
         same = (r.segment, r.start) == (m_np, s_np)
         t_step = res[f"step {pre}"][0]
-        extra = (f"   numpy/PoseProjection step = {min(t_np) / step_proj:6.1f}x" if pre == "pose" else "")
+        extra = (f"   numpy/PoseProjection step = {min(t_np) / step_proj:6.1f}x (binary16 "
+                 f"{min(t_np) / step16:.1f}x)" if pre == "pose" else "")
         print(f"  numpy {pre:5s} {1e3 * min(t_np):8.1f} ms (median {1e3 * np.median(t_np):.1f})   "
               f"numpy/step = {min(t_np) / t_step:6.1f}x{extra}   same choice: {same}")
 
@@ -241,7 +255,8 @@ def main(argv=None):
     query = rng.standard_normal((T, DA), dtype=np.float32)
     print(f"\n(d) {SECONDS} s at {FPS} fps = {T} frames, {-(-T // N)} steps of N = {N}:")
     for label, f16, pj in (("", None, None), (" with HalfPose", half, None),
-                           (" with PoseProjection", None, proj)):
+                           (" with PoseProjection", None, proj),
+                           (" with PoseProjection in binary16", None, proj16)):
         t_syn = []
         for _ in range(5):
             t = time.perf_counter()

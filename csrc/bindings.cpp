@@ -62,22 +62,27 @@ Database make_db(const F32& pose, const F32& audio, const I64& seg_start, const 
         // (blocks float32 (ceil(F/16), J, 16), basis float64 (Dp, J-1), mean float64 (Dp,), max norm)
         if (pose_proj->size() != 4) throw std::invalid_argument("pose_proj: expected a 4-tuple");
         // refuse anything cast would have to copy: a copy would die with this scope
-        if (!py::isinstance<F32>((*pose_proj)[0]) || !py::isinstance<F64>((*pose_proj)[1]) ||
+        const bool half = py::isinstance<U16>((*pose_proj)[0]);
+        if (!(half || py::isinstance<F32>((*pose_proj)[0])) || !py::isinstance<F64>((*pose_proj)[1]) ||
             !py::isinstance<F64>((*pose_proj)[2]))
-            throw std::invalid_argument("pose_proj: expected float32 rows and float64 basis and mean, C-contiguous");
-        const F32 rows = (*pose_proj)[0].cast<F32>();
+            throw std::invalid_argument(
+                "pose_proj: expected float32 (or binary16 as uint16) blocks and float64 basis and mean, C-contiguous");
         const F64 basis = (*pose_proj)[1].cast<F64>();
         const F64 mean = (*pose_proj)[2].cast<F64>();
-        require_ndim(rows, 3, "pose_proj blocks");
-        if (rows.shape(2) != kFrameBlock)
-            throw std::invalid_argument("pose_proj blocks: expected (ceil(F/16), J, 16); got " + shape_str(rows));
+        // the tuple's arrays are owned by the caller's PoseProjection; cast
+        // returned views of them (already of these dtypes and C-contiguous,
+        // checked in Python), so these pointers stay valid for the call
+        auto set_blocks = [&](const auto& rows, auto& span) {
+            require_ndim(rows, 3, "pose_proj blocks");
+            if (rows.shape(2) != kFrameBlock)
+                throw std::invalid_argument("pose_proj blocks: expected (ceil(F/16), J, 16); got " + shape_str(rows));
+            span = {rows.data(), int64_t(rows.shape(0)), int64_t(rows.shape(1)) * kFrameBlock};
+            db.proj_dim = int64_t(rows.shape(1));
+        };
+        if (half) set_blocks((*pose_proj)[0].cast<U16>(), db.proj_f16);
+        else set_blocks((*pose_proj)[0].cast<F32>(), db.proj);
         require_ndim(basis, 2, "pose_proj basis");
         require_ndim(mean, 1, "pose_proj mean");
-        // the tuple's arrays are owned by the caller's PoseProjection; cast
-        // returned views of them (already float32/float64 C-contiguous, checked
-        // in Python), so these pointers stay valid for the call
-        db.proj = {rows.data(), int64_t(rows.shape(0)), int64_t(rows.shape(1)) * kFrameBlock};
-        db.proj_dim = int64_t(rows.shape(1));
         db.proj_basis = {basis.data(), int64_t(basis.shape(0)), int64_t(basis.shape(1))};
         db.proj_mean = {mean.data(), int64_t(mean.shape(0))};
         db.proj_max_norm = (*pose_proj)[3].cast<double>();
@@ -257,6 +262,30 @@ PYBIND11_MODULE(_core, m) {
     }, py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(),
        py::arg("isa"), py::arg("up") = py::none(),
        "(||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, and with up = (a, b, c) the\n"
+       "smallest a d_f + b z_f[-1] + c, +inf without), with one instruction set.");
+
+    m.def("l2sq_blocks_f16", [](const U16& blocks, int64_t f0, int64_t f1, const F32& v,
+                                const std::string& isa, std::optional<std::array<float, 3>> up) {
+        const Kernels& k = kernels_for(isa.c_str());
+        require_ndim(blocks, 3, "blocks");
+        if (blocks.shape(2) != kFrameBlock)
+            throw std::invalid_argument("blocks: expected (n_blocks, dim, 16); got " + shape_str(blocks));
+        const int64_t D = blocks.shape(1);
+        check_vector(v, D, "v");
+        if (f0 < 0 || f1 < f0 || f1 > int64_t(blocks.shape(0)) * kFrameBlock)
+            throw std::invalid_argument("[f0, f1): expected inside [0, " +
+                                        std::to_string(blocks.shape(0) * kFrameBlock) + ")");
+        py::array_t<float> d(f1 - f0);
+        float* pd = d.mutable_data();
+        float umin;
+        {
+            py::gil_scoped_release release;
+            umin = k.l2sq_blocks_f16(blocks.data(), f0, f1, D, v.data(), up ? up->data() : nullptr, pd);
+        }
+        return py::make_tuple(d, umin);
+    }, py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(),
+       py::arg("isa"), py::arg("up") = py::none(),
+       "(||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16 as binary16 bit patterns, and with up = (a, b, c) the\n"
        "smallest a d_f + b z_f[-1] + c, +inf without), with one instruction set.");
 
     m.def("l2sq_pairs_f32", [](const F32& rows, const F32& vs, const I64& ri, const I64& vi,

@@ -21,16 +21,19 @@ namespace {
 
 const Kernels kScalar{"scalar", l2sq_rows_f32_scalar, cosdots_f32_scalar, dots_block_f32_scalar,
                       l2filter_f32_scalar, cosfilter_f32_scalar, l2sq_rows_f16_scalar,
-                      l2sq_blocks_f32_scalar, l2sq_pairs_f32_scalar, cosdots_pairs_f32_scalar,
+                      l2sq_blocks_f32_scalar, l2sq_blocks_f16_scalar,
+                    l2sq_pairs_f32_scalar, cosdots_pairs_f32_scalar,
                     projfilter_f32_scalar, projkeep_f32_scalar};
 #ifdef GESTUREDB_X86
 const Kernels kAvx2{"avx2", l2sq_rows_f32_avx2, cosdots_f32_avx2, dots_block_f32_avx2,
                     l2filter_f32_avx2, cosfilter_f32_avx2, l2sq_rows_f16_avx2,
-                    l2sq_blocks_f32_avx2, l2sq_pairs_f32_avx2, cosdots_pairs_f32_avx2,
+                    l2sq_blocks_f32_avx2, l2sq_blocks_f16_avx2,
+                    l2sq_pairs_f32_avx2, cosdots_pairs_f32_avx2,
                     projfilter_f32_avx2, projkeep_f32_avx2};
 const Kernels kAvx512{"avx512", l2sq_rows_f32_avx512, cosdots_f32_avx512, dots_block_f32_avx512,
                       l2filter_f32_avx512, cosfilter_f32_avx512, l2sq_rows_f16_avx512,
-                      l2sq_blocks_f32_avx512, l2sq_pairs_f32_avx512, cosdots_pairs_f32_avx512,
+                      l2sq_blocks_f32_avx512, l2sq_blocks_f16_avx512,
+                    l2sq_pairs_f32_avx512, cosdots_pairs_f32_avx512,
                     projfilter_f32_avx512, projkeep_f32_avx512};
 #endif
 

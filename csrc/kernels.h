@@ -53,6 +53,10 @@ using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim
 constexpr int64_t kFrameBlock = 16;
 using L2sqBlocksFn = float (*)(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
                                const float* v, const float* up, float* out);
+// The same over blocks of IEEE binary16 bit patterns (half the bytes per frame),
+// each value converted exactly to float32 first.
+using L2sqBlocksF16Fn = float (*)(const uint16_t* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                  const float* v, const float* up, float* out);
 
 // --- batched search -------------------------------------------------------
 // The batch evaluates many queries against the same rows at once. It uses the
@@ -140,11 +144,15 @@ struct Kernels {
     FilterFn cosfilter_f32;
     L2sqRowsF16Fn l2sq_rows_f16;
     L2sqBlocksFn l2sq_blocks_f32;
+    L2sqBlocksF16Fn l2sq_blocks_f16;
     L2sqPairsFn l2sq_pairs_f32;
     CosDotsPairsFn cosdots_pairs_f32;
     ProjFilterFn projfilter_f32;
     ProjKeepFn projkeep_f32;
 };
+
+// IEEE binary16 bit pattern -> float32, exact (every half is a float); portable.
+float half_to_float(uint16_t h);
 
 // --- per-ISA implementations (declared here, defined in kernels_<isa>.cpp) --
 void l2sq_rows_f32_scalar(const float*, int64_t, int64_t, const float*, float*);
@@ -156,6 +164,7 @@ void cosfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const fl
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_scalar(const uint16_t*, int64_t, int64_t, const float*, float*);
 float l2sq_blocks_f32_scalar(const float*, int64_t, int64_t, int64_t, const float*, const float*, float*);
+float l2sq_blocks_f16_scalar(const uint16_t*, int64_t, int64_t, int64_t, const float*, const float*, float*);
 void l2sq_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
@@ -173,6 +182,7 @@ void cosfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const floa
                         const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx2(const uint16_t*, int64_t, int64_t, const float*, float*);
 float l2sq_blocks_f32_avx2(const float*, int64_t, int64_t, int64_t, const float*, const float*, float*);
+float l2sq_blocks_f16_avx2(const uint16_t*, int64_t, int64_t, int64_t, const float*, const float*, float*);
 void l2sq_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
@@ -187,6 +197,7 @@ void cosfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const fl
                           const float*, const float*, float, float*, uint64_t*);
 void l2sq_rows_f16_avx512(const uint16_t*, int64_t, int64_t, const float*, float*);
 float l2sq_blocks_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, const float*, float*);
+float l2sq_blocks_f16_avx512(const uint16_t*, int64_t, int64_t, int64_t, const float*, const float*, float*);
 void l2sq_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,

@@ -232,9 +232,18 @@ __attribute__((target("avx2,fma,f16c"))) void l2sq_rows_f16_avx2(
 
 // 16 frames per block = two vectors of 8; a partial block at either end of
 // [f0, f1) is computed whole and only its frames in range are copied out (and
-// count towards the bound's minimum)
-GDB_AVX2 float l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
-                                    const float* v, const float* up, float* out) {
+// count towards the bound's minimum). One body for float32 and binary16
+// blocks: only the load differs.
+namespace {
+#define GDB_AVX2_F16C __attribute__((target("avx2,fma,f16c")))
+GDB_AVX2_F16C inline __m256 load8(const float* p) { return _mm256_loadu_ps(p); }
+GDB_AVX2_F16C inline __m256 load8(const uint16_t* p) {
+    return _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
+}
+
+template <class T>
+GDB_AVX2_F16C float l2sq_blocks_avx2(const T* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                                     const float* up, float* out) {
     const float inf = std::numeric_limits<float>::infinity();
     if (f1 <= f0) return inf;
     alignas(32) float tmp[kFrameBlock];
@@ -244,20 +253,20 @@ GDB_AVX2 float l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1,
                  uc = _mm256_set1_ps(up ? up[2] : 0.0f);
     float tail_min = inf;
     for (int64_t b = f0 / kFrameBlock; b * kFrameBlock < f1; ++b) {
-        const float* blk = blocks + b * kFrameBlock * dim;
+        const T* blk = blocks + b * kFrameBlock * dim;
         __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
         for (int64_t j = 0; j < dim; ++j) {
             const __m256 x = _mm256_set1_ps(v[j]);
-            const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(blk + j * kFrameBlock), x);
-            const __m256 d1 = _mm256_sub_ps(_mm256_loadu_ps(blk + j * kFrameBlock + 8), x);
+            const __m256 d0 = _mm256_sub_ps(load8(blk + j * kFrameBlock), x);
+            const __m256 d1 = _mm256_sub_ps(load8(blk + j * kFrameBlock + 8), x);
             acc0 = _mm256_fmadd_ps(d0, d0, acc0);
             acc1 = _mm256_fmadd_ps(d1, d1, acc1);
         }
         __m256 b0 = _mm256_setzero_ps(), b1 = b0;
         if (up != nullptr) {
-            const float* r = blk + (dim - 1) * kFrameBlock;
-            b0 = _mm256_fmadd_ps(ua, acc0, _mm256_fmadd_ps(ub, _mm256_loadu_ps(r), uc));
-            b1 = _mm256_fmadd_ps(ua, acc1, _mm256_fmadd_ps(ub, _mm256_loadu_ps(r + 8), uc));
+            const T* r = blk + (dim - 1) * kFrameBlock;
+            b0 = _mm256_fmadd_ps(ua, acc0, _mm256_fmadd_ps(ub, load8(r), uc));
+            b1 = _mm256_fmadd_ps(ua, acc1, _mm256_fmadd_ps(ub, load8(r + 8), uc));
         }
         const int64_t lo = std::max(f0, b * kFrameBlock), hi = std::min(f1, (b + 1) * kFrameBlock);
         if (lo == b * kFrameBlock && hi == lo + kFrameBlock) {
@@ -283,6 +292,17 @@ GDB_AVX2 float l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1,
     _mm256_store_ps(m, _mm256_min_ps(umin0, umin1));
     for (float x : m) tail_min = x < tail_min ? x : tail_min;
     return tail_min;
+}
+}  // namespace
+
+GDB_AVX2_F16C float l2sq_blocks_f32_avx2(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                         const float* v, const float* up, float* out) {
+    return l2sq_blocks_avx2(blocks, f0, f1, dim, v, up, out);
+}
+
+GDB_AVX2_F16C float l2sq_blocks_f16_avx2(const uint16_t* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                         const float* v, const float* up, float* out) {
+    return l2sq_blocks_avx2(blocks, f0, f1, dim, v, up, out);
 }
 
 // --- blocked batch: exact pairs and the projection filter ---------------------

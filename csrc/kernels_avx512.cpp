@@ -327,27 +327,35 @@ GDB_AVX512 void l2sq_rows_f16_avx512(const uint16_t* rows, int64_t n_rows, int64
 }
 
 // 16 frames per block = one vector; partial blocks at the ends of [f0, f1)
-// are computed whole and only the frames in range are copied out
-GDB_AVX512 float l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
-                                        const float* v, const float* up, float* out) {
+// are computed whole and only the frames in range are copied out (and count
+// towards the bound's minimum). One body for float32 and binary16 blocks.
+namespace {
+GDB_AVX512 inline __m512 load16(const float* p) { return _mm512_loadu_ps(p); }
+GDB_AVX512 inline __m512 load16(const uint16_t* p) {
+    return _mm512_cvtph_ps(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+}
+
+template <class T>
+GDB_AVX512 float l2sq_blocks_avx512(const T* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                                    const float* up, float* out) {
     const float inf = std::numeric_limits<float>::infinity();
     if (f1 <= f0) return inf;
     __m512 umin = _mm512_set1_ps(inf);
     const __m512 ua = _mm512_set1_ps(up ? up[0] : 0.0f), ub = _mm512_set1_ps(up ? up[1] : 0.0f),
                  uc = _mm512_set1_ps(up ? up[2] : 0.0f);
     for (int64_t b = f0 / kFrameBlock; b * kFrameBlock < f1; ++b) {
-        const float* blk = blocks + b * kFrameBlock * dim;
+        const T* blk = blocks + b * kFrameBlock * dim;
         __m512 acc0 = _mm512_setzero_ps(), acc1 = _mm512_setzero_ps();
         int64_t j = 0;
         // two accumulators hide the FMA latency
         for (; j + 2 <= dim; j += 2) {
-            const __m512 d0 = _mm512_sub_ps(_mm512_loadu_ps(blk + j * kFrameBlock), _mm512_set1_ps(v[j]));
-            const __m512 d1 = _mm512_sub_ps(_mm512_loadu_ps(blk + (j + 1) * kFrameBlock), _mm512_set1_ps(v[j + 1]));
+            const __m512 d0 = _mm512_sub_ps(load16(blk + j * kFrameBlock), _mm512_set1_ps(v[j]));
+            const __m512 d1 = _mm512_sub_ps(load16(blk + (j + 1) * kFrameBlock), _mm512_set1_ps(v[j + 1]));
             acc0 = _mm512_fmadd_ps(d0, d0, acc0);
             acc1 = _mm512_fmadd_ps(d1, d1, acc1);
         }
         if (j < dim) {
-            const __m512 d0 = _mm512_sub_ps(_mm512_loadu_ps(blk + j * kFrameBlock), _mm512_set1_ps(v[j]));
+            const __m512 d0 = _mm512_sub_ps(load16(blk + j * kFrameBlock), _mm512_set1_ps(v[j]));
             acc0 = _mm512_fmadd_ps(d0, d0, acc0);
         }
         const __m512 acc = _mm512_add_ps(acc0, acc1);
@@ -363,12 +371,23 @@ GDB_AVX512 float l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t
         }
         if (up != nullptr) {
             const __m512 bnd =
-                _mm512_fmadd_ps(ua, acc, _mm512_fmadd_ps(ub, _mm512_loadu_ps(blk + (dim - 1) * kFrameBlock), uc));
+                _mm512_fmadd_ps(ua, acc, _mm512_fmadd_ps(ub, load16(blk + (dim - 1) * kFrameBlock), uc));
             // min_ps returns its second operand when either is NaN: NaN never lowers it
             umin = _mm512_mask_min_ps(umin, in, bnd, umin);
         }
     }
     return up == nullptr ? inf : _mm512_reduce_min_ps(umin);
+}
+}  // namespace
+
+GDB_AVX512 float l2sq_blocks_f32_avx512(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                        const float* v, const float* up, float* out) {
+    return l2sq_blocks_avx512(blocks, f0, f1, dim, v, up, out);
+}
+
+GDB_AVX512 float l2sq_blocks_f16_avx512(const uint16_t* blocks, int64_t f0, int64_t f1, int64_t dim,
+                                        const float* v, const float* up, float* out) {
+    return l2sq_blocks_avx512(blocks, f0, f1, dim, v, up, out);
 }
 
 // --- blocked batch: exact pairs and the projection filter ---------------------

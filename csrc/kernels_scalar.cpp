@@ -111,9 +111,6 @@ void cosfilter_f32_scalar(const float* c, int64_t n_rows, int64_t qp, const floa
 
 // --- half-precision pose filter ----------------------------------------------
 
-namespace {
-
-// IEEE binary16 -> float32, exact (every half is representable as a float).
 float half_to_float(uint16_t h) {
     const uint32_t sign = uint32_t(h & 0x8000u) << 16;
     const uint32_t exp = (h >> 10) & 0x1Fu;
@@ -130,8 +127,6 @@ float half_to_float(uint16_t h) {
     return f;
 }
 
-}  // namespace
-
 void l2sq_rows_f16_scalar(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
                           float* d) {
     for (int64_t r = 0; r < n_rows; ++r) {
@@ -145,23 +140,40 @@ void l2sq_rows_f16_scalar(const uint16_t* rows, int64_t n_rows, int64_t dim, con
     }
 }
 
-float l2sq_blocks_f32_scalar(const float* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
-                             const float* up, float* out) {
+namespace {
+inline double block_value(float x) { return double(x); }
+inline double block_value(uint16_t h) { return double(half_to_float(h)); }
+
+template <class T>
+float l2sq_blocks_scalar(const T* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                         const float* up, float* out) {
     float umin = std::numeric_limits<float>::infinity();
     for (int64_t f = f0; f < f1; ++f) {
-        const float* col = blocks + (f / kFrameBlock) * kFrameBlock * dim + f % kFrameBlock;
+        const T* col = blocks + (f / kFrameBlock) * kFrameBlock * dim + f % kFrameBlock;
         double acc = 0.0;
         for (int64_t j = 0; j < dim; ++j) {
-            const double e = double(col[j * kFrameBlock]) - double(v[j]);
+            const double e = block_value(col[j * kFrameBlock]) - double(v[j]);
             acc += e * e;
         }
         out[f - f0] = float(acc);
         if (up != nullptr) {
-            const float ub = up[0] * out[f - f0] + up[1] * col[(dim - 1) * kFrameBlock] + up[2];
+            const float rf = float(block_value(col[(dim - 1) * kFrameBlock]));
+            const float ub = up[0] * out[f - f0] + up[1] * rf + up[2];
             umin = ub < umin ? ub : umin;  // a NaN fails the comparison
         }
     }
     return umin;
+}
+}  // namespace
+
+float l2sq_blocks_f32_scalar(const float* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                             const float* up, float* out) {
+    return l2sq_blocks_scalar(blocks, f0, f1, dim, v, up, out);
+}
+
+float l2sq_blocks_f16_scalar(const uint16_t* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                             const float* up, float* out) {
+    return l2sq_blocks_scalar(blocks, f0, f1, dim, v, up, out);
 }
 
 

@@ -237,6 +237,11 @@ double stream_sum_f32(const float* data, int64_t n, int threads) {
     return s;
 }
 
+float Database::proj_value(int64_t f, int64_t j) const {
+    const int64_t i = kFrameBlock * j + f % kFrameBlock;
+    return proj.data != nullptr ? proj(f / kFrameBlock, i) : half_to_float(proj_f16(f / kFrameBlock, i));
+}
+
 void check_database(const Database& db) {
     const int64_t F = db.pose.rows;
     if (db.audio.rows != F) {
@@ -260,9 +265,13 @@ void check_database(const Database& db) {
                                     std::to_string(db.pose_f16.rows) + ", " +
                                     std::to_string(db.pose_f16.cols) + ")");
     }
-    if (db.proj.data != nullptr) {
+    if (db.proj.data != nullptr && db.proj_f16.data != nullptr)
+        throw std::invalid_argument("pose_proj: expected float32 or binary16 blocks, not both");
+    if (db.has_proj()) {
         const int64_t J = db.proj_dim;
-        if (db.proj.rows != (F + kFrameBlock - 1) / kFrameBlock || J < 2 || db.proj.cols != kFrameBlock * J || db.proj_basis.data == nullptr || db.proj_basis.rows != db.pose.cols ||
+        const int64_t rows = db.proj.data ? db.proj.rows : db.proj_f16.rows;
+        const int64_t cols = db.proj.data ? db.proj.cols : db.proj_f16.cols;
+        if (rows != (F + kFrameBlock - 1) / kFrameBlock || J < 2 || cols != kFrameBlock * J || db.proj_basis.data == nullptr || db.proj_basis.rows != db.pose.cols ||
             db.proj_basis.cols != J - 1 || db.proj_mean.data == nullptr || db.proj_mean.size != db.pose.cols ||
             !(db.proj_max_norm >= 0.0) || !(db.proj_max_norm < std::numeric_limits<double>::infinity())) {
             throw std::invalid_argument("pose_proj: expected blocks (" +
@@ -270,7 +279,7 @@ void check_database(const Database& db) {
                                         ", 16 J) with J >= 2, basis (" + std::to_string(db.pose.cols) +
                                         ", J - 1), mean (" + std::to_string(db.pose.cols) +
                                         ",) and a finite max norm; got blocks (" +
-                                        std::to_string(db.proj.rows) + ", " + std::to_string(db.proj.cols) +
+                                        std::to_string(rows) + ", " + std::to_string(cols) +
                                         "), J = " + std::to_string(J));
         }
     }
@@ -603,33 +612,45 @@ ProjQuery proj_query(const Database& db, const float* x) {
     for (int64_t i = 0; i < k; ++i) pq.zx[i] = float(c[i]);
     const double rx = std::sqrt(r2);
     pq.zx[k] = float(rx);
-    // Error budget, u = 2^-24. The stored rows and this z_x are float32
-    // roundings of float64 projections, so |z_f - z_x| is known to within
-    // e0 = 2^-21 S, S = max |P[f] - mean| + |x - mean| (|z| = |p - mean|, so
-    // each rounding is at most 2^-24 |z| per value, sqrt(J) 2^-24 |z| in norm;
-    // 2^-21 leaves room for J up to 64 and for the float64 projection). The
-    // filter's float32 sum Lh of J squares is within gk = 2 (J + 4) u of
+    // Error budget, u = 2^-24. The stored rows and this z_x are roundings of
+    // float64 projections, so |z_f - z_x| (stored values) is within e0 of the
+    // true |Z_f - Z_x|, and each stored r within e0 of the true one:
+    //   float32 rows: e0 = 2^-21 S, S = max |P[f] - mean| + |x - mean| (|Z| =
+    //     |p - mean|, so each rounding is at most 2^-24 |Z| per value, sqrt(J)
+    //     2^-24 |Z| in norm; 2^-21 leaves room for J up to 64 and for the
+    //     float64 projection);
+    //   binary16 rows: plus 2^-11 (1 + 2^-10) max |P[f] - mean| + sqrt(J) 2^-25
+    //     (relative rounding 2^-11 per value, 2^-25 absolute among subnormals,
+    //     the 2^-10 for a float32 rounding on the way).
+    // The filter's float32 sum Lh of J squares is within gk = 2 (J + 4) u of
     // |z_f - z_x|^2, the exact kernel's of Dp squares within g = 2 (Dp + 4) u of
-    // the true distance, whatever the summation order. With eta = 2^-12,
-    // (a -/+ e)^2 is >= / <= (1 -/+ eta) a^2 -/+ (1/eta (+1)) e^2.
+    // the true distance, whatever the summation order. With eta (2^-12 for
+    // float32 rows; 2^-9 for binary16, whose e0 is 2^10 larger: eta near
+    // e0 / |z_f - z_x| at the distances that decide), (a -/+ e)^2 is >= / <=
+    // (1 -/+ eta) a^2 -/+ (1/eta (+1)) e^2.
     const double u = std::ldexp(1.0, -24);
     const double S = db.proj_max_norm + std::sqrt(xn2);
-    const double e0 = std::ldexp(1.0, -21) * S * (1.0 + 1e-9);
-    const double eta = std::ldexp(1.0, -12);
+    const bool half = db.proj_f16.data != nullptr;
+    double e0 = std::ldexp(1.0, -21) * S * (1.0 + 1e-9);
+    if (half) e0 += std::ldexp(1.0, -11) * (1.0 + std::ldexp(1.0, -10)) * db.proj_max_norm +
+                    std::sqrt(double(J)) * std::ldexp(1.0, -25);
+    const double eta = std::ldexp(1.0, half ? -9 : -12);
     const double gk = 2.0 * double(J + 4) * u, g = 2.0 * double(Dp + 4) * u;
     const double tiny = double(Dp + J) * std::ldexp(1.0, -140);  // float underflow of the squares
     // exact d32 >= (1-g) ((1-eta) Lh / (1+gk) - e0^2 / eta); the per-row float
     // arithmetic of a_lo Lh - c_lo rounds by at most 2u, taken off a_lo
     pq.a_lo = float((1.0 - g) * (1.0 - eta) / (1.0 + gk) * (1.0 - 8.0 * u));
     pq.c_lo = float(((1.0 - g) * e0 * e0 / eta + tiny) * (1.0 + 8.0 * u));
-    // exact d32 <= (1+g) ((1+eta) Lh / (1-gk) + (1 + 1/eta) e0^2 + 4 (r_f + e0)(r_x + e0))
-    //          <= (1+g) ((1+eta) Lh / (1-gk) + 4 rf_stored (rx_stored + e0) + (1 + 1/eta) e0^2 + 16 e0 (S + e0))
-    // (stored r values are within e0 of the true ones and at most S)
+    // exact d32 <= (1+g) ((1+eta) Lh / (1-gk) + (1 + 1/eta) e0^2 + 4 r_f r_x) with true r
+    //          <= (1+g) ((1+eta) Lh / (1-gk) + 4 rf_stored (rx_stored + 2 e0) + (1 + 1/eta) e0^2
+    //                    + 8 e0 (rx_stored + 2 e0))
+    // (stored r values are within e0 of the true ones; 2 e0 leaves a margin)
     // rounded up by 8u for the float evaluation of a_up Lh + b_up r_f + c_up
     const double up = (1.0 + g) * (1.0 + 8.0 * u);
+    const double rx2 = double(pq.zx[k]) + 2.0 * e0;
     pq.a_up = float(up * (1.0 + eta) / (1.0 - gk) * (1.0 + 4.0 * u));
-    pq.b_up = float(up * 4.0 * (double(pq.zx[k]) + e0) * (1.0 + 4.0 * u));
-    pq.c_up = float((up * ((1.0 + 1.0 / eta) * e0 * e0 + 16.0 * e0 * (S + e0)) + tiny) * (1.0 + 4.0 * u));
+    pq.b_up = float(up * 4.0 * rx2 * (1.0 + 4.0 * u));
+    pq.c_up = float((up * ((1.0 + 1.0 / eta) * e0 * e0 + 8.0 * e0 * rx2) + tiny) * (1.0 + 4.0 * u));
     pq.ok = std::isfinite(S) && std::isfinite(double(pq.a_up)) && std::isfinite(double(pq.b_up)) &&
             std::isfinite(double(pq.c_up));
     return pq;
@@ -656,7 +677,9 @@ bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const Query
         // candidate i's entry frame is seg0 + i
         // upper bounds a_up dh + b_up r_f + c_up, fused with the distances; a
         // NaN never lowers umin and is caught by the finiteness test on dh below
-        const float u = kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0);
+        const float u = db.proj.data != nullptr
+                            ? kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0)
+                            : kern.l2sq_blocks_f16(db.proj_f16.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0);
         umin = u < umin ? u : umin;
     });
     if (!any) return true;
@@ -754,7 +777,7 @@ struct StepEngine::Impl {
         const int64_t work =
             db.n_frames() * (opt.preselect == Preselect::Pose ? db.pose.cols : 2 * n * db.audio.cols);
         const int use_threads = (threads > 1 && work >= kMinParallelWork) ? threads : 1;
-        const bool proj = db.proj.data != nullptr && opt.preselect == Preselect::Pose;
+        const bool proj = db.has_proj() && opt.preselect == Preselect::Pose;
         const bool half = !proj && db.pose_f16.data != nullptr && opt.preselect == Preselect::Pose;
         const bool filtered = half || proj;
         ProjQuery pq;
@@ -948,7 +971,7 @@ public:
                  const AllowedSchedule& allowed, int threads)
         : kern_(kern), db_(db), N_(window), pre_(pre), allowed_(allowed) {
         const int64_t F = db.n_frames(), Dp = db.pose.cols, Da = db.audio.cols;
-        proj_ = pre == Preselect::Pose && db.proj.data != nullptr;
+        proj_ = pre == Preselect::Pose && db.has_proj();
         if (pre == Preselect::Pose) {
             // <a, a> of every N-frame audio window, for the audio distance of
             // the pre-selected candidates: cosdots_f32's own value (it does not
@@ -1294,7 +1317,7 @@ private:
             for (int64_t f = f0; f < f1; ++f) {
                 double s = 0.0;
                 for (int64_t j = 0; j < J; ++j) {
-                    const float v = db_.proj(f / kFrameBlock, kFrameBlock * j + f % kFrameBlock);
+                    const float v = db_.proj_value(f, j);
                     zrow_[f * J + j] = v;
                     s += double(v) * double(v);
                 }

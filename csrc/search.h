@@ -34,12 +34,19 @@ struct Database {
     // to prev then lies in [|z_f - z_x|^2, |z_f - z_x|^2 + 4 r_f r_x]; the step
     // keeps the candidates whose lower bound can reach the smallest upper bound
     // and computes only those exactly on P. Results do not change.
+    // proj_f16 instead of proj: the same blocks in binary16 (half the bytes per
+    // frame), each value the round-to-nearest of the float64 projection; the
+    // filter's bound then covers that rounding too. At most one of the two is set.
     Span2<const float> proj;
+    Span2<const uint16_t> proj_f16;
     int64_t proj_dim = 0;
     Span2<const double> proj_basis;
     Span1<const double> proj_mean;
     double proj_max_norm = 0.0;
 
+    bool has_proj() const { return proj.data != nullptr || proj_f16.data != nullptr; }
+    // value j of frame f of the projection, whichever precision holds it
+    float proj_value(int64_t f, int64_t j) const;
     int64_t n_frames() const { return pose.rows; }
     int64_t n_segments() const { return seg_start.size; }
 };

@@ -52,15 +52,21 @@ class PoseProjection:
         ``J``: columns per frame, ``J - 1`` principal directions plus the
         residual length (default ``min(24, Dp + 1)``: 96 bytes per frame, a
         quarter of 96 floats).
+    half : bool, keyword-only
+        Store the rows in IEEE binary16 (rounded to nearest from the float64
+        projection): 48 bytes per frame at J = 24, half the stream of a pose
+        step. The bound then also covers that rounding (about 2^-11 of
+        ``max_norm`` per frame), so a step keeps a few more candidates for the
+        exact check; results are the same.
 
     Attributes
     ----------
     pose : ndarray
         The source array (kept to check that searches use the same one).
-    blocks : ndarray [shape=(ceil(F / 16), J, 16)], float32
+    blocks : ndarray [shape=(ceil(F / 16), J, 16)], float32 (float16 with ``half``)
         ``z_f`` of frame ``f`` at ``blocks[f // 16, :, f % 16]`` (padding frames 0).
     rows : ndarray [shape=(F, J)], float32
-        The same values row by row.
+        The same values row by row (as float32 also with ``half``).
     basis : ndarray [shape=(Dp, J - 1)], float64, orthonormal columns
     mean : ndarray [shape=(Dp,)], float64
     max_norm : float
@@ -70,7 +76,7 @@ class PoseProjection:
         (``Searcher`` uses the projection only when it is below 0.25).
     """
 
-    def __init__(self, pose, *, n_columns: int | None = None):
+    def __init__(self, pose, *, n_columns: int | None = None, half: bool = False):
         if not (isinstance(pose, np.ndarray) and pose.dtype == np.float32 and pose.ndim == 2
                 and pose.flags.c_contiguous):
             raise ParameterError(f"pose: expected float32 C-contiguous (F, Dp); got {_describe(pose)}")
@@ -99,7 +105,9 @@ class PoseProjection:
         _, vecs = np.linalg.eigh(cov)
         self.basis = np.ascontiguousarray(vecs[:, ::-1][:, :k])
         self.mean = mean
-        rows = np.zeros((-(-F // 16) * 16, k + 1), dtype=np.float32)
+        # binary16 is rounded once, from float64 (the kernel's bound assumes at
+        # most 2^-11 (1 + 2^-10) relative per value)
+        rows = np.zeros((-(-F // 16) * 16, k + 1), dtype=np.float16 if half else np.float32)
         max_norm = 0.0
         with np.errstate(invalid="ignore", over="ignore"):
             for a in range(0, F, block):
@@ -116,6 +124,7 @@ class PoseProjection:
         # 16 frames per block, column by column: the kernel computes 16 frames'
         # distances as one vector per column (no horizontal sums)
         self.blocks = np.ascontiguousarray(rows.reshape(-1, 16, k + 1).transpose(0, 2, 1))
+        self.half = bool(half)
         self._F = F
         self.keep_fraction = self._estimate_keep_fraction()
 
@@ -143,8 +152,8 @@ class PoseProjection:
     @property
     def rows(self) -> np.ndarray:
         """ndarray [shape=(F, J)], float32: ``z_f`` row by row (a copy of ``blocks``)."""
-        return self.blocks.transpose(0, 2, 1).reshape(-1, self.blocks.shape[1])[:self._F]
+        return self.blocks.transpose(0, 2, 1).reshape(-1, self.blocks.shape[1])[:self._F].astype(np.float32)
 
     def __repr__(self) -> str:
-        return (f"PoseProjection({self._F} frames x {self.blocks.shape[1]}, "
+        return (f"PoseProjection({self._F} frames x {self.blocks.shape[1]}{', binary16' if self.half else ''}, "
                 f"{self.blocks.nbytes / 1e6:.0f} MB)")

@@ -264,7 +264,8 @@ def _pose_proj(pose_proj, pose):
             f"array {pose_proj.pose.shape} (searches would compare against the wrong rows)")
     if not np.isfinite(pose_proj.max_norm):
         return None  # an infinite pose value: no usable bound, the exact scan
-    return (pose_proj.blocks, pose_proj.basis, pose_proj.mean, float(pose_proj.max_norm))
+    blocks = pose_proj.blocks.view(np.uint16) if pose_proj.half else pose_proj.blocks
+    return (blocks, pose_proj.basis, pose_proj.mean, float(pose_proj.max_norm))
 
 
 # --------------------------------------------------------------------------

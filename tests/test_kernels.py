@@ -243,6 +243,26 @@ def test_l2sq_blocks_bound_ignores_nan_and_frames_out_of_range(isa):
     assert np.isnan(d[0]) and umin == np.inf
 
 
+@pytest.mark.parametrize("isa", ISAS)
+@pytest.mark.parametrize("dim", [2, 7, 24, 33])
+def test_l2sq_blocks_f16_vs_float64_of_the_half_values(isa, dim):
+    """binary16 blocks: every ISA converts exactly, then sums like the float32 kernel."""
+    rng = np.random.default_rng(500 + dim)
+    rows, v = rows_and_vec(rng, 70, dim)
+    rows[5, 0] = 3e-6  # a subnormal half
+    h = rows.astype(np.float16)
+    b = _blocks(h.astype(np.float32)).astype(np.float16).view(np.uint16)
+    up = (1.5, 0.75, 0.125)
+    for f0, f1 in [(0, 70), (3, 10), (15, 17), (31, 33), (5, 69), (20, 20)]:
+        want = ((h[f0:f1].astype(np.float64) - v.astype(np.float64)) ** 2).sum(axis=1)
+        got, umin = _core.l2sq_blocks_f16(b, f0, f1, v, isa, up)
+        np.testing.assert_allclose(got, want, rtol=(dim + 4) * 2.0 ** -24, atol=1e-30)
+        ub = up[0] * want + up[1] * h[f0:f1, -1].astype(np.float64) + up[2]
+        assert umin == pytest.approx(ub.min() if f1 > f0 else np.inf, rel=(dim + 8) * 2.0 ** -24)
+        ref32, _ = _core.l2sq_blocks_f32(_blocks(h.astype(np.float32)), f0, f1, v, isa)
+        np.testing.assert_array_equal(got, ref32)  # same sums as float32 blocks of the same values
+
+
 def test_l2sq_blocks_rejects_bad_shapes():
     b = np.zeros((2, 3, 16), np.float32)
     with pytest.raises(ValueError, match=r"blocks: expected \(n_blocks, dim, 16\)"):

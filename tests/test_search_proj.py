@@ -27,8 +27,14 @@ def isa(request):
         yield request.param
 
 
-def _both(P, A, st, ln, q, init, proj=None, **kw):
-    proj = proj if proj is not None else search.PoseProjection(P)
+@pytest.fixture(params=[False, True], ids=["f32", "f16"])
+def half(request):
+    """float32 or binary16 projection rows: the same results either way."""
+    return request.param
+
+
+def _both(P, A, st, ln, q, init, proj=None, half=False, **kw):
+    proj = proj if proj is not None else search.PoseProjection(P, half=half)
     a = search.rank_sum_search(P, A, st, ln, q, init, **kw)
     b = search.rank_sum_search(P, A, st, ln, q, init, pose_proj=proj, **kw)
     assert_same_search(a, b)
@@ -80,10 +86,28 @@ def test_projection_rows_bound_the_distance():
     assert np.all(np.linalg.norm(P - pp.mean, axis=1) <= pp.max_norm)
 
 
-def test_stacked_recordings_with_clamped_starts_and_heavy_masks(isa):
+def test_half_rows_are_the_rounding_of_the_float64_projection():
+    """What the kernel's bound for binary16 rows assumes: each stored value is
+    within 2^-11 of its float64 projection relative to itself (2^-25 absolute
+    among subnormals), so a row within 2^-11 max_norm + sqrt(J) 2^-25."""
+    rng = np.random.default_rng(11)
+    P, _, _, _ = stacked_recordings(rng, n_rec=4)
+    p16 = search.PoseProjection(P, half=True)
+    p32 = search.PoseProjection(P)
+    assert p16.blocks.dtype == np.float16 and p16.blocks.nbytes * 2 == p32.blocks.nbytes
+    d = P.astype(np.float64) - p16.mean
+    z = np.column_stack([d @ p16.basis, np.linalg.norm(d - (d @ p16.basis) @ p16.basis.T, axis=1)])
+    err = np.abs(p16.rows.astype(np.float64) - z)
+    assert np.all(err <= 2.0 ** -11 * np.abs(z) * (1 + 2.0 ** -10) + 2.0 ** -25)
+    J = z.shape[1]
+    assert np.linalg.norm(err, axis=1).max() <= 2.0 ** -11 * p16.max_norm + np.sqrt(J) * 2.0 ** -25
+    np.testing.assert_array_equal(p16.rows, z.astype(np.float16).astype(np.float32))
+
+
+def test_stacked_recordings_with_clamped_starts_and_heavy_masks(isa, half):
     rng = np.random.default_rng(2)
     P, A, st, ln = stacked_recordings(rng)
-    proj = search.PoseProjection(P)
+    proj = search.PoseProjection(P, half=half)
     q = rng.standard_normal((90, A.shape[1])).astype(np.float32)
     F, M = P.shape[0], st.shape[0]
     # recording starts: the first rows repeat the clamped frame 0 in every part
@@ -97,22 +121,22 @@ def test_stacked_recordings_with_clamped_starts_and_heavy_masks(isa):
             check_search(res, P, A, st, ln, q, init, exact=False, **kw)
 
 
-def test_random_unstructured_and_exact_ties(isa):
+def test_random_unstructured_and_exact_ties(isa, half):
     """No structure to project (iid rows) and integer data full of exact ties:
     the filter keeps what it must and the tie rules still hold."""
     rng = np.random.default_rng(3)
     P, A, st, ln = continuous_db(rng, Dp=33)
     q = rng.standard_normal((70, A.shape[1])).astype(np.float32)
     for n_columns in (2, 5, 24, 34):
-        _both(P, A, st, ln, q, P[3], proj=search.PoseProjection(P, n_columns=n_columns), k=2)
+        _both(P, A, st, ln, q, P[3], proj=search.PoseProjection(P, n_columns=n_columns, half=half), k=2)
     P2, A2, st2, ln2 = exact_db(rng, Dp=7)
     q2 = rng.integers(-2, 3, size=(53, A2.shape[1])).astype(np.float32)
     for n_columns in (2, 4, 8):
-        res = _both(P2, A2, st2, ln2, q2, P2[9], proj=search.PoseProjection(P2, n_columns=n_columns), step=6)
+        res = _both(P2, A2, st2, ln2, q2, P2[9], proj=search.PoseProjection(P2, n_columns=n_columns, half=half), step=6)
         check_search(res, P2, A2, st2, ln2, q2, P2[9], step=6)
 
 
-def test_near_identical_candidates_and_non_finite_rows(isa):
+def test_near_identical_candidates_and_non_finite_rows(isa, half):
     rng = np.random.default_rng(4)
     M, L, Dp = 30, 40, 12
     base = rng.standard_normal((M, 1, Dp)).astype(np.float32) * 4
@@ -123,12 +147,12 @@ def test_near_identical_candidates_and_non_finite_rows(isa):
     ln = np.full(M, L, np.int64)
     q = rng.standard_normal((40, 3)).astype(np.float32)
     for k in (1, 4):
-        _both(P, A, st, ln, q, P[5], k=k)
+        _both(P, A, st, ln, q, P[5], k=k, half=half)
     P[st[4] + 2] = np.nan
     P[st[6] + 1, 3] = 1e30
-    _both(P, A, st, ln, q, P[0])
+    _both(P, A, st, ln, q, P[0], half=half)
     P[st[7] + 3, 0] = np.inf  # no bound at all: the exact scan everywhere
-    proj = search.PoseProjection(P)
+    proj = search.PoseProjection(P, half=half)
     assert not np.isfinite(proj.max_norm)
     _both(P, A, st, ln, q, P[0], proj=proj)
     batch = search.rank_sum_search_batch(P, A, st, ln, [q, q[:21]], np.stack([P[0], P[st[5]]]),
@@ -136,12 +160,12 @@ def test_near_identical_candidates_and_non_finite_rows(isa):
     assert_same_search(batch[0], search.rank_sum_search(P, A, st, ln, q, P[0]))
 
 
-def test_real_database_with_masks(scott_db):
+def test_real_database_with_masks(scott_db, half):
     P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)
     A = np.ascontiguousarray(scott_db.audio_features[:], dtype=np.float32)
     st = np.ascontiguousarray(scott_db.h5["chunks/start"][:], dtype=np.int64)
     ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
-    proj = search.PoseProjection(P)
+    proj = search.PoseProjection(P, half=half)
     rng = np.random.default_rng(5)
     q = rng.standard_normal((300, A.shape[1])).astype(np.float32)
     F = P.shape[0]
@@ -215,12 +239,12 @@ def _batch_three_ways(P, A, st, ln, queries, init, proj, **kw):
 
 
 @pytest.mark.parametrize("preselect", ["pose", "audio"])
-def test_blocked_batch_with_projection_masks_and_exclusions(isa, preselect):
+def test_blocked_batch_with_projection_masks_and_exclusions(isa, preselect, half):
     """70 queries (two panels of 64 lanes), partial last windows, per-query k,
     per-query exclusion rows, a heavy shared mask and a per-step schedule."""
     rng = np.random.default_rng(21)
     P, A, st, ln = stacked_recordings(rng, n_rec=14)
-    proj = search.PoseProjection(P)
+    proj = search.PoseProjection(P, half=half)
     F, M, Q = P.shape[0], st.shape[0], 70
     queries = [rng.standard_normal((int(rng.choice([24, 21, 40])), A.shape[1])).astype(np.float32)
                for _ in range(Q)]
@@ -236,7 +260,7 @@ def test_blocked_batch_with_projection_masks_and_exclusions(isa, preselect):
     _batch_three_ways(P, A, st, ln, same_len, init, proj, allowed=sched, **kw)
 
 
-def test_blocked_batch_with_projection_ties_and_non_finite(isa):
+def test_blocked_batch_with_projection_ties_and_non_finite(isa, half):
     """Integer data full of exact ties; NaN and huge rows (their segments are
     scanned exactly); a huge initial pose (that lane scans everything exactly)."""
     rng = np.random.default_rng(22)
@@ -245,7 +269,7 @@ def test_blocked_batch_with_projection_ties_and_non_finite(isa):
     queries = [rng.integers(-2, 3, size=(24, 3)).astype(np.float32) for _ in range(Q)]
     init = P[rng.integers(0, P.shape[0], Q)]
     for n_columns in (2, 5, 10):
-        _batch_three_ways(P, A, st, ln, queries, init, search.PoseProjection(P, n_columns=n_columns),
+        _batch_three_ways(P, A, st, ln, queries, init, search.PoseProjection(P, n_columns=n_columns, half=half),
                           k=rng.integers(1, 4, Q))
     P2, A2, st2, ln2 = continuous_db(rng, Dp=20, n_segments=30)
     P2[st2[3] + 2] = np.nan
@@ -255,18 +279,18 @@ def test_blocked_batch_with_projection_ties_and_non_finite(isa):
     init2[4] = P2[st2[5] + 2]  # a huge previous pose: that lane scans everything exactly
     init2[6] = P2[st2[5] + 1]  # start next to the huge rows
     with np.errstate(all="ignore"):
-        proj = search.PoseProjection(P2)
+        proj = search.PoseProjection(P2, half=half)
         _batch_three_ways(P2, A2, st2, ln2, queries2, init2, proj)
 
 
-def test_blocked_batch_with_projection_on_the_real_database(scott_db):
+def test_blocked_batch_with_projection_on_the_real_database(scott_db, half):
     """The refiner's self-search on the real recording: every chunk's audio as a
     query, excluding its own neighbourhood, k from 1 to 15, with and without a mask."""
     P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)
     A = np.ascontiguousarray(scott_db.audio_features[:], dtype=np.float32)
     st = np.ascontiguousarray(scott_db.h5["chunks/start"][:], dtype=np.int64)
     ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
-    proj = search.PoseProjection(P)
+    proj = search.PoseProjection(P, half=half)
     rng = np.random.default_rng(23)
     M = st.shape[0]
     idx = rng.choice(M, size=min(M, 48), replace=False)

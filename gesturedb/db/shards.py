@@ -29,7 +29,7 @@ class _Shard:
         self.audio = np.ascontiguousarray(audio, dtype=np.float32)
         self.seg_start = np.ascontiguousarray(seg_start, dtype=np.int64)
         self.seg_len = np.ascontiguousarray(seg_len, dtype=np.int64)
-        self.proj = search.PoseProjection(self.pose) if projection else None
+        self.proj = search.PoseProjection(self.pose, half=True) if projection else None
 
 
 def _make_shard(pose, audio, seg_start, seg_len, projection):

@@ -59,9 +59,10 @@ class Searcher:
         faster searches on large databases, for 0.4 s and 2 bytes per value
         spent once (616k frames). Worth it when one Searcher runs many syntheses.
     projection : bool
-        Pose steps stream a 24-column projection of the pose features
-        (:class:`gesturedb.search.PoseProjection`, built at the first pose
-        search): identical results, a quarter of the bytes per step. On by
+        Pose steps stream a 24-column projection of the pose features in
+        binary16 (:class:`gesturedb.search.PoseProjection` with ``half=True``,
+        built at the first pose search): identical results, an eighth of the
+        bytes per step. On by
         default (skipped when it would keep a quarter of the candidates or
         more); takes precedence over ``half_precision``.
     client : distributed.Client, optional
@@ -104,7 +105,8 @@ class Searcher:
         if self._projection and self._proj is None:
             from gesturedb.search import PoseProjection
 
-            self._proj = PoseProjection(self.db.pose_features)
+            # binary16 rows: half the stream of float32 rows for a few more exact checks
+            self._proj = PoseProjection(self.db.pose_features, half=True)
             if self._proj.keep_fraction >= 0.25:
                 self._projection = False
                 self._proj = None
