@@ -4,7 +4,7 @@ Database: synthetic structured motion (benchmarks/bench_search.py: motion_pose)
 of --frames frames (default 5,000,000, about 93 hours at 15 fps) in 64-frame
 segments, 96-wide pose and 14-wide audio features. Prints, in one run, the
 median latency of one pose step
-  - in this process through the PoseProjection filter (2 threads and 1 thread),
+  - in this process through the PoseProjection filter in binary16 (2 threads and 1 thread),
   - through ShardedSearch: 2 shards on a LocalCluster of 2 single-threaded
     worker processes, each shard with its own PoseProjection, ranks merged
     here (the whole round trip: 2 table tasks, gather, rank, 1 row fetch),
@@ -49,7 +49,7 @@ def main(argv=None):
     ln = np.full(M, L, np.int64)
     print(f"{F} frames ({F / 15 / 3600:.0f} h at 15 fps), {M} segments; generated in {time.perf_counter() - t:.0f} s")
     t = time.perf_counter()
-    proj = search.PoseProjection(pose)
+    proj = search.PoseProjection(pose, half=True)  # as ShardedSearch and Searcher use it
     t_proj = time.perf_counter() - t
     print(f"memory per frame: pose {4 * DP} B, projection {proj.blocks.nbytes / F:.0f} B, audio {4 * DA} B; "
           f"PoseProjection built in {t_proj:.1f} s ({1e9 * t_proj / F:.0f} ns/frame)")
