@@ -198,6 +198,7 @@ def test_searcher_uses_the_projection_by_default_with_identical_output(scott_db,
     fast = Searcher(scott_db)
     plain = Searcher(scott_db, projection=False)
     assert isinstance(fast.pose_projection(), search.PoseProjection)
+    assert fast.pose_projection().half  # binary16 rows by default
     assert plain.pose_projection() is None
     for k in (1, 3):
         a = fast.synthesize(speech, k=k, smooth=False)
