@@ -240,53 +240,44 @@ PYBIND11_MODULE(_core, m) {
     }, py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
        "||h - v||^2 per row of binary16 bit patterns h, with one instruction set.");
 
-    m.def("l2sq_blocks_f32", [](const F32& blocks, int64_t f0, int64_t f1, const F32& v,
-                                const std::string& isa, std::optional<std::array<float, 3>> up) {
-        const Kernels& k = kernels_for(isa.c_str());
-        require_ndim(blocks, 3, "blocks");
-        if (blocks.shape(2) != kFrameBlock)
-            throw std::invalid_argument("blocks: expected (n_blocks, dim, 16); got " + shape_str(blocks));
-        const int64_t D = blocks.shape(1);
-        check_vector(v, D, "v");
-        if (f0 < 0 || f1 < f0 || f1 > int64_t(blocks.shape(0)) * kFrameBlock)
-            throw std::invalid_argument("[f0, f1): expected inside [0, " +
-                                        std::to_string(blocks.shape(0) * kFrameBlock) + ")");
-        py::array_t<float> d(f1 - f0);
-        float* pd = d.mutable_data();
-        float umin;
-        {
-            py::gil_scoped_release release;
-            umin = k.l2sq_blocks_f32(blocks.data(), f0, f1, D, v.data(), up ? up->data() : nullptr, pd);
-        }
-        return py::make_tuple(d, umin);
-    }, py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(),
-       py::arg("isa"), py::arg("up") = py::none(),
-       "(||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, and with up = (a, b, c) the\n"
-       "smallest a d_f + b z_f[-1] + c, +inf without), with one instruction set.");
-
-    m.def("l2sq_blocks_f16", [](const U16& blocks, int64_t f0, int64_t f1, const F32& v,
-                                const std::string& isa, std::optional<std::array<float, 3>> up) {
-        const Kernels& k = kernels_for(isa.c_str());
-        require_ndim(blocks, 3, "blocks");
-        if (blocks.shape(2) != kFrameBlock)
-            throw std::invalid_argument("blocks: expected (n_blocks, dim, 16); got " + shape_str(blocks));
-        const int64_t D = blocks.shape(1);
-        check_vector(v, D, "v");
-        if (f0 < 0 || f1 < f0 || f1 > int64_t(blocks.shape(0)) * kFrameBlock)
-            throw std::invalid_argument("[f0, f1): expected inside [0, " +
-                                        std::to_string(blocks.shape(0) * kFrameBlock) + ")");
-        py::array_t<float> d(f1 - f0);
-        float* pd = d.mutable_data();
-        float umin;
-        {
-            py::gil_scoped_release release;
-            umin = k.l2sq_blocks_f16(blocks.data(), f0, f1, D, v.data(), up ? up->data() : nullptr, pd);
-        }
-        return py::make_tuple(d, umin);
-    }, py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(),
-       py::arg("isa"), py::arg("up") = py::none(),
-       "(||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16 as binary16 bit patterns, and with up = (a, b, c) the\n"
-       "smallest a d_f + b z_f[-1] + c, +inf without), with one instruction set.");
+    // float32 or binary16 blocks: the same checks and call, only the kernel differs
+    auto blocks_fn = [](auto kernel_of) {
+        return [kernel_of](const auto& blocks, int64_t f0, int64_t f1, const F32& v, const std::string& isa,
+                           std::optional<std::array<float, 3>> up) {
+            const Kernels& k = kernels_for(isa.c_str());
+            require_ndim(blocks, 3, "blocks");
+            if (blocks.shape(2) != kFrameBlock)
+                throw std::invalid_argument("blocks: expected (n_blocks, dim, 16); got " + shape_str(blocks));
+            const int64_t D = blocks.shape(1);
+            check_vector(v, D, "v");
+            if (f0 < 0 || f1 < f0 || f1 > int64_t(blocks.shape(0)) * kFrameBlock)
+                throw std::invalid_argument("[f0, f1): expected inside [0, " +
+                                            std::to_string(blocks.shape(0) * kFrameBlock) + ")");
+            py::array_t<float> d(f1 - f0);
+            float* pd = d.mutable_data();
+            float umin;
+            {
+                py::gil_scoped_release release;
+                umin = kernel_of(k)(blocks.data(), f0, f1, D, v.data(), up ? up->data() : nullptr, pd);
+            }
+            return py::make_tuple(d, umin);
+        };
+    };
+    const char* blocks_doc =
+        "(||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, and with up = (a, b, c) the\n"
+        "smallest a d_f + b z_f[-1] + c, +inf without), with one instruction set.";
+    m.def("l2sq_blocks_f32",
+          [f = blocks_fn([](const Kernels& k) { return k.l2sq_blocks_f32; })](
+              const F32& blocks, int64_t f0, int64_t f1, const F32& v, const std::string& isa,
+              std::optional<std::array<float, 3>> up) { return f(blocks, f0, f1, v, isa, up); },
+          py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(), py::arg("isa"),
+          py::arg("up") = py::none(), blocks_doc);
+    m.def("l2sq_blocks_f16",
+          [f = blocks_fn([](const Kernels& k) { return k.l2sq_blocks_f16; })](
+              const U16& blocks, int64_t f0, int64_t f1, const F32& v, const std::string& isa,
+              std::optional<std::array<float, 3>> up) { return f(blocks, f0, f1, v, isa, up); },
+          py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(), py::arg("isa"),
+          py::arg("up") = py::none(), "The same over binary16 bit patterns (uint16 blocks).");
 
     m.def("l2sq_pairs_f32", [](const F32& rows, const F32& vs, const I64& ri, const I64& vi,
                                const std::string& isa) {
