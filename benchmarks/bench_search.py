@@ -208,25 +208,24 @@ def main(argv=None):
     print(f"  step/floor: pose {step_pose / floor:.2f}, pose with HalfPose "
           f"{res['step pose HalfPose'][0] / floor:.2f}, audio {res['step audio'][0] / floor:.2f}; "
           f"single-thread pose step / single-thread floor {res['step pose 1 thread'][0] / floor1:.2f}")
-    same = search.rank_sum_step(pose, audio, st, ln, prev, q) == \
-        search.rank_sum_step(pose, audio, st, ln, prev, q, pose_f16=half)
-    print(f"  HalfPose step returns the same StepResult: {same}")
+    exact = search.rank_sum_step(pose, audio, st, ln, prev, q)
+
+    def same_as_exact(**kw):
+        return search.rank_sum_step(pose, audio, st, ln, prev, q, **kw) == exact
+
+    print(f"  HalfPose step returns the same StepResult: {same_as_exact(pose_f16=half)}")
     step_proj = res["step pose Projection"][0]
     floor24 = res["floor 24-wide 2 thr"][0]
     print(f"  PoseProjection: step {1e3 * step_proj:.2f} ms = today's pose step / {step_pose / step_proj:.2f} "
           f"(1 thread: / {res['step pose 1 thread'][0] / res['step pose Proj 1 thr'][0]:.2f}); "
           f"step / 24-wide floor {step_proj / floor24:.2f}; 96-wide floor / 24-wide floor "
           f"{res['floor C++ 2 threads'][0] / floor24:.2f}")
-    same = search.rank_sum_step(pose, audio, st, ln, prev, q) == \
-        search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj)
-    print(f"  PoseProjection step returns the same StepResult: {same}")
+    print(f"  PoseProjection step returns the same StepResult: {same_as_exact(pose_proj=proj)}")
     step16, floor16 = res["step pose Proj f16"][0], res["floor 24 f16 2 thr"][0]
     print(f"  PoseProjection in binary16 (Searcher's default): step {1e3 * step16:.2f} ms = today's pose step / "
           f"{step_pose / step16:.2f} (1 thread: / {res['step pose 1 thread'][0] / res['step pose Proj f16 1t'][0]:.2f}),"
           f" float32 projection step / {step_proj / step16:.2f}; step / its floor {step16 / floor16:.2f}")
-    same = search.rank_sum_step(pose, audio, st, ln, prev, q) == \
-        search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj16)
-    print(f"  binary16 PoseProjection step returns the same StepResult: {same}")
+    print(f"  binary16 PoseProjection step returns the same StepResult: {same_as_exact(pose_proj=proj16)}")
     print("  (a pose step reads the entry frames of every candidate, 56 of every 64 rows of the\n"
           "   pose matrix, and one audio window per segment; an audio step reads the audio matrix\n"
           "   and one pose row per segment)")

@@ -41,6 +41,14 @@ def _both(P, A, st, ln, q, init, proj=None, half=False, **kw):
     return b
 
 
+def _real_arrays(db):
+    """The search's arrays of a gesturedb database: pose, audio, chunk starts and lengths."""
+    return (np.ascontiguousarray(db.pose_features[:], dtype=np.float32),
+            np.ascontiguousarray(db.audio_features[:], dtype=np.float32),
+            np.ascontiguousarray(db.h5["chunks/start"][:], dtype=np.int64),
+            np.ascontiguousarray(db.h5["chunks/length"][:], dtype=np.int64))
+
+
 def stacked_recordings(rng, *, n_rec=12, Da=6, lag=2, window=4):
     """Smooth random 'joint' trajectories (8 joints x 3) stacked like pose
     features: frame f holds frames f, f-2, f-4, f-6 of its recording, clamped
@@ -161,10 +169,7 @@ def test_near_identical_candidates_and_non_finite_rows(isa, half):
 
 
 def test_real_database_with_masks(scott_db, half):
-    P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)
-    A = np.ascontiguousarray(scott_db.audio_features[:], dtype=np.float32)
-    st = np.ascontiguousarray(scott_db.h5["chunks/start"][:], dtype=np.int64)
-    ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
+    P, A, st, ln = _real_arrays(scott_db)
     proj = search.PoseProjection(P, half=half)
     rng = np.random.default_rng(5)
     q = rng.standard_normal((300, A.shape[1])).astype(np.float32)
@@ -287,10 +292,7 @@ def test_blocked_batch_with_projection_ties_and_non_finite(isa, half):
 def test_blocked_batch_with_projection_on_the_real_database(scott_db, half):
     """The refiner's self-search on the real recording: every chunk's audio as a
     query, excluding its own neighbourhood, k from 1 to 15, with and without a mask."""
-    P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)
-    A = np.ascontiguousarray(scott_db.audio_features[:], dtype=np.float32)
-    st = np.ascontiguousarray(scott_db.h5["chunks/start"][:], dtype=np.int64)
-    ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
+    P, A, st, ln = _real_arrays(scott_db)
     proj = search.PoseProjection(P, half=half)
     rng = np.random.default_rng(23)
     M = st.shape[0]
