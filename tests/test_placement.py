@@ -112,6 +112,47 @@ def test_placement_keeps_each_pieces_own_displacement_and_turning(scott_db):
     np.testing.assert_allclose(m.root_positions[n:, 1], root1[:, 1])
 
 
+def test_a_seam_cross_fades_the_roots_velocity_without_walking_back(scott_db, monkeypatch):
+    """Lead-in going +x, new piece going -x: every blended step is the weighted mix of the two steps.
+
+    A position cross-fade between the two paths would first follow the old direction further and then
+    walk back (more path than either piece); the velocity cross-fade never moves faster than the pieces.
+    """
+    import gesturedb.synth.assemble as A
+
+    monkeypatch.setattr(A, "POSITION_PULL_S", 1e12)
+    monkeypatch.setattr(A, "HEADING_PULL_S", 1e12)
+    fps, n, v, nb = 15.0, 12, 0.3, 4
+    J = len(scott_db.skeleton.names)
+    rot = np.zeros((n, J, 4))
+    rot[..., 0] = 1.0
+
+    def line(x0, vel, k):
+        root = np.zeros((k, 3))
+        root[:, 0] = x0 + vel * np.arange(k) / fps
+        root[:, 1] = 1.0
+        return root
+
+    first = Piece(0, rot, line(0.0, v, n))
+    lead = (rot[:nb], line(v * n / fps, v, nb))  # how the first piece would have gone on
+    second = Piece(n, rot, line(7.0, -v, n), lead_in=lead)  # from elsewhere, going back
+    m = assemble_pieces(scott_db.skeleton, fps, [first, second], smooth=False, lock_feet=False, blend_frames=nb)
+    step = np.diff(m.root_positions[:, 0])
+    w = A.smoothstep(np.arange(1, nb + 1) / (nb + 1))
+    np.testing.assert_allclose(step[:n], v / fps, atol=1e-12)  # into the seam: the first piece
+    np.testing.assert_allclose(step[n:n + nb - 1], ((1 - w[1:]) * v - w[1:] * v) / fps, atol=1e-12)
+    np.testing.assert_allclose(step[n + nb - 1:], -v / fps, atol=1e-12)  # after it: the second piece's own
+    assert np.abs(step).max() <= v / fps + 1e-12
+    np.testing.assert_allclose(m.root_positions[:, 2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(m.root_positions[:, 1], 1.0, atol=1e-12)
+    # the position cross-fade this replaced (kept for placement="source"; the second piece put where the
+    # lead-in starts, as placement does): it comes back faster than either piece moves
+    there = Piece(n, rot, line(v * n / fps, -v, n), lead_in=lead)
+    old = assemble_pieces(scott_db.skeleton, fps, [first, there], smooth=False, placement="source",
+                          blend_frames=nb)
+    assert np.abs(np.diff(old.root_positions[:, 0])).max() > 1.2 * v / fps
+
+
 @pytest.fixture(scope="module")
 def mirrored_db(scott_dir, tmp_path_factory):
     import gesturedb

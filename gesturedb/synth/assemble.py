@@ -37,10 +37,15 @@ earlier version did, doubled the root's jerk and raised the pelvis speed by a
 quarter on the four BEAT2 inputs).
 
 Seams. After each piece boundary a short cross-fade (``blend_frames``, default
-4) slerps (rotations) and lerps (root) from the previous piece's natural
-continuation in its source into the new piece, with smoothstep weights, so
-neither position nor velocity jumps at the seam. ``blend_frames=0``: pieces
-back to back, as in the paper.
+4) goes from the previous piece's natural continuation in its source into the
+new piece, with smoothstep weights, so neither position nor velocity jumps at
+the seam: rotations are slerped, the root height is lerped, and the horizontal
+root (with ``"continue"``) moves by the weighted mix of the two pieces' own
+steps, after which the new piece goes on from where that leaves it. Lerping the
+horizontal position instead (still done with ``"source"``) follows the old
+direction and then walks back wherever the two paths part, which added 6% to
+the pelvis speed on the held-out BEAT2 stretch. ``blend_frames=0``: pieces back
+to back, as in the paper.
 
 Smoothing. A Savitzky-Golay filter (window 7, order 2) over rotations and root,
 as GestureMaster (Sec. 4.2) smooths its output.
@@ -279,7 +284,20 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
             x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
             w = smoothstep(x)
             rot[a:a + n_bl] = R.slerp(c_rot[:n_bl], rot[a:a + n_bl], w)
-            root[a:a + n_bl] = (1 - w) * c_root[:n_bl] + w * root[a:a + n_bl]
+            y = (1 - w[:, 0]) * c_root[:n_bl, 1] + w[:, 0] * root[a:a + n_bl, 1]
+            if cont:
+                # Horizontally the root's velocity is cross-faded, not its position: a position fade between
+                # two paths that part at the seam walks the old direction and then back (it added 6% to the
+                # pelvis speed held out). Both start where the lead-in does (placement), each step is the
+                # weighted mix of the two pieces' own steps, and the rest of the piece follows, shifted.
+                step = (1 - w[1:]) * np.diff(c_root[:n_bl], axis=0) + w[1:] * np.diff(root[a:a + n_bl], axis=0)
+                shift = root[a] + np.concatenate([np.zeros((1, 3)), np.cumsum(step, axis=0)]) - root[a:a + n_bl]
+                shift[:, 1] = 0.0
+                root[a:b] += np.concatenate([shift, np.broadcast_to(shift[-1], (b - a - n_bl, 3))])
+                tf_prev = (tf_prev[0], tf_prev[1], tf_prev[2] + shift[-1])
+            else:
+                root[a:a + n_bl] = (1 - w) * c_root[:n_bl] + w * root[a:a + n_bl]
+            root[a:a + n_bl, 1] = y
     if src_pos:
         # the pieces' own (unplaced) poses, by one forward kinematics over all of them (one call per piece
         # was a fifth of a k-NN synthesis); contacts need only heights and speeds, which placement keeps
