@@ -1048,7 +1048,8 @@ public:
         std::vector<float> best_dp(qp);
         std::vector<double> best_da(qp);
         std::vector<int64_t> lanes;  // lane -> index in block
-        std::vector<const bool*> lane_ex;  // lane -> its exclusion row (or null)
+        // bit per lane: the step's lanes, and (M x words) the lanes excluded from each segment
+        std::vector<uint64_t> valid(words), ex_bits(size_t(M) * words), inc(words);
         std::vector<QueryStep> lane_step(qp);
         // lanes whose kept candidates are recomputed in this segment (bit per
         // lane), and the lanes that scan every segment exactly (projection
@@ -1060,7 +1061,7 @@ public:
                            &lane_par[4 * qp], &lane_par[5 * qp]};
         // the exact recomputation of one tile's kept (row, lane) pairs
         std::vector<const float*> pair_row(size_t(kRowTile) * qp), pair_vec(size_t(kRowTile) * qp);
-        std::vector<int32_t> pair_lane(size_t(kRowTile) * qp), pair_i(size_t(kRowTile) * qp);
+        std::vector<int32_t> pair_lane(size_t(kRowTile) * qp), pair_r(size_t(kRowTile) * qp);
         std::vector<float> pair_d(size_t(kRowTile) * qp);
         // the other distance of each lane's pre-selected candidate in a segment
         std::vector<const float*> fin_a(qp), fin_b(qp);
@@ -1094,11 +1095,17 @@ public:
             }
             const int64_t nl = int64_t(lanes.size());
             if (nl == 0) continue;
-            lane_ex.assign(nl, nullptr);
+            // lanes of this step, and per segment the lanes excluded from it (one
+            // scan of each lane's exclusion row per step instead of a load per
+            // lane and segment)
+            std::fill(valid.begin(), valid.end(), uint64_t(0));
+            for (int64_t l = 0; l < nl; ++l) valid[l / 64] |= uint64_t(1) << (l % 64);
             bool any_ex = false;
-            for (int64_t l = 0; l < nl; ++l) {
-                lane_ex[l] = block[lanes[l]]->exclude;
-                any_ex |= lane_ex[l] != nullptr;
+            for (int64_t l = 0; l < nl; ++l) any_ex |= block[lanes[l]]->exclude != nullptr;
+            if (any_ex) {
+                std::fill(ex_bits.begin(), ex_bits.end(), uint64_t(0));
+                for (int64_t l = 0; l < nl; ++l)
+                    if (const bool* ex = block[lanes[l]]->exclude) mark_excluded(ex, M, l, words, ex_bits.data());
             }
 
             // the panel: one column per lane (padding lanes are zero and ignored)
@@ -1156,18 +1163,18 @@ public:
                     okp = ok.data();
                 }
                 if (!any) continue;
-                // lanes that filter this segment: not excluded from it, bound usable
-                bool all_excluded = !any_ex ? false : true;
+                // lanes in this segment (inc: not excluded from it) and those that
+                // filter it (live: also a usable bound)
                 const bool seg_filtered = !(proj_ && seg_bad_[m]);
-                for (int64_t w = 0; w < words; ++w) live[w] = seg_filtered ? lane_ok[w] : 0;
-                for (int64_t l = 0; any_ex && l < nl; ++l) {
-                    const bool* ex = lane_ex[l];
-                    if (ex != nullptr && ex[m]) live[l / 64] &= ~(uint64_t(1) << (l % 64));
-                    else all_excluded = false;
+                const uint64_t* exm = &ex_bits[size_t(m) * words];
+                bool any_inc = false, any_live = false;
+                for (int64_t w = 0; w < words; ++w) {
+                    inc[w] = any_ex ? valid[w] & ~exm[w] : valid[w];
+                    live[w] = seg_filtered ? lane_ok[w] & inc[w] : 0;
+                    any_inc |= inc[w] != 0;
+                    any_live |= live[w] != 0;
                 }
-                if (all_excluded) continue;
-                bool any_live = false;
-                for (int64_t w = 0; w < words; ++w) any_live |= live[w] != 0;
+                if (!any_inc) continue;
 
                 std::fill(minhi.begin(), minhi.end(), std::numeric_limits<float>::infinity());
                 std::fill(best.begin(), best.begin() + nl, int64_t(-1));
@@ -1203,26 +1210,19 @@ public:
                                             minhi.data(), keep.data());
                     }
                     // exact values of the kept candidates, in ascending s per lane
-                    int64_t n_pairs = 0;
-                    for (int64_t r = 0; r < nr; ++r) {
-                        for (int64_t w = 0; w < words; ++w) {
-                            uint64_t bits = keep[r * words + w] & live[w];
-                            while (bits) {
-                                const int64_t l = w * 64 + __builtin_ctzll(bits);
-                                bits &= bits - 1;
-                                if (pre_ == Preselect::Pose) {
-                                    pair_row[n_pairs] = db_.pose.row(seg0 + i0 + r);
-                                    pair_vec[n_pairs] = lane_step[l].prev;
-                                    pair_lane[n_pairs] = int32_t(l);
-                                    pair_i[n_pairs] = int32_t(i0 + r);
-                                    ++n_pairs;
-                                } else {
-                                    exact_update_audio(m, i0 + r, lane_step[l], l, best, best_da);
-                                }
-                            }
+                    const int64_t n_pairs =
+                        collect_pairs(keep.data(), live.data(), nr, words, pair_lane.data(), pair_r.data());
+                    if (pre_ == Preselect::Audio) {
+                        for (int64_t p = 0; p < n_pairs; ++p)
+                            exact_update_audio(m, i0 + pair_r[p], lane_step[pair_lane[p]], pair_lane[p], best,
+                                               best_da);
+                    } else if (n_pairs > 0) {
+                        const float* rows = db_.pose.row(seg0 + i0);
+                        const int64_t stride = db_.pose.cols;
+                        for (int64_t p = 0; p < n_pairs; ++p) {
+                            pair_row[p] = rows + pair_r[p] * stride;
+                            pair_vec[p] = lane_step[pair_lane[p]].prev;
                         }
-                    }
-                    if (n_pairs > 0) {
                         kern_.l2sq_pairs_f32(pair_row.data(), pair_vec.data(), n_pairs, Dp, pair_d.data());
                         for (int64_t p = 0; p < n_pairs; ++p) {
                             const int32_t l = pair_lane[p];
@@ -1235,7 +1235,7 @@ public:
                             const int64_t better =
                                 int64_t(best[l] < 0) | int64_t(d < bd) | (int64_t(bd != bd) & int64_t(d == d));
                             const int64_t mask = -better;
-                            best[l] = (int64_t(pair_i[p]) & mask) | (best[l] & ~mask);
+                            best[l] = ((i0 + int64_t(pair_r[p])) & mask) | (best[l] & ~mask);
                             uint32_t db, bb;
                             std::memcpy(&db, &d, 4);
                             std::memcpy(&bb, &bd, 4);
@@ -1245,13 +1245,13 @@ public:
                     }
                 }
                 int64_t n_fin = 0;
-                for (int64_t l = 0; l < nl; ++l) {
+                for (int64_t w = 0; w < words; ++w)
+                for (uint64_t bits = inc[w]; bits; bits &= bits - 1) {
+                    const int64_t l = w * 64 + __builtin_ctzll(bits);
                     const int64_t qi = lanes[l];
-                    const bool* ex = lane_ex[l];
-                    if (ex != nullptr && ex[m]) continue;
                     Selection sel{&sel_s[qi * M], &sel_dp[qi * M], &sel_da[qi * M]};
                     int64_t b;
-                    const bool filtered = (live[l / 64] >> (l % 64)) & 1;
+                    const bool filtered = (live[w] >> (l % 64)) & 1;
                     if (!filtered || !(minhi[l] < std::numeric_limits<float>::infinity())) {
                         // a non-finite approximate distance or bound: it says
                         // nothing, so this lane scans the segment exactly
@@ -1402,6 +1402,40 @@ private:
         par[4 * qp + l] = pq.a_lo;
         par[5 * qp + l] = clo;
         return true;
+    }
+
+    // Sets lane l's bit in ex_bits[m * words + l / 64] for every segment m with ex[m]
+    // (bool rows are mostly zero: eight at a time).
+    static void mark_excluded(const bool* ex, int64_t M, int64_t l, int64_t words, uint64_t* ex_bits) {
+        const uint64_t bit = uint64_t(1) << (l % 64);
+        uint64_t* col = ex_bits + l / 64;
+        int64_t m = 0;
+        for (; m + 8 <= M; m += 8) {
+            uint64_t v;
+            std::memcpy(&v, ex + m, 8);
+            if (v == 0) continue;
+            for (int64_t j = 0; j < 8; ++j)
+                if (ex[m + j]) col[(m + j) * words] |= bit;
+        }
+        for (; m < M; ++m)
+            if (ex[m]) col[m * words] |= bit;
+    }
+
+    // The kept (row, lane) pairs of a tile, row by row (so each lane's rows come
+    // in ascending s, which the strict minimum's tie rule needs). Its own
+    // function so that the counters stay in registers (in run() they were
+    // spilled, a fifth of the batch's bookkeeping).
+    static int64_t collect_pairs(const uint64_t* __restrict keep, const uint64_t* __restrict live, int64_t nr,
+                                 int64_t words, int32_t* __restrict pair_lane, int32_t* __restrict pair_r) {
+        int64_t n = 0;
+        for (int64_t r = 0; r < nr; ++r, keep += words)
+            for (int64_t w = 0; w < words; ++w)
+                for (uint64_t bits = keep[w] & live[w]; bits; bits &= bits - 1) {
+                    pair_lane[n] = int32_t(w * 64 + __builtin_ctzll(bits));
+                    pair_r[n] = int32_t(r);
+                    ++n;
+                }
+        return n;
     }
 
     static bool tile_has_row(const uint8_t* okp, int64_t i0, int64_t nr) {
