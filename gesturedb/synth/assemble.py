@@ -284,7 +284,6 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
             x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
             w = smoothstep(x)
             rot[a:a + n_bl] = R.slerp(c_rot[:n_bl], rot[a:a + n_bl], w)
-            y = (1 - w[:, 0]) * c_root[:n_bl, 1] + w[:, 0] * root[a:a + n_bl, 1]
             if cont:
                 # Horizontally the root's velocity is cross-faded, not its position: a position fade between
                 # two paths that part at the seam walks the old direction and then back (it added 6% to the
@@ -292,12 +291,11 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
                 # weighted mix of the two pieces' own steps, and the rest of the piece follows, shifted.
                 step = (1 - w[1:]) * np.diff(c_root[:n_bl], axis=0) + w[1:] * np.diff(root[a:a + n_bl], axis=0)
                 shift = root[a] + np.concatenate([np.zeros((1, 3)), np.cumsum(step, axis=0)]) - root[a:a + n_bl]
-                shift[:, 1] = 0.0
-                root[a:b] += np.concatenate([shift, np.broadcast_to(shift[-1], (b - a - n_bl, 3))])
-                tf_prev = (tf_prev[0], tf_prev[1], tf_prev[2] + shift[-1])
+                shift[:, 1] = (1 - w[:, 0]) * (c_root[:n_bl, 1] - root[a:a + n_bl, 1])  # the height is lerped
+                root[a:b] += np.concatenate([shift, np.broadcast_to(shift[-1] * [1, 0, 1], (b - a - n_bl, 3))])
+                tf_prev = (tf_prev[0], tf_prev[1], tf_prev[2] + shift[-1] * [1, 0, 1])
             else:
                 root[a:a + n_bl] = (1 - w) * c_root[:n_bl] + w * root[a:a + n_bl]
-            root[a:a + n_bl, 1] = y
     if src_pos:
         # the pieces' own (unplaced) poses, by one forward kinematics over all of them (one call per piece
         # was a fifth of a k-NN synthesis); contacts need only heights and speeds, which placement keeps
