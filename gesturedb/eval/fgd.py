@@ -17,6 +17,8 @@ Without torch the columns are NaN (the refiner extra installs it).
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy import linalg
 
@@ -42,7 +44,11 @@ def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
         raise ParameterError(f"codes: expected two arrays (n >= 2, L) with the same L, got {a.shape} and {b.shape}")
     mu = a.mean(0) - b.mean(0)
     ca, cb = np.atleast_2d(np.cov(a, rowvar=False)), np.atleast_2d(np.cov(b, rowvar=False))
-    root, _ = linalg.sqrtm(ca @ cb, disp=False)
+    # without disp= (deprecated in SciPy 1.17, gone in 1.18): the matrix only, in every version we allow.
+    # A still system has a singular covariance; SciPy warns, and the root is still right to rounding.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", linalg.LinAlgWarning)
+        root = linalg.sqrtm(ca @ cb)
     d = float(mu @ mu + np.trace(ca) + np.trace(cb) - 2 * np.trace(np.real(root)))
     return max(d, 0.0)
 
