@@ -87,6 +87,10 @@ def add_parser(sub) -> None:
     m.add_argument("--keywords", action="store_true", help="let the rank-sum search use keyword sub-databases")
     m.add_argument("--refiner", default=None, metavar="REFINER.pt",
                    help="add the system 'rank-sum + refiner' (gesturedb refiner train)")
+    m.add_argument("--starts", type=int, default=0, metavar="N",
+                   help="also run the rank-sum search from N random starting poses (seeds 0..N-1, as Habibie et al. "
+                   "evaluate) and report mean, sd, min and max of its metrics: one start is one path through the "
+                   "database (default: 0, only --init)")
     m.add_argument("-q", "--quiet", action="store_true", help="do not print the tables")
     _search_options(m, preselect=False)
     m.set_defaults(run=run_motion)
@@ -152,7 +156,7 @@ def run_motion(args) -> int:
             args.data_dir, args.holdout_start, args.holdout_end, recording=args.recording,
             db_path=args.train_db or os.path.join(args.output, "train.h5"), mirror=not args.no_mirror,
             systems=["ground_truth"] + (systems or list(SYSTEMS[1:])), controls=args.controls,
-            keywords=args.keywords, refiner=refiner, **_search_kwargs(args),
+            keywords=args.keywords, refiner=refiner, starts=args.starts, **_search_kwargs(args),
         )
     else:
         if not args.db or not args.audio:
@@ -163,7 +167,8 @@ def run_motion(args) -> int:
         with gesturedb.open(args.db) as db:
             ev = evaluate_inputs(
                 db, args.audio, transcripts=[_beside(a) for a in args.audio], systems=systems or list(SYSTEMS[1:]),
-                controls=args.controls, keywords=args.keywords, refiner=refiner, **_search_kwargs(args),
+                controls=args.controls, keywords=args.keywords, refiner=refiner, starts=args.starts,
+                **_search_kwargs(args),
             )
     written = ev.write(args.output, render=not args.no_render, video=None if args.video == "none" else args.video,
                        video_seconds=args.video_seconds)

@@ -67,12 +67,17 @@ def test_eval_controls_strict_exits_1_on_a_failed_check(run, mirror_db, scott_di
 def test_eval_motion_holdout_report(run, scott_dir, tmp_path, capsys):
     out = tmp_path / "report"
     rc = run("eval", "motion", "--data-dir", scott_dir, "--holdout-start", 48, "--holdout-end", 63.5, "-o", out,
-             "--video", "gif", "--video-seconds", 1.0, "--controls", "--systems", "random,ranksum_pose")
+             "--video", "gif", "--video-seconds", 1.0, "--controls", "--systems", "random,ranksum_pose",
+             "--starts", 2)
     assert rc == 0
     text = capsys.readouterr().out
     assert "ground truth" in text and "rank-sum, pose pre-selection" in text and "Table 2" in text
     d = json.loads((out / "metrics.json").read_text())
     assert list(d["inputs"][0]["metrics"]) == ["ground_truth", "random", "ranksum_pose"]
+    # the search again from 2 random starts, beside the ground truth and the mean start
+    assert len(d["inputs"][0]["starts"]["ranksum_pose"]) == 2
+    part = text[text.index("from 2 random starting poses"):]
+    assert "H(speed) vs GT" in part and part.count("ground truth") == 1
     assert d["controls"]["rows"][0]["control"] == "wrist high"
     assert (out / "train.h5").is_file()  # kept for `eval controls` or inspection
     html = (out / "index.html").read_text()

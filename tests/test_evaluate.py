@@ -343,6 +343,47 @@ def test_evaluate_inputs_without_ground_truth(mdb, scott_dir):
         E.synthesize_systems(mdb, np.zeros(16000, np.float32), 16000, systems=["oracle"])
 
 
+def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
+    from gesturedb.eval import metrics as M
+    from gesturedb.eval.placement import world_metrics
+    from gesturedb.io import read_audio
+    from gesturedb.synth import Searcher
+
+    wav = scott_dir / "inputs" / "2_scott_0_4_4.wav"
+    ev = E.evaluate_inputs(mdb, [wav], systems=["random", "ranksum_pose"], starts=2)
+    inp = ev.inputs[0]
+    assert list(inp.starts) == ["ranksum_pose"]  # the baselines have no starting pose
+    rows = inp.starts["ranksum_pose"]
+    assert [r["seed"] for r in rows] == [0, 1] and ev.settings["starts"] == 2
+    # every row is the metrics of a synthesis run by hand from that random start
+    y, sr = read_audio(wav, sr=16000)
+    joints = np.asarray(ev.settings["joints"])
+    T = inp.n_frames
+    for r in rows:
+        res = Searcher(mdb).synthesize(y, sr=sr, init="random", seed=r["seed"])
+        pos = res.positions[:T]
+        assert r["pelvis_speed_m_s"] == pytest.approx(
+            world_metrics(pos, fps=15, names=mdb.joint_names)["pelvis_speed_m_s"])
+        assert r["average_jerk_m_s3"] == pytest.approx(
+            M.average_jerk(E.metric_positions(pos, ev.root), fps=15, joints=joints))
+    # two starts take two paths through the database, and the main run is the mean start's
+    assert rows[0]["pelvis_speed_m_s"] != rows[1]["pelvis_speed_m_s"]
+    assert inp.metrics["ranksum_pose"]["pelvis_speed_m_s"] not in [r["pelvis_speed_m_s"] for r in rows]
+    v = [r["pelvis_speed_m_s"] for r in rows]
+    assert inp.starts_summary()["ranksum_pose"]["pelvis_speed_m_s"] == pytest.approx(
+        dict(mean=np.mean(v), sd=np.std(v), min=min(v), max=max(v)))
+    txt = ev.to_text()
+    part = txt[txt.index("from 2 random starting poses"):]
+    assert "rank-sum, pose pre-selection, mean start" in part and "2 random starts" in part
+    assert "vs GT" not in part  # no ground truth for new speech: no column of NaNs
+    d = json.loads(json.dumps(ev.to_dict()))
+    assert [r["seed"] for r in d["inputs"][0]["starts"]["ranksum_pose"]] == [0, 1]
+    assert d["inputs"][0]["starts_summary"]["ranksum_pose"]["pelvis_speed_m_s"]["max"] == pytest.approx(max(v))
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ParameterError, match="starts: expected an int >= 0"):
+            E.evaluate_inputs(mdb, [wav], systems=["ranksum_pose"], starts=bad)
+
+
 def test_holdout_split_errors(scott_dir):
     from gesturedb.db.build import RecordingSource
 

@@ -122,6 +122,20 @@ WORLD_COLUMNS = (
 )
 
 
+#: (key, header, format) of the table over random starting poses (``starts=``): where the
+#: body goes, how it moves and how it fits the speech, the numbers one start can swing.
+STARTS_COLUMNS = (
+    ("pelvis_speed_m_s", "pelvis m/s", ".3f"),
+    ("max_root_step_m", "max root step m", ".3f"),
+    ("foot_skating_m_s", "skating m/s", ".3f"),
+    ("jerk_world_root_m_s3", "root jerk world", ".1f"),
+    ("jerk_rel_arms_m_s3", "arms jerk rel", ".1f"),
+    ("average_jerk_m_s3", "jerk m/s^3", ".1f"),
+    ("speed_hellinger_gt", "H(speed) vs GT", ".3f"),
+    ("beat_align_headline", "BeatAlign a->m", ".3f"),
+)
+
+
 @dataclass(eq=False)
 class SystemOutput:
     """One system's motion for one input.
@@ -419,10 +433,28 @@ class InputEvaluation:
     wrist_height: dict = field(repr=False)
     transcript: Any = field(default=None, repr=False)
     start_s: float = 0.0
+    #: rank-sum system -> one metrics row per random starting pose (``starts=``; seed in ``row["seed"]``)
+    starts: dict = field(default_factory=dict)
 
     @property
     def n_frames(self) -> int:
         return int(next(iter(self.outputs.values())).positions.shape[0])
+
+    def starts_summary(self) -> dict[str, dict]:
+        """Per rank-sum system and metric over the random starts: ``mean``, ``sd`` (population,
+        ddof 0), ``min``, ``max`` (NaN-aware; NaN when no start has a value)."""
+        out = {}
+        for n, rows in self.starts.items():
+            out[n] = {}
+            for key in rows[0]:
+                if key == "seed":
+                    continue
+                v = np.array([r[key] for r in rows], dtype=np.float64)
+                v = v[np.isfinite(v)]
+                out[n][key] = (dict(mean=float(v.mean()), sd=float(v.std()), min=float(v.min()), max=float(v.max()))
+                               if v.size else dict(mean=float("nan"), sd=float("nan"), min=float("nan"),
+                                                   max=float("nan")))
+        return out
 
 
 @dataclass(eq=False)
@@ -482,7 +514,8 @@ class MotionEvaluation:
             "thresholds": self.thresholds,
             "inputs": [
                 {"name": i.name, "audio": i.audio, "start_s": i.start_s, "n_frames": i.n_frames,
-                 "duration_s": i.n_frames / i.fps, "metrics": i.metrics}
+                 "duration_s": i.n_frames / i.fps, "metrics": i.metrics,
+                 **({"starts": i.starts, "starts_summary": i.starts_summary()} if i.starts else {})}
                 for i in self.inputs
             ],
             "summary": self.summary(),
@@ -506,6 +539,46 @@ class MotionEvaluation:
         line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
         return "\n".join([line(head), line(["-" * w for w in widths])] + [line(b) for b in body])
 
+    def starts_title(self, inp) -> str:
+        n = len(next(iter(inp.starts.values())))
+        return (f"from {n} random starting poses (--init random --seed 0..{n - 1}, as Habibie et al. evaluate): "
+                f"mean +- sd [min, max]; one start is one path through the database, and these numbers swing "
+                f"with it")
+
+    def starts_columns(self, inp) -> list[tuple[str, str, str]]:
+        """:data:`STARTS_COLUMNS` that some start has a value for (no ground truth: no "vs GT")."""
+        rows = [r for rs in inp.starts.values() for r in rs]
+        return [c for c in STARTS_COLUMNS
+                if any(isinstance(r.get(c[0]), (int, float)) and math.isfinite(r[c[0]]) for r in rows)]
+
+    def starts_rows(self, inp) -> list[tuple[str, list[str]]]:
+        """(label, cells) of the starts table: the ground truth and each system's run from
+        ``settings["init"]`` as single values, then each system over the random starts."""
+        summ = inp.starts_summary()
+        cols = self.starts_columns(inp)
+        cells = lambda r: [_fmt(r.get(k), f) for k, _, f in cols]  # noqa: E731
+        rows = []
+        if "ground_truth" in inp.metrics:
+            rows.append((SYSTEM_LABELS.get("ground_truth", "ground_truth"), cells(inp.metrics["ground_truth"])))
+        for n in inp.starts:
+            label = SYSTEM_LABELS.get(n, n)
+            if n in inp.metrics:
+                rows.append((f"{label}, {self.settings['init']} start (seed {self.settings['seed']})"
+                             if self.settings["init"] == "random" else f"{label}, {self.settings['init']} start",
+                             cells(inp.metrics[n])))
+            st = summ[n]
+            rows.append((f"{label}, {len(inp.starts[n])} random starts",
+                         [f"{_fmt(st[k]['mean'], f)} +- {_fmt(st[k]['sd'], f)} [{_fmt(st[k]['min'], f)}, "
+                          f"{_fmt(st[k]['max'], f)}]" if k in st else "-" for k, _, f in cols]))
+        return rows
+
+    def starts_table(self, inp) -> str:
+        head = ["system"] + [h for _, h, _ in self.starts_columns(inp)]
+        body = [[label] + c for label, c in self.starts_rows(inp)]
+        widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
+        line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+        return "\n".join([line(head), line(["-" * w for w in widths])] + [line(b) for b in body])
+
     def to_text(self) -> str:
         s = self.settings
         out = [
@@ -525,6 +598,9 @@ class MotionEvaluation:
             out.append("published conventions (GENEA histograms in cm/s, overflow dropped; BeatAlign audio->motion, "
                        "beats above 0.3 x the database's mean speed; docs/metrics.md)")
             out.append(self.table(inp.metrics, CONVENTION_COLUMNS))
+            if inp.starts:
+                out.append(self.starts_title(inp))
+                out.append(self.starts_table(inp))
             out.append("")
         if len(self.inputs) > 1:
             out.append(f"mean over {len(self.inputs)} inputs")
@@ -546,8 +622,37 @@ class MotionEvaluation:
         return write_motion_report(self, out_dir, render=render, video=video, video_seconds=video_seconds)
 
 
+def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, reference, opts, starts, conv_args):
+    """Each rank-sum system in ``systems`` again from ``starts`` random starting poses
+    (seeds 0..starts-1): one row of :func:`system_metrics`, world metrics and the
+    published conventions per start, cut to the evaluation's length and measured
+    against the same ground truth."""
+    from gesturedb.eval import conventions as CV
+    from gesturedb.eval.placement import world_metrics
+
+    T = next(iter(outputs.values())).positions.shape[0]
+    gt = {"ground_truth": outputs["ground_truth"]} if "ground_truth" in outputs else {}
+    out = {}
+    for n in [s for s in systems if s.startswith("ranksum_")]:
+        rows = []
+        for seed in range(starts):
+            o = synthesize_systems(db, samples, sr, systems=[n], transcript=transcript,
+                                   **dict(opts, init="random", seed=seed, refiner=None))[n]
+            o.positions = o.positions[:T]
+            o.boundaries = o.boundaries[o.boundaries < T]
+            if o.source_frames is not None:
+                o.source_frames = o.source_frames[:T]
+            r, _ = system_metrics({**gt, n: o}, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
+                                  names=db.joint_names, reference_counts=reference["speed_counts"])
+            rel = {k: metric_positions(v.positions, root) for k, v in {**gt, n: o}.items()}
+            conv = CV.convention_metrics(rel, fps=db.fps, joints=joints, **conv_args)[n]
+            rows.append({"seed": seed, **r[n], **world_metrics(o.positions, fps=db.fps, names=db.joint_names), **conv})
+        out[n] = rows
+    return out
+
+
 def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript, start_s, systems, joints, root,
-                  reference, opts) -> InputEvaluation:
+                  reference, opts, starts: int = 0) -> InputEvaluation:
     from gesturedb.features.controls import control_features
 
     outputs = synthesize_systems(db, samples, sr, systems=systems, ground_truth=ground_truth, transcript=transcript,
@@ -560,11 +665,15 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
         rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
     from gesturedb.eval import conventions as CV, metrics as M
 
+    conv_args = dict(audio_beats_s=M.audio_beats(samples, sr=sr),
+                     reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
+                     database_counts=CV.database_genea_counts(db, joints=joints, root=root))
     rel = {n: metric_positions(o.positions, root) for n, o in outputs.items()}  # conventions and FGD*
-    conv = CV.convention_metrics(rel, fps=db.fps,
-                                 joints=joints, audio_beats_s=M.audio_beats(samples, sr=sr),
-                                 reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
-                                 database_counts=CV.database_genea_counts(db, joints=joints, root=root))
+    conv = CV.convention_metrics(rel, fps=db.fps, joints=joints, **conv_args)
+    start_rows = (_start_rows(db, samples, sr, systems=systems, outputs=outputs, transcript=transcript,
+                              joints=joints, root=root, reference=reference, opts=opts, starts=starts,
+                              conv_args=conv_args)
+                  if starts else {})
     for n in rows:
         rows[n].update(conv[n])
     from gesturedb.eval.fgd import frechet_distance
@@ -587,7 +696,8 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
     wh = {n: control_features(o.positions, joints=fj, fps=db.fps)["left_wrist_height"].astype(np.float64)
           for n, o in outputs.items()}
     return InputEvaluation(name=name, audio=audio_path, samples=samples, sr=sr, fps=db.fps, outputs=outputs,
-                           metrics=rows, speed_counts=counts, wrist_height=wh, transcript=transcript, start_s=start_s)
+                           metrics=rows, speed_counts=counts, wrist_height=wh, transcript=transcript, start_s=start_s,
+                           starts=start_rows)
 
 
 def _common(db, opts, controls, control_audio):
@@ -616,6 +726,12 @@ def _common(db, opts, controls, control_audio):
     return root, joints, reference, thresholds, ctl
 
 
+def _starts(v) -> int:
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 0:
+        raise ParameterError(f"starts: expected an int >= 0 (random starting poses), got {v!r}")
+    return int(v)
+
+
 def _settings(opts, joints, names, **more):
     opts = dict(opts, refiner=getattr(opts.get("refiner"), "path", None))
     return dict(opts, joints=[int(j) for j in joints], joint_names=[names[j] for j in joints], **more)
@@ -636,6 +752,7 @@ def evaluate_inputs(
     segments: str = "chunks",
     keywords: bool = False,
     refiner=None,
+    starts: int = 0,
     exclude=None,
 ) -> MotionEvaluation:
     """Every system on new speech without motion capture (metrics that need no ground truth).
@@ -654,6 +771,12 @@ def evaluate_inputs(
         Also run :func:`evaluate_controls` on the first input.
     k, init, seed, step, blend_frames, segments, keywords, exclude
         Search settings shared by all systems.
+    starts : int
+        Also run every rank-sum system from this many random starting poses
+        (seeds 0..starts-1; Habibie et al. evaluate with random starts) and keep
+        one metrics row per start (:attr:`InputEvaluation.starts`): one start is
+        one path through the database, and on a short input its numbers swing
+        with it. 0 (default): only the run from ``init``.
 
     Returns
     -------
@@ -662,6 +785,7 @@ def evaluate_inputs(
     """
     from gesturedb.io import read_transcript
 
+    starts = _starts(starts)
     audio = [os.fspath(a) for a in audio]
     if not audio:
         raise ParameterError("audio: expected at least one speech file")
@@ -680,10 +804,10 @@ def evaluate_inputs(
         words = read_transcript(tr) if tr is not None else None
         inputs.append(_evaluate_one(db, Path(path).stem, samples, sr, audio_path=path, ground_truth=None,
                                     transcript=words, start_s=0.0, systems=list(systems), joints=joints, root=root,
-                                    reference=reference, opts=opts))
+                                    reference=reference, opts=opts, starts=starts))
     if ctl is not None:
         ctl.audio = audio[0]
-    return MotionEvaluation(mode="inputs", database=db.path, settings=_settings(opts, joints, db.joint_names),
+    return MotionEvaluation(mode="inputs", database=db.path, settings=_settings(opts, joints, db.joint_names, starts=starts),
                             inputs=inputs, reference=reference, thresholds=thresholds,
                             joint_names=list(db.joint_names), parents=np.asarray(db.skeleton.parents), root=root,
                             controls=ctl)
@@ -748,6 +872,7 @@ def evaluate_holdout(
     segments: str = "chunks",
     keywords: bool = False,
     refiner=None,
+    starts: int = 0,
     build_options: dict | None = None,
 ) -> MotionEvaluation:
     """Hold a stretch of a recording out, build a database from the rest, and compare with its motion.
@@ -768,7 +893,7 @@ def evaluate_holdout(
         Where to write the training database (default: a temporary file that is removed).
     mirror : bool
         Add mirrored copies to the training database (doubles a small database).
-    systems, controls, k, init, seed, step, blend_frames, segments, keywords
+    systems, controls, k, init, seed, step, blend_frames, segments, keywords, starts
         As in :func:`evaluate_inputs`; ``"ground_truth"`` is the held-out motion capture.
     build_options : dict, optional
         Further :class:`gesturedb.db.build.BuildConfig` fields.
@@ -787,6 +912,7 @@ def evaluate_holdout(
     from gesturedb.io import read_motion, read_transcript
     from gesturedb.io.audio import read_audio
 
+    starts = _starts(starts)
     data = [data] if isinstance(data, (str, os.PathLike)) else list(data)
     pairing = pair_inputs(data)
     if not pairing.recordings:
@@ -827,10 +953,10 @@ def evaluate_holdout(
             name = f"{held.name} held out {holdout_start_s:g}-{end_s:g} s"
             inp = _evaluate_one(db, name, samples, sr, audio_path=held.audio, ground_truth=gt, transcript=words,
                                 start_s=float(holdout_start_s), systems=list(systems), joints=joints, root=root,
-                                reference=reference, opts=opts)
+                                reference=reference, opts=opts, starts=starts)
             if ctl is not None:
                 ctl.audio = f"{held.audio} [{holdout_start_s:g}-{end_s:g} s]"
-            settings = _settings(opts, joints, db.joint_names, holdout=dict(
+            settings = _settings(opts, joints, db.joint_names, starts=starts, holdout=dict(
                 recording=held.name, start_s=float(holdout_start_s), end_s=end_s,
                 training=[dict(name=r.name, span_s=list(r.span_s) if r.span_s else None) for r in train],
                 mirror=bool(mirror), training_frames=db.n_frames))

@@ -330,6 +330,13 @@ def _html_table(ev, rows: dict) -> str:
     return "<table>" + head + "".join(body) + "</table>"
 
 
+def _starts_html(ev, inp) -> str:
+    head = "<tr><th>system</th>" + "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in ev.starts_columns(inp)) + "</tr>"
+    body = "".join(f"<tr><td>{html.escape(label)}</td>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells)
+                   + "</tr>" for label, cells in ev.starts_rows(inp))
+    return f'<p class="note">{html.escape(ev.starts_title(inp))}</p><table>{head}{body}</table>'
+
+
 def _controls_html(report, img: str | None) -> str:
     d = report.to_dict()
     head = ("<tr><th>control</th><th>mask</th><th>threshold</th><th>controlled mean ± std</th>"
@@ -386,6 +393,8 @@ def _write_html(path: Path, ev, files: dict) -> Path:
     for i, inp in enumerate(ev.inputs):
         parts.append(f"<h2>{html.escape(inp.name)} — {inp.n_frames} frames, {inp.n_frames / inp.fps:.1f} s</h2>")
         parts.append(_html_table(ev, inp.metrics))
+        if inp.starts:
+            parts.append(_starts_html(ev, inp))
         for key, alt in (("video", "side-by-side video with speech"), ("sheet", "contact sheet"),
                          ("summary", "metric summary"), ("speed", "speed histograms"), ("wrist", "left wrist height")):
             f = files.get((key, i))
