@@ -352,7 +352,7 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
     wav = scott_dir / "inputs" / "2_scott_0_4_4.wav"
     ev = E.evaluate_inputs(mdb, [wav], systems=["random", "ranksum_pose"], starts=2)
     inp = ev.inputs[0]
-    assert list(inp.starts) == ["ranksum_pose"]  # the baselines have no starting pose
+    assert list(inp.starts) == ["ranksum_pose"]  # the search's systems only, not the baselines
     rows = inp.starts["ranksum_pose"]
     assert [r["seed"] for r in rows] == [0, 1] and ev.settings["starts"] == 2
     # every row is the metrics of a synthesis run by hand from that random start
