@@ -180,6 +180,7 @@ def synthesize_systems(
     segments: str = "chunks",
     exclude=None,
     refiner=None,
+    searcher=None,
 ) -> dict[str, SystemOutput]:
     """Motion of every system for the same speech.
 
@@ -203,6 +204,9 @@ def synthesize_systems(
     refiner : object with ``refine(motion, audio)``, optional
         Adds the system ``ranksum_refined``: the ``ranksum_pose`` motion refined
         (e.g. a :class:`gesturedb.refiner.train.Refiner`).
+    searcher : Searcher, optional
+        A ``Searcher(db, segments=segments)`` to reuse across calls (it builds the
+        pose projection once); default: a new one.
 
     Returns
     -------
@@ -217,7 +221,8 @@ def synthesize_systems(
         raise ParameterError(f"systems: expected names from {list(SYSTEMS)}, got {unknown}")
     if "ground_truth" in systems and ground_truth is None:
         raise ParameterError("systems: 'ground_truth' needs the ground_truth positions")
-    searcher = Searcher(db, segments=segments)
+    if searcher is None:
+        searcher = Searcher(db, segments=segments)
     query = searcher.query_features(samples, sr)
     T = query.shape[0]
     if T < step:
@@ -418,6 +423,13 @@ def system_metrics(
     return rows, counts
 
 
+def _text_table(head: list[str], body: list[list[str]]) -> str:
+    """Aligned text columns: the first left-aligned, the others right-aligned, a rule under the head."""
+    widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
+    line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+    return "\n".join([line(head), line(["-" * w for w in widths])] + [line(b) for b in body])
+
+
 @dataclass(eq=False)
 class InputEvaluation:
     """Every system on one speech input."""
@@ -535,9 +547,7 @@ class MotionEvaluation:
         head = ["system"] + [h for _, h, _ in cols]
         all_rows = {"reference": self.reference_row(), **rows} if spec is METRIC_COLUMNS else dict(rows)
         body = [[SYSTEM_LABELS.get(n, n)] + [_fmt(r.get(k), f) for k, _, f in cols] for n, r in all_rows.items()]
-        widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
-        line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-        return "\n".join([line(head), line(["-" * w for w in widths])] + [line(b) for b in body])
+        return _text_table(head, body)
 
     def starts_title(self, inp) -> str:
         n = len(next(iter(inp.starts.values())))
@@ -574,10 +584,7 @@ class MotionEvaluation:
 
     def starts_table(self, inp) -> str:
         head = ["system"] + [h for _, h, _ in self.starts_columns(inp)]
-        body = [[label] + c for label, c in self.starts_rows(inp)]
-        widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
-        line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-        return "\n".join([line(head), line(["-" * w for w in widths])] + [line(b) for b in body])
+        return _text_table(head, [[label] + c for label, c in self.starts_rows(inp)])
 
     def to_text(self) -> str:
         s = self.settings
@@ -630,13 +637,16 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
     from gesturedb.eval import conventions as CV
     from gesturedb.eval.placement import world_metrics
 
+    from gesturedb.synth import Searcher
+
     T = next(iter(outputs.values())).positions.shape[0]
     gt = {"ground_truth": outputs["ground_truth"]} if "ground_truth" in outputs else {}
+    searcher = Searcher(db, segments=opts["segments"])  # one pose projection for all starts
     out = {}
     for n in [s for s in systems if s.startswith("ranksum_")]:
         rows = []
         for seed in range(starts):
-            o = synthesize_systems(db, samples, sr, systems=[n], transcript=transcript,
+            o = synthesize_systems(db, samples, sr, systems=[n], transcript=transcript, searcher=searcher,
                                    **dict(opts, init="random", seed=seed, refiner=None))[n]
             o.positions = o.positions[:T]
             o.boundaries = o.boundaries[o.boundaries < T]
