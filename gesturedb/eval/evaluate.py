@@ -636,27 +636,24 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
     against the same ground truth."""
     from gesturedb.eval import conventions as CV
     from gesturedb.eval.placement import world_metrics
-
     from gesturedb.synth import Searcher
 
-    T = next(iter(outputs.values())).positions.shape[0]
-    gt = {"ground_truth": outputs["ground_truth"]} if "ground_truth" in outputs else {}
+    # with the ground truth among the systems, synthesize_systems cuts every output to its length
+    gt = outputs["ground_truth"].positions if "ground_truth" in outputs else None
     searcher = Searcher(db, segments=opts["segments"])  # one pose projection for all starts
     out = {}
     for n in [s for s in systems if s.startswith("ranksum_")]:
         rows = []
         for seed in range(starts):
-            o = synthesize_systems(db, samples, sr, systems=[n], transcript=transcript, searcher=searcher,
-                                   **dict(opts, init="random", seed=seed, refiner=None))[n]
-            o.positions = o.positions[:T]
-            o.boundaries = o.boundaries[o.boundaries < T]
-            if o.source_frames is not None:
-                o.source_frames = o.source_frames[:T]
-            r, _ = system_metrics({**gt, n: o}, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
+            outs = synthesize_systems(db, samples, sr, systems=(["ground_truth"] if gt is not None else []) + [n],
+                                      ground_truth=gt, transcript=transcript, searcher=searcher,
+                                      **dict(opts, init="random", seed=seed, refiner=None))
+            r, _ = system_metrics(outs, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
                                   names=db.joint_names, reference_counts=reference["speed_counts"])
-            rel = {k: metric_positions(v.positions, root) for k, v in {**gt, n: o}.items()}
+            rel = {k: metric_positions(v.positions, root) for k, v in outs.items()}
             conv = CV.convention_metrics(rel, fps=db.fps, joints=joints, **conv_args)[n]
-            rows.append({"seed": seed, **r[n], **world_metrics(o.positions, fps=db.fps, names=db.joint_names), **conv})
+            wm = world_metrics(outs[n].positions, fps=db.fps, names=db.joint_names)
+            rows.append({"seed": seed, **r[n], **wm, **conv})
         out[n] = rows
     return out
 
