@@ -396,6 +396,34 @@ def test_sigterm_during_a_build_leaves_no_temporary_file(rec_dir, tmp_path):
         assert out.read_bytes() == b"previous"
 
 
+@pytest.mark.parametrize("writer", ["write_atomically", "edit"])
+def test_sigterm_that_surfaces_as_another_error_is_still_the_interrupt(writer, db_copy, tmp_path):
+    """h5py turns an exception raised in its type-conversion callbacks into
+    ``TypeError: Operation not defined for data type class``; a SIGTERM arriving
+    there (seen in CI) must still end as the interrupt (exit 130), with nothing lost."""
+    from gesturedb.db import storage
+
+    def fill(h5):
+        h5["x"] = np.arange(3)
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)  # the handler raises KeyboardInterrupt here
+            time.sleep(1)
+        except KeyboardInterrupt as exc:
+            raise TypeError("Operation not defined for data type class") from exc
+
+    out = tmp_path / "out.h5"
+    out.write_bytes(b"previous")
+    before = digest(db_copy)
+    with pytest.raises(KeyboardInterrupt, match="signal 15"):
+        if writer == "write_atomically":
+            storage.write_atomically(out, fill)
+        else:
+            with storage.edit(db_copy) as h5:
+                fill(h5)
+    assert out.read_bytes() == b"previous" and digest(db_copy) == before
+    assert _tmp_files(tmp_path) == [] and _tmp_files(db_copy.parent) == []
+
+
 def test_a_stale_temporary_file_of_a_dead_process_is_removed_by_the_next_write(db_copy):
     from gesturedb.db import edit as dbedit
 

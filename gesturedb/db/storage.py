@@ -150,6 +150,18 @@ def sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, old)
 
 
+def _reraise_interrupt(signals: list[int], exc: BaseException) -> None:
+    """After a SIGTERM, whatever failed failed because of it: raise it as the interrupt.
+
+    The handler's KeyboardInterrupt can surface as another error: raised inside
+    an h5py type-conversion callback it comes out as ``TypeError: Operation not
+    defined for data type class`` (seen in CI), which would exit 1 with a
+    misleading message instead of 130.
+    """
+    if signals and not isinstance(exc, KeyboardInterrupt):
+        raise KeyboardInterrupt(f"signal {signals[0]}") from exc
+
+
 def _is_disk_error(exc: BaseException) -> OSError | None:
     """The OSError behind ``exc`` if it is a disk-full/quota error (h5py wraps them in OSError text)."""
     e = exc
@@ -192,6 +204,7 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
         except BaseException as exc:
             # by pattern, not by name: a SIGTERM inside mkstemp leaves a file whose name we never got
             _remove_own_temporaries(out_path)
+            _reraise_interrupt(signals, exc)
             disk = _is_disk_error(exc)
             if disk is not None:
                 raise _os_error(out_path, disk) from None
@@ -235,6 +248,7 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
             os.replace(tmp, path)
         except BaseException as exc:
             _remove_own_temporaries(path)
+            _reraise_interrupt(signals, exc)
             disk = _is_disk_error(exc)
             if disk is not None and not isinstance(exc, GestureDBError):
                 raise _os_error(path, disk) from None
