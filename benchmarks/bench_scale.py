@@ -6,9 +6,11 @@ segments, 96-wide pose and 14-wide audio features. Prints, in one run, the
 median latency of one pose step
   - in this process through the PoseProjection filter in binary16 (2 threads and 1 thread),
   - through ShardedSearch: 2 shards on a LocalCluster of 2 single-threaded
-    worker processes, each shard with its own PoseProjection, ranks merged
-    here (the whole round trip: 2 table tasks, gather, rank, 1 row fetch),
-and checks that both choose the same window. Memory per frame of each format
+    worker processes, each shard with its own PoseProjection, merged here from
+    the shards' top lists (one round trip: 2 tasks, gather, merge),
+  - the same shards merged from their whole tables, as ShardedSearch did
+    before the top lists (2 table tasks, gather, rank every row, 1 row fetch),
+and checks that all choose the same window. Memory per frame of each format
 is printed too.
 
 Usage:  python benchmarks/bench_scale.py [--frames 5000000] [--reps 15]
@@ -27,9 +29,23 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_search import DA, DP, interleaved, motion_pose  # noqa: E402
 from gesturedb import search  # noqa: E402
-from gesturedb.db.shards import ShardedSearch  # noqa: E402
+from gesturedb.db.shards import ShardedSearch, _shard_row, _shard_table, top_rows  # noqa: E402
 
 L, N = 64, 8
+
+
+def tables_step(sh, q, prev):
+    """One pose step over ``sh``'s shards merged from their whole tables (the baseline)."""
+    c = sh.client
+    tables = c.gather([c.submit(_shard_table, x, prev, q, "pose", None, None, sh.threads, pure=False)
+                       for x in sh.shards])
+    s = np.concatenate([t[0] for t in tables])
+    r = search.rank_table(s, np.concatenate([t[1] for t in tables]), np.concatenate([t[2] for t in tables]))
+    m = r[0]
+    j = next(j for j, (a, b) in enumerate(sh.seg_ranges) if a <= m < b)
+    g = int(sh.seg_start[m] + s[m])
+    c.submit(_shard_row, sh.shards[j], g + q.shape[0] - 1 - sh.frame_ranges[j][0], pure=False).result()
+    return m, int(s[m])
 
 
 def main(argv=None):
@@ -67,6 +83,7 @@ def main(argv=None):
             "one process, 1 thread": lambda: search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj,
                                                                   threads=1),
             "2 shards on 2 workers": lambda: sh.search(q, prev, step=N),
+            "2 shards, whole tables": lambda: tables_step(sh, q, prev),
         }
         res = interleaved(fns, args.reps)
         print(f"\none pose step, median (min) over {args.reps} interleaved repetitions:")
@@ -78,7 +95,18 @@ def main(argv=None):
               f"{1e9 * res['2 shards on 2 workers'][0] / F:.2f} ns (sharded)")
         a = search.rank_sum_step(pose, audio, st, ln, prev, q, pose_proj=proj)
         b = sh.search(q, prev, step=N)
-        print(f"  same choice: {(a.segment, a.start) == (int(b.segments[0]), int(b.starts[0]))}")
+        print(f"  sharded, top lists / whole tables: "
+              f"{res['2 shards on 2 workers'][0] / res['2 shards, whole tables'][0]:.2f}; "
+              f"steps the top lists (L = {top_rows(M)}) did not settle: {sh.unsettled} of {sh.steps}")
+        same = (a.segment, a.start) == (int(b.segments[0]), int(b.starts[0])) == tables_step(sh, q, prev)
+        print(f"  same choice: {same}")
+        # a whole search (pose and audio ranks independent here: the lists' worst case)
+        query = rng.standard_normal((24 * 15, DA), dtype=np.float32)
+        sh.steps = sh.unsettled = 0
+        whole = sh.search(query, prev, step=N)
+        ref = search.rank_sum_search(pose, audio, st, ln, query, prev, step=N, pose_proj=proj)
+        print(f"  24 s search over the shards: {sh.unsettled} of {sh.steps} steps not settled by the lists; "
+              f"same windows as one process: {bool((whole.frames == ref.frames).all())}")
         sh.close()
 
 

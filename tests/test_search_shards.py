@@ -110,3 +110,88 @@ def test_cli_synth_with_a_scheduler(scott_db_path, scott_dir, tmp_path):
     assert main(["synth", str(scott_db_path), "--audio", str(speech), "-o", str(out_b),
                  "--scheduler", "local:1", "--parts", "3"]) == 0
     assert out_a.read_bytes() == out_b.read_bytes()
+
+
+def _split_replies(s, dp, da, cuts, top):
+    """What the shards of a table cut at ``cuts`` would send (next poses: the segment index)."""
+    from gesturedb.db.shards import _top_lists
+
+    replies = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        lists = _top_lists(s[a:b], dp[a:b], da[a:b], top)
+        replies.append(lists + ((lists[5] + a).astype(np.float32)[:, None],))
+    return replies, list(zip(cuts[:-1], cuts[1:]))
+
+
+@pytest.mark.parametrize("M", [5, 300, 4000])
+def test_top_list_merge_is_exact_or_says_unsettled(M):
+    """The shards' top lists settle a step exactly as ranking every row does (numpy
+    oracle), with ties, -0, NaN and segments without a candidate; when they cannot
+    (small L, or k beyond the lists) the merge says so instead of guessing."""
+    from gesturedb.db.shards import _merge_tops, _order_keys
+
+    x = np.array([-0.0, 0.0, -1.5, 2.0, np.nan, np.inf, -np.inf], np.float32)
+    assert (np.argsort(_order_keys(x), kind="stable") == [6, 2, 0, 1, 3, 5, 4]).all()
+    assert _order_keys(x)[0] == _order_keys(x)[1]
+    rng = np.random.default_rng(M)
+    outcomes = {"settled": 0, "complete": 0, "unsettled": 0}
+    for trial in range(40):
+        s = np.where(rng.random(M) < 0.85, rng.integers(1, 50, M), -1).astype(np.int64)
+        dp = (rng.integers(0, 5, M) if trial % 2 else rng.random(M)).astype(np.float32)  # ties
+        da = rng.integers(0, 7, M) / 4.0 if trial % 3 == 0 else rng.random(M)
+        if trial % 4 == 1:  # agreeing ranks, as real pose and audio partly are
+            da = dp.astype(np.float64) + 0.3 * rng.random(M)
+        dp[rng.random(M) < 0.03] = -0.0
+        dp[rng.random(M) < 0.01] = np.nan
+        da[rng.random(M) < 0.01] = np.nan
+        parts = 1 + trial % 4
+        cuts = sorted({0, M, *rng.integers(0, M, parts - 1).tolist()})
+        for top in (1, 3, 16, 256, M):
+            for k in (1, 2, 5, M + 2):
+                replies, ranges = _split_replies(s, dp, da, np.array(cuts), top)
+                got = _merge_tops(replies, ranges, top, k)
+                want = _numpy_rank(s, dp, da, k)
+                if got is None:
+                    outcomes["unsettled"] += 1
+                    continue
+                if want is None:
+                    assert got[0] == -1
+                    continue
+                m, start, rp, ra, K, pdist, adist, nxt = got
+                assert (m, rp, ra, K) == want, (trial, top, k)
+                assert start == s[m] and nxt[0] == m
+                np.testing.assert_equal([pdist, adist], [dp[m], da[m]])
+                outcomes["complete" if all(r[0] <= top for r in replies) else "settled"] += 1
+    # every path ran (a test that cannot fall back or settle proves nothing)
+    assert outcomes["settled"] > 0 or M <= 16 * 4, outcomes
+    assert outcomes["complete"] > 0 and (outcomes["unsettled"] > 0 or M <= 5), outcomes
+
+
+def test_top_rows_grows_with_the_database():
+    from gesturedb.db.shards import top_rows
+
+    assert top_rows(100) == 256 and top_rows(78_000) == 1118 and top_rows(78_000, k=4) == 2235
+    assert top_rows(844_000) > top_rows(84_000) > 256
+
+
+@pytest.mark.parametrize("top", [1, 4, None])
+def test_sharded_search_top_lists_settle_or_fall_back_exactly(dask_client, top):
+    """Whether the shards' top lists settle a step or it falls back to whole tables,
+    the search is the single-machine one; with L = 1 or 4 both paths run."""
+    rng = np.random.default_rng(31)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=60)
+    q = rng.standard_normal((80, A.shape[1])).astype(np.float32)
+    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=3, top_rows=top)
+    try:
+        for kw in (dict(), dict(k=2), dict(preselect="audio")):
+            assert_same_search(sh.search(q, P[7], **kw), search.rank_sum_search(P, A, st, ln, q, P[7], **kw),
+                               str(kw))
+        assert sh.steps == 30
+        if top == 4:
+            assert 0 < sh.unsettled < sh.steps, (sh.unsettled, sh.steps)
+        if top is None:
+            assert sh.unsettled == 0  # 60 segments: every shard sends all its rows
+    finally:
+        sh.close()
+    with pytest.raises(Exception, match="top_rows"):
+        ShardedSearch(P, A, st, ln, client=dask_client, parts=2, top_rows=0)

@@ -2,12 +2,22 @@
 
 Pre-selection (spec steps 1-3) is per segment, so a shard computes the rows of
 its own segments exactly as one database would
-(:func:`gesturedb.search.preselect_table`); ranking (steps 4-5) needs every
-row, so the client concatenates the shards' tables in global segment order and
-ranks them (:func:`gesturedb.search.rank_table`). Every step therefore chooses
-exactly what :func:`gesturedb.search.rank_sum_search` chooses on the whole
-database (same instruction set). Per step the network carries the previous
-pose and the query window out, and M rows of 20 bytes plus one pose row back.
+(:func:`gesturedb.search.preselect_table`). Ranking (steps 4-5) would need
+every row, but the winner can be settled from short lists: a segment outside
+the first L rows by pose distance has ``rp >= L``, one outside the first L by
+audio distance ``ra >= L``, so any segment with ``R < L`` is in both lists, and
+the global first L by either distance are among the shards' own first L. Each
+shard therefore sends only its first L rows by each distance (and the next
+pose of the segments in both of its lists); the client merges them, and when
+the k-th best of the segments in both global lists has ``R < L`` that is
+exactly the step's choice. Otherwise (rare: L grows with the square root of
+the segment count, see :func:`top_rows`) the step falls back to the shards'
+whole tables, ranked by :func:`gesturedb.search.rank_table`. Every step
+chooses exactly what :func:`gesturedb.search.rank_sum_search` chooses on the
+whole database (same instruction set). Per settled step the network carries
+the previous pose and the query window out and about 2 L rows of 28 bytes plus
+a few pose rows back, in one round trip, instead of M rows of 20 bytes and a
+second round trip for the next pose.
 """
 from __future__ import annotations
 
@@ -18,7 +28,7 @@ import numpy as np
 from gesturedb import search
 from gesturedb.errors import ParameterError
 
-__all__ = ["ShardedSearch"]
+__all__ = ["ShardedSearch", "top_rows"]
 
 
 class _Shard:
@@ -52,6 +62,100 @@ def _shard_table(shard, prev, q, preselect, allowed_bits, exclude, threads):
                                   pose_proj=shard.proj if preselect == "pose" else None)
 
 
+def _order_keys(x: np.ndarray) -> np.ndarray:
+    """Unsigned keys that order as the ranking compares (the kernel's ``order_key``):
+    -0 equals +0, every NaN sorts last and equal to the others."""
+    x = x + x.dtype.type(0)  # -0 -> +0
+    u = x.view(np.uint32 if x.dtype == np.float32 else np.uint64)
+    top = u.dtype.type(1) << u.dtype.type(8 * u.itemsize - 1)
+    k = np.where((u & top) != 0, ~u, u | top)
+    k[np.isnan(x)] = np.iinfo(u.dtype).max
+    return k
+
+
+def _first(keys: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
+    """The n rows of ``idx`` (ascending) first by (key, index), in that order."""
+    if idx.size > n:
+        kth = np.partition(keys[idx], n - 1)[n - 1]
+        idx = idx[keys[idx] <= kth]  # at least n rows: all below the n-th key, and its ties
+    return idx[np.lexsort((idx, keys[idx]))][:n]
+
+
+def _top_lists(s, dp, da, top: int):
+    """A table's first ``top`` rows by each distance.
+
+    Returns (K, rows, s, dp, da, both): K the segments with a candidate;
+    ``rows`` (ascending segment indices) the union of both lists with their
+    table values; ``both`` the rows in both lists (ascending).
+    """
+    valid = np.flatnonzero(s >= 0)
+    by_pose = _first(_order_keys(dp), valid, top)
+    by_audio = _first(_order_keys(da), valid, top)
+    rows = np.union1d(by_pose, by_audio)
+    return valid.size, rows, s[rows], dp[rows], da[rows], np.intersect1d(by_pose, by_audio)
+
+
+def _shard_top(shard, prev, q, preselect, allowed_bits, exclude, threads, top):
+    """On the worker: :func:`_top_lists` of the shard's table, and the pose each
+    segment in both lists would continue from, (len(both), Dp)."""
+    s, dp, da = _shard_table(shard, prev, q, preselect, allowed_bits, exclude, threads)
+    lists = _top_lists(s, dp, da, top)
+    both = lists[5]
+    return lists + (shard.pose[shard.seg_start[both] + s[both] + q.shape[0] - 1],)
+
+
+def top_rows(n_segments: int, k: int = 1) -> int:
+    """Rows per distance each shard sends (L): ``max(256, ceil(4 sqrt(k M)))``.
+
+    With pose and audio ranks independent and uniform, about ``r^2 / 2M``
+    segments have ``R <= r``, so the k-th smallest R is near ``sqrt(2 k M)``;
+    at ``L = 4 sqrt(k M)`` about 8k segments are expected below L and a step
+    is rarely left unsettled (ranks that agree, as real pose and audio partly
+    do, settle sooner). 256 is the kernel ranker's own top-list length.
+    """
+    return int(max(256, np.ceil(4.0 * np.sqrt(float(k) * float(max(n_segments, 1))))))
+
+
+def _merge_tops(replies, seg_ranges, top: int, k: int):
+    """The step's choice from the shards' lists, or None when they do not settle it.
+
+    Returns (m, start, pose_rank, audio_rank, K, pose_dist, audio_dist, next_pose),
+    m = -1 when no segment has a candidate.
+    """
+    K = sum(int(r[0]) for r in replies)
+    if K == 0:
+        return (-1,) + (0,) * 7
+    m = np.concatenate([r[1] + a for r, (a, _) in zip(replies, seg_ranges)])  # ascending: shards in order
+    s = np.concatenate([r[2] for r in replies])
+    dp = np.concatenate([r[3] for r in replies])
+    da = np.concatenate([r[4] for r in replies])
+    if all(int(r[0]) <= top for r in replies):
+        # every shard sent all its rows: rank them as they are (in segment order)
+        c, rp, ra, _ = search.rank_table(s, dp, da, k=k)
+    else:
+        if k >= K:
+            return None  # "the last" of fewer than k: needs every row's rank
+        # the global first `top` by each distance are among the shards' first `top`
+        rp = np.full(m.size, -1, np.int64)
+        rp[np.lexsort((m, _order_keys(dp)))[:top]] = np.arange(top)
+        ra = np.full(m.size, -1, np.int64)
+        ra[np.lexsort((m, _order_keys(da)))[:top]] = np.arange(top)
+        both = np.flatnonzero((rp >= 0) & (ra >= 0))
+        if both.size < k:
+            return None
+        R = rp[both] + ra[both]
+        c = int(both[np.lexsort((rp[both], R))[k - 1]])  # (R, rp) orders them; rp is unique
+        # every segment outside both lists has R >= top
+        if R[np.searchsorted(both, c)] >= top:
+            return None
+        rp, ra = int(rp[c]), int(ra[c])
+    seg = int(m[c])
+    j = next(j for j, (a, b) in enumerate(seg_ranges) if a <= seg < b)
+    local = replies[j][5]
+    nxt = replies[j][6][int(np.searchsorted(local, seg - seg_ranges[j][0]))]
+    return seg, int(s[c]), int(rp), int(ra), K, float(dp[c]), float(da[c]), nxt
+
+
 def _shard_row(shard, f):
     return shard.pose[f].copy()
 
@@ -83,10 +187,19 @@ class ShardedSearch:
         Each shard builds its :class:`gesturedb.search.PoseProjection` (same results).
     threads : int
         Kernel threads per shard step (1: parallelism comes from the workers).
+    top_rows : int or None
+        Rows per distance each shard sends per step (L); None: :func:`top_rows`
+        of the segment count and k. Any L >= 1 gives the same results; a small
+        one makes more steps fall back to whole tables.
+
+    Attributes
+    ----------
+    steps, unsettled : int
+        Steps searched so far, and those the top lists did not settle.
     """
 
     def __init__(self, pose, audio, seg_start, seg_len, *, client, parts: int = 2,
-                 projection: bool = True, threads: int = 1):
+                 projection: bool = True, threads: int = 1, top_rows: int | None = None):
         seg_start = np.ascontiguousarray(seg_start, dtype=np.int64)
         seg_len = np.ascontiguousarray(seg_len, dtype=np.int64)
         M = seg_start.shape[0]
@@ -96,6 +209,7 @@ class ShardedSearch:
         self.F, self.Dp, self.Da = pose.shape[0], pose.shape[1], audio.shape[1]
         self.seg_start, self.seg_len = seg_start, seg_len
         self.threads = int(threads)
+        self._set_top(top_rows)
         # cut between segments so that every shard has about F / parts frames of segments
         cum = np.cumsum(seg_len)
         cuts = [0] + [int(np.searchsorted(cum, cum[-1] * i / parts, side="left")) + 1 for i in range(1, parts)] + [M]
@@ -114,7 +228,8 @@ class ShardedSearch:
 
     @classmethod
     def from_shard_files(cls, entries, seg_start, seg_len, *, n_frames: int, Dp: int, Da: int, client,
-                         projection: bool = True, threads: int = 1) -> "ShardedSearch":
+                         projection: bool = True, threads: int = 1,
+                         top_rows: int | None = None) -> "ShardedSearch":
         """One shard per shard file of an index (``gesturedb shard``), each read by its worker.
 
         The client never holds the feature matrices: each worker opens its shard file,
@@ -148,6 +263,7 @@ class ShardedSearch:
         self.F, self.Dp, self.Da = int(n_frames), int(Dp), int(Da)
         self.seg_start, self.seg_len = seg_start, seg_len
         self.threads = int(threads)
+        self._set_top(top_rows)
         workers = sorted(client.scheduler_info()["workers"])
         self.seg_ranges, self.frame_ranges, self.shards = [], [], []
         for i, e in enumerate(entries):
@@ -161,6 +277,12 @@ class ShardedSearch:
             self.shards.append(client.submit(_load_shard, e["file"], seg_start[a:b] - f0, seg_len[a:b], projection,
                                              workers=w, pure=False))
         return self
+
+    def _set_top(self, top) -> None:
+        if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
+            raise ParameterError(f"top_rows: expected None or an int >= 1; got {top!r}")
+        self.top_rows = None if top is None else int(top)
+        self.steps = self.unsettled = 0
 
     def search(self, query_audio, init_pose, *, step=8, k=1, preselect="pose", allowed=None,
                exclude=None) -> search.SearchResult:
@@ -188,29 +310,41 @@ class ShardedSearch:
             t = i * N
             n = min(N, T - t)
             bits = None if rows is None else rows[i if len(rows) > 1 else 0]
-            futs = []
-            for sh, (a, b), (f0, f1) in zip(self.shards, self.seg_ranges, self.frame_ranges):
-                futs.append(self.client.submit(
-                    _shard_table, sh, prev, q[t:t + n], preselect, None if bits is None else bits[f0:f1],
-                    None if exclude is None else exclude[a:b], self.threads, pure=False))
-            tables = self.client.gather(futs)
-            s = np.concatenate([x[0] for x in tables])
-            dp = np.concatenate([x[1] for x in tables])
-            da = np.concatenate([x[2] for x in tables])
-            r = search.rank_table(s, dp, da, k=k)
-            if r is None:
+            args = [(sh, None if bits is None else bits[f0:f1], None if exclude is None else exclude[a:b])
+                    for sh, (a, b), (f0, f1) in zip(self.shards, self.seg_ranges, self.frame_ranges)]
+            top = self.top_rows if self.top_rows is not None else top_rows(self.seg_start.shape[0], k)
+            replies = self.client.gather([
+                self.client.submit(_shard_top, sh, prev, q[t:t + n], preselect, b, e, self.threads, top, pure=False)
+                for sh, b, e in args])
+            got = _merge_tops(replies, self.seg_ranges, top, k)
+            self.steps += 1
+            if got is None:
+                # not settled by the lists: every shard's whole table
+                self.unsettled += 1
+                tables = self.client.gather([
+                    self.client.submit(_shard_table, sh, prev, q[t:t + n], preselect, b, e, self.threads,
+                                       pure=False) for sh, b, e in args])
+                s = np.concatenate([x[0] for x in tables])
+                dp = np.concatenate([x[1] for x in tables])
+                da = np.concatenate([x[2] for x in tables])
+                r = search.rank_table(s, dp, da, k=k)
+                got = (-1,) + (0,) * 7 if r is None else (r[0], int(s[r[0]]), r[1], r[2], r[3],
+                                                          float(dp[r[0]]), float(da[r[0]]), None)
+            m, start, rp, ra, K, pose_dist, audio_dist, nxt = got
+            if m < 0:
                 row = None if allowed is None else (allowed[i] if allowed.ndim == 2 else allowed)
                 raise search._no_candidate_error(i, t, n, self.seg_len, exclude, row)
-            m, rp, ra, K = r
-            g = int(self.seg_start[m] + s[m])
-            for f, v in (("segments", m), ("starts", s[m]), ("frames", g), ("lengths", n), ("out_frames", t),
+            g = int(self.seg_start[m] + start)
+            for f, v in (("segments", m), ("starts", start), ("frames", g), ("lengths", n), ("out_frames", t),
                          ("pose_rank", rp), ("audio_rank", ra), ("n_candidates", K),
-                         ("pose_dist", float(dp[m])), ("audio_dist", float(da[m]))):
+                         ("pose_dist", pose_dist), ("audio_dist", audio_dist)):
                 out[f][i] = v
-            j = next(j for j, (a, b) in enumerate(self.seg_ranges) if a <= m < b)
-            # the next window continues from the last frame this one copies
-            prev = self.client.submit(_shard_row, self.shards[j], g + n - 1 - self.frame_ranges[j][0],
-                                      pure=False).result()
+            if nxt is None:
+                # the next window continues from the last frame this one copies
+                j = next(j for j, (a, b) in enumerate(self.seg_ranges) if a <= m < b)
+                nxt = self.client.submit(_shard_row, self.shards[j], g + n - 1 - self.frame_ranges[j][0],
+                                         pure=False).result()
+            prev = nxt
         return search.SearchResult(n_frames=T, **out)
 
     def search_batch(self, queries: Sequence, init_poses, *, step=8, k=1, preselect="pose",
