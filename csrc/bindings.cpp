@@ -517,6 +517,71 @@ PYBIND11_MODULE(_core, m) {
        "A whole search -> (dict of (S,) arrays, failed step or -1) "
        "(use gesturedb.search.rank_sum_search, which validates).");
 
+    m.def("preselect_batch", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+                                const F32& prevs, const F32& windows, const std::string& preselect,
+                                const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
+                                int threads, const std::string& method, const std::optional<U16>& pose_f16,
+                                const std::optional<py::tuple>& pose_proj) {
+        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
+        const int64_t M = db.n_segments();
+        const Span2<const float> pv = span2(prevs, "prev_poses");
+        const int64_t Q = pv.rows;
+        if (pv.cols != db.pose.cols)
+            throw std::invalid_argument("prev_poses: expected (Q, " + std::to_string(db.pose.cols) + "); got " +
+                                        shape_str(prevs));
+        if (windows.ndim() != 3 || windows.shape(0) != Q || windows.shape(1) < 1 ||
+            windows.shape(2) != db.audio.cols)
+            throw std::invalid_argument("query_windows: expected (" + std::to_string(Q) + ", n >= 1, " +
+                                        std::to_string(db.audio.cols) + "); got " + shape_str(windows));
+        BatchMethod bm;
+        if (method == "auto") bm = BatchMethod::Auto;
+        else if (method == "blocked") bm = BatchMethod::Blocked;
+        else if (method == "per_query") bm = BatchMethod::PerQuery;
+        else throw std::invalid_argument("method: expected 'auto', 'blocked' or 'per_query'; got '" + method + "'");
+        const AllowedSchedule sched = make_allowed(allowed, db, false);
+        const bool* ex = nullptr;
+        bool ex_per_query = false;
+        if (exclude) {
+            const Bool& e = *exclude;
+            if (e.ndim() == 1 && e.shape(0) == M) {
+                ex = e.data();
+            } else if (e.ndim() == 2 && e.shape(0) == Q && e.shape(1) == M) {
+                ex = e.data();
+                ex_per_query = true;
+            } else {
+                throw std::invalid_argument("exclude: expected (" + std::to_string(M) + ",) or (" +
+                                            std::to_string(Q) + ", " + std::to_string(M) + "); got " +
+                                            shape_str(e));
+            }
+        }
+        const int64_t n = windows.shape(1), Da = db.audio.cols;
+        py::array_t<int64_t> s({Q, M});
+        py::array_t<float> dp({Q, M});
+        py::array_t<double> da({Q, M});
+        std::vector<BatchQuery> batch(Q);
+        for (int64_t i = 0; i < Q; ++i) {
+            batch[i].audio = Span2<const float>{windows.data() + i * n * Da, n, Da};
+            batch[i].init_pose = pv.row(i);
+            batch[i].k = 1;
+            batch[i].exclude = ex == nullptr ? nullptr : (ex_per_query ? ex + i * M : ex);
+            batch[i].table_s = s.mutable_data() + i * M;
+            batch[i].table_dp = dp.mutable_data() + i * M;
+            batch[i].table_da = da.mutable_data() + i * M;
+        }
+        const Kernels& kern = active_kernels();
+        {
+            py::gil_scoped_release release;
+            preselect_batch(kern, db, batch, parse_preselect(preselect), sched, threads, bm);
+        }
+        return py::make_tuple(s, dp, da);
+    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+       py::arg("seg_len").noconvert(), py::arg("prev_poses").noconvert(), py::arg("query_windows").noconvert(),
+       py::arg("preselect"), py::arg("allowed").noconvert().none(true),
+       py::arg("exclude").noconvert().none(true), py::arg("threads") = 0, py::arg("method") = "auto",
+       py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+       "Pre-selection tables of one step for many queries -> (starts, pose_dist, audio_dist), each (Q, M) "
+       "(use gesturedb.search.preselect_table_batch, which validates).");
+
     m.def("search_batch", [](const F32& pose, const F32& audio, const I64& seg_start,
                              const I64& seg_len, const std::vector<F32>& queries,
                              const F32& init_poses, int64_t window, const I64& k,

@@ -1090,6 +1090,11 @@ public:
                 opt.preselect = pre_;
                 opt.allowed = allowed;
                 opt.exclude = block[i]->exclude;
+                if (block[i]->table_s != nullptr) {
+                    single->preselect(prev[i], block[i]->audio.row(t), n, opt, block[i]->table_s,
+                                      block[i]->table_dp, block[i]->table_da);
+                    continue;
+                }
                 const StepResult r = single->step(prev[i], block[i]->audio.row(t), n, opt);
                 finish(block[i], step, t, r, prev[i]);
             }
@@ -1293,6 +1298,15 @@ public:
             for (int64_t l = 0; l < nl; ++l) {
                 const int64_t qi = lanes[l];
                 Selection sel{&sel_s[qi * M], &sel_dp[qi * M], &sel_da[qi * M]};
+                if (BatchQuery* bq = block[qi]; bq->table_s != nullptr) {
+                    // a pre-selection table (preselect_batch): as StepEngine::preselect writes it
+                    for (int64_t m = 0; m < M; ++m) {
+                        bq->table_s[m] = sel.s[m];
+                        bq->table_dp[m] = sel.s[m] >= 0 ? sel.dp[m] : 0.0f;
+                        bq->table_da[m] = sel.s[m] >= 0 ? sel.da[m] : 0.0;
+                    }
+                    continue;
+                }
                 const StepResult r = ranker.rank(db_, sel, N_, block[qi]->k);
                 finish(block[qi], step, t, r, prev[qi]);
             }
@@ -1521,10 +1535,10 @@ int64_t rank_sum_search(const Kernels& kernels, const Database& db, Span2<const 
     return run_search(engine, db, query, init_pose, window, k, preselect, allowed, exclude, out);
 }
 
-void rank_sum_search_batch(const Kernels& kernels, const Database& db,
-                           std::vector<BatchQuery>& queries, int64_t window, Preselect preselect,
-                           const AllowedSchedule& allowed, int threads, BatchMethod method) {
-    for (auto& q : queries) check_search_args(db, q.audio, window, q.k, allowed);
+namespace {
+
+void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries, int64_t window,
+               Preselect preselect, const AllowedSchedule& allowed, int threads, BatchMethod method) {
     if (threads <= 0) threads = default_threads();
     const int64_t Q = int64_t(queries.size());
     if (Q == 0) return;
@@ -1541,6 +1555,15 @@ void rank_sum_search_batch(const Kernels& kernels, const Database& db,
         for (auto& e : engines) e.reset(new StepEngine(kernels, db, 1));
         parallel_for(Q, threads, [&](int64_t i, int tid) {
             BatchQuery& q = queries[i];
+            if (q.table_s != nullptr) {
+                StepOptions opt;
+                opt.preselect = preselect;
+                opt.allowed = allowed.at(0);
+                opt.exclude = q.exclude;
+                engines[tid]->preselect(q.init_pose, q.audio.data, q.audio.rows, opt, q.table_s, q.table_dp,
+                                        q.table_da);
+                return;
+            }
             q.failed_step = run_search(*engines[tid], db, q.audio, q.init_pose, window, q.k,
                                        preselect, allowed, q.exclude, q.out);
         });
@@ -1560,6 +1583,37 @@ void rank_sum_search_batch(const Kernels& kernels, const Database& db,
         const int64_t i0 = b * per_block, i1 = std::min(Q, i0 + per_block);
         batch.run(ptrs.data() + i0, i1 - i0);
     });
+}
+
+}  // namespace
+
+void rank_sum_search_batch(const Kernels& kernels, const Database& db,
+                           std::vector<BatchQuery>& queries, int64_t window, Preselect preselect,
+                           const AllowedSchedule& allowed, int threads, BatchMethod method) {
+    for (auto& q : queries) {
+        check_search_args(db, q.audio, window, q.k, allowed);
+        q.table_s = nullptr;
+    }
+    run_batch(kernels, db, queries, window, preselect, allowed, threads, method);
+}
+
+void preselect_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries,
+                     Preselect preselect, const AllowedSchedule& allowed, int threads, BatchMethod method) {
+    if (queries.empty()) return;
+    const int64_t n = queries[0].audio.rows;
+    if (n < 1) throw std::invalid_argument("queries: expected windows of >= 1 rows");
+    if (allowed.per_step) throw std::invalid_argument("allowed: expected one bitset for a pre-selection table");
+    for (auto& q : queries) {
+        if (q.audio.rows != n)
+            throw std::invalid_argument("queries: expected windows of equal length " + std::to_string(n) +
+                                        "; got " + std::to_string(q.audio.rows));
+        if (q.table_s == nullptr || q.table_dp == nullptr || q.table_da == nullptr)
+            throw std::invalid_argument("preselect_batch: every query needs its table rows");
+        q.k = 1;
+        check_search_args(db, q.audio, n, 1, allowed);
+    }
+    // one window each: one step of the batch with window n
+    run_batch(kernels, db, queries, n, preselect, allowed, threads, method);
 }
 
 }  // namespace gesturedb

@@ -158,6 +158,11 @@ struct BatchQuery {
     const bool* exclude;         // (M,) or null
     SearchOutput out;            // (S_i,) each
     int64_t failed_step = -1;    // written: -1 or the failing step
+    // Set by preselect_batch: the query's one window is pre-selected into
+    // these (M,) rows (as StepEngine::preselect writes them), not ranked.
+    int64_t* table_s = nullptr;
+    float* table_dp = nullptr;
+    double* table_da = nullptr;
 };
 
 // How a batch is evaluated; every method returns exactly what rank_sum_search
@@ -175,6 +180,16 @@ void rank_sum_search_batch(const Kernels& kernels, const Database& db,
                            std::vector<BatchQuery>& queries, int64_t window,
                            Preselect preselect, const AllowedSchedule& allowed, int threads,
                            BatchMethod method = BatchMethod::Auto);
+
+// Spec steps 1-3 of one step for many queries: query i's window is
+// queries[i].audio (all with the same number of rows n), its previous pose
+// queries[i].init_pose, and its (M,) table goes to queries[i].table_*, each
+// row exactly StepEngine::preselect's. The blocked method shares each
+// candidate row across a block of queries, as in rank_sum_search_batch; this
+// is what a sharded batch merges (top lists per query).
+void preselect_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries,
+                     Preselect preselect, const AllowedSchedule& allowed, int threads,
+                     BatchMethod method = BatchMethod::Auto);
 
 // Sum of n floats, read once in parallel: a streaming read at memory bandwidth,
 // the floor against which the benchmark measures the step.

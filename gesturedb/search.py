@@ -47,6 +47,7 @@ __all__ = [
     "HalfPose",
     "PoseProjection",
     "preselect_table",
+    "preselect_table_batch",
     "rank_table",
     "rank_sum_step",
     "rank_sum_search",
@@ -565,6 +566,56 @@ def preselect_table(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, 
     exclude = _exclude(exclude, seg_start.shape[0])
     return _core().preselect(pose, audio, seg_start, seg_len, prev, q, preselect, allowed, exclude,
                              _threads(threads), _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
+
+
+def preselect_table_batch(pose, audio, seg_start, seg_len, prev_poses, query_windows, *, preselect="pose",
+                          allowed=None, exclude=None, threads=None, method="auto", pose_f16=None,
+                          pose_proj=None):
+    """:func:`preselect_table` of one step for many queries at once.
+
+    Row i equals ``preselect_table(..., prev_poses[i], query_windows[i], ...)``
+    exactly. With ``method="blocked"`` (the default from 16 queries on AVX2 /
+    AVX-512) blocks of queries share each candidate row, as in
+    :func:`rank_sum_search_batch`; this is what a sharded batch search merges.
+
+    Parameters
+    ----------
+    pose, audio, seg_start, seg_len
+        The database, as in :func:`rank_sum_step`.
+    prev_poses : ndarray [shape=(Q, Dp)], float32
+        Each query's previous pose.
+    query_windows : ndarray [shape=(Q, n, Da)], float32
+        Each query's audio window (all of the same length n).
+    preselect, allowed, threads, pose_f16, pose_proj
+        As in :func:`rank_sum_step` (``allowed``: one bitset for all queries).
+    exclude : ndarray, bool, optional
+        ``(M,)`` for all queries or ``(Q, M)`` per query.
+    method : {"auto", "blocked", "per_query"}
+        Evaluation strategy (results are identical).
+
+    Returns
+    -------
+    starts, pose_dist, audio_dist : ndarray [shape=(Q, M)]
+        int64, float32, float64; as :func:`preselect_table` per row.
+    """
+    seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
+    Dp, Da, M = pose.shape[1], audio.shape[1], seg_start.shape[0]
+    prev = _float_array(prev_poses, "prev_poses", f"(Q, {Dp})", 2)
+    if prev.shape[1:] != (Dp,):
+        raise ParameterError(f"prev_poses: expected (Q, {Dp}); got {prev.shape}")
+    Q = prev.shape[0]
+    q = _float_array(query_windows, "query_windows", f"({Q}, n, {Da})", 3)
+    if q.shape[0] != Q or q.shape[1] < 1 or q.shape[2] != Da:
+        raise ParameterError(f"query_windows: expected ({Q}, n >= 1, {Da}); got {q.shape}")
+    preselect = _preselect(preselect)
+    allowed = _allowed(allowed, pose.shape[0])
+    if allowed is not None and allowed.ndim != 1:
+        raise ParameterError(f"allowed: expected one bitset for all queries; got {allowed.shape}")
+    exclude = _exclude(exclude, M, Q)
+    if method not in ("auto", "blocked", "per_query"):
+        raise ParameterError(f"method: expected 'auto', 'blocked' or 'per_query'; got {method!r}")
+    return _core().preselect_batch(pose, audio, seg_start, seg_len, prev, q, preselect, allowed, exclude,
+                                   _threads(threads), method, _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
 
 
 def rank_table(starts, pose_dist, audio_dist, *, k=1):

@@ -195,3 +195,90 @@ def test_sharded_search_top_lists_settle_or_fall_back_exactly(dask_client, top):
         sh.close()
     with pytest.raises(Exception, match="top_rows"):
         ShardedSearch(P, A, st, ln, client=dask_client, parts=2, top_rows=0)
+
+
+@pytest.mark.parametrize("isa", search.kernels())
+@pytest.mark.parametrize("method", ["blocked", "per_query"])
+def test_preselect_table_batch_rows_are_the_single_tables(isa, method):
+    """Each row of the batched table is preselect_table's for that query alone: ties,
+    empty segments, a shared mask, per-query exclusion, pose and audio pre-selection,
+    with and without the projection filter, windows shorter than N."""
+    rng = np.random.default_rng(41)
+    P, A, st, ln = exact_db(rng, Dp=24, Da=3, n_segments=60)
+    F, M = P.shape[0], st.shape[0]
+    Q = 37  # more than 16 (blocked) and not a multiple of the 64-lane panel
+    prevs = P[rng.integers(0, F, Q)]
+    allowed = pack_bits(rng.random(F) < 0.6)
+    exclude = rng.random((Q, M)) < 0.2
+    proj = search.PoseProjection(P)
+    with search.simd(isa):
+        for n in (8, 3):
+            wins = rng.integers(-2, 3, size=(Q, n, A.shape[1])).astype(np.float32)
+            for kw in (dict(), dict(preselect="audio"), dict(allowed=allowed, exclude=exclude),
+                       dict(pose_proj=proj, allowed=allowed)):
+                s, dp, da = search.preselect_table_batch(P, A, st, ln, prevs, wins, method=method, **kw)
+                assert s.shape == dp.shape == da.shape == (Q, M)
+                for i in range(Q):
+                    one = dict(kw)
+                    if "exclude" in one:
+                        one["exclude"] = exclude[i]
+                    want = search.preselect_table(P, A, st, ln, prevs[i], wins[i], **one)
+                    for got, w in zip((s[i], dp[i], da[i]), want):
+                        np.testing.assert_array_equal(got, w, err_msg=f"{isa} {method} n={n} {kw.keys()} q{i}")
+    with pytest.raises(Exception, match="query_windows"):
+        search.preselect_table_batch(P, A, st, ln, prevs, np.zeros((Q + 1, 8, A.shape[1]), np.float32))
+
+
+@pytest.mark.parametrize("top", [4, None])
+def test_sharded_batch_advances_all_queries_together_exactly(dask_client, top):
+    """20 queries of different lengths (partial last windows grouped by length), per-query
+    k and exclusion, a shared mask: the blocked per-step tables on each shard, merged
+    from top lists (or whole tables when L = 4 does not settle), give exactly
+    rank_sum_search_batch's results, in one round trip per step for the whole batch."""
+    rng = np.random.default_rng(43)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=70)
+    F, M = P.shape[0], st.shape[0]
+    Q = 20
+    qs = [rng.standard_normal((int(rng.integers(9, 60)), A.shape[1])).astype(np.float32) for _ in range(Q)]
+    init = P[rng.integers(0, F, Q)]
+    ks = rng.integers(1, 4, Q)
+    ex = rng.random((Q, M)) < 0.15
+    allowed = pack_bits(rng.random(F) < 0.7)
+    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=3, top_rows=top)
+    try:
+        for kw in (dict(k=ks, exclude=ex), dict(preselect="audio", allowed=allowed)):
+            got = sh.search_batch(qs, init, **kw)
+            want = search.rank_sum_search_batch(P, A, st, ln, qs, init, **kw)
+            for i, (a, b) in enumerate(zip(got, want)):
+                assert_same_search(a, b, f"query {i} {sorted(kw)}")
+        if top == 4:
+            assert 0 < sh.unsettled < sh.steps
+    finally:
+        sh.close()
+
+
+def test_sharded_batch_on_the_real_database_and_its_errors(dask_client, scott_db):
+    P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)
+    A = np.ascontiguousarray(scott_db.audio_features[:], dtype=np.float32)
+    st = np.ascontiguousarray(scott_db.h5["chunks/start"][:], dtype=np.int64)
+    ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
+    M = st.shape[0]
+    # every chunk's own audio as a query, its own chunk excluded (the refiner's training data)
+    qs = [A[s:s + 64] for s in st]
+    init = P[st]
+    ex = np.eye(M, dtype=bool)
+    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=2)
+    try:
+        for a, b in zip(sh.search_batch(qs, init, exclude=ex),
+                        search.rank_sum_search_batch(P, A, st, ln, qs, init, exclude=ex)):
+            assert_same_search(a, b)
+        # queries 3 and 5 have every segment excluded: the first is named, as the kernel batch does
+        bad = ex.copy()
+        bad[[3, 5]] = True
+        with pytest.raises(search.SearchError) as got:
+            sh.search_batch(qs[:8], init[:8], exclude=bad[:8])
+        with pytest.raises(search.SearchError) as want:
+            search.rank_sum_search_batch(P, A, st, ln, qs[:8], init[:8], exclude=bad[:8])
+        assert str(got.value) == str(want.value) and got.value.query == 3
+    finally:
+        sh.close()

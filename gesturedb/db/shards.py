@@ -95,13 +95,26 @@ def _top_lists(s, dp, da, top: int):
     return valid.size, rows, s[rows], dp[rows], da[rows], np.intersect1d(by_pose, by_audio)
 
 
-def _shard_top(shard, prev, q, preselect, allowed_bits, exclude, threads, top):
-    """On the worker: :func:`_top_lists` of the shard's table, and the pose each
-    segment in both lists would continue from, (len(both), Dp)."""
-    s, dp, da = _shard_table(shard, prev, q, preselect, allowed_bits, exclude, threads)
-    lists = _top_lists(s, dp, da, top)
-    both = lists[5]
-    return lists + (shard.pose[shard.seg_start[both] + s[both] + q.shape[0] - 1],)
+def _shard_top_batch(shard, prevs, wins, preselect, allowed_bits, exclude, threads, top):
+    """On the worker: for each query of one step (previous poses (Q, Dp), windows
+    (Q, n, Da)), :func:`_top_lists` of the shard's table and the pose each row in
+    both lists would continue from, (len(both), Dp). The tables come from one
+    blocked kernel call (:func:`gesturedb.search.preselect_table_batch`)."""
+    if prevs.shape[0] == 1:  # one query: the single step, whose threads share its segments
+        s, dp, da = (x[None] for x in _shard_table(shard, prevs[0], wins[0], preselect, allowed_bits,
+                                                     None if exclude is None else exclude.reshape(-1), threads))
+    else:
+        allowed = None if allowed_bits is None else _pack(allowed_bits)
+        s, dp, da = search.preselect_table_batch(shard.pose, shard.audio, shard.seg_start, shard.seg_len, prevs,
+                                                 wins, preselect=preselect, allowed=allowed, exclude=exclude,
+                                                 threads=threads,
+                                                 pose_proj=shard.proj if preselect == "pose" else None)
+    out = []
+    for i in range(prevs.shape[0]):
+        lists = _top_lists(s[i], dp[i], da[i], top)
+        both = lists[5]
+        out.append(lists + (shard.pose[shard.seg_start[both] + s[i, both] + wins.shape[1] - 1],))
+    return out
 
 
 def top_rows(n_segments: int, k: int = 1) -> int:
@@ -293,71 +306,127 @@ class ShardedSearch:
         prev = np.ascontiguousarray(init_pose, dtype=np.float32)
         if prev.shape != (self.Dp,):
             raise ParameterError(f"init_pose: expected ({self.Dp},); got {prev.shape}")
-        N = int(step)
-        T = q.shape[0]
-        S = -(-T // N)
-        rows = None
-        if allowed is not None:
-            allowed = np.asarray(allowed, dtype=np.uint64)
-            rows = [_unpack(allowed[i] if allowed.ndim == 2 else allowed, self.F) for i in
-                    range(S if allowed.ndim == 2 else 1)]
-        exclude = None if exclude is None else np.asarray(exclude, dtype=bool)
-        out = {f: np.zeros(S, np.int64) for f in ("segments", "starts", "frames", "lengths", "out_frames",
-                                                  "pose_rank", "audio_rank", "n_candidates")}
-        out["pose_dist"] = np.zeros(S)
-        out["audio_dist"] = np.zeros(S)
-        for i in range(S):
-            t = i * N
-            n = min(N, T - t)
-            bits = None if rows is None else rows[i if len(rows) > 1 else 0]
-            args = [(sh, None if bits is None else bits[f0:f1], None if exclude is None else exclude[a:b])
-                    for sh, (a, b), (f0, f1) in zip(self.shards, self.seg_ranges, self.frame_ranges)]
-            top = self.top_rows if self.top_rows is not None else top_rows(self.seg_start.shape[0], k)
-            replies = self.client.gather([
-                self.client.submit(_shard_top, sh, prev, q[t:t + n], preselect, b, e, self.threads, top, pure=False)
-                for sh, b, e in args])
-            got = _merge_tops(replies, self.seg_ranges, top, k)
-            self.steps += 1
-            if got is None:
-                # not settled by the lists: every shard's whole table
-                self.unsettled += 1
-                tables = self.client.gather([
-                    self.client.submit(_shard_table, sh, prev, q[t:t + n], preselect, b, e, self.threads,
-                                       pure=False) for sh, b, e in args])
-                s = np.concatenate([x[0] for x in tables])
-                dp = np.concatenate([x[1] for x in tables])
-                da = np.concatenate([x[2] for x in tables])
-                r = search.rank_table(s, dp, da, k=k)
-                got = (-1,) + (0,) * 7 if r is None else (r[0], int(s[r[0]]), r[1], r[2], r[3],
-                                                          float(dp[r[0]]), float(da[r[0]]), None)
-            m, start, rp, ra, K, pose_dist, audio_dist, nxt = got
-            if m < 0:
-                row = None if allowed is None else (allowed[i] if allowed.ndim == 2 else allowed)
-                raise search._no_candidate_error(i, t, n, self.seg_len, exclude, row)
-            g = int(self.seg_start[m] + start)
-            for f, v in (("segments", m), ("starts", start), ("frames", g), ("lengths", n), ("out_frames", t),
-                         ("pose_rank", rp), ("audio_rank", ra), ("n_candidates", K),
-                         ("pose_dist", pose_dist), ("audio_dist", audio_dist)):
-                out[f][i] = v
-            if nxt is None:
-                # the next window continues from the last frame this one copies
-                j = next(j for j, (a, b) in enumerate(self.seg_ranges) if a <= m < b)
-                nxt = self.client.submit(_shard_row, self.shards[j], g + n - 1 - self.frame_ranges[j][0],
-                                         pure=False).result()
-            prev = nxt
-        return search.SearchResult(n_frames=T, **out)
+        return self._search_many([q], prev[None], np.array([int(k)]), int(step), preselect, allowed,
+                                 None if exclude is None else np.asarray(exclude, dtype=bool), batch=False)[0]
 
     def search_batch(self, queries: Sequence, init_poses, *, step=8, k=1, preselect="pose",
                      allowed=None, exclude=None) -> list[search.SearchResult]:
         """Exactly :func:`gesturedb.search.rank_sum_search_batch` on the whole database
-        (``k`` and ``exclude`` may be per query, as there)."""
+        (``k`` and ``exclude`` may be per query, as there).
+
+        All queries advance step by step together: per step each shard pre-selects
+        for chunks of queries in one blocked kernel call and sends each query's top
+        lists, so a step costs one round trip for the whole batch, not one per query.
+        """
         Q = len(queries)
-        ks = np.broadcast_to(np.asarray(k), (Q,))
-        ex = None if exclude is None else np.asarray(exclude, dtype=bool)
-        return [self.search(queries[i], init_poses[i], step=step, k=int(ks[i]), preselect=preselect,
-                            allowed=allowed,
-                            exclude=None if ex is None else (ex[i] if ex.ndim == 2 else ex))
-                for i in range(Q)]
+        if Q == 0:
+            return []
+        ks = np.broadcast_to(np.asarray(k), (Q,)).astype(np.int64)
+        if ks.min() < 1:
+            raise ParameterError(f"k: expected >= 1; got {int(ks.min())}")
+        qs = []
+        for i, q in enumerate(queries):
+            q = np.ascontiguousarray(q, dtype=np.float32)
+            if q.ndim != 2 or q.shape[1] != self.Da or q.shape[0] < 1:
+                raise ParameterError(f"queries[{i}]: expected (T >= 1, {self.Da}); got {q.shape}")
+            qs.append(q)
+        init = np.ascontiguousarray(init_poses, dtype=np.float32)
+        if init.shape != (Q, self.Dp):
+            raise ParameterError(f"init_poses: expected ({Q}, {self.Dp}); got {init.shape}")
+        return self._search_many(qs, init, ks, int(step), preselect, allowed,
+                                 None if exclude is None else np.asarray(exclude, dtype=bool), batch=True)
+
+    def _search_many(self, qs, init, ks, N, preselect, allowed, ex, *, batch):
+        """Searches advancing step by step together; errors name the query when ``batch``."""
+        Q = len(qs)
+        prev = list(init)
+        S = np.array([-(-q.shape[0] // N) for q in qs])
+        rows = None
+        if allowed is not None:
+            allowed = np.asarray(allowed, dtype=np.uint64)
+            if allowed.ndim == 2 and len(set(S.tolist())) > 1:
+                raise ParameterError("allowed: a per-step schedule needs every query to have the same number of "
+                                     f"steps; got {S.min()} to {S.max()} steps")
+            rows = [_unpack(allowed[i] if allowed.ndim == 2 else allowed, self.F) for i in
+                    range(int(S.max()) if allowed.ndim == 2 else 1)]
+        out = [{f: np.zeros(S[i], np.int64) for f in ("segments", "starts", "frames", "lengths", "out_frames",
+                                                      "pose_rank", "audio_rank", "n_candidates")}
+               | {"pose_dist": np.zeros(S[i]), "audio_dist": np.zeros(S[i])} for i in range(Q)]
+        top = self.top_rows if self.top_rows is not None else top_rows(self.seg_start.shape[0], int(ks.max()))
+        failed: dict[int, tuple[int, int, int]] = {}
+        for st in range(int(S.max())):
+            t = st * N
+            bits = None if rows is None else rows[st if len(rows) > 1 else 0]
+            live = [i for i in range(Q) if st < S[i] and i not in failed]
+            groups: dict[int, list[int]] = {}
+            for i in live:  # windows of equal length share a kernel call (the last may be shorter)
+                groups.setdefault(min(N, qs[i].shape[0] - t), []).append(i)
+            futs, owners = [], []
+            for n, idx in groups.items():
+                for (a, b), (f0, f1), sh in zip(self.seg_ranges, self.frame_ranges, self.shards):
+                    # about 64 MB of tables per task on the worker
+                    chunk = int(np.clip((64 << 20) // (20 * max(b - a, 1)), 16, 256))
+                    for c0 in range(0, len(idx), chunk):
+                        ids = idx[c0:c0 + chunk]
+                        e = None if ex is None else (ex[ids][:, a:b] if ex.ndim == 2 else ex[a:b])
+                        futs.append(self.client.submit(
+                            _shard_top_batch, sh, np.stack([prev[i] for i in ids]),
+                            np.stack([qs[i][t:t + n] for i in ids]), preselect,
+                            None if bits is None else bits[f0:f1], e, self.threads, top, pure=False))
+                        owners.append(ids)
+            replies: dict[int, list] = {i: [] for i in live}
+            # futures were submitted shard by shard within each group: replies stay in shard order
+            for ids, res in zip(owners, self.client.gather(futs)):
+                for i, r in zip(ids, res):
+                    replies[i].append(r)
+            for i in live:
+                n = min(N, qs[i].shape[0] - t)
+                got = _merge_tops(replies[i], self.seg_ranges, top, int(ks[i]))
+                self.steps += 1
+                e = None if ex is None else (ex[i] if ex.ndim == 2 else ex)
+                if got is None:
+                    self.unsettled += 1
+                    got = self._whole_tables(prev[i], qs[i][t:t + n], preselect, bits, e, int(ks[i]))
+                m, start, rp, ra, K, pose_dist, audio_dist, nxt = got
+                if m < 0:
+                    failed[i] = (st, t, n)
+                    continue
+                g = int(self.seg_start[m] + start)
+                for f, v in (("segments", m), ("starts", start), ("frames", g), ("lengths", n),
+                             ("out_frames", t), ("pose_rank", rp), ("audio_rank", ra), ("n_candidates", K),
+                             ("pose_dist", pose_dist), ("audio_dist", audio_dist)):
+                    out[i][f][st] = v
+                prev[i] = nxt if nxt is not None else self._row(m, g + n - 1)
+        if failed:
+            i = min(failed)
+            st, t, n = failed[i]
+            row = None if allowed is None else (allowed[st] if allowed.ndim == 2 else allowed)
+            err = search._no_candidate_error(st, t, n, self.seg_len,
+                                             None if ex is None else (ex[i] if ex.ndim == 2 else ex), row,
+                                             query=i if batch else None)
+            if len(failed) > 1:
+                err.args = (err.args[0] + f" ({len(failed)} of {Q} queries failed)",)
+            raise err
+        return [search.SearchResult(n_frames=qs[i].shape[0], **out[i]) for i in range(Q)]
+
+    def _whole_tables(self, prev, q, preselect, bits, exclude, k):
+        """A step ranked over every shard's whole table (when the top lists do not settle it)."""
+        tables = self.client.gather([
+            self.client.submit(_shard_table, sh, prev, q, preselect, None if bits is None else bits[f0:f1],
+                               None if exclude is None else exclude[a:b], self.threads, pure=False)
+            for sh, (a, b), (f0, f1) in zip(self.shards, self.seg_ranges, self.frame_ranges)])
+        s = np.concatenate([x[0] for x in tables])
+        dp = np.concatenate([x[1] for x in tables])
+        da = np.concatenate([x[2] for x in tables])
+        r = search.rank_table(s, dp, da, k=k)
+        if r is None:
+            return (-1,) + (0,) * 7
+        return r[0], int(s[r[0]]), r[1], r[2], r[3], float(dp[r[0]]), float(da[r[0]]), None
+
+    def _row(self, m, g):
+        """Pose row ``g`` (a global frame of segment m) from the shard holding it."""
+        j = next(j for j, (a, b) in enumerate(self.seg_ranges) if a <= m < b)
+        return self.client.submit(_shard_row, self.shards[j], g - self.frame_ranges[j][0], pure=False).result()
 
     def close(self) -> None:
         """Release the shards on the workers."""
