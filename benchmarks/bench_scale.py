@@ -11,9 +11,13 @@ median latency of one pose step
   - the same shards merged from their whole tables, as ShardedSearch did
     before the top lists (2 table tasks, gather, rank every row, 1 row fetch),
 and checks that all choose the same window. Memory per frame of each format
-is printed too.
+is printed too. Then a batch of --batch queries (the database's own segment
+audio, 8 steps each, as the refiner's training data): rank_sum_search_batch in
+this process (2 threads), ShardedSearch.search_batch (all queries step by step
+together, blocked tables on each shard), and the same queries searched one
+after another over the shards (what search_batch did before); same results.
 
-Usage:  python benchmarks/bench_scale.py [--frames 5000000] [--reps 15]
+Usage:  python benchmarks/bench_scale.py [--frames 5000000] [--reps 15] [--batch 64]
 """
 from __future__ import annotations
 
@@ -52,6 +56,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=5_000_000)
     ap.add_argument("--reps", type=int, default=15)
+    ap.add_argument("--batch", type=int, default=64)
     args = ap.parse_args(argv)
     from distributed import Client, LocalCluster
 
@@ -107,6 +112,32 @@ def main(argv=None):
         ref = search.rank_sum_search(pose, audio, st, ln, query, prev, step=N, pose_proj=proj)
         print(f"  24 s search over the shards: {sh.unsettled} of {sh.steps} steps not settled by the lists; "
               f"same windows as one process: {bool((whole.frames == ref.frames).all())}")
+
+        B = args.batch
+        idx = np.linspace(0, M - 1, B).astype(int)
+        queries = [audio[st[i]:st[i] + L] for i in idx]
+        init = pose[rng.integers(0, F, B)]
+        ex = np.zeros((B, M), bool)
+        ex[np.arange(B), idx] = True
+        t = time.perf_counter()
+        local = search.rank_sum_search_batch(pose, audio, st, ln, queries, init, step=N, exclude=ex, pose_proj=proj)
+        t_local = time.perf_counter() - t
+        sh.steps = sh.unsettled = 0
+        t = time.perf_counter()
+        together = sh.search_batch(queries, init, step=N, exclude=ex)
+        t_together = time.perf_counter() - t
+        unsettled, steps = sh.unsettled, sh.steps
+        t = time.perf_counter()
+        one_by_one = [sh.search(queries[i], init[i], step=N, exclude=ex[i]) for i in range(B)]
+        t_one = time.perf_counter() - t
+        same = all((a.frames == b.frames).all() and (a.frames == c.frames).all()
+                   for a, b, c in zip(local, together, one_by_one))
+        print(f"\nbatch of {B} queries x {L // N} steps (each segment's own audio, its segment excluded):")
+        print(f"  one process, rank_sum_search_batch  {t_local:7.1f} s")
+        print(f"  2 shards, search_batch (together)   {t_together:7.1f} s  ({t_together / t_local:.2f} x one process)")
+        print(f"  2 shards, one query after another   {t_one:7.1f} s  ({t_one / t_together:.2f} x together)")
+        print(f"  query steps of search_batch the top lists did not settle: {unsettled} of {steps}; "
+              f"same results: {same}")
         sh.close()
 
 
