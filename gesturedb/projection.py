@@ -1,7 +1,9 @@
-"""The pose projection filter's data: a narrow, exact-bounding copy of a pose matrix.
+"""The pose filters' data: narrower copies of a pose matrix that bound distances exactly.
 
-Used by :mod:`gesturedb.search` (``pose_proj=``) and by ``Searcher`` by default;
-kept apart from the search module so each stays readable. Depends on numpy only.
+:class:`HalfPose` (binary16 rows, ``pose_f16=``) and :class:`PoseProjection`
+(24 projected columns, ``pose_proj=``; ``Searcher``'s default). Used by
+:mod:`gesturedb.search`, which re-exports both; kept apart from the search module
+so each stays readable. Depends on numpy only.
 """
 from __future__ import annotations
 
@@ -9,7 +11,7 @@ import numpy as np
 
 from gesturedb.errors import ParameterError
 
-__all__ = ["PoseProjection"]
+__all__ = ["HalfPose", "PoseProjection"]
 
 
 def _describe(a) -> str:
@@ -18,6 +20,48 @@ def _describe(a) -> str:
         return type(a).__name__
     layout = "" if a.flags.c_contiguous else " non-contiguous"
     return f"{a.dtype}{layout} {a.shape}"
+
+
+class HalfPose:
+    """Half-precision copy of a pose matrix: pose steps read half the bytes.
+
+    A pose pre-selection streams every candidate's entry pose at every step,
+    so it is bound by memory bandwidth. With a ``HalfPose`` it streams these
+    binary16 rows instead (2 bytes per value), bounds how far each row's
+    float32 distance can be from its half-precision distance (round-to-nearest
+    error of binary16, plus float32 rounding), and reads in float32 only the
+    rows that may still be a segment's minimum -- usually one per segment.
+    Results are identical with and without it (it is only a filter); rows
+    with values beyond the binary16 range (|x| > 65504) or non-finite values
+    make their segment fall back to the exact scan.
+
+    Build it once per database and pass it as ``pose_f16=`` to the searches,
+    together with the very array it was made from. It is a snapshot: modify
+    ``pose`` in place and it must be rebuilt.
+
+    Parameters
+    ----------
+    pose : ndarray [shape=(F, Dp)], float32, C-contiguous
+        The database's pose features.
+
+    Attributes
+    ----------
+    pose : ndarray
+        The source array (kept to check that searches use the same one).
+    data : ndarray [shape=(F, Dp)], float16
+        ``pose`` rounded to binary16 (half the memory of ``pose``).
+    """
+
+    def __init__(self, pose):
+        if not (isinstance(pose, np.ndarray) and pose.dtype == np.float32 and pose.ndim == 2
+                and pose.flags.c_contiguous):
+            raise ParameterError(f"pose: expected float32 C-contiguous (F, Dp); got {_describe(pose)}")
+        self.pose = pose
+        with np.errstate(over="ignore"):  # beyond +-65504 becomes inf: those segments scan exactly
+            self.data = np.ascontiguousarray(pose.astype(np.float16))
+
+    def __repr__(self) -> str:
+        return f"HalfPose({self.data.shape[0]} frames x {self.data.shape[1]}, {self.data.nbytes / 1e6:.0f} MB)"
 
 
 class PoseProjection:
