@@ -122,6 +122,39 @@ const bool* exclude_ptr(const std::optional<Bool>& exclude, int64_t M) {
     return exclude->data();
 }
 
+// Exclusion for Q queries: one (M,) row for all, or (Q, M) one row each.
+// row(i) is query i's (null: none excluded).
+struct BatchExclude {
+    const bool* data = nullptr;
+    bool per_query = false;
+    int64_t M = 0;
+    const bool* row(int64_t i) const { return data == nullptr ? nullptr : (per_query ? data + i * M : data); }
+};
+
+BatchExclude batch_exclude(const std::optional<Bool>& exclude, int64_t Q, int64_t M) {
+    BatchExclude b;
+    b.M = M;
+    if (!exclude) return b;
+    const Bool& e = *exclude;
+    if (e.ndim() == 1 && e.shape(0) == M) {
+        b.data = e.data();
+    } else if (e.ndim() == 2 && e.shape(0) == Q && e.shape(1) == M) {
+        b.data = e.data();
+        b.per_query = true;
+    } else {
+        throw std::invalid_argument("exclude: expected (" + std::to_string(M) + ",) or (" + std::to_string(Q) +
+                                    ", " + std::to_string(M) + "); got " + shape_str(e));
+    }
+    return b;
+}
+
+BatchMethod parse_method(const std::string& method) {
+    if (method == "auto") return BatchMethod::Auto;
+    if (method == "blocked") return BatchMethod::Blocked;
+    if (method == "per_query") return BatchMethod::PerQuery;
+    throw std::invalid_argument("method: expected 'auto', 'blocked' or 'per_query'; got '" + method + "'");
+}
+
 AllowedSchedule make_allowed(const std::optional<U64>& allowed, const Database& db, bool allow_2d) {
     AllowedSchedule s;
     if (!allowed) return s;
@@ -533,27 +566,9 @@ PYBIND11_MODULE(_core, m) {
             windows.shape(2) != db.audio.cols)
             throw std::invalid_argument("query_windows: expected (" + std::to_string(Q) + ", n >= 1, " +
                                         std::to_string(db.audio.cols) + "); got " + shape_str(windows));
-        BatchMethod bm;
-        if (method == "auto") bm = BatchMethod::Auto;
-        else if (method == "blocked") bm = BatchMethod::Blocked;
-        else if (method == "per_query") bm = BatchMethod::PerQuery;
-        else throw std::invalid_argument("method: expected 'auto', 'blocked' or 'per_query'; got '" + method + "'");
+        const BatchMethod bm = parse_method(method);
         const AllowedSchedule sched = make_allowed(allowed, db, false);
-        const bool* ex = nullptr;
-        bool ex_per_query = false;
-        if (exclude) {
-            const Bool& e = *exclude;
-            if (e.ndim() == 1 && e.shape(0) == M) {
-                ex = e.data();
-            } else if (e.ndim() == 2 && e.shape(0) == Q && e.shape(1) == M) {
-                ex = e.data();
-                ex_per_query = true;
-            } else {
-                throw std::invalid_argument("exclude: expected (" + std::to_string(M) + ",) or (" +
-                                            std::to_string(Q) + ", " + std::to_string(M) + "); got " +
-                                            shape_str(e));
-            }
-        }
+        const BatchExclude ex = batch_exclude(exclude, Q, M);
         const int64_t n = windows.shape(1), Da = db.audio.cols;
         py::array_t<int64_t> s({Q, M});
         py::array_t<float> dp({Q, M});
@@ -563,7 +578,7 @@ PYBIND11_MODULE(_core, m) {
             batch[i].audio = Span2<const float>{windows.data() + i * n * Da, n, Da};
             batch[i].init_pose = pv.row(i);
             batch[i].k = 1;
-            batch[i].exclude = ex == nullptr ? nullptr : (ex_per_query ? ex + i * M : ex);
+            batch[i].exclude = ex.row(i);
             batch[i].table_s = s.mutable_data() + i * M;
             batch[i].table_dp = dp.mutable_data() + i * M;
             batch[i].table_da = da.mutable_data() + i * M;
@@ -591,11 +606,7 @@ PYBIND11_MODULE(_core, m) {
                              const std::optional<py::tuple>& pose_proj) {
         const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
         const int64_t Q = int64_t(queries.size());
-        BatchMethod bm;
-        if (method == "auto") bm = BatchMethod::Auto;
-        else if (method == "blocked") bm = BatchMethod::Blocked;
-        else if (method == "per_query") bm = BatchMethod::PerQuery;
-        else throw std::invalid_argument("method: expected 'auto', 'blocked' or 'per_query'; got '" + method + "'");
+        const BatchMethod bm = parse_method(method);
         const Span2<const float> init = span2(init_poses, "init_poses");
         if (init.rows != Q || init.cols != db.pose.cols)
             throw std::invalid_argument("init_poses: expected (" + std::to_string(Q) + ", " +
@@ -608,21 +619,7 @@ PYBIND11_MODULE(_core, m) {
         const AllowedSchedule sched = make_allowed(allowed, db, true);
         const Preselect pre = parse_preselect(preselect);
         const int64_t M = db.n_segments();
-        const bool* ex = nullptr;
-        bool ex_per_query = false;
-        if (exclude) {
-            const Bool& e = *exclude;
-            if (e.ndim() == 1 && e.shape(0) == M) {
-                ex = e.data();
-            } else if (e.ndim() == 2 && e.shape(0) == Q && e.shape(1) == M) {
-                ex = e.data();
-                ex_per_query = true;
-            } else {
-                throw std::invalid_argument("exclude: expected (" + std::to_string(M) + ",) or (" +
-                                            std::to_string(Q) + ", " + std::to_string(M) + "); got " +
-                                            shape_str(e));
-            }
-        }
+        const BatchExclude ex = batch_exclude(exclude, Q, M);
         std::vector<BatchQuery> batch(Q);
         I64 offsets(Q + 1);
         int64_t* off = offsets.mutable_data();
@@ -637,7 +634,7 @@ PYBIND11_MODULE(_core, m) {
         for (int64_t i = 0; i < Q; ++i) {
             batch[i].init_pose = init.row(i);
             batch[i].k = kp[i];
-            batch[i].exclude = ex == nullptr ? nullptr : (ex_per_query ? ex + i * M : ex);
+            batch[i].exclude = ex.row(i);
             batch[i].out = out.view(off[i]);
         }
         const Kernels& kern = active_kernels();
