@@ -32,7 +32,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_search import DA, DP, interleaved, motion_pose  # noqa: E402
-from gesturedb import search  # noqa: E402
+from gesturedb import search, tables  # noqa: E402
 from gesturedb.db.shards import ShardedSearch, _shard_row, _shard_table, top_rows  # noqa: E402
 
 L, N = 64, 8
@@ -41,10 +41,10 @@ L, N = 64, 8
 def tables_step(sh, q, prev):
     """One pose step over ``sh``'s shards merged from their whole tables (the baseline)."""
     c = sh.client
-    tables = c.gather([c.submit(_shard_table, x, prev, q, "pose", None, None, sh.threads, pure=False)
-                       for x in sh.shards])
-    s = np.concatenate([t[0] for t in tables])
-    r = search.rank_table(s, np.concatenate([t[1] for t in tables]), np.concatenate([t[2] for t in tables]))
+    parts = c.gather([c.submit(_shard_table, x, prev, q, "pose", None, None, sh.threads, pure=False)
+                      for x in sh.shards])
+    s = np.concatenate([t[0] for t in parts])
+    r = tables.rank_table(s, np.concatenate([t[1] for t in parts]), np.concatenate([t[2] for t in parts]))
     m = r[0]
     j = next(j for j, (a, b) in enumerate(sh.seg_ranges) if a <= m < b)
     g = int(sh.seg_start[m] + s[m])

@@ -499,7 +499,7 @@ PYBIND11_MODULE(_core, m) {
        py::arg("preselect"), py::arg("allowed").noconvert().none(true),
        py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
        py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
-       "Pre-selection table of one step (use gesturedb.search.preselect_table, which validates).");
+       "Pre-selection table of one step (use gesturedb.tables.preselect_table, which validates).");
 
     m.def("rank_table", [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t k) {
         require_ndim(start, 1, "starts");
@@ -550,52 +550,70 @@ PYBIND11_MODULE(_core, m) {
        "A whole search -> (dict of (S,) arrays, failed step or -1) "
        "(use gesturedb.search.rank_sum_search, which validates).");
 
-    m.def("preselect_batch", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
-                                const F32& prevs, const F32& windows, const std::string& preselect,
-                                const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
-                                int threads, const std::string& method, const std::optional<U16>& pose_f16,
-                                const std::optional<py::tuple>& pose_proj) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
-        const int64_t M = db.n_segments();
-        const Span2<const float> pv = span2(prevs, "prev_poses");
-        const int64_t Q = pv.rows;
-        if (pv.cols != db.pose.cols)
-            throw std::invalid_argument("prev_poses: expected (Q, " + std::to_string(db.pose.cols) + "); got " +
-                                        shape_str(prevs));
-        if (windows.ndim() != 3 || windows.shape(0) != Q || windows.shape(1) < 1 ||
-            windows.shape(2) != db.audio.cols)
-            throw std::invalid_argument("query_windows: expected (" + std::to_string(Q) + ", n >= 1, " +
-                                        std::to_string(db.audio.cols) + "); got " + shape_str(windows));
-        const BatchMethod bm = parse_method(method);
-        const AllowedSchedule sched = make_allowed(allowed, db, false);
-        const BatchExclude ex = batch_exclude(exclude, Q, M);
-        const int64_t n = windows.shape(1), Da = db.audio.cols;
-        py::array_t<int64_t> s({Q, M});
-        py::array_t<float> dp({Q, M});
-        py::array_t<double> da({Q, M});
-        std::vector<BatchQuery> batch(Q);
-        for (int64_t i = 0; i < Q; ++i) {
-            batch[i].audio = Span2<const float>{windows.data() + i * n * Da, n, Da};
-            batch[i].init_pose = pv.row(i);
-            batch[i].k = 1;
-            batch[i].exclude = ex.row(i);
-            batch[i].table_s = s.mutable_data() + i * M;
-            batch[i].table_dp = dp.mutable_data() + i * M;
-            batch[i].table_da = da.mutable_data() + i * M;
-        }
-        const Kernels& kern = active_kernels();
-        {
-            py::gil_scoped_release release;
-            preselect_batch(kern, db, batch, parse_preselect(preselect), sched, threads, bm);
-        }
-        return py::make_tuple(s, dp, da);
-    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
-       py::arg("seg_len").noconvert(), py::arg("prev_poses").noconvert(), py::arg("query_windows").noconvert(),
-       py::arg("preselect"), py::arg("allowed").noconvert().none(true),
-       py::arg("exclude").noconvert().none(true), py::arg("threads") = 0, py::arg("method") = "auto",
-       py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
-       "Pre-selection tables of one step for many queries -> (starts, pose_dist, audio_dist), each (Q, M) "
-       "(use gesturedb.search.preselect_table_batch, which validates).");
+    // A BatchPlan and the arrays its Database points into: holding them here
+    // keeps them alive (and unresizable) as long as the plan.
+    struct PyBatchPlan {
+        F32 pose, audio;
+        I64 seg_start, seg_len;
+        std::optional<U16> pose_f16;
+        std::optional<py::tuple> pose_proj;
+        Database db;
+        std::unique_ptr<BatchPlan> plan;
+    };
+    py::class_<PyBatchPlan>(m, "BatchPlan",
+                            "Pre-selection tables of many queries, step after step, on one database "
+                            "(use gesturedb.tables.PreselectBatch, which validates).")
+        .def(py::init([](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+                         const std::string& preselect, const std::optional<U16>& pose_f16,
+                         const std::optional<py::tuple>& pose_proj) {
+            auto p = std::make_unique<PyBatchPlan>(PyBatchPlan{pose, audio, seg_start, seg_len, pose_f16, pose_proj, {}, {}});
+            p->db = make_db(p->pose, p->audio, p->seg_start, p->seg_len, p->pose_f16, p->pose_proj);
+            p->plan.reset(new BatchPlan(active_kernels(), p->db, parse_preselect(preselect)));
+            return p;
+        }), py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+            py::arg("seg_len").noconvert(), py::arg("preselect"),
+            py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none())
+        .def("tables", [](PyBatchPlan& p, const F32& prevs, const F32& windows, const std::optional<U64>& allowed,
+                          const std::optional<Bool>& exclude, int threads, const std::string& method) {
+            const Database& db = p.db;
+            const int64_t M = db.n_segments();
+            const Span2<const float> pv = span2(prevs, "prev_poses");
+            const int64_t Q = pv.rows;
+            if (pv.cols != db.pose.cols)
+                throw std::invalid_argument("prev_poses: expected (Q, " + std::to_string(db.pose.cols) + "); got " +
+                                            shape_str(prevs));
+            if (windows.ndim() != 3 || windows.shape(0) != Q || windows.shape(1) < 1 ||
+                windows.shape(2) != db.audio.cols)
+                throw std::invalid_argument("query_windows: expected (" + std::to_string(Q) + ", n >= 1, " +
+                                            std::to_string(db.audio.cols) + "); got " + shape_str(windows));
+            const BatchMethod bm = parse_method(method);
+            const AllowedSchedule sched = make_allowed(allowed, db, false);
+            const BatchExclude ex = batch_exclude(exclude, Q, M);
+            const int64_t n = windows.shape(1), Da = db.audio.cols;
+            py::array_t<int64_t> s({Q, M});
+            py::array_t<float> dp({Q, M});
+            py::array_t<double> da({Q, M});
+            std::vector<BatchQuery> batch(Q);
+            for (int64_t i = 0; i < Q; ++i) {
+                batch[i].audio = Span2<const float>{windows.data() + i * n * Da, n, Da};
+                batch[i].init_pose = pv.row(i);
+                batch[i].k = 1;
+                batch[i].exclude = ex.row(i);
+                batch[i].table_s = s.mutable_data() + i * M;
+                batch[i].table_dp = dp.mutable_data() + i * M;
+                batch[i].table_da = da.mutable_data() + i * M;
+            }
+            {
+                py::gil_scoped_release release;
+                p.plan->preselect(batch, sched, threads, bm);
+            }
+            return py::make_tuple(s, dp, da);
+        }, py::arg("prev_poses").noconvert(), py::arg("query_windows").noconvert(),
+           py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
+           py::arg("threads") = 0, py::arg("method") = "auto",
+           "Pre-selection tables of one step for many queries -> (starts, pose_dist, audio_dist), each (Q, M).")
+        .def_property_readonly("n_setups", [](const PyBatchPlan& p) { return p.plan->n_setups(); },
+                               "Window lengths whose blocked set-up the plan keeps.");
 
     m.def("search_batch", [](const F32& pose, const F32& audio, const I64& seg_start,
                              const I64& seg_len, const std::vector<F32>& queries,

@@ -19,6 +19,8 @@
 #include <cstring>
 #include <exception>
 #include <limits>
+#include <map>
+#include <memory>
 #include <mutex>
 #include <numeric>
 #include <stdexcept>
@@ -967,9 +969,19 @@ public:
     // so that no value of the blocked bound can overflow (see lane_bounds).
     static constexpr double kProjBig = 1e30;
 
-    BlockedBatch(const Kernels& kern, const Database& db, int64_t window, Preselect pre,
-                 const AllowedSchedule& allowed, int threads)
-        : kern_(kern), db_(db), N_(window), pre_(pre), allowed_(allowed) {
+    // The projection in the layout of the blocked dot product (rows of J
+    // values), |z_f|^2 and r_f per frame. It does not depend on the window
+    // length, so a BatchPlan builds it once for every window it serves.
+    struct ProjRows {
+        std::vector<float> zrow, pnrow, rres;
+        std::vector<int64_t> n_bad;  // (F + 1,): frames before f whose row the filter cannot use
+        double zmax = 0.0, eps = 0.0;
+    };
+
+    // proj_rows: the database's ProjRows when already built (null: built here).
+    BlockedBatch(const Kernels& kern, const Database& db, int64_t window, Preselect pre, int threads,
+                 std::shared_ptr<const ProjRows> proj_rows = nullptr)
+        : kern_(kern), db_(db), N_(window), pre_(pre) {
         const int64_t F = db.n_frames(), Dp = db.pose.cols, Da = db.audio.cols;
         proj_ = pre == Preselect::Pose && db.has_proj();
         if (pre == Preselect::Pose) {
@@ -986,7 +998,14 @@ public:
             });
         }
         if (proj_) {
-            setup_projection(threads);
+            pr_ = proj_rows ? std::move(proj_rows) : build_proj_rows(db, threads);
+            // segments with an unusable row among their candidates are scanned exactly
+            const int64_t M = db.n_segments();
+            seg_bad_.assign(std::max<int64_t>(M, 1), 0);
+            for (int64_t m = 0; m < M; ++m) {
+                const int64_t seg0 = db.seg_start[m], n_cand = db.seg_len[m] - N_;
+                if (n_cand >= 1) seg_bad_[m] = pr_->n_bad[seg0 + n_cand] > pr_->n_bad[seg0];
+            }
             return;
         }
         // per-row quantities of the filter (they only widen or narrow the
@@ -1019,8 +1038,11 @@ public:
         eps_ = float(pre == Preselect::Pose ? 8.0 * gamma : 16.0 * gamma);
     }
 
-    // Runs every query of the block through all its steps.
-    void run(BatchQuery* const* block, int64_t nq) {
+    const std::shared_ptr<const ProjRows>& proj_rows() const { return pr_; }
+
+    // Runs every query of the block through all its steps (allowed: the
+    // bitset of each step).
+    void run(BatchQuery* const* block, int64_t nq, const AllowedSchedule& allowed_steps) const {
         const int64_t M = db_.n_segments();
         const int64_t Dp = db_.pose.cols, Da = db_.audio.cols;
         const int64_t J = db_.proj_dim;
@@ -1074,7 +1096,7 @@ public:
 
         for (int64_t step = 0; step < max_steps; ++step) {
             const int64_t t = step * N_;
-            const BitsetView allowed = allowed_.at(step);
+            const BitsetView allowed = allowed_steps.at(step);
             lanes.clear();
             for (int64_t i = 0; i < nq; ++i) {
                 if (step >= S[i] || block[i]->failed_step >= 0) continue;
@@ -1188,14 +1210,14 @@ public:
                     if (proj_) {
                         // rows are the entry frames g - 1 = seg0 + i; a row that is
                         // not a candidate gets |z|^2 = +inf: it neither bounds nor is kept
-                        const float* nrow = &pnrow_[seg0 + i0];
+                        const float* nrow = &pr_->pnrow[seg0 + i0];
                         if (okp) {
                             const float inf = std::numeric_limits<float>::infinity();
                             for (int64_t r = 0; r < nr; ++r) nrow_tile[r] = okp[i0 + r] ? nrow[r] : inf;
                             nrow = nrow_tile.data();
                         }
                         if (tile_has_row(okp, i0, nr)) {
-                            kern_.projfilter_f32(&zrow_[(seg0 + i0) * J], nr, J, nrow, &rres_[seg0 + i0],
+                            kern_.projfilter_f32(&pr_->zrow[(seg0 + i0) * J], nr, J, nrow, &pr_->rres[seg0 + i0],
                                                  xt.data(), qp, pl, c.data(), minhi.data());
                             kern_.projkeep_f32(c.data(), nr, qp, pl, minhi.data(), keep.data());
                         } else {
@@ -1299,7 +1321,7 @@ public:
                 const int64_t qi = lanes[l];
                 Selection sel{&sel_s[qi * M], &sel_dp[qi * M], &sel_da[qi * M]};
                 if (BatchQuery* bq = block[qi]; bq->table_s != nullptr) {
-                    // a pre-selection table (preselect_batch): as StepEngine::preselect writes it
+                    // a pre-selection table (BatchPlan::preselect): as StepEngine::preselect writes it
                     for (int64_t m = 0; m < M; ++m) {
                         bq->table_s[m] = sel.s[m];
                         bq->table_dp[m] = sel.s[m] >= 0 ? sel.dp[m] : 0.0f;
@@ -1314,14 +1336,14 @@ public:
     }
 
 private:
-    // The projection in the layout of the blocked dot product (rows of J
-    // values), |z_f|^2 and r_f per frame, and which segments' candidates all
-    // have a finite, not huge |z_f| (the others are scanned exactly).
-    void setup_projection(int threads) {
-        const int64_t F = db_.n_frames(), J = db_.proj_dim, M = db_.n_segments();
-        zrow_.assign(size_t(std::max<int64_t>(F, 1)) * J, 0.0f);
-        pnrow_.assign(std::max<int64_t>(F, 1), 0.0f);
-        rres_.assign(std::max<int64_t>(F, 1), 0.0f);
+    // ProjRows of db; a frame whose |z_f|^2 is not finite or above kProjBig
+    // (or whose residual is not finite) is marked unusable.
+    static std::shared_ptr<const ProjRows> build_proj_rows(const Database& db, int threads) {
+        const int64_t F = db.n_frames(), J = db.proj_dim;
+        auto pr = std::make_shared<ProjRows>();
+        pr->zrow.assign(size_t(std::max<int64_t>(F, 1)) * J, 0.0f);
+        pr->pnrow.assign(std::max<int64_t>(F, 1), 0.0f);
+        pr->rres.assign(std::max<int64_t>(F, 1), 0.0f);
         std::vector<uint8_t> bad(std::max<int64_t>(F, 1), 0);
         const int64_t chunk = 1 << 14;
         const int64_t n_chunks = (F + chunk - 1) / chunk;
@@ -1331,35 +1353,28 @@ private:
             for (int64_t f = f0; f < f1; ++f) {
                 double s = 0.0;
                 for (int64_t j = 0; j < J; ++j) {
-                    const float v = db_.proj_value(f, j);
-                    zrow_[f * J + j] = v;
+                    const float v = db.proj_value(f, j);
+                    pr->zrow[f * J + j] = v;
                     s += double(v) * double(v);
                 }
-                rres_[f] = zrow_[f * J + J - 1];
-                if (!(s <= kProjBig) || !std::isfinite(double(rres_[f]))) {
+                pr->rres[f] = pr->zrow[f * J + J - 1];
+                if (!(s <= kProjBig) || !std::isfinite(double(pr->rres[f]))) {
                     bad[f] = 1;
-                    pnrow_[f] = 0.0f;
+                    pr->pnrow[f] = 0.0f;
                 } else {
-                    pnrow_[f] = float(s);
+                    pr->pnrow[f] = float(s);
                     zmax[c] = std::max(zmax[c], std::sqrt(s));
                 }
             }
         });
-        zmax_ = 0.0;
-        for (double z : zmax) zmax_ = std::max(zmax_, z);
-        zmax_ *= 1.0 + 1e-6;  // and the rounding of the sums
-        seg_bad_.assign(std::max<int64_t>(M, 1), 0);
-        for (int64_t m = 0; m < M; ++m) {
-            const int64_t seg0 = db_.seg_start[m], n_cand = db_.seg_len[m] - N_;
-            for (int64_t i = 0; i < n_cand; ++i)
-                if (bad[seg0 + i]) {
-                    seg_bad_[m] = 1;
-                    break;
-                }
-        }
+        for (double z : zmax) pr->zmax = std::max(pr->zmax, z);
+        pr->zmax *= 1.0 + 1e-6;  // and the rounding of the sums
+        pr->n_bad.assign(F + 1, 0);
+        for (int64_t f = 0; f < F; ++f) pr->n_bad[f + 1] = pr->n_bad[f] + bad[f];
         const double u = std::ldexp(1.0, -24);
         const double gamma = double(J + 8) * u / (1.0 - double(J + 8) * u);
-        proj_eps_ = 4.0 * gamma;
+        pr->eps = 4.0 * gamma;
+        return pr;
     }
 
     // Harmless constants for lanes that do not filter (padding, exact lanes):
@@ -1396,7 +1411,8 @@ private:
         if (!(zx2 <= kProjBig)) return false;
         const double u = std::ldexp(1.0, -24);
         const double zx = std::sqrt(zx2);
-        const double b = proj_eps_ * (zmax_ + zx) * (zmax_ + zx);
+        const double zmax = pr_->zmax;
+        const double b = pr_->eps * (zmax + zx) * (zmax + zx);
         const float inf = std::numeric_limits<float>::infinity();
         auto up = [&](double v) {
             float f = float(v);
@@ -1407,7 +1423,7 @@ private:
         const float cup = up((double(pq.c_up) + 2.0 * aup * b) * (1.0 + 8.0 * u));
         const float clo = up((double(pq.c_lo) + 2.0 * alo * b) * (1.0 + 8.0 * u));
         // the largest value the upper bound can take (|Dh| <= (Zmax + |z_x|)^2 + b)
-        const double ub_max = aup * ((zmax_ + zx) * (zmax_ + zx) + b) + double(pq.b_up) * zmax_ + cup;
+        const double ub_max = aup * ((zmax + zx) * (zmax + zx) + b) + double(pq.b_up) * zmax + cup;
         if (!(alo > 0.0) || !(aup > 0.0) || !(ub_max < 1e36) || !std::isfinite(double(clo))) return false;
         par[0 * qp + l] = float(zx2);
         par[1 * qp + l] = pq.a_up;
@@ -1513,15 +1529,13 @@ private:
     const Database& db_;
     int64_t N_;
     Preselect pre_;
-    AllowedSchedule allowed_;
     std::vector<float> nrow_, rrow_;
     std::vector<float> wnorm_;  // pose mode: <a, a> of the N-frame audio window at each frame
     float eps_ = 0.0f;
     // the projection filter (proj_: pose pre-selection with Database::proj)
     bool proj_ = false;
-    std::vector<float> zrow_, pnrow_, rres_;
+    std::shared_ptr<const ProjRows> pr_;
     std::vector<uint8_t> seg_bad_;
-    double zmax_ = 0.0, proj_eps_ = 0.0;
 };
 
 }  // namespace
@@ -1537,17 +1551,23 @@ int64_t rank_sum_search(const Kernels& kernels, const Database& db, Span2<const 
 
 namespace {
 
+BatchMethod resolve_method(const Kernels& kernels, int64_t Q, BatchMethod method) {
+    if (method != BatchMethod::Auto) return method;
+    // the blocked filter pays off once a panel holds enough queries to share
+    // each candidate row; the scalar table has no fast block kernel
+    const bool scalar = std::strcmp(kernels.isa, "scalar") == 0;
+    return (!scalar && Q >= 16) ? BatchMethod::Blocked : BatchMethod::PerQuery;
+}
+
+// blocked: the set-up for this window when method resolves to Blocked (null:
+// built for this call).
 void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries, int64_t window,
-               Preselect preselect, const AllowedSchedule& allowed, int threads, BatchMethod method) {
+               Preselect preselect, const AllowedSchedule& allowed, int threads, BatchMethod method,
+               const BlockedBatch* blocked = nullptr) {
     if (threads <= 0) threads = default_threads();
     const int64_t Q = int64_t(queries.size());
     if (Q == 0) return;
-    if (method == BatchMethod::Auto) {
-        // the blocked filter pays off once a panel holds enough queries to
-        // share each candidate row; the scalar table has no fast block kernel
-        const bool scalar = std::strcmp(kernels.isa, "scalar") == 0;
-        method = (!scalar && Q >= 16) ? BatchMethod::Blocked : BatchMethod::PerQuery;
-    }
+    method = resolve_method(kernels, Q, method);
     if (method == BatchMethod::PerQuery) {
         threads = int(std::min<int64_t>(threads, Q));
         // one engine per worker, each single-threaded: parallel over queries only
@@ -1569,7 +1589,11 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
         });
         return;
     }
-    BlockedBatch batch(kernels, db, window, preselect, allowed, threads);
+    std::unique_ptr<BlockedBatch> own;
+    if (blocked == nullptr) {
+        own.reset(new BlockedBatch(kernels, db, window, preselect, threads));
+        blocked = own.get();
+    }
     // blocks of up to 256 queries, at least one block per thread, and at most
     // ~64 MB of per-segment pre-selection state (20 bytes per query and segment)
     // per block, so a database of many short segments does not exhaust memory
@@ -1581,8 +1605,25 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
     for (int64_t i = 0; i < Q; ++i) ptrs[i] = &queries[i];
     parallel_for(n_blocks, threads, [&](int64_t b, int) {
         const int64_t i0 = b * per_block, i1 = std::min(Q, i0 + per_block);
-        batch.run(ptrs.data() + i0, i1 - i0);
+        blocked->run(ptrs.data() + i0, i1 - i0, allowed);
     });
+}
+
+// BatchPlan::preselect's checks; returns the windows' common length n.
+int64_t check_table_queries(const Database& db, std::vector<BatchQuery>& queries, const AllowedSchedule& allowed) {
+    const int64_t n = queries[0].audio.rows;
+    if (n < 1) throw std::invalid_argument("queries: expected windows of >= 1 rows");
+    if (allowed.per_step) throw std::invalid_argument("allowed: expected one bitset for a pre-selection table");
+    for (auto& q : queries) {
+        if (q.audio.rows != n)
+            throw std::invalid_argument("queries: expected windows of equal length " + std::to_string(n) +
+                                        "; got " + std::to_string(q.audio.rows));
+        if (q.table_s == nullptr || q.table_dp == nullptr || q.table_da == nullptr)
+            throw std::invalid_argument("BatchPlan::preselect: every query needs its table rows");
+        q.k = 1;
+        check_search_args(db, q.audio, n, 1, allowed);
+    }
+    return n;
 }
 
 }  // namespace
@@ -1597,23 +1638,51 @@ void rank_sum_search_batch(const Kernels& kernels, const Database& db,
     run_batch(kernels, db, queries, window, preselect, allowed, threads, method);
 }
 
-void preselect_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries,
-                     Preselect preselect, const AllowedSchedule& allowed, int threads, BatchMethod method) {
-    if (queries.empty()) return;
-    const int64_t n = queries[0].audio.rows;
-    if (n < 1) throw std::invalid_argument("queries: expected windows of >= 1 rows");
-    if (allowed.per_step) throw std::invalid_argument("allowed: expected one bitset for a pre-selection table");
-    for (auto& q : queries) {
-        if (q.audio.rows != n)
-            throw std::invalid_argument("queries: expected windows of equal length " + std::to_string(n) +
-                                        "; got " + std::to_string(q.audio.rows));
-        if (q.table_s == nullptr || q.table_dp == nullptr || q.table_da == nullptr)
-            throw std::invalid_argument("preselect_batch: every query needs its table rows");
-        q.k = 1;
-        check_search_args(db, q.audio, n, 1, allowed);
+// ---------------------------------------------------------------------------
+struct BatchPlan::Impl {
+    const Kernels& kern;
+    Database db;
+    Preselect pre;
+    std::mutex mutex;  // guards blocked (calls may come from several threads)
+    std::map<int64_t, std::shared_ptr<const BlockedBatch>> blocked;  // by window length
+
+    Impl(const Kernels& k, const Database& d, Preselect p) : kern(k), db(d), pre(p) {}
+
+    // The blocked set-up for windows of n rows, built on first use; every
+    // window length shares the first one's projection rows.
+    std::shared_ptr<const BlockedBatch> get(int64_t n, int threads) {
+        std::lock_guard<std::mutex> lock(mutex);
+        auto it = blocked.find(n);
+        if (it != blocked.end()) return it->second;
+        std::shared_ptr<const BlockedBatch::ProjRows> rows;
+        if (!blocked.empty()) rows = blocked.begin()->second->proj_rows();
+        auto b = std::make_shared<const BlockedBatch>(kern, db, n, pre, threads, rows);
+        blocked.emplace(n, b);
+        return b;
     }
-    // one window each: one step of the batch with window n
-    run_batch(kernels, db, queries, n, preselect, allowed, threads, method);
+};
+
+BatchPlan::BatchPlan(const Kernels& kernels, const Database& db, Preselect preselect)
+    : impl_(new Impl(kernels, db, preselect)) {
+    check_database(db);
+}
+
+BatchPlan::~BatchPlan() = default;
+
+void BatchPlan::preselect(std::vector<BatchQuery>& queries, const AllowedSchedule& allowed, int threads,
+                          BatchMethod method) {
+    if (queries.empty()) return;
+    const int64_t n = check_table_queries(impl_->db, queries, allowed);
+    if (threads <= 0) threads = default_threads();
+    method = resolve_method(impl_->kern, int64_t(queries.size()), method);
+    std::shared_ptr<const BlockedBatch> b;
+    if (method == BatchMethod::Blocked) b = impl_->get(n, threads);
+    run_batch(impl_->kern, impl_->db, queries, n, impl_->pre, allowed, threads, method, b.get());
+}
+
+int64_t BatchPlan::n_setups() const {
+    std::lock_guard<std::mutex> lock(impl_->mutex);
+    return int64_t(impl_->blocked.size());
 }
 
 }  // namespace gesturedb

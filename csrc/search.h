@@ -181,15 +181,33 @@ void rank_sum_search_batch(const Kernels& kernels, const Database& db,
                            Preselect preselect, const AllowedSchedule& allowed, int threads,
                            BatchMethod method = BatchMethod::Auto);
 
-// Spec steps 1-3 of one step for many queries: query i's window is
-// queries[i].audio (all with the same number of rows n), its previous pose
-// queries[i].init_pose, and its (M,) table goes to queries[i].table_*, each
-// row exactly StepEngine::preselect's. The blocked method shares each
-// candidate row across a block of queries, as in rank_sum_search_batch; this
-// is what a sharded batch merges (top lists per query).
-void preselect_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries,
-                     Preselect preselect, const AllowedSchedule& allowed, int threads,
-                     BatchMethod method = BatchMethod::Auto);
+// Spec steps 1-3 of one step for many queries, on one database over many
+// calls: query i's window is queries[i].audio (all with the same number of
+// rows n), its previous pose queries[i].init_pose, and its (M,) table goes to
+// queries[i].table_*, each row exactly StepEngine::preselect's. The blocked
+// method shares each candidate row across a block of queries, as in
+// rank_sum_search_batch; this is what a sharded batch merges (top lists per
+// query). Its per-frame set-up (the audio windows' norms, the projection
+// rows: a pass over the database, about 0.4 s at 2.5M frames) is built on
+// first use for each window length and kept, so a caller that pre-selects
+// step after step (a shard on its worker) pays it once. The database's arrays
+// must outlive the plan. preselect() may be called from several threads at once.
+class BatchPlan {
+public:
+    BatchPlan(const Kernels& kernels, const Database& db, Preselect preselect);
+    ~BatchPlan();
+    BatchPlan(const BatchPlan&) = delete;
+    BatchPlan& operator=(const BatchPlan&) = delete;
+
+    void preselect(std::vector<BatchQuery>& queries, const AllowedSchedule& allowed, int threads,
+                   BatchMethod method = BatchMethod::Auto);
+    // Window lengths whose blocked set-up is kept.
+    int64_t n_setups() const;
+
+private:
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
 
 // Sum of n floats, read once in parallel: a streaming read at memory bandwidth,
 // the floor against which the benchmark measures the step.

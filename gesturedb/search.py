@@ -46,9 +46,6 @@ __all__ = [
     "SearchResult",
     "HalfPose",
     "PoseProjection",
-    "preselect_table",
-    "preselect_table_batch",
-    "rank_table",
     "rank_sum_step",
     "rank_sum_search",
     "rank_sum_search_batch",
@@ -495,110 +492,6 @@ def rank_sum_step(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, k=
         pose_dist=r["pose_dist"], audio_dist=r["audio_dist"], pose_rank=r["pose_rank"],
         audio_rank=r["audio_rank"], rank=r["pose_rank"] + r["audio_rank"],
         n_candidates=r["n_candidates"])
-
-
-def preselect_table(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, preselect="pose",
-                    allowed=None, exclude=None, threads=None, pose_f16=None, pose_proj=None):
-    """Spec steps 1-3 of one step: the pre-selected candidate of every segment.
-
-    The table a sharded search merges: ranks computed by :func:`rank_table`
-    over the concatenated tables of several shards (segments in global order)
-    are exactly the ranks of one database holding them all.
-
-    Parameters are those of :func:`rank_sum_step` (without ``k``).
-
-    Returns
-    -------
-    starts : ndarray [shape=(M,)], int64
-        Pre-selected ``s`` of each segment, -1 when it has no allowed candidate.
-    pose_dist : ndarray [shape=(M,)], float32
-        Its pose distance (0 where ``starts`` is -1), as the ranking compares it.
-    audio_dist : ndarray [shape=(M,)], float64
-        Its audio distance (0 where ``starts`` is -1).
-    """
-    seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
-    prev = _pose_vector(prev_pose, pose.shape[1], "prev_pose")
-    q = _query(query_audio, audio.shape[1], "query_audio")
-    preselect = _preselect(preselect)
-    allowed = _allowed(allowed, pose.shape[0])
-    exclude = _exclude(exclude, seg_start.shape[0])
-    return _core().preselect(pose, audio, seg_start, seg_len, prev, q, preselect, allowed, exclude,
-                             _threads(threads), _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
-
-
-def preselect_table_batch(pose, audio, seg_start, seg_len, prev_poses, query_windows, *, preselect="pose",
-                          allowed=None, exclude=None, threads=None, method="auto", pose_f16=None,
-                          pose_proj=None):
-    """:func:`preselect_table` of one step for many queries at once.
-
-    Row i equals ``preselect_table(..., prev_poses[i], query_windows[i], ...)``
-    exactly. With ``method="blocked"`` (the default from 16 queries on AVX2 /
-    AVX-512) blocks of queries share each candidate row, as in
-    :func:`rank_sum_search_batch`; this is what a sharded batch search merges.
-
-    Parameters
-    ----------
-    pose, audio, seg_start, seg_len
-        The database, as in :func:`rank_sum_step`.
-    prev_poses : ndarray [shape=(Q, Dp)], float32
-        Each query's previous pose.
-    query_windows : ndarray [shape=(Q, n, Da)], float32
-        Each query's audio window (all of the same length n).
-    preselect, allowed, threads, pose_f16, pose_proj
-        As in :func:`rank_sum_step` (``allowed``: one bitset for all queries).
-    exclude : ndarray, bool, optional
-        ``(M,)`` for all queries or ``(Q, M)`` per query.
-    method : {"auto", "blocked", "per_query"}
-        Evaluation strategy (results are identical).
-
-    Returns
-    -------
-    starts, pose_dist, audio_dist : ndarray [shape=(Q, M)]
-        int64, float32, float64; as :func:`preselect_table` per row.
-    """
-    seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
-    Dp, Da, M = pose.shape[1], audio.shape[1], seg_start.shape[0]
-    prev = _float_array(prev_poses, "prev_poses", f"(Q, {Dp})", 2)
-    if prev.shape[1:] != (Dp,):
-        raise ParameterError(f"prev_poses: expected (Q, {Dp}); got {prev.shape}")
-    Q = prev.shape[0]
-    q = _float_array(query_windows, "query_windows", f"({Q}, n, {Da})", 3)
-    if q.shape[0] != Q or q.shape[1] < 1 or q.shape[2] != Da:
-        raise ParameterError(f"query_windows: expected ({Q}, n >= 1, {Da}); got {q.shape}")
-    preselect = _preselect(preselect)
-    allowed = _allowed(allowed, pose.shape[0])
-    if allowed is not None and allowed.ndim != 1:
-        raise ParameterError(f"allowed: expected one bitset for all queries; got {allowed.shape}")
-    exclude = _exclude(exclude, M, Q)
-    if method not in ("auto", "blocked", "per_query"):
-        raise ParameterError(f"method: expected 'auto', 'blocked' or 'per_query'; got {method!r}")
-    return _core().preselect_batch(pose, audio, seg_start, seg_len, prev, q, preselect, allowed, exclude,
-                                   _threads(threads), method, _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
-
-
-def rank_table(starts, pose_dist, audio_dist, *, k=1):
-    """Spec steps 4-5 over a pre-selection table (one database's or several shards' concatenated).
-
-    Parameters
-    ----------
-    starts, pose_dist, audio_dist : ndarray [shape=(M,)]
-        As returned by :func:`preselect_table`; row ``m`` is segment ``m``.
-    k : int
-        The k-th best (1-based); the last one if fewer remain.
-
-    Returns
-    -------
-    tuple (segment, pose_rank, audio_rank, n_candidates) of int, or None when no segment remains.
-    """
-    k = _positive_int(k, "k")
-    s = np.ascontiguousarray(starts, dtype=np.int64)
-    dp = np.ascontiguousarray(pose_dist, dtype=np.float32)
-    da = np.ascontiguousarray(audio_dist, dtype=np.float64)
-    if s.ndim != 1 or dp.shape != s.shape or da.shape != s.shape:
-        raise ParameterError(f"rank_table: expected three (M,) arrays; got {s.shape}, {dp.shape}, {da.shape}")
-    # the kernel's own ranker (radix sort, top-list shortcut): the same ranks as a step
-    m, rp, ra, K = _core().rank_table(s, dp, da, k)
-    return None if m < 0 else (int(m), int(rp), int(ra), int(K))
 
 
 def _result(d, T, sl=slice(None)) -> SearchResult:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gesturedb import search
+from gesturedb import search, tables
 from gesturedb.db.shards import ShardedSearch
 from test_search import assert_same_search, continuous_db, exact_db, pack_bits
 
@@ -16,9 +16,9 @@ def test_rank_table_merges_shard_tables_exactly():
     q = rng.integers(-2, 3, size=(8, A.shape[1])).astype(np.float32)
     for prev in (P[3], P[40], P[100]):
         for k in (1, 2, 5, 1000):
-            s, dp, da = search.preselect_table(P, A, st, ln, prev, q)
+            s, dp, da = tables.preselect_table(P, A, st, ln, prev, q)
             want = search.rank_sum_step(P, A, st, ln, prev, q, k=k)
-            m, rp, ra, K = search.rank_table(s, dp, da, k=k)
+            m, rp, ra, K = tables.rank_table(s, dp, da, k=k)
             assert (m, s[m], rp, ra, K) == (want.segment, want.start, want.pose_rank, want.audio_rank,
                                             want.n_candidates)
             assert float(dp[m]) == want.pose_dist and float(da[m]) == want.audio_dist
@@ -47,8 +47,8 @@ def test_rank_table_matches_numpy_with_ties_and_gaps(M):
         da = rng.integers(0, 5, M) / 4.0 if trial % 3 else rng.random(M)
         dp[rng.random(M) < 0.05] = -0.0
         for k in (1, 2, 17, M + 3):
-            assert search.rank_table(s, dp, da, k=k) == _numpy_rank(s, dp, da, k), (trial, k)
-    assert search.rank_table(np.full(3, -1), np.zeros(3, np.float32), np.zeros(3), k=1) is None
+            assert tables.rank_table(s, dp, da, k=k) == _numpy_rank(s, dp, da, k), (trial, k)
+    assert tables.rank_table(np.full(3, -1), np.zeros(3, np.float32), np.zeros(3), k=1) is None
 
 
 @pytest.mark.parametrize("parts", [2, 3])
@@ -216,17 +216,59 @@ def test_preselect_table_batch_rows_are_the_single_tables(isa, method):
             wins = rng.integers(-2, 3, size=(Q, n, A.shape[1])).astype(np.float32)
             for kw in (dict(), dict(preselect="audio"), dict(allowed=allowed, exclude=exclude),
                        dict(pose_proj=proj, allowed=allowed)):
-                s, dp, da = search.preselect_table_batch(P, A, st, ln, prevs, wins, method=method, **kw)
+                s, dp, da = tables.preselect_table_batch(P, A, st, ln, prevs, wins, method=method, **kw)
                 assert s.shape == dp.shape == da.shape == (Q, M)
                 for i in range(Q):
                     one = dict(kw)
                     if "exclude" in one:
                         one["exclude"] = exclude[i]
-                    want = search.preselect_table(P, A, st, ln, prevs[i], wins[i], **one)
+                    want = tables.preselect_table(P, A, st, ln, prevs[i], wins[i], **one)
                     for got, w in zip((s[i], dp[i], da[i]), want):
                         np.testing.assert_array_equal(got, w, err_msg=f"{isa} {method} n={n} {kw.keys()} q{i}")
     with pytest.raises(Exception, match="query_windows"):
-        search.preselect_table_batch(P, A, st, ln, prevs, np.zeros((Q + 1, 8, A.shape[1]), np.float32))
+        tables.preselect_table_batch(P, A, st, ln, prevs, np.zeros((Q + 1, 8, A.shape[1]), np.float32))
+
+
+def test_preselect_batch_keeps_its_set_up_and_gives_the_same_tables_every_call():
+    """A PreselectBatch called step after step (several window lengths, masks, exclusion,
+    from two threads at once) returns exactly the one-off tables, building the blocked
+    set-up once per window length; a shard keeps one and still pickles."""
+    import pickle
+    from concurrent.futures import ThreadPoolExecutor
+
+    from gesturedb.db.shards import _Shard
+
+    rng = np.random.default_rng(47)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=50)
+    F, M = P.shape[0], st.shape[0]
+    proj = search.PoseProjection(P, half=True)
+    pb = tables.PreselectBatch(P, A, st, ln, pose_proj=proj)
+    assert pb.n_setups == 0
+    calls = []
+    for n in (8, 8, 5, 8, 5):
+        Q = 20
+        prevs = P[rng.integers(0, F, Q)]
+        wins = A[rng.integers(0, F - n, Q)[:, None] + np.arange(n)]
+        kw = dict(allowed=pack_bits(rng.random(F) < 0.7), exclude=rng.random((Q, M)) < 0.1)
+        calls.append((prevs, wins, kw))
+    with ThreadPoolExecutor(2) as ex:
+        got = list(ex.map(lambda c: pb.tables(c[0], c[1], method="blocked", **c[2]), calls))
+    assert pb.n_setups == 2  # windows of 8 and of 5 frames
+    for (prevs, wins, kw), g in zip(calls, got):
+        want = tables.preselect_table_batch(P, A, st, ln, prevs, wins, method="per_query", pose_proj=proj, **kw)
+        for a, b in zip(g, want):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(Exception, match=r"prev_poses: expected \(Q, 24\)"):
+        pb.tables(np.zeros((3, 23), np.float32), np.zeros((3, 8, A.shape[1]), np.float32))
+    with pytest.raises(Exception, match="method"):
+        pb.tables(calls[0][0], calls[0][1], method="fast")
+
+    shard = _Shard(P, A, st, ln, projection=True)
+    assert shard.batch("pose") is shard.batch("pose")
+    moved = pickle.loads(pickle.dumps(shard))
+    prevs, wins, kw = calls[0]
+    for a, b in zip(moved.batch("pose").tables(prevs, wins, **kw), shard.batch("pose").tables(prevs, wins, **kw)):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("top", [4, None])

@@ -2,7 +2,7 @@
 
 Pre-selection (spec steps 1-3) is per segment, so a shard computes the rows of
 its own segments exactly as one database would
-(:func:`gesturedb.search.preselect_table`). Ranking (steps 4-5) would need
+(:func:`gesturedb.tables.preselect_table`). Ranking (steps 4-5) would need
 every row, but the winner can be settled from short lists: a segment outside
 the first L rows by pose distance has ``rp >= L``, one outside the first L by
 audio distance ``ra >= L``, so any segment with ``R < L`` is in both lists, and
@@ -12,7 +12,7 @@ pose of the segments in both of its lists); the client merges them, and when
 the k-th best of the segments in both global lists has ``R < L`` that is
 exactly the step's choice. Otherwise (rare: L grows with the square root of
 the segment count, see :func:`top_rows`) the step falls back to the shards'
-whole tables, ranked by :func:`gesturedb.search.rank_table`. Every step
+whole tables, ranked by :func:`gesturedb.tables.rank_table`. Every step
 chooses exactly what :func:`gesturedb.search.rank_sum_search` chooses on the
 whole database (same instruction set). Per settled step the network carries
 the previous pose and the query window out and about 2 L rows of 28 bytes plus
@@ -25,7 +25,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from gesturedb import search
+from gesturedb import search, tables
 from gesturedb.errors import ParameterError
 
 __all__ = ["ShardedSearch", "top_rows"]
@@ -40,6 +40,25 @@ class _Shard:
         self.seg_start = np.ascontiguousarray(seg_start, dtype=np.int64)
         self.seg_len = np.ascontiguousarray(seg_len, dtype=np.int64)
         self.proj = search.PoseProjection(self.pose, half=True) if projection else None
+        self._batches = {}
+
+    def batch(self, preselect: str) -> tables.PreselectBatch:
+        """The shard's :class:`gesturedb.tables.PreselectBatch` for this mode, made on
+        first use and kept: its set-up is a pass over the shard (about 0.4 s at
+        2.5M frames) that every later step of every batch search reuses."""
+        b = self._batches.get(preselect)
+        if b is None:
+            b = self._batches[preselect] = tables.PreselectBatch(
+                self.pose, self.audio, self.seg_start, self.seg_len, preselect=preselect,
+                pose_proj=self.proj if preselect == "pose" else None)
+        return b
+
+    def __getstate__(self):
+        # should Dask move a shard, the kept set-up (a kernel object, not picklable)
+        # is rebuilt where it lands
+        state = self.__dict__.copy()
+        state["_batches"] = {}
+        return state
 
 
 def _make_shard(pose, audio, seg_start, seg_len, projection):
@@ -57,7 +76,7 @@ def _load_shard(path, seg_start, seg_len, projection):
 
 def _shard_table(shard, prev, q, preselect, allowed_bits, exclude, threads):
     allowed = None if allowed_bits is None else _pack(allowed_bits)
-    return search.preselect_table(shard.pose, shard.audio, shard.seg_start, shard.seg_len, prev, q,
+    return tables.preselect_table(shard.pose, shard.audio, shard.seg_start, shard.seg_len, prev, q,
                                   preselect=preselect, allowed=allowed, exclude=exclude, threads=threads,
                                   pose_proj=shard.proj if preselect == "pose" else None)
 
@@ -99,16 +118,13 @@ def _shard_top_batch(shard, prevs, wins, preselect, allowed_bits, exclude, threa
     """On the worker: for each query of one step (previous poses (Q, Dp), windows
     (Q, n, Da)), :func:`_top_lists` of the shard's table and the pose each row in
     both lists would continue from, (len(both), Dp). The tables come from one
-    blocked kernel call (:func:`gesturedb.search.preselect_table_batch`)."""
+    blocked kernel call of the shard's kept :class:`gesturedb.tables.PreselectBatch`."""
     if prevs.shape[0] == 1:  # one query: the single step, whose threads share its segments
         s, dp, da = (x[None] for x in _shard_table(shard, prevs[0], wins[0], preselect, allowed_bits,
                                                      None if exclude is None else exclude.reshape(-1), threads))
     else:
         allowed = None if allowed_bits is None else _pack(allowed_bits)
-        s, dp, da = search.preselect_table_batch(shard.pose, shard.audio, shard.seg_start, shard.seg_len, prevs,
-                                                 wins, preselect=preselect, allowed=allowed, exclude=exclude,
-                                                 threads=threads,
-                                                 pose_proj=shard.proj if preselect == "pose" else None)
+        s, dp, da = shard.batch(preselect).tables(prevs, wins, allowed=allowed, exclude=exclude, threads=threads)
     out = []
     for i in range(prevs.shape[0]):
         lists = _top_lists(s[i], dp[i], da[i], top)
@@ -144,7 +160,7 @@ def _merge_tops(replies, seg_ranges, top: int, k: int):
     da = np.concatenate([r[4] for r in replies])
     if all(int(r[0]) <= top for r in replies):
         # every shard sent all its rows: rank them as they are (in segment order)
-        c, rp, ra, _ = search.rank_table(s, dp, da, k=k)
+        c, rp, ra, _ = tables.rank_table(s, dp, da, k=k)
     else:
         if k >= K:
             return None  # "the last" of fewer than k: needs every row's rank
@@ -411,14 +427,14 @@ class ShardedSearch:
 
     def _whole_tables(self, prev, q, preselect, bits, exclude, k):
         """A step ranked over every shard's whole table (when the top lists do not settle it)."""
-        tables = self.client.gather([
+        parts = self.client.gather([
             self.client.submit(_shard_table, sh, prev, q, preselect, None if bits is None else bits[f0:f1],
                                None if exclude is None else exclude[a:b], self.threads, pure=False)
             for sh, (a, b), (f0, f1) in zip(self.shards, self.seg_ranges, self.frame_ranges)])
-        s = np.concatenate([x[0] for x in tables])
-        dp = np.concatenate([x[1] for x in tables])
-        da = np.concatenate([x[2] for x in tables])
-        r = search.rank_table(s, dp, da, k=k)
+        s = np.concatenate([x[0] for x in parts])
+        dp = np.concatenate([x[1] for x in parts])
+        da = np.concatenate([x[2] for x in parts])
+        r = tables.rank_table(s, dp, da, k=k)
         if r is None:
             return (-1,) + (0,) * 7
         return r[0], int(s[r[0]]), r[1], r[2], r[3], float(dp[r[0]]), float(da[r[0]]), None

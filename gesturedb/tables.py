@@ -1,0 +1,174 @@
+"""Pre-selection tables: a rank-sum step in the form that merges across shards.
+
+Spec steps 1-3 are per segment: for every segment the pre-selected candidate
+(its start ``s``), its pose distance and its audio distance. Ranks (steps 4-5)
+computed by :func:`rank_table` over several shards' tables, concatenated in
+global segment order, are exactly the ranks of one database holding them all
+(:mod:`gesturedb.db.shards` merges them, mostly from short top lists).
+
+- :func:`preselect_table`: one query's table (the single-step kernel).
+- :class:`PreselectBatch`: many queries' tables step after step on one
+  database, the blocked kernel's per-frame set-up kept between calls (what a
+  shard keeps on its worker).
+- :func:`preselect_table_batch`: one such call without keeping anything.
+- :func:`rank_table`: the kernel's ranker over a table.
+
+Arguments are validated here with the same messages as :mod:`gesturedb.search`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from gesturedb.errors import ParameterError
+from gesturedb.search import (
+    _allowed,
+    _check_database,
+    _core,
+    _exclude,
+    _float_array,
+    _pose_f16,
+    _pose_proj,
+    _pose_vector,
+    _positive_int,
+    _preselect,
+    _query,
+    _threads,
+)
+
+__all__ = ["preselect_table", "PreselectBatch", "preselect_table_batch", "rank_table"]
+
+METHODS = ("auto", "blocked", "per_query")
+
+
+def preselect_table(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, preselect="pose",
+                    allowed=None, exclude=None, threads=None, pose_f16=None, pose_proj=None):
+    """Spec steps 1-3 of one step: the pre-selected candidate of every segment.
+
+    Parameters are those of :func:`gesturedb.search.rank_sum_step` (without ``k``).
+
+    Returns
+    -------
+    starts : ndarray [shape=(M,)], int64
+        Pre-selected ``s`` of each segment, -1 when it has no allowed candidate.
+    pose_dist : ndarray [shape=(M,)], float32
+        Its pose distance (0 where ``starts`` is -1), as the ranking compares it.
+    audio_dist : ndarray [shape=(M,)], float64
+        Its audio distance (0 where ``starts`` is -1).
+    """
+    seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
+    prev = _pose_vector(prev_pose, pose.shape[1], "prev_pose")
+    q = _query(query_audio, audio.shape[1], "query_audio")
+    preselect = _preselect(preselect)
+    allowed = _allowed(allowed, pose.shape[0])
+    exclude = _exclude(exclude, seg_start.shape[0])
+    return _core().preselect(pose, audio, seg_start, seg_len, prev, q, preselect, allowed, exclude,
+                             _threads(threads), _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
+
+
+class PreselectBatch:
+    """:func:`preselect_table` of one step for many queries at once, call after call.
+
+    Row i of :meth:`tables` equals ``preselect_table(..., prev_poses[i],
+    query_windows[i], ...)`` exactly. With ``method="blocked"`` (the default
+    from 16 queries on AVX2 / AVX-512) blocks of queries share each candidate
+    row, as in :func:`gesturedb.search.rank_sum_search_batch`. That method needs
+    a pass over the database first (the audio windows' norms and the projection
+    rows: about 0.4 s at 2.5M frames); this object builds it on the first call
+    for each window length and keeps it, so a search that pre-selects step
+    after step (a shard on its worker) pays it once. It holds references to
+    the arrays (they must not change while it lives) and about 100 bytes per
+    frame with a projection. Calls from several threads are safe.
+
+    Parameters
+    ----------
+    pose, audio, seg_start, seg_len
+        The database, as in :func:`gesturedb.search.rank_sum_step`.
+    preselect, pose_f16, pose_proj
+        As in :func:`gesturedb.search.rank_sum_step`.
+    """
+
+    def __init__(self, pose, audio, seg_start, seg_len, *, preselect="pose", pose_f16=None, pose_proj=None):
+        seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
+        self.preselect = _preselect(preselect)
+        self._shape = (pose.shape[0], pose.shape[1], audio.shape[1], seg_start.shape[0])
+        self._plan = _core().BatchPlan(pose, audio, seg_start, seg_len, self.preselect,
+                                       _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
+
+    @property
+    def n_setups(self) -> int:
+        """Window lengths whose blocked set-up is kept (0 before the first blocked call)."""
+        return self._plan.n_setups
+
+    def tables(self, prev_poses, query_windows, *, allowed=None, exclude=None, threads=None, method="auto"):
+        """One step's tables for Q queries.
+
+        Parameters
+        ----------
+        prev_poses : ndarray [shape=(Q, Dp)], float32
+            Each query's previous pose.
+        query_windows : ndarray [shape=(Q, n, Da)], float32
+            Each query's audio window (all of the same length n).
+        allowed : ndarray, uint64, optional
+            One packed bitset over the frames for all queries.
+        exclude : ndarray, bool, optional
+            ``(M,)`` for all queries or ``(Q, M)`` per query.
+        threads : int, optional
+        method : {"auto", "blocked", "per_query"}
+            Evaluation strategy (results are identical).
+
+        Returns
+        -------
+        starts, pose_dist, audio_dist : ndarray [shape=(Q, M)]
+            int64, float32, float64; as :func:`preselect_table` per row.
+        """
+        F, Dp, Da, M = self._shape
+        prev = _float_array(prev_poses, "prev_poses", f"(Q, {Dp})", 2)
+        if prev.shape[1:] != (Dp,):
+            raise ParameterError(f"prev_poses: expected (Q, {Dp}); got {prev.shape}")
+        Q = prev.shape[0]
+        q = _float_array(query_windows, "query_windows", f"({Q}, n, {Da})", 3)
+        if q.shape[0] != Q or q.shape[1] < 1 or q.shape[2] != Da:
+            raise ParameterError(f"query_windows: expected ({Q}, n >= 1, {Da}); got {q.shape}")
+        allowed = _allowed(allowed, F)
+        if allowed is not None and allowed.ndim != 1:
+            raise ParameterError(f"allowed: expected one bitset for all queries; got {allowed.shape}")
+        exclude = _exclude(exclude, M, Q)
+        if method not in METHODS:
+            raise ParameterError(f"method: expected 'auto', 'blocked' or 'per_query'; got {method!r}")
+        return self._plan.tables(prev, q, allowed, exclude, _threads(threads), method)
+
+
+def preselect_table_batch(pose, audio, seg_start, seg_len, prev_poses, query_windows, *, preselect="pose",
+                          allowed=None, exclude=None, threads=None, method="auto", pose_f16=None,
+                          pose_proj=None):
+    """One call of :meth:`PreselectBatch.tables` (nothing kept): (starts, pose_dist,
+    audio_dist), each (Q, M), row i exactly :func:`preselect_table`'s for query i."""
+    batch = PreselectBatch(pose, audio, seg_start, seg_len, preselect=preselect, pose_f16=pose_f16,
+                           pose_proj=pose_proj)
+    return batch.tables(prev_poses, query_windows, allowed=allowed, exclude=exclude, threads=threads,
+                        method=method)
+
+
+def rank_table(starts, pose_dist, audio_dist, *, k=1):
+    """Spec steps 4-5 over a pre-selection table (one database's or several shards' concatenated).
+
+    Parameters
+    ----------
+    starts, pose_dist, audio_dist : ndarray [shape=(M,)]
+        As returned by :func:`preselect_table`; row ``m`` is segment ``m``.
+    k : int
+        The k-th best (1-based); the last one if fewer remain.
+
+    Returns
+    -------
+    tuple (segment, pose_rank, audio_rank, n_candidates) of int, or None when no segment remains.
+    """
+    k = _positive_int(k, "k")
+    s = np.ascontiguousarray(starts, dtype=np.int64)
+    dp = np.ascontiguousarray(pose_dist, dtype=np.float32)
+    da = np.ascontiguousarray(audio_dist, dtype=np.float64)
+    if s.ndim != 1 or dp.shape != s.shape or da.shape != s.shape:
+        raise ParameterError(f"rank_table: expected three (M,) arrays; got {s.shape}, {dp.shape}, {da.shape}")
+    # the kernel's own ranker (radix sort, top-list shortcut): the same ranks as a step
+    m, rp, ra, K = _core().rank_table(s, dp, da, k)
+    return None if m < 0 else (int(m), int(rp), int(ra), int(K))
