@@ -18,6 +18,9 @@ def add_parser(sub) -> None:
     t.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
+    t.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
+                   help="run the training windows' self-search over --parts shards on Dask workers (same data)")
+    t.add_argument("--parts", type=int, default=2, help="shards with --scheduler (default: %(default)s)")
     a = ops.add_parser("apply", help="refine motion that already exists (BVH on the database's skeleton)")
     a.add_argument("refiner", metavar="REFINER.pt")
     a.add_argument("--db", required=True, metavar="DB.h5")
@@ -46,15 +49,20 @@ def run(args) -> int:
         check_outputs({"-o": args.output, "-o (cache)": args.output + ".data.npz"}, [args.db])
         from gesturedb.refiner.train import TrainConfig, train
 
-        for name in ("iterations", "batch", "threads"):
+        for name in ("iterations", "batch", "threads", "parts"):
             _positive(name, getattr(args, name))
         if args.threads:
             torch.set_num_threads(args.threads)
         cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed,
                           checkpoint_every_s=args.checkpoint_every)
-        with gesturedb.open(args.db) as db:
+        from contextlib import nullcontext
+
+        from gesturedb.db.cluster import dask_client
+
+        with gesturedb.open(args.db) as db, \
+                (dask_client(args.scheduler) if args.scheduler else nullcontext()) as client:
             tr = train(db, args.output, config=cfg, resume=args.resume, progress=True,
-                       log=lambda m: print(m, file=sys.stderr))
+                       log=lambda m: print(m, file=sys.stderr), client=client, parts=args.parts)
         last = tr.history[-1] if tr.history else {}
         print(f"trained {tr.iteration} iterations -> {args.output}"
               + (f" (critic {last['critic']:.3f}, L1 {last['l1']:.4f})" if last else ""))

@@ -199,3 +199,21 @@ def test_edits_keep_the_index_an_index(db_copy):
     with gesturedb.open(rep.index) as db, h5py.File(rep.index, "r") as h5:
         assert "calm" in db.masks and len(db.shard_entries) == 2
         assert all(h5[p].is_virtual for p in schema.SHARDED_FIELDS)
+
+
+def test_refiner_training_data_over_shards_is_the_local_data(db_copy, dask_client):
+    """The refiner's self-search (every training window's own audio, its neighbourhood
+    excluded, per-window k) over a single file cut into 3 shards and over an index's
+    2 shard files gives exactly the training data of the search in this process."""
+    from gesturedb.refiner.data import make_training_data
+
+    with gesturedb.open(db_copy) as db:
+        local = make_training_data(db, seed=3, stride=20)  # every 4th window: the assembly is the slow part
+        cut = make_training_data(db, seed=3, stride=20, client=dask_client, parts=3)
+    rep = shard_database(db_copy, 2)
+    with gesturedb.open(rep.index) as idx:
+        files = make_training_data(idx, seed=3, stride=20, client=dask_client)
+    assert local.real.shape[0] > 150 and (local.ks > 1).any()
+    for other in (cut, files):
+        for name in ("audio", "real", "knn", "starts", "ks", "joints"):
+            np.testing.assert_array_equal(getattr(other, name), getattr(local, name), err_msg=name)

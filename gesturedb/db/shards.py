@@ -307,6 +307,26 @@ class ShardedSearch:
                                              workers=w, pure=False))
         return self
 
+    @classmethod
+    def for_database(cls, db, seg_start, seg_len, *, client, parts: int = 2, **kw) -> "ShardedSearch":
+        """The shards of an open database: an index file (``gesturedb shard``) is searched
+        over its own shard files, each read by a worker (:meth:`from_shard_files`);
+        a single file is cut into ``parts`` shards sent from this process.
+
+        Parameters
+        ----------
+        db : gesturedb.db.database.Database
+        seg_start, seg_len : ndarray of int64, shape (M,)
+            The segments searched (e.g. ``db.chunks``' starts and lengths).
+        client, parts, **kw
+            As for the constructor.
+        """
+        if db.shard_entries:
+            return cls.from_shard_files(db.shard_entries, seg_start, seg_len, n_frames=db.n_frames,
+                                        Dp=db.h5["frames/pose_features"].shape[1],
+                                        Da=db.h5["frames/audio_features"].shape[1], client=client, **kw)
+        return cls(db.pose_features, db.audio_features, seg_start, seg_len, client=client, parts=parts, **kw)
+
     def _set_top(self, top) -> None:
         if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
             raise ParameterError(f"top_rows: expected None or an int >= 1; got {top!r}")

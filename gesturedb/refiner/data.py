@@ -141,8 +141,13 @@ def exclusion(db, starts: np.ndarray, *, window: int = WINDOW) -> np.ndarray:
 
 
 def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int = STRIDE,
-                       progress=None) -> TrainingData:
-    """Search the database for its own audio and pair every window with its k-NN synthesis."""
+                       progress=None, client=None, parts: int = 2) -> TrainingData:
+    """Search the database for its own audio and pair every window with its k-NN synthesis.
+
+    With a Dask ``client`` the self-search runs over ``parts`` shards resident on its
+    workers (:meth:`gesturedb.db.shards.ShardedSearch.search_batch`; an index file
+    over its own shard files): the same windows, so the same training data.
+    """
     from gesturedb.search import PoseProjection, rank_sum_search_batch
     from gesturedb.synth.assemble import assemble_frames
 
@@ -159,12 +164,21 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     seg = db.chunks
     # the batch's pose filter then reads 24 projected columns instead of 96 (same
     # results); skipped, as in Searcher, where it would keep a quarter of the rows
-    proj = PoseProjection(db.pose_features)
-    results = rank_sum_search_batch(db.pose_features, db.audio_features,
-                                    np.ascontiguousarray(seg.start, dtype=np.int64),
-                                    np.ascontiguousarray(seg.length, dtype=np.int64),
-                                    queries, init, step=8, k=ks, exclude=excl,
-                                    pose_proj=proj if proj.keep_fraction < 0.25 else None)
+    seg_start = np.ascontiguousarray(seg.start, dtype=np.int64)
+    seg_len = np.ascontiguousarray(seg.length, dtype=np.int64)
+    if client is not None:
+        from gesturedb.db.shards import ShardedSearch
+
+        sharded = ShardedSearch.for_database(db, seg_start, seg_len, client=client, parts=parts)
+        try:
+            results = sharded.search_batch(queries, init, step=8, k=ks, exclude=excl)
+        finally:
+            sharded.close()
+    else:
+        proj = PoseProjection(db.pose_features)
+        results = rank_sum_search_batch(db.pose_features, db.audio_features, seg_start, seg_len,
+                                        queries, init, step=8, k=ks, exclude=excl,
+                                        pose_proj=proj if proj.keep_fraction < 0.25 else None)
     joints = moving_joints(db.local_rotations)
     rot_all = np.asarray(db.local_rotations)
     C = 6 * len(joints)

@@ -198,7 +198,7 @@ def check_compatible(ck: dict, db, path) -> None:
 
 
 def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = False, progress: bool = False,
-          log=None) -> Trainer:
+          log=None, client=None, parts: int = 2) -> Trainer:
     """Train (or resume training) a refiner on a database and write its checkpoint.
 
     Parameters
@@ -209,6 +209,9 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     config : TrainConfig
     resume : bool
         Continue from ``out_path`` up to ``config.iterations`` iterations in all.
+    client, parts
+        A Dask client: the training windows' self-search runs over ``parts`` shards on
+        its workers (:func:`gesturedb.refiner.data.make_training_data`; same data).
     """
     config = (config or TrainConfig()).check()
     out_path = os.fspath(out_path)
@@ -221,7 +224,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     if data is None:
         if log:
             log(f"searching the database for its own audio (training windows) -> {cache}")
-        data = make_training_data(db, seed=config.seed)
+        data = make_training_data(db, seed=config.seed, client=client, parts=parts)
         data.save(cache, identity)
     ck = None
     if resume:

@@ -273,14 +273,8 @@ class Searcher:
                 if self._sharded is None:
                     from gesturedb.db.shards import ShardedSearch
 
-                    if db.shard_entries:  # an index file: each worker reads its own shard file
-                        self._sharded = ShardedSearch.from_shard_files(
-                            db.shard_entries, self.seg_start, self.seg_len, n_frames=db.n_frames,
-                            Dp=db.h5["frames/pose_features"].shape[1], Da=db.h5["frames/audio_features"].shape[1],
-                            client=self._client)
-                    else:
-                        self._sharded = ShardedSearch(db.pose_features, db.audio_features, self.seg_start,
-                                                      self.seg_len, client=self._client, parts=self._parts)
+                    self._sharded = ShardedSearch.for_database(db, self.seg_start, self.seg_len,
+                                                               client=self._client, parts=self._parts)
                 return self._sharded.search(q, prev, step=step, k=k, preselect=preselect,
                                             allowed=allowed_now, exclude=excl)
             return rank_sum_search(
