@@ -141,12 +141,17 @@ def exclusion(db, starts: np.ndarray, *, window: int = WINDOW) -> np.ndarray:
 
 
 def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int = STRIDE,
-                       progress=None, client=None, parts: int = 2) -> TrainingData:
+                       progress=None, client=None, parts: int = 2, chunk: int | None = None) -> TrainingData:
     """Search the database for its own audio and pair every window with its k-NN synthesis.
 
     With a Dask ``client`` the self-search runs over ``parts`` shards resident on its
     workers (:meth:`gesturedb.db.shards.ShardedSearch.search_batch`; an index file
     over its own shard files): the same windows, so the same training data.
+    The windows are searched ``chunk`` at a time (default: as many as keep the
+    windows x segments exclusion matrix under about 256 MB); the queries are
+    independent, so any chunk gives the same data. ``progress(stage, done,
+    total)`` is called after each chunk of the search (stage ``"search"``) and
+    each assembled window (``"assembly"``).
     """
     from gesturedb.search import PoseProjection, rank_sum_search_batch
     from gesturedb.synth.assemble import assemble_frames
@@ -160,25 +165,39 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     ks = np.where(np.arange(W) % 2 == 0, 1, rng.integers(2, K_MAX + 1, size=W)).astype(np.int64)
     rng.shuffle(ks)
     init = np.ascontiguousarray(db.pose_features[rng.integers(0, db.n_frames, size=W)])
-    excl = exclusion(db, starts, window=window)
     seg = db.chunks
-    # the batch's pose filter then reads 24 projected columns instead of 96 (same
-    # results); skipped, as in Searcher, where it would keep a quarter of the rows
     seg_start = np.ascontiguousarray(seg.start, dtype=np.int64)
     seg_len = np.ascontiguousarray(seg.length, dtype=np.int64)
+    per = chunk if chunk is not None else max(256, (256 << 20) // max(1, seg_start.shape[0]))
+    if isinstance(per, bool) or not isinstance(per, (int, np.integer)) or per < 1:
+        raise ParameterError(f"chunk: expected None or an int >= 1; got {chunk!r}")
     if client is not None:
         from gesturedb.db.shards import ShardedSearch
 
         sharded = ShardedSearch.for_database(db, seg_start, seg_len, client=client, parts=parts)
-        try:
-            results = sharded.search_batch(queries, init, step=8, k=ks, exclude=excl)
-        finally:
-            sharded.close()
+
+        def search_chunk(q, p, k, ex):
+            return sharded.search_batch(q, p, step=8, k=k, exclude=ex)
     else:
+        sharded = None
+        # the batch's pose filter then reads 24 projected columns instead of 96 (same
+        # results); skipped, as in Searcher, where it would keep a quarter of the rows
         proj = PoseProjection(db.pose_features)
-        results = rank_sum_search_batch(db.pose_features, db.audio_features, seg_start, seg_len,
-                                        queries, init, step=8, k=ks, exclude=excl,
-                                        pose_proj=proj if proj.keep_fraction < 0.25 else None)
+        proj = proj if proj.keep_fraction < 0.25 else None
+
+        def search_chunk(q, p, k, ex):
+            return rank_sum_search_batch(db.pose_features, db.audio_features, seg_start, seg_len, q, p,
+                                         step=8, k=k, exclude=ex, pose_proj=proj)
+    results = []
+    try:
+        for a in range(0, W, per):
+            b = min(W, a + per)
+            results += search_chunk(queries[a:b], init[a:b], ks[a:b], exclusion(db, starts[a:b], window=window))
+            if progress is not None:
+                progress("search", b, W)
+    finally:
+        if sharded is not None:
+            sharded.close()
     joints = moving_joints(db.local_rotations)
     rot_all = np.asarray(db.local_rotations)
     C = 6 * len(joints)
@@ -191,5 +210,5 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
         knn[i] = to_channels(motion.rotations, joints).T
         aud[i] = np.concatenate([audio_f[a:a + window], deltas[a:a + window]], axis=1).T
         if progress is not None:
-            progress(i + 1, W)
+            progress("assembly", i + 1, W)
     return TrainingData(audio=aud, real=real, knn=knn, joints=joints, starts=starts, ks=ks)

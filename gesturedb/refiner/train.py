@@ -224,7 +224,23 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     if data is None:
         if log:
             log(f"searching the database for its own audio (training windows) -> {cache}")
-        data = make_training_data(db, seed=config.seed, client=client, parts=parts)
+        bars = {}
+
+        def report(stage, done, total):
+            if stage not in bars:
+                from tqdm import tqdm
+
+                for b in bars.values():
+                    b.close()
+                bars[stage] = tqdm(total=total, unit="win", desc=f"training data: {stage}", disable=None)
+            bars[stage].update(done - bars[stage].n)
+
+        try:
+            data = make_training_data(db, seed=config.seed, client=client, parts=parts,
+                                      progress=report if progress else None)
+        finally:
+            for b in bars.values():
+                b.close()
         data.save(cache, identity)
     ck = None
     if resume:
