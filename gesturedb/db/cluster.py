@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 from gesturedb.errors import ParameterError
 
-__all__ = ["dask_client", "process_on_cluster"]
+__all__ = ["dask_client", "iter_on_cluster", "process_on_cluster"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
 
@@ -59,19 +59,30 @@ def process_on_cluster(fn: Callable, items: Sequence, scheduler, *, on_done: Cal
     ``on_done(i)`` is called on the client as each task finishes (progress bar).
     The first failed task's exception is raised after the others were cancelled.
     """
+    results: list = [None] * len(items)
+    for i, res in iter_on_cluster(fn, items, scheduler):
+        results[i] = res
+        if on_done is not None:
+            on_done(i)
+    return results
+
+
+def iter_on_cluster(fn: Callable, items: Sequence, scheduler) -> Iterator[tuple[int, object]]:
+    """``(i, fn(items[i]))`` as each Dask task finishes, for callers that store each
+    result as it comes rather than holding them all (the refiner's training windows).
+
+    The first failed task's exception is raised after the others were cancelled.
+    """
     from distributed import as_completed
 
     with dask_client(scheduler) as client:
         # pure=False: every item is computed even if two compare equal
         futures = client.map(fn, list(items), pure=False)
         index = {f.key: i for i, f in enumerate(futures)}
-        results: list = [None] * len(futures)
         try:
             for fut in as_completed(futures):
-                results[index[fut.key]] = fut.result()  # re-raises the task's exception
-                if on_done is not None:
-                    on_done(index[fut.key])
+                yield index[fut.key], fut.result()  # re-raises the task's exception
+                fut.release()
         except BaseException:
             client.cancel(futures)
             raise
-        return results
