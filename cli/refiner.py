@@ -1,6 +1,7 @@
 """`gesturedb refiner train|apply`: the cGAN refiner (needs the `refiner` extra: PyTorch CPU)."""
 from __future__ import annotations
 
+import os
 import sys
 
 
@@ -21,6 +22,8 @@ def add_parser(sub) -> None:
     t.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="run the training windows' self-search over --parts shards on Dask workers (same data)")
     t.add_argument("--parts", type=int, default=2, help="shards with --scheduler (default: %(default)s)")
+    t.add_argument("-j", "--workers", type=int, default=min(2, os.cpu_count() or 1),
+                   help="local processes assembling the training windows without --scheduler (default: %(default)s)")
     a = ops.add_parser("apply", help="refine motion that already exists (BVH on the database's skeleton)")
     a.add_argument("refiner", metavar="REFINER.pt")
     a.add_argument("--db", required=True, metavar="DB.h5")
@@ -46,10 +49,10 @@ def run(args) -> int:
     torch = require_torch()
     if args.op == "train":
         # the training-window cache is written beside the checkpoint
-        check_outputs({"-o": args.output, "-o (cache)": args.output + ".data.npz"}, [args.db])
+        check_outputs({"-o": args.output, "-o (cache)": args.output + ".data.h5"}, [args.db])
         from gesturedb.refiner.train import TrainConfig, train
 
-        for name in ("iterations", "batch", "threads", "parts"):
+        for name in ("iterations", "batch", "threads", "parts", "workers"):
             _positive(name, getattr(args, name))
         if args.threads:
             torch.set_num_threads(args.threads)
@@ -62,7 +65,8 @@ def run(args) -> int:
         with gesturedb.open(args.db) as db, \
                 (dask_client(args.scheduler) if args.scheduler else nullcontext()) as client:
             tr = train(db, args.output, config=cfg, resume=args.resume, progress=True,
-                       log=lambda m: print(m, file=sys.stderr), client=client, parts=args.parts)
+                       log=lambda m: print(m, file=sys.stderr), client=client, parts=args.parts,
+                       workers=args.workers)
         last = tr.history[-1] if tr.history else {}
         print(f"trained {tr.iteration} iterations -> {args.output}"
               + (f" (critic {last['critic']:.3f}, L1 {last['l1']:.4f})" if last else ""))

@@ -23,11 +23,12 @@ from gesturedb.refiner.train import Refiner, TrainConfig, Trainer, read_checkpoi
 
 def _tiny_data(W=6, C=12, T=16, seed=0) -> TrainingData:
     rng = np.random.default_rng(seed)
+    F = 3 * W + T  # windows 3 frames apart
     return TrainingData(
-        audio=rng.standard_normal((W, 28, T)).astype(np.float32),
-        real=rng.standard_normal((W, C, T)).astype(np.float32),
+        frame_audio=rng.standard_normal((F, 28)).astype(np.float32),
+        frame_real=rng.standard_normal((F, C)).astype(np.float32),
         knn=rng.standard_normal((W, C, T)).astype(np.float32),
-        joints=np.arange(1, C // 6 + 1), starts=np.arange(W), ks=np.ones(W, np.int64),
+        joints=np.arange(1, C // 6 + 1), starts=3 * np.arange(W), ks=np.ones(W, np.int64),
     )
 
 
@@ -78,7 +79,7 @@ def test_gradient_penalty_of_a_linear_critic_is_known():
 def test_critic_updates_lower_the_critic_loss_on_a_tiny_batch():
     tr = Trainer(_tiny_data(), TrainConfig(batch=4, width=16, n_critic=1), "id", {})
     data = tr.data
-    a, real, knn = (torch.from_numpy(x[:4]) for x in (data.audio, data.real, data.knn))
+    a, real, knn = (torch.from_numpy(f(np.arange(4))) for f in (data.audio, data.real, data.fake))
 
     def wasserstein():
         with torch.no_grad():
@@ -206,13 +207,13 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     ck = tmp_path / "refiner.pt"
     r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 2, "--batch", 4, "--threads", 1)
     assert r.returncode == 0, r.stderr
-    assert (tmp_path / "refiner.pt.data.npz").is_file()
+    assert (tmp_path / "refiner.pt.data.h5").is_file()
     r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 3, "--batch", 4, "--resume")
     assert r.returncode == 0, r.stderr
     assert "trained 3 iterations" in r.stdout
     assert read_checkpoint(ck)["iteration"] == 3
     # checkpoint and cache went through temporary siblings that were renamed: nothing else is left
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["refiner.pt", "refiner.pt.data.npz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["refiner.pt", "refiner.pt.data.h5"]
 
     wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
     plain, refined = tmp_path / "knn.bvh", tmp_path / "refined.bvh"

@@ -17,20 +17,34 @@ excludes the whole recording; on a single-recording database that would leave
 only the mirror, so the neighbourhood rule is used throughout (documented in
 the checkpoint's ``data`` entry).
 
-Everything here is numpy; the result is cached beside the checkpoint
-(``<checkpoint>.data.npz``) under the database's identity, so a second
-training run does not search again.
+Everything here is numpy. Stored, the data is what it cannot recompute:
+the fakes, one ``(C, window)`` block per window, in ``<checkpoint>.data.h5``
+under the database's identity and the data's own settings (seed, window,
+stride), so a second training run does not search again. The real windows and
+their audio are the database's own frames: they are kept once per frame, not
+once per window (a frame is in ``window / stride`` = 13 windows), and sliced
+per batch. The fakes are read from the cache file through a memory map, so
+training holds neither the fakes nor the real windows whole in memory (about
+166 kB per window before: 20 GB at paper scale).
+
+Making the fakes takes two passes: the self-search (one batched kernel call
+per chunk of windows, or over shards on Dask workers) and the assembly of every
+window's k-NN path, which is Python per window (about 8 ms each, 16 minutes
+for the 120,000 windows of a paper-scale database on one core). The assembly
+runs in chunks of windows on ``workers`` local processes or on the Dask
+workers, each opening the database by its path; results are written as they
+come, in window order, so the data does not depend on the scheduling.
 """
 from __future__ import annotations
 
 import hashlib
 import os
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-from gesturedb.errors import ParameterError
-from gesturedb.io.atomic import atomic_open
+from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.refiner.representation import moving_joints, to_channels
 
 WINDOW = 64
@@ -63,16 +77,16 @@ def feature_identity(db) -> dict:
 
 @dataclass
 class TrainingData:
-    """Aligned training windows.
+    """Aligned training windows: the database's own frames, and one fake per window.
 
     Attributes
     ----------
-    audio : ndarray [shape=(W, 28, window)], float32
-        Standardised audio features and their deltas.
-    real : ndarray [shape=(W, C_g, window)], float32
-        The database's own gesture channels.
-    knn : ndarray [shape=(W, C_g, window)], float32
-        The k-NN synthesis of the same audio (the generator's input).
+    frame_audio : ndarray [shape=(F, A)], float32
+        Standardised audio features and their deltas (A = 28) of every database frame.
+    frame_real : ndarray [shape=(F, C)], float32
+        The database's gesture channels of every frame (:func:`to_channels`).
+    knn : ndarray or read-only memmap [shape=(W, C, window)], float32
+        The k-NN synthesis of each window's audio (the generator's input).
     joints : ndarray [shape=(Jm,)], int64
         Joints in the channels (:func:`moving_joints`).
     starts : ndarray [shape=(W,)], int64
@@ -81,28 +95,161 @@ class TrainingData:
         The k used for each fake.
     """
 
-    audio: np.ndarray
-    real: np.ndarray
+    frame_audio: np.ndarray
+    frame_real: np.ndarray
     knn: np.ndarray
     joints: np.ndarray
     starts: np.ndarray
     ks: np.ndarray
 
-    def save(self, path, identity: str) -> None:
-        # a temporary sibling with a unique name (two trainings sharing a cache never write one file)
-        with atomic_open(path, "wb") as f:
-            np.savez(f, identity=np.array(identity), **{k: getattr(self, k) for k in
-                     ("audio", "real", "knn", "joints", "starts", "ks")})
+    @property
+    def n_windows(self) -> int:
+        return int(self.knn.shape[0])
 
-    @classmethod
-    def load(cls, path, identity: str) -> "TrainingData | None":
-        """The cached windows, or None when there is no cache or it was made for another database."""
-        if not os.path.isfile(path):
-            return None
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["identity"]) != identity:
+    @property
+    def channels(self) -> int:
+        """C, gesture channels per frame."""
+        return int(self.knn.shape[1])
+
+    @property
+    def audio_channels(self) -> int:
+        """A, audio channels per frame."""
+        return int(self.frame_audio.shape[1])
+
+    @property
+    def window(self) -> int:
+        return int(self.knn.shape[2])
+
+    def _windows(self, per_frame: np.ndarray, idx) -> np.ndarray:
+        frames = self.starts[np.asarray(idx, dtype=np.int64)][:, None] + np.arange(self.window)
+        return np.ascontiguousarray(per_frame[frames].transpose(0, 2, 1))
+
+    def audio(self, idx) -> np.ndarray:
+        """(n, A, window) float32: the audio of windows ``idx`` (n,)."""
+        return self._windows(self.frame_audio, idx)
+
+    def real(self, idx) -> np.ndarray:
+        """(n, C, window) float32: the database's own gesture channels of windows ``idx`` (n,)."""
+        return self._windows(self.frame_real, idx)
+
+    def fake(self, idx) -> np.ndarray:
+        """(n, C, window) float32: the k-NN syntheses of windows ``idx`` (n,)."""
+        return np.ascontiguousarray(self.knn[np.asarray(idx, dtype=np.int64)])
+
+
+def frame_arrays(db, joints: np.ndarray, *, chunk: int = 1 << 15) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame audio (F, A) and gesture channels (F, C) float32 of a database.
+
+    Converted ``chunk`` frames at a time: the whole database's rotation matrices
+    in float64 would be 2.4 GB at paper scale.
+    """
+    audio = np.concatenate([np.asarray(db.audio_features, dtype=np.float32),
+                            np.asarray(db.audio_deltas, dtype=np.float32)], axis=1)
+    rot = db.local_rotations
+    F = int(rot.shape[0])
+    real = np.empty((F, 6 * len(joints)), np.float32)
+    for a in range(0, F, chunk):
+        real[a:a + chunk] = to_channels(rot[a:a + chunk], joints)
+    return audio, real
+
+
+# -- the cache: <checkpoint>.data.h5 ---------------------------------------------------
+CACHE_FORMAT = 2  # 1: every window's audio, real and fake in one npz (before 2026-11)
+
+
+def cache_settings(db, *, seed: int, window: int, stride: int) -> dict:
+    """What a cache must have been made with to be reused."""
+    return {"format": CACHE_FORMAT, "identity": database_identity(db), "seed": int(seed),
+            "window": int(window), "stride": int(stride)}
+
+
+def load_cache(path, db, settings: dict) -> TrainingData | None:
+    """The cached training data, or None when there is none, or it was made for another
+    database or with other settings, or it cannot be read (it is then made again).
+
+    The fakes stay on disk (a read-only memory map of the file's contiguous dataset).
+    """
+    import h5py
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        return None
+    try:
+        with h5py.File(path, "r") as h5:
+            if any(_attr(h5.attrs.get(k)) != v for k, v in settings.items()):
                 return None
-            return cls(**{k: z[k] for k in ("audio", "real", "knn", "joints", "starts", "ks")})
+            starts, ks, joints = (np.asarray(h5[k][()], dtype=np.int64) for k in ("starts", "ks", "joints"))
+            ds = h5["knn"]
+            shape = (len(starts), 6 * len(joints), int(settings["window"]))
+            if ds.shape != shape or ds.dtype != np.float32 or ks.shape != starts.shape:
+                return None
+            offset = ds.id.get_offset()
+            knn = None if offset is None else np.memmap(path, dtype=np.float32, mode="r", offset=offset, shape=shape)
+            if knn is None:  # not contiguous (written by something else): read it whole
+                knn = ds[()]
+    except (OSError, KeyError, ValueError):
+        return None
+    audio, real = frame_arrays(db, joints)
+    return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks)
+
+
+def _attr(v):
+    return v.item() if isinstance(v, np.generic) else v.decode() if isinstance(v, bytes) else v
+
+
+def _worker_database(path):
+    """The database at ``path``, opened once per worker process (its arrays load on first use).
+
+    A Dask worker may run tasks of two trainings in threads at once: the last two
+    databases stay open, and one that drops out is closed by the garbage collector
+    once no task holds it any more.
+    """
+    import gesturedb
+
+    st = os.stat(path)
+    key = (path, st.st_mtime_ns, st.st_size)
+    with _OPEN_LOCK:
+        db = _OPEN.pop(key, None) or gesturedb.open(path)
+        _OPEN[key] = db  # most recent last
+        while len(_OPEN) > 2:
+            _OPEN.pop(next(iter(_OPEN)))
+        return db
+
+
+_OPEN: dict = {}
+_OPEN_LOCK = threading.Lock()
+
+
+def assemble_windows(db, frame_maps: np.ndarray, seams: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """The gesture channels of k-NN paths assembled as synthesis assembles them.
+
+    Parameters
+    ----------
+    db : Database, or the path of one (opened once per process: the form Dask and
+        local worker processes are given)
+    frame_maps : ndarray [shape=(n, window)], int64
+        Database frame of every output frame of each path.
+    seams : sequence of n ndarray, int64
+        Output frame where each window of a path starts (the first is 0).
+    joints : ndarray [shape=(Jm,)], int64
+
+    Returns
+    -------
+    ndarray [shape=(n, 6 Jm, window)], float32
+    """
+    from gesturedb.synth.assemble import assemble_frames
+
+    if isinstance(db, (str, os.PathLike)):
+        db = _worker_database(os.fspath(db))
+    out = np.empty((len(frame_maps), 6 * len(joints), frame_maps.shape[1]), np.float32)
+    for i in range(len(frame_maps)):
+        motion = assemble_frames(db, frame_maps[i], seams[i])
+        out[i] = to_channels(motion.rotations, joints).T
+    return out
+
+
+def _assemble_task(args):
+    return assemble_windows(*args)
 
 
 def window_starts(db, *, window: int = WINDOW, stride: int = STRIDE) -> np.ndarray:
@@ -141,26 +288,33 @@ def exclusion(db, starts: np.ndarray, *, window: int = WINDOW) -> np.ndarray:
 
 
 def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int = STRIDE,
-                       progress=None, client=None, parts: int = 2, chunk: int | None = None) -> TrainingData:
+                       progress=None, client=None, parts: int = 2, chunk: int | None = None,
+                       workers: int = 1, cache=None) -> TrainingData:
     """Search the database for its own audio and pair every window with its k-NN synthesis.
 
     With a Dask ``client`` the self-search runs over ``parts`` shards resident on its
     workers (:meth:`gesturedb.db.shards.ShardedSearch.search_batch`; an index file
-    over its own shard files): the same windows, so the same training data.
-    The windows are searched ``chunk`` at a time (default: as many as keep the
-    windows x segments exclusion matrix under about 256 MB); the queries are
-    independent, so any chunk gives the same data. ``progress(stage, done,
-    total)`` is called after each chunk of the search (stage ``"search"``) and
-    each assembled window (``"assembly"``).
+    over its own shard files) and the assembly runs on the same workers; without
+    one, the assembly runs on ``workers`` local processes. Either way the data is
+    the same. The windows are searched ``chunk`` at a time (default: as many as
+    keep the windows x segments exclusion matrix under about 256 MB); the queries
+    are independent, so any chunk gives the same data. ``progress(stage, done,
+    total)`` is called after each chunk of the search (stage ``"search"``) and of
+    the assembly (``"assembly"``).
+
+    With ``cache`` (a path) the fakes are written straight into that HDF5 file
+    (through a temporary sibling renamed at the end, :func:`load_cache` reads it)
+    and the result reads them from it: nothing of size windows x channels x frames
+    is held in memory. Without it they are returned in memory.
     """
     from gesturedb.search import PoseProjection, rank_sum_search_batch
-    from gesturedb.synth.assemble import assemble_frames
 
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ParameterError(f"workers: expected an int >= 1; got {workers!r}")
     rng = np.random.default_rng(seed)
     starts = window_starts(db, window=window, stride=stride)
     W = len(starts)
     audio_f = np.asarray(db.audio_features)
-    deltas = np.asarray(db.audio_deltas)
     queries = [np.ascontiguousarray(audio_f[a:a + window]) for a in starts]
     ks = np.where(np.arange(W) % 2 == 0, 1, rng.integers(2, K_MAX + 1, size=W)).astype(np.int64)
     rng.shuffle(ks)
@@ -188,27 +342,118 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
         def search_chunk(q, p, k, ex):
             return rank_sum_search_batch(db.pose_features, db.audio_features, seg_start, seg_len, q, p,
                                          step=8, k=k, exclude=ex, pose_proj=proj)
-    results = []
+    # the paths only (a window's frame map and seams, about 600 bytes): the motion is assembled below
+    frame_maps = np.empty((W, window), np.int64)
+    seams = []
     try:
         for a in range(0, W, per):
             b = min(W, a + per)
-            results += search_chunk(queries[a:b], init[a:b], ks[a:b], exclusion(db, starts[a:b], window=window))
+            for i, res in enumerate(search_chunk(queries[a:b], init[a:b], ks[a:b],
+                                                 exclusion(db, starts[a:b], window=window)), a):
+                frame_maps[i] = res.frame_map()
+                seams.append(np.asarray(res.out_frames, dtype=np.int64))
             if progress is not None:
                 progress("search", b, W)
     finally:
         if sharded is not None:
             sharded.close()
+    del queries
     joints = moving_joints(db.local_rotations)
-    rot_all = np.asarray(db.local_rotations)
-    C = 6 * len(joints)
-    real = np.empty((W, C, window), np.float32)
-    knn = np.empty((W, C, window), np.float32)
-    aud = np.empty((W, audio_f.shape[1] + deltas.shape[1], window), np.float32)
-    for i, (a, res) in enumerate(zip(starts, results)):
-        real[i] = to_channels(rot_all[a:a + window], joints).T
-        motion = assemble_frames(db, res.frame_map(), np.asarray(res.out_frames, dtype=np.int64))
-        knn[i] = to_channels(motion.rotations, joints).T
-        aud[i] = np.concatenate([audio_f[a:a + window], deltas[a:a + window]], axis=1).T
+    shape = (W, 6 * len(joints), window)
+    if cache is None:
+        knn = np.empty(shape, np.float32)
+        _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, client=client, workers=workers)
+        audio, real = frame_arrays(db, joints)
+        return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks)
+    import h5py
+
+    from gesturedb.io.atomic import temporary_name
+
+    cache = os.fspath(cache)
+    settings = cache_settings(db, seed=seed, window=window, stride=stride)
+    tmp = temporary_name(cache)
+    try:
+        with h5py.File(tmp, "w") as h5:
+            for k, v in settings.items():
+                h5.attrs[k] = v
+            h5.attrs["content"] = ("fakes of the gesturedb refiner's training windows: knn[w] is the k-NN "
+                                   "synthesis (channels x frames) of the audio of frames starts[w] + 0..window-1")
+            for k, v in (("starts", starts), ("ks", ks), ("joints", joints)):
+                h5[k] = v
+            # contiguous (no chunks, no filters), so that load_cache can memory-map it
+            knn = h5.create_dataset("knn", shape=shape, dtype=np.float32)
+            _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, client=client, workers=workers)
+        os.replace(tmp, cache)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise InputFileError(cache, f"cannot write the training-data cache: {exc.strerror or exc}") from None
+        raise
+    data = load_cache(cache, db, settings)
+    if data is None:  # pragma: no cover - the file was just written
+        raise InputFileError(cache, "the training-data cache just written could not be read back")
+    return data
+
+
+def _assemble_all(db, frame_maps, seams, joints, out, *, progress, client, workers, chunk: int = 32) -> None:
+    """Assemble every window's path into ``out[w]`` (an array or an HDF5 dataset), in
+    chunks of ``chunk`` windows: in this process, on ``workers`` local processes, or
+    on the Dask ``client``'s workers (which open the database by its path)."""
+    W = len(frame_maps)
+    pieces = [(a, min(W, a + chunk)) for a in range(0, W, chunk)]
+    done = 0
+
+    def store(k, block):
+        nonlocal done
+        a, b = pieces[k]
+        out[a:b] = block
+        done += b - a
         if progress is not None:
-            progress("assembly", i + 1, W)
-    return TrainingData(audio=aud, real=real, knn=knn, joints=joints, starts=starts, ks=ks)
+            progress("assembly", done, W)
+
+    if client is None and (workers == 1 or len(pieces) == 1):
+        for k, (a, b) in enumerate(pieces):
+            store(k, assemble_windows(db, frame_maps[a:b], seams[a:b], joints))
+        return
+    if client is not None:
+        from gesturedb.db.cluster import iter_on_cluster
+
+        path = os.path.abspath(db.path)
+        tasks = [(path, frame_maps[a:b], seams[a:b], joints) for a, b in pieces]
+        for k, block in iter_on_cluster(_assemble_task, tasks, client):
+            store(k, block)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from gesturedb.db.workers import single_threaded_worker
+
+    # The first chunk in this process loads every array the assembly reads; forked
+    # workers then share them (copy-on-write: a paper-scale database's rotations
+    # are a gigabyte) and never touch the HDF5 file. Fork, not spawn: spawn would
+    # re-import the caller's main module, which breaks scripts without a main guard.
+    store(0, assemble_windows(db, frame_maps[:pieces[0][1]], seams[:pieces[0][1]], joints))
+    if "fork" not in multiprocessing.get_all_start_methods():  # pragma: no cover - Windows
+        for k, (a, b) in enumerate(pieces[1:], 1):
+            store(k, assemble_windows(db, frame_maps[a:b], seams[a:b], joints))
+        return
+    _FORKED.update(db=db, frame_maps=frame_maps, seams=seams, joints=joints, pieces=pieces)
+    try:
+        with ProcessPoolExecutor(max_workers=min(workers, len(pieces) - 1), mp_context=multiprocessing.get_context("fork"),
+                                 initializer=single_threaded_worker, initargs=(os.getpid(),)) as ex:
+            for k, block in enumerate(ex.map(_assemble_forked, range(1, len(pieces))), 1):
+                store(k, block)
+    finally:
+        _FORKED.clear()
+
+
+_FORKED: dict = {}  # what forked assembly workers inherit
+
+
+def _assemble_forked(k: int) -> np.ndarray:
+    f = _FORKED
+    a, b = f["pieces"][k]
+    return assemble_windows(f["db"], f["frame_maps"][a:b], f["seams"][a:b], f["joints"])

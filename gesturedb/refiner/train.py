@@ -28,7 +28,8 @@ import torch
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError
 from gesturedb.io.atomic import atomic_open
 from gesturedb.io.joints import leg_joints
-from gesturedb.refiner.data import TrainingData, database_identity, feature_identity, make_training_data
+from gesturedb.refiner.data import (STRIDE, WINDOW, TrainingData, cache_settings, database_identity, feature_identity,
+                                    load_cache, make_training_data)
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
 
@@ -77,23 +78,21 @@ class Trainer:
     def __post_init__(self):
         self.config.check()
         torch.manual_seed(self.config.seed)
-        C = self.data.real.shape[1]
-        A = self.data.audio.shape[1]
+        C = self.data.channels
+        A = self.data.audio_channels
         self.G = Generator(C, audio_channels=A, width=self.config.width)
         self.D = Discriminator(C, audio_channels=A, width=self.config.width)
         self.opt_g = torch.optim.Adam(self.G.parameters(), lr=self.config.lr, betas=tuple(self.config.betas))
         self.opt_d = torch.optim.Adam(self.D.parameters(), lr=self.config.lr, betas=tuple(self.config.betas))
         self.gen = torch.Generator().manual_seed(self.config.seed + 1)
-        self._audio = torch.from_numpy(self.data.audio)
-        self._real = torch.from_numpy(self.data.real)
-        self._knn = torch.from_numpy(self.data.knn)
 
     # -- one iteration ----------------------------------------------------------
     def _batch(self):
-        W = self._real.shape[0]
-        i = torch.randint(0, W, (self.config.batch,), generator=self.gen)
-        j = torch.randint(0, W, (self.config.batch,), generator=self.gen)  # real windows, independent of the fakes
-        return self._audio[i], self._knn[i], self._audio[j], self._real[j]
+        W = self.data.n_windows
+        i = torch.randint(0, W, (self.config.batch,), generator=self.gen).numpy()
+        j = torch.randint(0, W, (self.config.batch,), generator=self.gen).numpy()  # real windows, independent of the fakes
+        d = self.data  # sliced from the per-frame arrays and the fakes' memory map, batch by batch
+        return tuple(torch.from_numpy(x) for x in (d.audio(i), d.fake(i), d.audio(j), d.real(j)))
 
     def critic_step(self) -> float:
         c = self.config
@@ -198,20 +197,22 @@ def check_compatible(ck: dict, db, path) -> None:
 
 
 def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = False, progress: bool = False,
-          log=None, client=None, parts: int = 2) -> Trainer:
+          log=None, client=None, parts: int = 2, workers: int = 1) -> Trainer:
     """Train (or resume training) a refiner on a database and write its checkpoint.
 
     Parameters
     ----------
     db : gesturedb.db.database.Database
     out_path : path
-        The checkpoint; training windows are cached at ``out_path + ".data.npz"``.
+        The checkpoint; the training windows' fakes are cached at ``out_path + ".data.h5"``.
     config : TrainConfig
     resume : bool
         Continue from ``out_path`` up to ``config.iterations`` iterations in all.
-    client, parts
+    client, parts, workers
         A Dask client: the training windows' self-search runs over ``parts`` shards on
-        its workers (:func:`gesturedb.refiner.data.make_training_data`; same data).
+        its workers, and their assembly too; without one the assembly runs on
+        ``workers`` local processes (:func:`gesturedb.refiner.data.make_training_data`;
+        the same data either way).
     """
     config = (config or TrainConfig()).check()
     out_path = os.fspath(out_path)
@@ -219,8 +220,20 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     if not os.path.isdir(folder):
         raise ParameterError(f"output: folder {folder} does not exist")
     identity = database_identity(db)
-    cache = out_path + ".data.npz"
-    data = TrainingData.load(cache, identity)
+    # a resumed run keeps its own settings, the seed of its training data included
+    ck = None
+    if resume:
+        ck = read_checkpoint(out_path)
+        check_compatible(ck, db, out_path)
+        if ck["identity"] != identity:
+            raise InputFileError(out_path, f"identity: trained on another database than {db.path}; resume needs the same one")
+        saved = dict(ck["config"])
+        saved["betas"] = tuple(saved["betas"])
+        saved.update(iterations=config.iterations, checkpoint_every_s=config.checkpoint_every_s)
+        config = TrainConfig(**saved)
+    cache = out_path + ".data.h5"
+    settings = cache_settings(db, seed=config.seed, window=WINDOW, stride=STRIDE)
+    data = load_cache(cache, db, settings)
     if data is None:
         if log:
             log(f"searching the database for its own audio (training windows) -> {cache}")
@@ -236,22 +249,11 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
             bars[stage].update(done - bars[stage].n)
 
         try:
-            data = make_training_data(db, seed=config.seed, client=client, parts=parts,
-                                      progress=report if progress else None)
+            data = make_training_data(db, seed=config.seed, client=client, parts=parts, workers=workers,
+                                      progress=report if progress else None, cache=cache)
         finally:
             for b in bars.values():
                 b.close()
-        data.save(cache, identity)
-    ck = None
-    if resume:
-        ck = read_checkpoint(out_path)
-        check_compatible(ck, db, out_path)
-        if ck["identity"] != identity:
-            raise InputFileError(out_path, f"identity: trained on another database than {db.path}; resume needs the same one")
-        saved = dict(ck["config"])
-        saved["betas"] = tuple(saved["betas"])
-        saved.update(iterations=config.iterations, checkpoint_every_s=config.checkpoint_every_s)
-        config = TrainConfig(**saved)
     tr = Trainer(data, config, identity, feature_identity(db))
     if ck is not None:
         tr.restore(ck)
