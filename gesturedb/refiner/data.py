@@ -25,7 +25,7 @@ their audio are the database's own frames: they are kept once per frame, not
 once per window (a frame is in ``window / stride`` = 13 windows), and sliced
 per batch. The fakes are read from the cache file through a memory map, so
 training holds neither the fakes nor the real windows whole in memory (about
-166 kB per window before: 20 GB at paper scale).
+173 kB per window before: 20 GB at paper scale).
 
 Making the fakes takes two passes: the self-search (one batched kernel call
 per chunk of windows, or over shards on Dask workers) and the assembly of every
@@ -220,7 +220,7 @@ _OPEN: dict = {}
 _OPEN_LOCK = threading.Lock()
 
 
-def assemble_windows(db, frame_maps: np.ndarray, seams: np.ndarray, joints: np.ndarray) -> np.ndarray:
+def assemble_windows(db, frame_maps: np.ndarray, seams, joints: np.ndarray) -> np.ndarray:
     """The gesture channels of k-NN paths assembled as synthesis assembles them.
 
     Parameters
@@ -365,33 +365,24 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
         _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, client=client, workers=workers)
         audio, real = frame_arrays(db, joints)
         return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks)
-    import h5py
-
-    from gesturedb.io.atomic import temporary_name
+    from gesturedb.db.storage import write_atomically
 
     cache = os.fspath(cache)
     settings = cache_settings(db, seed=seed, window=window, stride=stride)
-    tmp = temporary_name(cache)
-    try:
-        with h5py.File(tmp, "w") as h5:
-            for k, v in settings.items():
-                h5.attrs[k] = v
-            h5.attrs["content"] = ("fakes of the gesturedb refiner's training windows: knn[w] is the k-NN "
-                                   "synthesis (channels x frames) of the audio of frames starts[w] + 0..window-1")
-            for k, v in (("starts", starts), ("ks", ks), ("joints", joints)):
-                h5[k] = v
-            # contiguous (no chunks, no filters), so that load_cache can memory-map it
-            knn = h5.create_dataset("knn", shape=shape, dtype=np.float32)
-            _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, client=client, workers=workers)
-        os.replace(tmp, cache)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise InputFileError(cache, f"cannot write the training-data cache: {exc.strerror or exc}") from None
-        raise
+
+    def fill(h5):
+        for k, v in settings.items():
+            h5.attrs[k] = v
+        h5.attrs["content"] = ("fakes of the gesturedb refiner's training windows: knn[w] is the k-NN "
+                               "synthesis (channels x frames) of the audio of frames starts[w] + 0..window-1")
+        for k, v in (("starts", starts), ("ks", ks), ("joints", joints)):
+            h5[k] = v
+        # contiguous (no chunks, no filters), so that load_cache can memory-map it
+        knn = h5.create_dataset("knn", shape=shape, dtype=np.float32)
+        _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, client=client, workers=workers)
+
+    # a temporary sibling renamed on success, removed on any failure, Ctrl-C or SIGTERM
+    write_atomically(cache, fill)
     data = load_cache(cache, db, settings)
     if data is None:  # pragma: no cover - the file was just written
         raise InputFileError(cache, "the training-data cache just written could not be read back")
