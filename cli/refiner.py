@@ -20,7 +20,8 @@ def add_parser(sub) -> None:
     t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
     t.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
-                   help="run the training windows' self-search over --parts shards on Dask workers (same data)")
+                   help="run the training windows' self-search over --parts shards on Dask workers, and their "
+                   "assembly on the same workers (same data)")
     t.add_argument("--parts", type=int, default=2, help="shards with --scheduler (default: %(default)s)")
     t.add_argument("-j", "--workers", type=int, default=min(2, os.cpu_count() or 1),
                    help="local processes assembling the training windows without --scheduler (default: %(default)s)")

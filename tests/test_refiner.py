@@ -205,13 +205,15 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
                               capture_output=True, text=True, timeout=600)
 
     ck = tmp_path / "refiner.pt"
-    r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 2, "--batch", 4, "--threads", 1)
+    r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 2, "--batch", 4, "--threads", 1,
+            "--seed", 5)
     assert r.returncode == 0, r.stderr
-    assert (tmp_path / "refiner.pt.data.h5").is_file()
+    assert (tmp_path / "refiner.pt.data.h5").is_file() and "searching the database" in r.stderr
+    # resumed without --seed: it keeps its own seed, so its cached training data is still its own
     r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 3, "--batch", 4, "--resume")
     assert r.returncode == 0, r.stderr
-    assert "trained 3 iterations" in r.stdout
-    assert read_checkpoint(ck)["iteration"] == 3
+    assert "trained 3 iterations" in r.stdout and "searching the database" not in r.stderr
+    assert read_checkpoint(ck)["iteration"] == 3 and read_checkpoint(ck)["config"]["seed"] == 5
     # checkpoint and cache went through temporary siblings that were renamed: nothing else is left
     # (but the cache's write lock, as beside every database)
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == [
