@@ -366,15 +366,18 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
             world_metrics(pos, fps=15, names=mdb.joint_names)["pelvis_speed_m_s"])
         assert r["average_jerk_m_s3"] == pytest.approx(
             M.average_jerk(E.metric_positions(pos, ev.root), fps=15, joints=joints))
-    # two starts take two paths through the database, and the main run is the mean start's
+    # two starts take two paths through the database; the main run is the default start's, seed 0's
     assert rows[0]["pelvis_speed_m_s"] != rows[1]["pelvis_speed_m_s"]
-    assert inp.metrics["ranksum_pose"]["pelvis_speed_m_s"] not in [r["pelvis_speed_m_s"] for r in rows]
+    assert inp.metrics["ranksum_pose"]["pelvis_speed_m_s"] == rows[0]["pelvis_speed_m_s"]
+    # and the mean start (--init mean) is a third path
+    mean_run = E.evaluate_inputs(mdb, [wav], systems=["ranksum_pose"], init="mean").inputs[0]
+    assert mean_run.metrics["ranksum_pose"]["pelvis_speed_m_s"] not in [r["pelvis_speed_m_s"] for r in rows]
     v = [r["pelvis_speed_m_s"] for r in rows]
     assert inp.starts_summary()["ranksum_pose"]["pelvis_speed_m_s"] == pytest.approx(
         dict(mean=np.mean(v), sd=np.std(v), min=min(v), max=max(v)))
     txt = ev.to_text()
     part = txt[txt.index("from 2 random starting poses"):]
-    assert "rank-sum, pose pre-selection, mean start" in part and "2 random starts" in part
+    assert "rank-sum, pose pre-selection, random start (seed 0)" in part and "2 random starts" in part
     assert "vs GT" not in part  # no ground truth for new speech: no column of NaNs
     d = json.loads(json.dumps(ev.to_dict()))
     assert [r["seed"] for r in d["inputs"][0]["starts"]["ranksum_pose"]] == [0, 1]

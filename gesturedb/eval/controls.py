@@ -28,6 +28,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError, SearchError
+from gesturedb.synth.matching import DEFAULT_INIT
 from gesturedb.eval.common import _fmt, _read_samples, _stats, feature_joint_indices, json_clean
 
 #: Default share of the unconstrained standard deviation a controlled synthesis must keep.
@@ -248,7 +249,7 @@ def evaluate_controls(
     cases: Sequence[ControlCase] = TABLE2_CASES,
     k: int = 1,
     preselect: str = "pose",
-    init: str = "mean",
+    init: str = DEFAULT_INIT,
     seed: int | None = 0,
     step: int = 8,
     blend_frames: int = 4,

@@ -59,6 +59,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError, SearchError
+from gesturedb.synth.matching import DEFAULT_INIT
 from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is where callers look)
     SYSTEM_LABELS, SYSTEMS, _centred, _fmt, _read_samples, _stats, feature_joint_indices,
     json_clean, metric_positions, upper_body_joints,
@@ -173,7 +174,7 @@ def synthesize_systems(
     transcript=None,
     keywords: bool = False,
     k: int = 1,
-    init: str = "mean",
+    init: str = DEFAULT_INIT,
     seed: int | None = 0,
     step: int = 8,
     blend_frames: int = 4,
@@ -752,7 +753,7 @@ def evaluate_inputs(
     systems: Sequence[str] = SYSTEMS[1:],
     controls: bool = False,
     k: int = 1,
-    init: str = "mean",
+    init: str = DEFAULT_INIT,
     seed: int | None = 0,
     step: int = 8,
     blend_frames: int = 4,
@@ -872,7 +873,7 @@ def evaluate_holdout(
     systems: Sequence[str] = SYSTEMS,
     controls: bool = False,
     k: int = 1,
-    init: str = "mean",
+    init: str = DEFAULT_INIT,
     seed: int | None = 0,
     step: int = 8,
     blend_frames: int = 4,

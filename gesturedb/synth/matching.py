@@ -6,15 +6,16 @@ standardisation, picks the initial pose (mean pose or a seeded random frame),
 turns control schedules and keyword sub-databases into per-step bitsets, runs
 the rank-sum search and assembles the chosen windows into a :class:`Motion`.
 
-Window boundaries. The paper copies the chosen windows back to back. Here
-every frame keeps the placement of its own recording, normalised once so that
-each recording's mean floor position is the origin and its mean heading +z
-(chaining windows onto each other's heading would integrate the source's small
-turns into a slow spin), and a short cross-fade (``blend_frames``, default 4
-frames) slerps from the natural continuation of the previous window into the
-new one, so the seam carries no step in position or velocity.
-``blend_frames=0`` switches the cross-fade off: back-to-back copies as in the
-paper.
+The first step's previous pose is by default a database frame drawn with
+``seed`` (:data:`DEFAULT_INIT`), as the paper initialises the k-NN "in all
+experiments" (Sec. 4) and as the refiner's training paths start; ``init="mean"``
+(the paper's other option) starts from the mean pose.
+
+Window boundaries, placement and foot contacts are the shared assembly's
+(:mod:`gesturedb.synth.assemble`): each window continues the output's root from
+where it is and a short cross-fade (``blend_frames``, default 4 frames) removes
+the seam's step in position and velocity; ``blend_frames=0`` copies the windows
+back to back as in the paper.
 """
 from __future__ import annotations
 
@@ -26,6 +27,18 @@ from gesturedb.errors import ParameterError, SearchError
 from gesturedb.synth.assemble import assemble_frames
 from gesturedb.synth.repeats import DEFAULT_REPEAT_GUARD_S, check_guard_s, guarded_search, repeat_of, repeat_stats
 from gesturedb.synth.result import SynthResult
+
+#: Initial-pose choices of :meth:`Searcher.initial_pose`.
+INIT_CHOICES = ("random", "mean")
+#: The default initial pose: a seeded random database frame, the paper's setting
+#: for all its experiments (Habibie et al. 2022, Sec. 4) and the start of every
+#: path the refiner is trained on (gesturedb.refiner.data), so that a refined
+#: synthesis sees the kind of path its refiner learnt from. The mean pose is an
+#: average no one holds; on the held-out BEAT2 stretch its path moved the pelvis
+#: at 1.41x the capture's speed against 0.92x from seed 0 and 1.02x on average
+#: over seeds 0-7 (README, "The body slides"); on the four inputs both were
+#: within the capture's range.
+DEFAULT_INIT = "random"
 
 
 def speech_samples(db, audio, sr: int | None = None):
@@ -129,15 +142,16 @@ class Searcher:
         raw = audio_features(samples, sr, fps=self.db.fps, n_frames=T, n_mfcc=n_mfcc).astype(np.float64)
         return ((raw - self.db.audio_mean) / self.db.audio_std).astype(np.float32)
 
-    def initial_pose(self, init: str = "mean", *, seed: int | None = 0) -> np.ndarray:
-        """The first step's previous pose: the database mean pose or a seeded random frame (Sec. 3.1)."""
+    def initial_pose(self, init: str = DEFAULT_INIT, *, seed: int | None = 0) -> np.ndarray:
+        """The first step's previous pose (Sec. 3.1), (Dp,) float32: a random database frame drawn
+        with ``seed`` (None: unseeded) or the database's mean pose feature."""
         P = self.db.pose_features
         if init == "mean":
             return P.mean(axis=0, dtype=np.float64).astype(np.float32)
         if init == "random":
             rng = np.random.default_rng(seed)
             return np.array(P[int(rng.integers(P.shape[0]))], dtype=np.float32)
-        raise ParameterError(f"init: expected 'mean' or 'random', got {init!r}")
+        raise ParameterError(f"init: expected 'random' or 'mean', got {init!r}")
 
     def exclude_recordings(self, names) -> np.ndarray | None:
         """bool per segment: True for segments of the named recordings (e.g. a query's own recording)."""
@@ -159,7 +173,7 @@ class Searcher:
         transcript=None,
         k: int = 1,
         preselect: str = "pose",
-        init: str = "mean",
+        init: str = DEFAULT_INIT,
         seed: int | None = 0,
         step: int = 8,
         blend_frames: int = 4,
@@ -182,8 +196,9 @@ class Searcher:
         k : int
             Take the k-th best candidate of each step (1 = best).
         preselect : {"pose", "audio"}
-        init : {"mean", "random"}
-            Initial previous pose; ``seed`` picks the random frame.
+        init : {"random", "mean"}
+            Initial previous pose: a database frame drawn with ``seed`` (default,
+            as the paper's experiments) or the mean pose.
         step : int
             N, frames per search step (8).
         blend_frames : int
