@@ -278,6 +278,18 @@ def test_holdout_has_every_system_and_the_ground_truth(holdout, scott_dir):
     assert inp.metrics["random"]["average_jerk_m_s3"] > gt_row["average_jerk_m_s3"]
 
 
+def test_default_search_meets_the_placement_goals_on_the_held_out_stretch(holdout):
+    """Issue 9's goals, with the default settings (random start, seed 0), against the capture
+    it never saw: pelvis mean speed within 1.3x, largest per-frame root step within 1.5x and foot
+    skating within 1.5x. The mean start (the old default) moves the pelvis at 1.41x here."""
+    m = holdout.inputs[0].metrics
+    assert holdout.settings["init"] == "random" and holdout.settings["seed"] == 0
+    gt, got = m["ground_truth"], m["ranksum_pose"]
+    assert got["pelvis_speed_m_s"] <= 1.3 * gt["pelvis_speed_m_s"]
+    assert got["max_root_step_m"] <= 1.5 * gt["max_root_step_m"]
+    assert got["foot_skating_m_s"] <= 1.5 * gt["foot_skating_m_s"]
+
+
 def test_holdout_metrics_cross_check_the_metric_functions(holdout):
     from gesturedb.eval import metrics as M
 
