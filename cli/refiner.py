@@ -16,6 +16,9 @@ def add_parser(sub) -> None:
     t.add_argument("--iterations", type=int, default=2000, help="generator updates in all (default: 2000)")
     t.add_argument("--batch", type=int, default=32)
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--stride", type=int, default=5, metavar="FRAMES",
+                   help="frames between training windows (default: 5, the paper's); a larger stride searches and "
+                   "caches fewer windows, for large databases")
     t.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
@@ -53,11 +56,11 @@ def run(args) -> int:
         check_outputs({"-o": args.output, "-o (cache)": args.output + ".data.h5"}, [args.db])
         from gesturedb.refiner.train import TrainConfig, train
 
-        for name in ("iterations", "batch", "threads", "parts", "workers"):
+        for name in ("iterations", "batch", "stride", "threads", "parts", "workers"):
             _positive(name, getattr(args, name))
         if args.threads:
             torch.set_num_threads(args.threads)
-        cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed,
+        cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed, stride=args.stride,
                           checkpoint_every_s=args.checkpoint_every)
         from contextlib import nullcontext
 

@@ -205,8 +205,10 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
                               capture_output=True, text=True, timeout=600)
 
     ck = tmp_path / "refiner.pt"
+    r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 2, "--batch", 4, "--stride", 0)
+    assert r.returncode != 0 and "--stride: expected a positive integer, got 0" in r.stderr
     r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 2, "--batch", 4, "--threads", 1,
-            "--seed", 5)
+            "--seed", 5, "--stride", 9)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "refiner.pt.data.h5").is_file() and "searching the database" in r.stderr
     # resumed without --seed: it keeps its own seed, so its cached training data is still its own
@@ -214,6 +216,17 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "trained 3 iterations" in r.stdout and "searching the database" not in r.stderr
     assert read_checkpoint(ck)["iteration"] == 3 and read_checkpoint(ck)["config"]["seed"] == 5
+    # and its own stride: the cached windows are every 9th frame's, not the default 5th
+    import h5py
+
+    import gesturedb
+    from gesturedb.refiner.data import window_starts
+
+    assert read_checkpoint(ck)["config"]["stride"] == 9 and "stride 9" in read_checkpoint(ck)["data"]
+    with gesturedb.open(scott_db_path) as db, h5py.File(tmp_path / "refiner.pt.data.h5", "r") as f:
+        assert f.attrs["stride"] == 9
+        np.testing.assert_array_equal(f["starts"][:], window_starts(db, stride=9))
+        assert len(window_starts(db, stride=9)) < len(window_starts(db))
     # checkpoint and cache went through temporary siblings that were renamed: nothing else is left
     # (but the cache's write lock, as beside every database)
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == [

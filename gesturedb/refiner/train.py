@@ -51,9 +51,13 @@ class TrainConfig:
     width: int = 64  # 128 trains 1.5x slower on 2 CPU cores for no gain we could measure in minutes
     seed: int = 0
     checkpoint_every_s: float = 120.0
+    # frames between training windows (the paper's 5): every frame is in window / stride
+    # windows; a larger stride samples fewer windows, and the fakes' cache (83 kB a window)
+    # and the self-search shrink with it, for databases far past the paper's 11 hours
+    stride: int = STRIDE
 
     def check(self) -> "TrainConfig":
-        for name in ("iterations", "batch", "n_critic", "width"):
+        for name in ("iterations", "batch", "n_critic", "width", "stride"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ParameterError(f"{name}: expected a positive integer, got {v!r}")
@@ -147,8 +151,8 @@ class Trainer:
             "identity": self.identity,
             "features": self.features,
             "joints": torch.from_numpy(self.data.joints),
-            "data": "own windows (64 frames, stride 5); fakes exclude the window's neighbourhood "
-                    "(64 frames each side) in its own recording and its mirrored copy",
+            "data": f"own windows ({WINDOW} frames, stride {self.config.stride}); fakes exclude the window's "
+                    f"neighbourhood ({WINDOW} frames each side) in its own recording and its mirrored copy",
         }
 
     def save(self, path) -> None:
@@ -220,7 +224,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     if not os.path.isdir(folder):
         raise ParameterError(f"output: folder {folder} does not exist")
     identity = database_identity(db)
-    # a resumed run keeps its own settings, the seed of its training data included
+    # a resumed run keeps its own settings, the seed and stride of its training data included
     ck = None
     if resume:
         ck = read_checkpoint(out_path)
@@ -232,7 +236,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         saved.update(iterations=config.iterations, checkpoint_every_s=config.checkpoint_every_s)
         config = TrainConfig(**saved)
     cache = out_path + ".data.h5"
-    settings = cache_settings(db, seed=config.seed, window=WINDOW, stride=STRIDE)
+    settings = cache_settings(db, seed=config.seed, window=WINDOW, stride=config.stride)
     data = load_cache(cache, db, settings)
     if data is None:
         if log:
@@ -249,7 +253,8 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
             bars[stage].update(done - bars[stage].n)
 
         try:
-            data = make_training_data(db, seed=config.seed, client=client, parts=parts, workers=workers,
+            data = make_training_data(db, seed=config.seed, stride=config.stride, client=client, parts=parts,
+                                      workers=workers,
                                       progress=report if progress else None, cache=cache)
         finally:
             for b in bars.values():
