@@ -28,8 +28,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError, SearchError
-from gesturedb.synth.matching import DEFAULT_INIT
 from gesturedb.eval.common import _fmt, _read_samples, _stats, feature_joint_indices, json_clean
+from gesturedb.synth.matching import DEFAULT_INIT
 
 #: Default share of the unconstrained standard deviation a controlled synthesis must keep.
 DEFAULT_MIN_STD_RATIO = 0.3

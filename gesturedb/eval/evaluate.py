@@ -59,7 +59,6 @@ from typing import Any, Sequence
 import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError, SearchError
-from gesturedb.synth.matching import DEFAULT_INIT
 from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is where callers look)
     SYSTEM_LABELS, SYSTEMS, _centred, _fmt, _read_samples, _stats, feature_joint_indices,
     json_clean, metric_positions, upper_body_joints,
@@ -67,6 +66,7 @@ from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is whe
 from gesturedb.eval.controls import (  # noqa: F401
     DEFAULT_MIN_STD_RATIO, TABLE2_CASES, ControlCase, ControlRow, ControlsReport, evaluate_controls,
 )
+from gesturedb.synth.matching import DEFAULT_INIT
 
 __all__ = [
     "SYSTEMS",
