@@ -4,6 +4,8 @@ from __future__ import annotations
 import os
 import sys
 
+from gesturedb.refiner.data import STRIDE  # no torch: the data module is plain numpy
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser("refiner", help="train a cGAN refiner on a database, or refine existing motion",
@@ -16,9 +18,9 @@ def add_parser(sub) -> None:
     t.add_argument("--iterations", type=int, default=2000, help="generator updates in all (default: 2000)")
     t.add_argument("--batch", type=int, default=32)
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--stride", type=int, default=5, metavar="FRAMES",
-                   help="frames between training windows (default: 5, the paper's); a larger stride searches and "
-                   "caches fewer windows, for large databases")
+    t.add_argument("--stride", type=int, default=STRIDE, metavar="FRAMES",
+                   help="frames between training windows (default: %(default)s, the paper's); a larger stride "
+                   "searches and caches fewer windows, for large databases")
     t.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")

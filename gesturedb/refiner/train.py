@@ -254,8 +254,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
 
         try:
             data = make_training_data(db, seed=config.seed, stride=config.stride, client=client, parts=parts,
-                                      workers=workers,
-                                      progress=report if progress else None, cache=cache)
+                                      workers=workers, progress=report if progress else None, cache=cache)
         finally:
             for b in bars.values():
                 b.close()
