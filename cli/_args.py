@@ -1,8 +1,11 @@
-"""argparse types with ranges: a number out of range is a one-line usage error, never a traceback."""
+"""argparse helpers shared by the commands: types with ranges (a number out of range is a
+one-line usage error, never a traceback) and options that several commands take alike."""
 from __future__ import annotations
 
 import argparse
 import math
+
+from gesturedb.synth.matching import DEFAULT_INIT, INIT_CHOICES
 
 
 def int_range(lo: int, hi: int):
@@ -31,3 +34,10 @@ def float_range(lo: float, hi: float):
         return v
     parse.__name__ = "number"
     return parse
+
+
+def add_init_argument(parser) -> None:
+    """``--init``, the search's initial pose, as ``synth`` and ``eval`` take it (its seed is ``--seed``)."""
+    parser.add_argument("--init", choices=INIT_CHOICES, default=DEFAULT_INIT,
+                        help="initial pose: a database frame drawn with --seed (default, as the paper's "
+                        "experiments) or the mean pose")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 import sys
 
-from gesturedb.synth.matching import DEFAULT_INIT, INIT_CHOICES
+from gesturedb.cli._args import add_init_argument
 
 
 def _search_options(p, *, preselect: bool) -> None:
@@ -17,9 +17,7 @@ def _search_options(p, *, preselect: bool) -> None:
     g.add_argument("--k", type=int, default=1, help="take the k-th best candidate (default: 1)")
     if preselect:
         g.add_argument("--preselect", choices=("pose", "audio"), default="pose")
-    g.add_argument("--init", choices=INIT_CHOICES, default=DEFAULT_INIT,
-                   help="initial pose: a database frame drawn with --seed (default, as the paper's experiments) "
-                   "or the mean pose")
+    add_init_argument(g)
     g.add_argument("--seed", type=int, default=0, help="seed of --init random and of the random baseline")
     g.add_argument("--step", type=int, default=8, help="frames per search step N (default: 8)")
     g.add_argument("--blend", type=int, default=4, dest="blend_frames",

@@ -3,9 +3,8 @@ from __future__ import annotations
 
 import os
 
-from gesturedb.cli._args import float_range, int_range
+from gesturedb.cli._args import add_init_argument, float_range, int_range
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
-from gesturedb.synth.matching import DEFAULT_INIT, INIT_CHOICES
 
 
 def add_parser(sub) -> None:
@@ -31,9 +30,7 @@ def add_parser(sub) -> None:
                    "(default: %(default)s; see gesturedb.features.pauses)")
     p.add_argument("--k", type=int_range(1, 10**6), default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
-    p.add_argument("--init", choices=INIT_CHOICES, default=DEFAULT_INIT,
-                   help="initial pose: a database frame drawn with --seed (default, as the paper's experiments) "
-                   "or the mean pose")
+    add_init_argument(p)
     p.add_argument("--seed", type=int_range(0, 2**63 - 1), default=0, help="seed for --init random")
     p.add_argument("--step", type=int_range(1, 10**5), default=8, help="frames per search step N (default: 8)")
     p.add_argument("--blend", type=int_range(0, 10**5), default=None, dest="blend_frames",

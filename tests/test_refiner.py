@@ -4,12 +4,14 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import h5py
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch", reason="the refiner extra (torch==2.13.0) is not installed: "
                                            "pip install '.[refiner]'")
 
+import gesturedb  # noqa: E402
 from gesturedb import rotations as R  # noqa: E402
 from gesturedb.errors import InputFileError  # noqa: E402
 from gesturedb.refiner.data import (  # noqa: E402
@@ -217,11 +219,6 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     assert "trained 3 iterations" in r.stdout and "searching the database" not in r.stderr
     assert read_checkpoint(ck)["iteration"] == 3 and read_checkpoint(ck)["config"]["seed"] == 5
     # and its own stride: the cached windows are every 9th frame's, not the default 5th
-    import h5py
-
-    import gesturedb
-    from gesturedb.refiner.data import window_starts
-
     assert read_checkpoint(ck)["config"]["stride"] == 9 and "stride 9" in read_checkpoint(ck)["data"]
     with gesturedb.open(scott_db_path) as db, h5py.File(tmp_path / "refiner.pt.data.h5", "r") as f:
         assert f.attrs["stride"] == 9

@@ -151,7 +151,7 @@ class Searcher:
         if init == "random":
             rng = np.random.default_rng(seed)
             return np.array(P[int(rng.integers(P.shape[0]))], dtype=np.float32)
-        raise ParameterError(f"init: expected 'random' or 'mean', got {init!r}")
+        raise ParameterError(f"init: expected {' or '.join(map(repr, INIT_CHOICES))}, got {init!r}")
 
     def exclude_recordings(self, names) -> np.ndarray | None:
         """bool per segment: True for segments of the named recordings (e.g. a query's own recording)."""
