@@ -60,16 +60,16 @@ def test_guard_zero_frames_is_the_kernel_search_and_the_guard_follows_the_spec()
     init = P[7]
     full = full_mask(F)
     # one step at a time with no window recent enough to guard: the kernel's own loop
-    d = guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=init, pose=P, step=8, allowed=None,
-                       full=full, guard_frames=0, no_candidate=_no_candidate)
+    d = guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=init, step=8, allowed=None,
+                       pose_row=P.__getitem__, full=full, guard_frames=0, no_candidate=_no_candidate)
     whole = search.rank_sum_search(P, A, st, ln, query, init, step=8)
     for f in ("segments", "starts", "frames", "lengths", "out_frames", "pose_rank", "audio_rank", "n_candidates"):
         np.testing.assert_array_equal(d[f], getattr(whole, f), err_msg=f)
     np.testing.assert_array_equal(d["pose_dist"], whole.pose_dist)
     # with a guard of 40 frames: each step is the spec's choice among the windows that do not
     # overlap one placed within the last 40 output frames
-    g = guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=init, pose=P, step=8, allowed=None,
-                       full=full, guard_frames=40, no_candidate=_no_candidate)
+    g = guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=init, step=8, allowed=None,
+                       pose_row=P.__getitem__, full=full, guard_frames=40, no_candidate=_no_candidate)
     assert not g["relaxed"].any()
     prev = init
     changed = 0
@@ -99,15 +99,15 @@ def test_guard_steps_aside_when_it_would_empty_a_step():
     bits = np.zeros(F, bool)
     bits[st[2] + 5: st[2] + 15] = True  # three windows of 8 frames, all overlapping each other
     allowed = np.tile(pack_bits(bits), (5, 1))
-    g = guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=P[0], pose=P, step=8, allowed=allowed,
-                       full=full_mask(F), guard_frames=100, no_candidate=_no_candidate)
+    g = guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=P[0], step=8, allowed=allowed,
+                       pose_row=P.__getitem__, full=full_mask(F), guard_frames=100, no_candidate=_no_candidate)
     assert g["relaxed"].tolist() == [False, True, True, True, True]
     assert all(st[2] + 5 <= f <= st[2] + 7 for f in g["frames"])
     empty = allowed.copy()
     empty[3] = 0
     with pytest.raises(SearchError, match="step 3"):
-        guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=P[0], pose=P, step=8, allowed=empty,
-                       full=full_mask(F), guard_frames=100, no_candidate=_no_candidate)
+        guarded_search(_kernel_step(P, A, st, ln, 8), query=query, init_pose=P[0], step=8, allowed=empty,
+                       pose_row=P.__getitem__, full=full_mask(F), guard_frames=100, no_candidate=_no_candidate)
 
 
 @pytest.mark.slow

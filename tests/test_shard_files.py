@@ -11,6 +11,7 @@ import pytest
 import gesturedb
 from gesturedb.db import schema
 from gesturedb.db import shardfiles
+from gesturedb.db.database import Database
 from gesturedb.db.shardfiles import plan_shards, shard_database
 from gesturedb.errors import ParameterError, SchemaError
 
@@ -120,9 +121,78 @@ def test_workers_read_their_own_shard_files(db_copy, scott_dir, dask_client, mon
         for shard, path in zip(dask_client.gather(s._sharded.shards), rep.shards):
             with h5py.File(path, "r") as h5:
                 np.testing.assert_array_equal(shard.pose, h5["frames/pose_features"][()])
+        # the client held none of the per-frame arrays: it read the initial pose,
+        # the chosen windows and the placement's root rows from the shard files
+        assert not set(vars(idx)) & set(Database.FRAME_ARRAYS), sorted(vars(idx))
+        mean_one = Searcher(one).synthesize(speech, k=2, smooth=False, init="mean")
+        mean_idx = s.synthesize(speech, k=2, smooth=False, init="mean")
+        assert not set(vars(idx)) & set(Database.FRAME_ARRAYS), sorted(vars(idx))
         s._sharded.close()
     assert want.steps == got.steps
     np.testing.assert_array_equal(want.positions, got.positions)
+    assert mean_one.steps == mean_idx.steps and mean_one.steps != want.steps
+    np.testing.assert_array_equal(mean_one.positions, mean_idx.positions)
+
+
+@pytest.mark.parametrize("sharded", [False, True])
+def test_rows_and_means_are_the_arrays_without_loading_them(db_copy, sharded):
+    """Database.rows / frame_mean read from the file (through an index: from its
+    shard files) exactly what indexing the loaded arrays gives."""
+    path = shard_database(db_copy, 3).index if sharded else db_copy
+    rng = np.random.default_rng(4)
+    with gesturedb.open(path) as lazy, gesturedb.open(db_copy) as full:
+        F = full.n_frames
+        # runs across recordings and shard boundaries, any order, repeats, one frame, none
+        picks = [rng.integers(0, F, 40), np.arange(F), np.r_[np.arange(F - 9, F), np.arange(5)][::-1],
+                 np.array([F // 2, F // 2, 0]), np.array([F - 1]), np.zeros(0, np.int64)]
+        for name in Database.FRAME_ARRAYS:
+            arr = getattr(full, name)
+            for frames in picks:
+                got = lazy.rows(name, frames)
+                assert got.dtype == arr.dtype and got.shape == (frames.size,) + arr.shape[1:]
+                np.testing.assert_array_equal(got, arr[frames], err_msg=name)
+            assert name not in vars(lazy)
+        for col in (0, 7, -1):
+            np.testing.assert_array_equal(lazy.rows("local_rotations", picks[0], column=col),
+                                          full.local_rotations[picks[0], col])
+            np.testing.assert_array_equal(full.rows("local_rotations", picks[0], column=col),  # the loaded path
+                                          full.local_rotations[picks[0], col])
+        for name in ("pose_features", "local_rotations"):
+            want = getattr(full, name).mean(axis=0, dtype=np.float64)
+            for chunk in (1, 7, 16384):
+                assert np.array_equal(lazy.frame_mean(name, chunk=chunk), want), (name, chunk)
+            assert np.array_equal(full.frame_mean(name, chunk=100), want)
+        assert not set(vars(lazy)) & set(Database.FRAME_ARRAYS)
+        with pytest.raises(ParameterError, match=rf"frames: expected indices in 0..{F - 1} .*got {F}"):
+            lazy.rows("pose_features", [0, F])
+        with pytest.raises(ParameterError, match=r"frames: expected indices .*got -1"):
+            lazy.rows("pose_features", [-1])
+        with pytest.raises(ParameterError, match=r"frames: expected a 1-D array of frame indices.*float"):
+            lazy.rows("pose_features", [0.5])
+        with pytest.raises(ParameterError, match=r"name: expected one of .*pose_features.*got 'poses'"):
+            lazy.rows("poses", [0])
+        with pytest.raises(ParameterError, match=r"column: expected an index of the second axis of "
+                                                 r"root_positions .*got 3"):
+            lazy.rows("root_positions", [0], column=3)
+
+
+def test_placement_read_per_recording_is_the_whole_arrays_placement(db_copy):
+    """recording_placement reads one recording's root rows at a time; its sums are those
+    of one bincount over all frames (the code before it), bit for bit."""
+    from gesturedb.synth.assemble import _yaw_of, recording_placement
+
+    rep = shard_database(db_copy, 2)
+    with gesturedb.open(rep.index) as idx, gesturedb.open(db_copy) as db:
+        mean_yaw, centre = recording_placement(idx)
+        assert not set(vars(idx)) & set(Database.FRAME_ARRAYS)
+        rec = db.frame_recording
+        yaw = _yaw_of(np.asarray(db.local_rotations[:, 0], dtype=np.float64))
+        root = np.asarray(db.root_positions, dtype=np.float64)
+        n = len(db.recordings)
+        want_yaw = np.arctan2(np.bincount(rec, np.sin(yaw), n), np.bincount(rec, np.cos(yaw), n))
+        want = np.stack([np.bincount(rec, root[:, 0], n), np.zeros(n), np.bincount(rec, root[:, 2], n)], 1)
+        want /= np.maximum(np.bincount(rec, minlength=n), 1)[:, None]
+        assert n == 4 and np.array_equal(mean_yaw, want_yaw) and np.array_equal(centre, want)
 
 
 def test_the_set_moves_together(db_copy, tmp_path):

@@ -2,7 +2,10 @@
 
 Arrays are read on first use and kept (a 616k-frame database holds about 240 MB
 of pose features); per-frame arrays come back float32 C-contiguous so they can
-be handed to the search kernel without a copy.
+be handed to the search kernel without a copy. :meth:`Database.rows` and
+:meth:`Database.frame_mean` read a per-frame array's rows without loading it,
+for a client of a database larger than its memory (a sharded search reads the
+frames on the workers; the client needs only the chosen windows).
 """
 from __future__ import annotations
 
@@ -173,6 +176,92 @@ class Database:
         return arr
 
     # -- per-frame arrays -----------------------------------------------------
+    #: attribute -> dataset of the per-frame arrays :meth:`rows` reads
+    FRAME_ARRAYS = {"pose_features": "frames/pose_features", "audio_features": "frames/audio_features",
+                    "audio_deltas": "frames/audio_deltas", "joint_positions": "frames/joint_positions",
+                    "local_rotations": "frames/local_rotations", "root_positions": "frames/root_positions",
+                    "frame_recording": "frames/recording"}
+
+    def _frame_dataset(self, name: str):
+        """The h5py dataset of a per-frame array, checked once against the schema (dtype, F rows)."""
+        path = self.FRAME_ARRAYS.get(name)
+        if path is None:
+            raise ParameterError(f"name: expected one of {sorted(self.FRAME_ARRAYS)}, got {name!r}")
+        cache = self.__dict__.setdefault("_frame_datasets", {})
+        if path not in cache:
+            if path not in self._h5:
+                raise SchemaError(self.path, f"missing dataset {path!r} ({schema.FIELDS_BY_PATH[path].doc})")
+            ds = self._h5[path]
+            want = np.dtype(schema.FIELDS_BY_PATH[path].dtype)
+            if ds.dtype != want:
+                raise SchemaError(self.path, f"{path}: expected dtype {want}, got {ds.dtype}")
+            if ds.ndim < 1 or ds.shape[0] != self.n_frames:
+                raise SchemaError(self.path, f"{path}: expected {self.n_frames} frames, got shape {ds.shape}")
+            cache[path] = ds
+        return cache[path]
+
+    def rows(self, name: str, frames, *, column: int | None = None) -> np.ndarray:
+        """Rows of a per-frame array at database frames, without loading the whole array.
+
+        Parameters
+        ----------
+        name : str
+            A per-frame attribute (a key of :attr:`FRAME_ARRAYS`: ``"pose_features"``,
+            ``"local_rotations"``, ``"root_positions"``, ...).
+        frames : array-like of int [shape=(n,)]
+            Global frame indices in ``0..F-1``, in any order, repeats allowed.
+        column : int, optional
+            Only this index of the second axis (e.g. ``0``: the root joint of
+            ``local_rotations``), read as a strided selection.
+
+        Returns
+        -------
+        ndarray [shape=(n, ...)], the array's dtype
+            ``getattr(db, name)[frames]`` (``[frames, column]``), bit for bit. The
+            loaded array is indexed when there is one; otherwise each run of
+            consecutive frames is one read from the file (through an index
+            file, from its shard files).
+        """
+        frames = np.asarray(frames)
+        if frames.ndim != 1 or not (frames.size == 0 or np.issubdtype(frames.dtype, np.integer)):
+            raise ParameterError(f"frames: expected a 1-D array of frame indices, got shape {frames.shape} "
+                                 f"dtype {frames.dtype}")
+        frames = frames.astype(np.int64, copy=False)
+        F = self.n_frames
+        if frames.size and (int(frames.min()) < 0 or int(frames.max()) >= F):
+            bad = int(frames[(frames < 0) | (frames >= F)][0])
+            raise ParameterError(f"frames: expected indices in 0..{F - 1} ({self.path}), got {bad}")
+        ds = self._frame_dataset(name)
+        if column is not None and not (ds.ndim >= 2 and -ds.shape[1] <= column < ds.shape[1]):
+            raise ParameterError(f"column: expected an index of the second axis of {name} {ds.shape}, got {column}")
+        loaded = self.__dict__.get(name)
+        if loaded is not None:
+            return loaded[frames] if column is None else loaded[frames, column]
+        tail = ds.shape[1:] if column is None else ds.shape[2:]
+        if frames.size == 0:
+            return np.empty((0,) + tail, dtype=ds.dtype)
+        uniq, inv = np.unique(frames, return_inverse=True)
+        cut = np.flatnonzero(np.diff(uniq) != 1) + 1
+        parts = [ds[int(r[0]):int(r[-1]) + 1] if column is None else ds[int(r[0]):int(r[-1]) + 1, column]
+                 for r in np.split(uniq, cut)]
+        return np.concatenate(parts)[inv.reshape(-1)]
+
+    def frame_mean(self, name: str, *, chunk: int = 16384) -> np.ndarray:
+        """Mean over frames of a per-frame array, read ``chunk`` frames at a time.
+
+        Returns ndarray [shape=(...)], float64: ``getattr(db, name).mean(axis=0,
+        dtype=np.float64)`` bit for bit (numpy sums along the first axis one row
+        after another, and so does this, carrying the sum from chunk to chunk).
+        """
+        ds = self._frame_dataset(name)
+        loaded = self.__dict__.get(name)
+        src = ds if loaded is None else loaded
+        acc = np.zeros(ds.shape[1:], dtype=np.float64)
+        for a in range(0, self.n_frames, max(int(chunk), 1)):
+            block = np.asarray(src[a:a + chunk], dtype=np.float64)
+            acc = np.add.reduce(np.concatenate([acc[None], block]), axis=0)
+        return acc / self.n_frames
+
     @functools.cached_property
     def pose_features(self) -> np.ndarray:
         """ndarray [shape=(F, Dp)], float32 C-contiguous, metres (body frame)."""

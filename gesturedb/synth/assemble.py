@@ -61,8 +61,8 @@ from gesturedb import rotations as R
 from gesturedb.motion import Motion
 from gesturedb.synth.contacts import foot_contacts, foot_joints, plant_feet, smoothstep
 
-__all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "foot_contacts", "foot_joints",
-           "placed_frames", "savgol_smooth"]
+__all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "continuations", "foot_contacts",
+           "foot_joints", "placed_frames", "savgol_smooth"]
 
 #: Time constant (s) of the pull of the heading towards +z.
 HEADING_PULL_S = 2.0
@@ -131,13 +131,21 @@ def recording_placement(db) -> tuple[np.ndarray, np.ndarray]:
     """
     cached = _PLACEMENT.get(db)
     if cached is None:
-        rec = db.frame_recording
-        yaw = _yaw_of(np.asarray(db.local_rotations[:, 0], dtype=np.float64))
-        root = np.asarray(db.root_positions, dtype=np.float64)
+        # one recording at a time, the root joint only (Database.rows): a client of a
+        # sharded database never holds its rotations. bincount sums in frame order,
+        # so the sums are those of one bincount over all frames, bit for bit.
         n = len(db.recordings)
-        mean_yaw = np.arctan2(np.bincount(rec, np.sin(yaw), n), np.bincount(rec, np.cos(yaw), n))
-        centre = np.stack([np.bincount(rec, root[:, 0], n), np.zeros(n), np.bincount(rec, root[:, 2], n)], 1)
-        centre /= np.maximum(np.bincount(rec, minlength=n), 1)[:, None]
+        sums = np.zeros((n, 4))  # sin yaw, cos yaw, root x, root z
+        for r in db.recordings:
+            frames = np.arange(r.start_frame, r.stop_frame)
+            yaw = _yaw_of(np.asarray(db.rows("local_rotations", frames, column=0), dtype=np.float64))
+            root = np.asarray(db.rows("root_positions", frames), dtype=np.float64)
+            at = np.zeros(frames.size, dtype=np.intp)
+            for j, w in enumerate((np.sin(yaw), np.cos(yaw), root[:, 0], root[:, 2])):
+                sums[r.index, j] = np.bincount(at, w, 1)[0]
+        mean_yaw = np.arctan2(sums[:, 0], sums[:, 1])
+        centre = np.stack([sums[:, 2], np.zeros(n), sums[:, 3]], 1)
+        centre /= np.maximum(np.array([r.n_frames for r in db.recordings], dtype=np.int64), 1)[:, None]
         cached = _PLACEMENT[db] = (mean_yaw, centre)
     return cached
 
@@ -146,22 +154,37 @@ def placed_frames(db, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Local rotations (n, J, 4) and root positions (n, 3) of database frames, normalised per recording."""
     frames = np.asarray(frames, dtype=np.int64)
     mean_yaw, centre = recording_placement(db)
-    rec = db.frame_recording[frames]
-    rot = np.asarray(db.local_rotations[frames], dtype=np.float64)
-    root = np.asarray(db.root_positions[frames], dtype=np.float64)
+    rec = db.rows("frame_recording", frames)
+    rot = np.asarray(db.rows("local_rotations", frames), dtype=np.float64)
+    root0 = np.asarray(db.rows("root_positions", frames), dtype=np.float64)
     q = _yaw_quat(-mean_yaw[rec])
-    root = R.apply(q, root - centre[rec])
-    root[:, 1] = np.asarray(db.root_positions[frames, 1], dtype=np.float64)
+    root = R.apply(q, root0 - centre[rec])
+    root[:, 1] = root0[:, 1]
     rot[:, 0] = R.multiply(q, rot[:, 0])
     return rot, root
 
 
 def continuation(db, last_frame: int, n: int) -> np.ndarray:
     """Up to ``n`` database frames that follow ``last_frame`` in its own recording (fewer where it ends)."""
-    cont = int(last_frame) + 1 + np.arange(n)
-    ok = cont < db.n_frames
-    ok[ok] &= db.frame_recording[cont[ok]] == db.frame_recording[int(last_frame)]
-    return cont if ok.all() else cont[: int(np.argmin(ok))]
+    return continuations(db, [last_frame], [n])[0]
+
+
+def continuations(db, last_frames, ns) -> list[np.ndarray]:
+    """:func:`continuation` of many frames, with one read of the recordings of the frames involved.
+
+    last_frames, ns : sequences of int [length K]
+    Returns a list of K int64 arrays.
+    """
+    lasts = np.asarray(last_frames, dtype=np.int64).reshape(-1)
+    cands = [int(f) + 1 + np.arange(max(int(n), 0), dtype=np.int64) for f, n in zip(lasts, ns)]
+    cands = [c[c < db.n_frames] for c in cands]
+    rec = db.rows("frame_recording", np.concatenate([lasts] + cands))
+    out, at = [], lasts.size
+    for i, c in enumerate(cands):
+        same = rec[at:at + c.size] == rec[i]
+        at += c.size
+        out.append(c if same.all() else c[: int(np.argmin(same))])
+    return out
 
 
 def _wrap(a):
@@ -332,16 +355,25 @@ def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, blend_frames:
     """
     source = np.asarray(source, dtype=np.int64)
     starts = [int(s) for s in starts]
+    ends = starts[1:] + [source.shape[0]]
+    # every frame the pieces and their lead-ins use, read at once: a database
+    # that is not loaded (Database.rows) costs one read per run of frames, not
+    # several per piece
+    seams = [i for i, a in enumerate(starts) if a > 0 and blend_frames > 0]
+    conts = [np.zeros(0, np.int64)] * len(starts)
+    for i, c in zip(seams, continuations(db, [source[starts[i] - 1] for i in seams],
+                                         [min(blend_frames, ends[i] - starts[i]) for i in seams])):
+        conts[i] = c
+    used = np.concatenate([source] + conts)
+    rot_all, root_all = placed_frames(db, used)
     pieces = []
-    for i, a in enumerate(starts):
-        b = starts[i + 1] if i + 1 < len(starts) else source.shape[0]
-        rot, root = placed_frames(db, source[a:b])
+    at = source.shape[0]
+    for a, b, cont in zip(starts, ends, conts):
         lead_in = None
-        if a > 0 and blend_frames > 0:
-            cont = continuation(db, int(source[a - 1]), min(blend_frames, b - a))
-            if cont.size:
-                lead_in = placed_frames(db, cont)
-        pieces.append(Piece(out_start=a, rotations=rot, root=root, lead_in=lead_in))
+        if cont.size:
+            lead_in = (rot_all[at:at + cont.size], root_all[at:at + cont.size])
+            at += cont.size
+        pieces.append(Piece(out_start=a, rotations=rot_all[a:b], root=root_all[a:b], lead_in=lead_in))
     return assemble_pieces(db.skeleton, db.fps, pieces, n_frames=source.shape[0],
                            blend_frames=blend_frames, smooth=smooth, placement=placement, lock_feet=lock_feet)
 

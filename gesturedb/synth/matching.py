@@ -145,12 +145,13 @@ class Searcher:
     def initial_pose(self, init: str = DEFAULT_INIT, *, seed: int | None = 0) -> np.ndarray:
         """The first step's previous pose (Sec. 3.1), (Dp,) float32: a random database frame drawn
         with ``seed`` (None: unseeded) or the database's mean pose feature."""
-        P = self.db.pose_features
+        # rows and chunks, not the whole matrix: a client searching over shards
+        # never loads the pose features
         if init == "mean":
-            return P.mean(axis=0, dtype=np.float64).astype(np.float32)
+            return self.db.frame_mean("pose_features").astype(np.float32)
         if init == "random":
             rng = np.random.default_rng(seed)
-            return np.array(P[int(rng.integers(P.shape[0]))], dtype=np.float32)
+            return np.array(self.db.rows("pose_features", [int(rng.integers(self.db.n_frames))])[0], dtype=np.float32)
         raise ParameterError(f"init: expected {' or '.join(map(repr, INIT_CHOICES))}, got {init!r}")
 
     def exclude_recordings(self, names) -> np.ndarray | None:
@@ -305,7 +306,8 @@ class Searcher:
                 from gesturedb.control import full_mask
                 from gesturedb.search import SearchResult, _no_candidate_error
 
-                d = guarded_search(search, query=query, init_pose=init_pose, pose=db.pose_features, step=step,
+                d = guarded_search(search, query=query, init_pose=init_pose, step=step,
+                                   pose_row=lambda f: db.rows("pose_features", [f])[0],
                                    allowed=allowed, full=full_mask(db.n_frames),
                                    guard_frames=int(round(guard_s * db.fps)),
                                    no_candidate=lambda i, t, n, row: _no_candidate_error(
@@ -321,9 +323,10 @@ class Searcher:
         source = res.frame_map()
         steps = []
         recs = db.recordings
+        rec_of = db.rows("frame_recording", np.asarray(res.frames, dtype=np.int64))
         for i in range(len(res.segments)):
             t, g, n = int(res.out_frames[i]), int(res.frames[i]), int(res.lengths[i])
-            rec = recs[int(db.frame_recording[g])]
+            rec = recs[int(rec_of[i])]
             label = labels[i] if labels is not None else None
             steps.append({
                 "step": i,

@@ -63,7 +63,7 @@ def clear_frames(words: np.ndarray, frames: list[tuple[int, int]]) -> np.ndarray
     return out
 
 
-def guarded_search(search, *, query: np.ndarray, init_pose: np.ndarray, pose: np.ndarray, step: int,
+def guarded_search(search, *, query: np.ndarray, init_pose: np.ndarray, pose_row, step: int,
                    allowed: np.ndarray | None, full: np.ndarray, guard_frames: int, no_candidate):
     """The rank-sum search one step at a time, with recently used windows taken out of each step's allowed set.
 
@@ -73,8 +73,10 @@ def guarded_search(search, *, query: np.ndarray, init_pose: np.ndarray, pose: np
         One step of the search (the kernel, or the sharded search) on an ``n``-frame query.
     query : ndarray [shape=(T, Da)], float32
     init_pose : ndarray [shape=(Dp,)], float32
-    pose : ndarray [shape=(F, Dp)], float32
-        The database's pose features (the next step's previous pose is the last copied frame).
+    pose_row : callable ``(frame) -> ndarray [shape=(Dp,)]``
+        The database's pose feature of a frame (the next step's previous pose is the
+        last copied frame): ``pose.__getitem__``, or ``Database.rows`` for a client
+        that does not hold the pose features.
     step : int
         N, frames per step.
     allowed : ndarray [shape=(S, W)], uint64, or None
@@ -127,7 +129,7 @@ def guarded_search(search, *, query: np.ndarray, init_pose: np.ndarray, pose: np
         out["audio_dist"][i] = float(res.audio_dist[0])
         g = int(res.frames[0])
         used.append((t, g, n))
-        prev = np.ascontiguousarray(pose[g + n - 1], dtype=np.float32)
+        prev = np.ascontiguousarray(pose_row(g + n - 1), dtype=np.float32)
     return out
 
 
