@@ -324,3 +324,71 @@ def test_sharded_batch_on_the_real_database_and_its_errors(dask_client, scott_db
         assert str(got.value) == str(want.value) and got.value.query == 3
     finally:
         sh.close()
+
+
+def test_sharded_search_with_rows_sent_sparse(dask_client, monkeypatch):
+    """Allowed rows reach the shards as words, or as the few words that differ from a
+    full row (the repeat guard's cleared windows) or from an empty one (a keyword
+    sub-database), for the whole query or one per step: the same results."""
+    from gesturedb.db import shards
+
+    kinds = []
+    real = shards._encode_row
+    monkeypatch.setattr(shards, "_encode_row", lambda *a: kinds.append(real(*a)[0]) or real(*a))
+    rng = np.random.default_rng(21)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=400)
+    F = P.shape[0]
+    q = rng.standard_normal((50, A.shape[1])).astype(np.float32)
+    nearly_full = np.ones(F, bool)
+    nearly_empty = np.zeros(F, bool)
+    for a in rng.integers(0, F - 200, 2):
+        nearly_full[a:a + 8] = False
+        nearly_empty[a:a + 200] = True
+    per_step = np.stack([pack_bits(rng.random(F) < 0.5 if i % 3 else nearly_full) for i in range(-(-50 // 8))])
+    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=3)
+    try:
+        for kw in (dict(allowed=pack_bits(nearly_full)), dict(allowed=pack_bits(nearly_empty), k=2),
+                   dict(allowed=per_step, preselect="audio")):
+            assert_same_search(sh.search(q, P[5], **kw), search.rank_sum_search(P, A, st, ln, q, P[5], **kw),
+                               str(kw))
+    finally:
+        sh.close()
+    assert {"set", "clear", "words"} <= set(kinds)
+
+
+def test_allowed_rows_go_to_the_shards_packed_and_sparse_when_they_can():
+    """A shard's row is its own frames' bits (slice_bits), as words or, when few words differ
+    from all set or all clear, as those words alone; decoding gives the words back."""
+    from gesturedb.control import full_mask, slice_bits, unpack_bits
+    from gesturedb.db.shards import _decode_row, _encode_row
+
+    rng = np.random.default_rng(3)
+    F = 100_003
+    full = np.ones(F, bool)
+    full[[5, 64, 65, 70_000]] = False
+    empty = ~full
+    for bits, kind in ((full, "set"), (empty, "clear"), (rng.random(F) < 0.5, "words")):
+        words = pack_bits(bits)
+        for f0, f1 in ((0, F), (37, 64_001), (64_001, F), (10, 10)):
+            row = _encode_row(slice_bits(words, f0, f1), f1 - f0)
+            assert row[0] == (kind if f1 - f0 > 1000 else row[0])
+            got = _decode_row(row)
+            np.testing.assert_array_equal(got, pack_bits(bits[f0:f1]))
+            np.testing.assert_array_equal(unpack_bits(got, f1 - f0), bits[f0:f1])
+            if row[0] != "words":
+                assert sum(x.nbytes for x in row[2:]) < 64
+    assert np.array_equal(_decode_row(_encode_row(full_mask(F), F)), full_mask(F))
+
+
+def test_allowed_of_the_wrong_width_is_refused(dask_client):
+    from gesturedb.errors import ParameterError
+
+    rng = np.random.default_rng(4)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=10)
+    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=2)
+    try:
+        with pytest.raises(ParameterError, match=r"allowed: expected packed bitsets of \d+ words .*got shape \(3,\)"):
+            sh.search(rng.standard_normal((16, A.shape[1])).astype(np.float32), P[0],
+                      allowed=np.zeros(3, np.uint64))
+    finally:
+        sh.close()

@@ -69,6 +69,7 @@ from gesturedb.control.bitsets import (  # noqa: F401
     mask_or,
     n_words,
     pack_bits,
+    slice_bits,
     unpack_bits,
     validate_bitset,
 )
@@ -132,6 +133,7 @@ __all__ = [
     "percentile_masks",
     "percentile_threshold",
     "schedule_bitsets",
+    "slice_bits",
     "suggest_percentiles",
     "unpack_bits",
     "validate_bitset",

@@ -141,6 +141,42 @@ def full_mask(n_frames: int) -> np.ndarray:
     return words
 
 
+def slice_bits(words: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """Frames ``[start, stop)`` of a bitset as a bitset of their own (a shard's frames).
+
+    Parameters
+    ----------
+    words : ndarray [shape=(W,)], uint64
+    start, stop : int
+        Frame range, ``0 <= start <= stop <= 64 W``.
+
+    Returns
+    -------
+    ndarray [shape=(ceil((stop - start) / 64),)], uint64
+        Bit ``i`` is bit ``start + i`` of ``words``; padding bits clear. Works on
+        the words (two shifts per word), so a client never unpacks a row to one
+        byte per frame.
+    """
+    words = _as_words(words, "slice_bits: words")
+    if words.ndim != 1:
+        raise ParameterError(f"slice_bits: words: expected one bitset (W,); got shape {words.shape}")
+    start = _check_count(start, "slice_bits: start", minimum=0)
+    stop = _check_count(stop, "slice_bits: stop", minimum=start)
+    if stop > 64 * words.shape[0]:
+        raise ParameterError(f"slice_bits: stop: expected <= {64 * words.shape[0]} (the bitset's {words.shape[0]} "
+                             f"words); got {stop}")
+    n = stop - start
+    nw = n_words(n)
+    q, r = divmod(start, 64)
+    w = np.zeros(nw + 1, dtype=np.uint64)
+    src = words[q:q + nw + 1]
+    w[:src.shape[0]] = src
+    out = (w[:nw] >> np.uint64(r)) | (w[1:] << np.uint64(64 - r)) if r else w[:nw].copy()
+    if nw:
+        out[-1] &= _last_word_mask(n)
+    return out
+
+
 def empty_mask(n_frames: int) -> np.ndarray:
     """Bitset with no frame allowed."""
     return np.zeros(n_words(n_frames), dtype=np.uint64)

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from gesturedb import search, tables
+from gesturedb.control.bitsets import full_mask, n_words, slice_bits
 from gesturedb.errors import ParameterError
 
 __all__ = ["ShardedSearch", "top_rows"]
@@ -74,8 +75,8 @@ def _load_shard(path, seg_start, seg_len, projection):
     return _Shard(pose, audio, seg_start, seg_len, projection)
 
 
-def _shard_table(shard, prev, q, preselect, allowed_bits, exclude, threads):
-    allowed = None if allowed_bits is None else _pack(allowed_bits)
+def _shard_table(shard, prev, q, preselect, allowed_row, exclude, threads):
+    allowed = None if allowed_row is None else _decode_row(allowed_row)
     return tables.preselect_table(shard.pose, shard.audio, shard.seg_start, shard.seg_len, prev, q,
                                   preselect=preselect, allowed=allowed, exclude=exclude, threads=threads,
                                   pose_proj=shard.proj if preselect == "pose" else None)
@@ -114,16 +115,16 @@ def _top_lists(s, dp, da, top: int):
     return valid.size, rows, s[rows], dp[rows], da[rows], np.intersect1d(by_pose, by_audio)
 
 
-def _shard_top_batch(shard, prevs, wins, preselect, allowed_bits, exclude, threads, top):
+def _shard_top_batch(shard, prevs, wins, preselect, allowed_row, exclude, threads, top):
     """On the worker: for each query of one step (previous poses (Q, Dp), windows
     (Q, n, Da)), :func:`_top_lists` of the shard's table and the pose each row in
     both lists would continue from, (len(both), Dp). The tables come from one
     blocked kernel call of the shard's kept :class:`gesturedb.tables.PreselectBatch`."""
     if prevs.shape[0] == 1:  # one query: the single step, whose threads share its segments
-        s, dp, da = (x[None] for x in _shard_table(shard, prevs[0], wins[0], preselect, allowed_bits,
+        s, dp, da = (x[None] for x in _shard_table(shard, prevs[0], wins[0], preselect, allowed_row,
                                                      None if exclude is None else exclude.reshape(-1), threads))
     else:
-        allowed = None if allowed_bits is None else _pack(allowed_bits)
+        allowed = None if allowed_row is None else _decode_row(allowed_row)
         s, dp, da = shard.batch(preselect).tables(prevs, wins, allowed=allowed, exclude=exclude, threads=threads)
     out = []
     for i in range(prevs.shape[0]):
@@ -189,16 +190,25 @@ def _shard_row(shard, f):
     return shard.pose[f].copy()
 
 
-def _pack(bits: np.ndarray) -> np.ndarray:
-    """bool (F,) -> packed uint64 words (bit f & 63 of word f >> 6)."""
-    n = -(-bits.shape[0] // 64) * 64
-    b = np.zeros(n, bool)
-    b[:bits.shape[0]] = bits
-    return np.packbits(b, bitorder="little").view(np.uint64).copy()
+def _encode_row(words: np.ndarray, n_frames: int) -> tuple:
+    """A shard's allowed row for the wire: its packed words, or, when fewer than
+    one word in 8 differs from all set (the repeat guard clears a few recent
+    windows of an otherwise full row) or from all clear (a keyword
+    sub-database), only the positions and values of the words that do."""
+    for kind, base in (("set", full_mask(n_frames)), ("clear", None)):
+        idx = np.flatnonzero(words != (0 if base is None else base))
+        if 8 * idx.size < words.size:
+            return kind, n_frames, idx.astype(np.int32), words[idx]
+    return "words", n_frames, words
 
 
-def _unpack(words: np.ndarray, F: int) -> np.ndarray:
-    return np.unpackbits(np.ascontiguousarray(words).view(np.uint8), bitorder="little")[:F].astype(bool)
+def _decode_row(row: tuple) -> np.ndarray:
+    kind, n_frames = row[0], row[1]
+    if kind == "words":
+        return row[2]
+    out = full_mask(n_frames) if kind == "set" else np.zeros(n_words(n_frames), np.uint64)
+    out[row[2]] = row[3]
+    return out
 
 
 class ShardedSearch:
@@ -380,10 +390,13 @@ class ShardedSearch:
         rows = None
         if allowed is not None:
             allowed = np.asarray(allowed, dtype=np.uint64)
+            if allowed.ndim not in (1, 2) or allowed.shape[-1] != n_words(self.F):
+                raise ParameterError(f"allowed: expected packed bitsets of {n_words(self.F)} words ({self.F} frames), "
+                                     f"(W,) or one row per step (S, W); got shape {allowed.shape}")
             if allowed.ndim == 2 and len(set(S.tolist())) > 1:
                 raise ParameterError("allowed: a per-step schedule needs every query to have the same number of "
                                      f"steps; got {S.min()} to {S.max()} steps")
-            rows = [_unpack(allowed[i] if allowed.ndim == 2 else allowed, self.F) for i in
+            rows = [allowed[i] if allowed.ndim == 2 else allowed for i in
                     range(int(S.max()) if allowed.ndim == 2 else 1)]
         out = [{f: np.zeros(S[i], np.int64) for f in ("segments", "starts", "frames", "lengths", "out_frames",
                                                       "pose_rank", "audio_rank", "n_candidates")}
@@ -393,13 +406,16 @@ class ShardedSearch:
         for st in range(int(S.max())):
             t = st * N
             bits = None if rows is None else rows[st if len(rows) > 1 else 0]
+            # each shard gets its own frames' bits, packed (sparse when nearly all set or clear)
+            shard_rows = None if bits is None else [_encode_row(slice_bits(bits, f0, f1), f1 - f0)
+                                                    for f0, f1 in self.frame_ranges]
             live = [i for i in range(Q) if st < S[i] and i not in failed]
             groups: dict[int, list[int]] = {}
             for i in live:  # windows of equal length share a kernel call (the last may be shorter)
                 groups.setdefault(min(N, qs[i].shape[0] - t), []).append(i)
             futs, owners = [], []
             for n, idx in groups.items():
-                for (a, b), (f0, f1), sh in zip(self.seg_ranges, self.frame_ranges, self.shards):
+                for j, ((a, b), sh) in enumerate(zip(self.seg_ranges, self.shards)):
                     # about 64 MB of tables per task on the worker
                     chunk = int(np.clip((64 << 20) // (20 * max(b - a, 1)), 16, 256))
                     for c0 in range(0, len(idx), chunk):
@@ -408,7 +424,7 @@ class ShardedSearch:
                         futs.append(self.client.submit(
                             _shard_top_batch, sh, np.stack([prev[i] for i in ids]),
                             np.stack([qs[i][t:t + n] for i in ids]), preselect,
-                            None if bits is None else bits[f0:f1], e, self.threads, top, pure=False))
+                            None if shard_rows is None else shard_rows[j], e, self.threads, top, pure=False))
                         owners.append(ids)
             replies: dict[int, list] = {i: [] for i in live}
             # futures were submitted shard by shard within each group: replies stay in shard order
@@ -422,7 +438,7 @@ class ShardedSearch:
                 e = None if ex is None else (ex[i] if ex.ndim == 2 else ex)
                 if got is None:
                     self.unsettled += 1
-                    got = self._whole_tables(prev[i], qs[i][t:t + n], preselect, bits, e, int(ks[i]))
+                    got = self._whole_tables(prev[i], qs[i][t:t + n], preselect, shard_rows, e, int(ks[i]))
                 m, start, rp, ra, K, pose_dist, audio_dist, nxt = got
                 if m < 0:
                     failed[i] = (st, t, n)
@@ -445,12 +461,12 @@ class ShardedSearch:
             raise err
         return [search.SearchResult(n_frames=qs[i].shape[0], **out[i]) for i in range(Q)]
 
-    def _whole_tables(self, prev, q, preselect, bits, exclude, k):
+    def _whole_tables(self, prev, q, preselect, shard_rows, exclude, k):
         """A step ranked over every shard's whole table (when the top lists do not settle it)."""
         parts = self.client.gather([
-            self.client.submit(_shard_table, sh, prev, q, preselect, None if bits is None else bits[f0:f1],
+            self.client.submit(_shard_table, sh, prev, q, preselect, None if shard_rows is None else shard_rows[j],
                                None if exclude is None else exclude[a:b], self.threads, pure=False)
-            for sh, (a, b), (f0, f1) in zip(self.shards, self.seg_ranges, self.frame_ranges)])
+            for j, (sh, (a, b)) in enumerate(zip(self.shards, self.seg_ranges))])
         s = np.concatenate([x[0] for x in parts])
         dp = np.concatenate([x[1] for x in parts])
         da = np.concatenate([x[2] for x in parts])
