@@ -382,6 +382,29 @@ def test_saved_masks_without_controls():
         M.compile_mask("a", controls={}, named={"a": M.pack_bits(a)})
 
 
+def test_controls_and_masks_as_h5py_datasets_compile_like_arrays(tmp_path):
+    """Database.control_datasets / mask_datasets: datasets are checked by shape and dtype
+    and read when used; the bits are those of the arrays."""
+    h5py = pytest.importorskip("h5py")
+    F = 1000
+    controls = random_controls(F, seed=3)
+    saved = {"calm": M.compile_mask("left_wrist_speed < p40", controls=controls).words}
+    with h5py.File(tmp_path / "c.h5", "w") as f:
+        for k, v in controls.items():
+            f[f"c/{k}"] = v
+        f["m/calm"] = saved["calm"]
+        f["bad/left_wrist_height"] = np.zeros((F, 2), np.float32)
+    with h5py.File(tmp_path / "c.h5", "r") as f:
+        lazy_c = {k: f[f"c/{k}"] for k in f["c"]}
+        lazy_m = {"calm": f["m/calm"]}
+        for expr in ("left_wrist_height > p85 and calm", "not symmetric or right_wrist_speed < 20 cm/s"):
+            want = M.compile_mask(expr, controls=controls, named=saved)
+            got = M.compile_mask(expr, controls=lazy_c, named=lazy_m)
+            np.testing.assert_array_equal(got.words, want.words)
+        with pytest.raises(ParameterError, match=r"controls\['left_wrist_height'\]: expected a 1-D array .*\(1000, 2\)"):
+            M.compile_mask("symmetric", controls={"left_wrist_height": f["bad/left_wrist_height"]})
+
+
 # --------------------------------------------------------------------------------------
 # every error message
 # --------------------------------------------------------------------------------------

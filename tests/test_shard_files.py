@@ -126,12 +126,19 @@ def test_workers_read_their_own_shard_files(db_copy, scott_dir, dask_client, mon
         assert not set(vars(idx)) & set(Database.FRAME_ARRAYS), sorted(vars(idx))
         mean_one = Searcher(one).synthesize(speech, k=2, smooth=False, init="mean")
         mean_idx = s.synthesize(speech, k=2, smooth=False, init="mean")
-        assert not set(vars(idx)) & set(Database.FRAME_ARRAYS), sorted(vars(idx))
+        # a control reads the features and saved masks its expressions name, not all of them
+        ctl = "0-20: left_wrist_height > p85; 20-: symmetric"
+        ctl_one = Searcher(one).synthesize(speech, smooth=False, control=ctl)
+        ctl_idx = s.synthesize(speech, smooth=False, control=ctl)
+        held = set(vars(idx))
+        assert not held & (set(Database.FRAME_ARRAYS) | {"controls", "masks"}), sorted(held)
         s._sharded.close()
     assert want.steps == got.steps
     np.testing.assert_array_equal(want.positions, got.positions)
     assert mean_one.steps == mean_idx.steps and mean_one.steps != want.steps
     np.testing.assert_array_equal(mean_one.positions, mean_idx.positions)
+    assert ctl_one.steps == ctl_idx.steps and ctl_one.steps[0]["control"] == "left_wrist_height > p85"
+    np.testing.assert_array_equal(ctl_one.positions, ctl_idx.positions)
 
 
 @pytest.mark.parametrize("sharded", [False, True])

@@ -285,7 +285,9 @@ class _Compiler:
         F = None if n_frames is None else _check_count(n_frames, "n_frames", minimum=1)
         first = None
         for name, v in controls.items():
-            a = np.asarray(v)
+            # an h5py dataset is checked by its shape and dtype and read only when an
+            # expression uses it (Database.control_datasets)
+            a = v if all(hasattr(v, x) for x in ("shape", "ndim", "dtype")) else np.asarray(v)
             if a.ndim != 1 or a.dtype.kind not in "fiu":
                 raise ParameterError(
                     f"controls[{name!r}]: expected a 1-D array of per-frame values (F,); "

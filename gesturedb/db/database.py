@@ -399,6 +399,22 @@ class Database:
         return {} if g is None else {k: np.asarray(g[k][()], dtype=np.float32) for k in sorted(g)}
 
     @functools.cached_property
+    def control_datasets(self) -> dict:
+        """The control features as h5py datasets, read when used: name -> Dataset [shape=(F,)], float32.
+
+        What a synthesis hands the mask compiler, which reads only the features an
+        expression names (4 bytes per frame each) instead of all of :attr:`controls`.
+        """
+        g = self._h5.get(schema.CONTROLS_GROUP)
+        return {} if g is None else {k: g[k] for k in sorted(g)}
+
+    @functools.cached_property
+    def mask_datasets(self) -> dict:
+        """Saved masks as h5py datasets, read when an expression uses them (see :attr:`masks`)."""
+        g = self._masks_group()
+        return {} if g is None else {k: g[k] for k in sorted(g)}
+
+    @functools.cached_property
     def control_units(self) -> dict[str, str]:
         g = self._h5.get(schema.CONTROLS_GROUP)
         return {} if g is None else {k: str(g[k].attrs.get("unit", "")) for k in sorted(g)}

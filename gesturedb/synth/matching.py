@@ -377,7 +377,7 @@ class Searcher:
             # one bare expression applies to the whole synthesis
             sched = [(0.0, None, control)] if isinstance(control, str) and ":" not in control else control
             res = schedule_bitsets(
-                sched, controls=self.db.controls, named=self.db.masks, n_steps=n_steps, step=step,
+                sched, controls=self.db.control_datasets, named=self.db.mask_datasets, n_steps=n_steps, step=step,
                 fps=self.db.fps, n_out_frames=T, n_frames=self.db.n_frames,
             )
             hooks.append(("control", res.bitsets, res.labels))
@@ -423,7 +423,7 @@ class Searcher:
                 return candidate_counts(w, n_frames=self.db.n_frames, seg_start=self.seg_start,
                                               seg_len=self.seg_len, n=n, exclude=exclude).sum() > 0
 
-            hints = suggest_percentiles(ctl, controls=self.db.controls, named=self.db.masks, accept=accept)
+            hints = suggest_percentiles(ctl, controls=self.db.control_datasets, named=self.db.mask_datasets, accept=accept)
             if hints:
                 msg += "; " + "; ".join(str(h) for h in hints)
         if kwd:
