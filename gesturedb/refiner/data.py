@@ -241,6 +241,11 @@ def assemble_windows(db, frame_maps: np.ndarray, seams, joints: np.ndarray) -> n
 
     if isinstance(db, (str, os.PathLike)):
         db = _worker_database(os.fspath(db))
+    # Load what the assembly reads (a synthesis reads rows through Database.rows
+    # instead): thousands of windows read from memory, and forked workers inherit
+    # the arrays rather than reading the HDF5 file through the parent's handle.
+    for name in ("local_rotations", "root_positions", "frame_recording"):
+        getattr(db, name)
     out = np.empty((len(frame_maps), 6 * len(joints), frame_maps.shape[1]), np.float32)
     for i in range(len(frame_maps)):
         motion = assemble_frames(db, frame_maps[i], seams[i])
