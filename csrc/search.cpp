@@ -688,18 +688,28 @@ bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const Query
     if (!(umin < inf)) return false;
     bool bad = false;
     for_each_allowed_run(allowed, seg0 + 1, n_cand, qs.n - 1, [&](int64_t i0, int64_t i1) {
-        // branch-free: a segment keeps 1-3 of its ~56 candidates
-        const size_t base = kept.size();
-        kept.resize(base + size_t(i1 - i0));
-        int32_t* out = kept.data() + base;
-        int64_t n = 0;
-        for (int64_t i = i0; i < i1; ++i) {
-            const float lb = pq.a_lo * dh[i] - pq.c_lo;
-            bad |= !(dh[i] < inf);
-            out[n] = int32_t(i);
-            n += lb <= umin;
+        // A segment keeps 1-3 of its ~56 candidates. One byte per candidate in a
+        // loop the compiler vectorises, then eight flags per 64-bit load, most of
+        // them zero: a loop carrying the kept count from candidate to candidate
+        // was 9% of a one-thread step (perf).
+        constexpr int64_t kBlock = 256;
+        alignas(8) uint8_t flag[kBlock];
+        uint8_t nonfinite = 0;
+        for (int64_t b0 = i0; b0 < i1; b0 += kBlock) {
+            const int64_t nb = std::min(kBlock, i1 - b0);
+            const float* d = dh + b0;
+            for (int64_t j = 0; j < nb; ++j) {
+                flag[j] = uint8_t(pq.a_lo * d[j] - pq.c_lo <= umin);
+                nonfinite |= uint8_t(!(d[j] < inf));
+            }
+            for (int64_t j = nb; j < ((nb + 7) & ~int64_t(7)); ++j) flag[j] = 0;
+            for (int64_t j = 0; j < nb; j += 8) {
+                uint64_t w;
+                std::memcpy(&w, flag + j, 8);
+                for (; w; w &= w - 1) kept.push_back(int32_t(b0 + j + (__builtin_ctzll(w) >> 3)));
+            }
         }
-        kept.resize(base + size_t(n));
+        bad |= nonfinite != 0;
     });
     return !bad;
 }

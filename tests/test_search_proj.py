@@ -129,6 +129,27 @@ def test_stacked_recordings_with_clamped_starts_and_heavy_masks(isa, half):
             check_search(res, P, A, st, ln, q, init, exact=False, **kw)
 
 
+def test_long_segments_cross_the_keep_collections_blocks(isa, half):
+    """Segments of hundreds of candidates (the filter collects kept candidates 256 at
+    a time, 8 flags per load): few or most kept (24 or 2 columns), runs of allowed
+    frames starting and ending anywhere."""
+    rng = np.random.default_rng(8)
+    P, A, _, _ = stacked_recordings(rng, n_rec=10)
+    F = P.shape[0]
+    st = np.array([0, F // 3 - 11, 2 * F // 3 + 5], dtype=np.int64)
+    ln = np.diff(np.r_[st, F]).astype(np.int64)
+    assert ln.min() > 300
+    q = rng.standard_normal((40, A.shape[1])).astype(np.float32)
+    runs = np.zeros(F, bool)
+    for a in rng.integers(0, F - 1, 12):
+        runs[a:a + int(rng.integers(1, 400))] = True
+    for n_columns in (24, 2):
+        proj = search.PoseProjection(P, n_columns=n_columns, half=half)
+        for kw in (dict(), dict(allowed=pack_bits(runs)), dict(allowed=pack_bits(rng.random(F) < 0.9), k=2)):
+            res = _both(P, A, st, ln, q, P[st[1] + 7], proj=proj, **kw)
+            check_search(res, P, A, st, ln, q, P[st[1] + 7], exact=False, **kw)
+
+
 def test_random_unstructured_and_exact_ties(isa, half):
     """No structure to project (iid rows) and integer data full of exact ties:
     the filter keeps what it must and the tie rules still hold."""
