@@ -424,6 +424,31 @@ def test_synthesis_takes_keyword_steps_from_the_subdatabase(keyword_db, scott_di
             assert bits[st["keyword"]][g] and bits[st["keyword"]][g + n - 1], st
 
 
+def test_step_masks_of_control_and_keywords_keep_each_distinct_row_once(keyword_db, scott_dir):
+    """What a synthesis searches under a schedule and keywords: a StepBitsets with one row
+    per distinct (control, keyword) pair, equal step by step to the AND of the arrays."""
+    from gesturedb import control
+    from gesturedb.synth import Searcher
+
+    words = read_transcript(scott_dir / "inputs" / "2_scott_0_2_2.TextGrid")
+    T, step = 900, 8
+    S = -(-T // step)
+    sched = "0-20: left_wrist_high; 20-40: symmetric; 40-: not left_wrist_high"
+    with gesturedb.open(keyword_db) as db:
+        allowed, labels, kbits = Searcher(db)._step_masks(sched, words, True, n_steps=S, step=step, T=T)
+        ctl = control.schedule_bitsets(sched, controls=db.controls, named=db.masks, n_steps=S, step=step,
+                                       fps=db.fps, n_out_frames=T, n_frames=db.n_frames)
+        kb, klab = kw.keyword_step_masks(db, words, n_steps=S, step=step, n_out_frames=T)
+    assert isinstance(allowed, control.StepBitsets) and isinstance(kbits, control.StepBitsets)
+    assert allowed.shape == ctl.bitsets.shape == (S, masks.n_words(db.n_frames))
+    # 3 schedule rows x (every frame, 'time', 'like'), of which the transcript uses a few
+    assert allowed.rows.shape[0] <= 9 and len({(c, k) for c, k in zip(ctl.labels, klab)}) == allowed.rows.shape[0]
+    np.testing.assert_array_equal(np.asarray(allowed), ctl.bitsets & kb)
+    np.testing.assert_array_equal(np.asarray(kbits), kb)
+    assert [lab[0] if lab else None for lab in labels] == ctl.labels
+    assert [lab[1] if lab else None for lab in labels] == klab and any(klab)
+
+
 def test_add_show_remove_drop_real(db_copy):
     with gesturedb.open(db_copy) as db:
         words = db.words

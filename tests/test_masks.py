@@ -111,6 +111,31 @@ def test_algebra_broadcasts_one_mask_over_steps():
     np.testing.assert_array_equal(M.mask_not(M.pack_bits(steps), 200), M.pack_bits(~steps))
 
 
+def test_step_bitsets_read_like_the_array_they_stand_for():
+    rng = np.random.default_rng(9)
+    F, S = 300, 40
+    rows = np.stack([M.full_mask(F)] + [M.pack_bits(rng.random(F) < p) for p in (0.2, 0.5, 0.8)])
+    a = M.StepBitsets(rows, rng.integers(0, 4, S))
+    b = M.StepBitsets(rows[[0, 2]], rng.integers(0, 2, S))
+    dense_a, dense_b = np.asarray(a), np.asarray(b)
+    assert dense_a.shape == a.shape == (S, M.n_words(F)) and len(a) == S and a.dtype == np.uint64
+    for i in (0, 7, S - 1, -1):
+        np.testing.assert_array_equal(a[i], dense_a[i])
+    np.testing.assert_array_equal(a[3:9], dense_a[3:9])
+    both = a & b
+    np.testing.assert_array_equal(np.asarray(both), dense_a & dense_b)
+    # one row per distinct pair of rows, not per step
+    assert both.rows.shape[0] == len(set(zip(a.of_step.tolist(), b.of_step.tolist())))
+    with pytest.raises(ValueError):
+        a[0][0] = 0  # a step's row is a view of the shared rows: read-only
+    with pytest.raises(ParameterError, match=r"StepBitsets: of_step: expected \(S,\) indices into the 4 rows"):
+        M.StepBitsets(rows, [0, 4])
+    with pytest.raises(ParameterError, match=r"StepBitsets: rows: expected a uint64 bitset array"):
+        M.StepBitsets(rows.astype(np.int64), [0])
+    with pytest.raises(ParameterError, match=r"StepBitsets &: expected StepBitsets of shape \(40, 5\)"):
+        a & M.StepBitsets(rows, [0])
+
+
 def test_bitset_errors():
     with pytest.raises(ParameterError, match=r"pack_bits: expected a bool array .* got float64"):
         M.pack_bits(np.ones(10))

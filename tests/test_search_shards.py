@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from gesturedb import search, tables
+from gesturedb.control import StepBitsets
 from gesturedb.db.shards import ShardedSearch
 from test_search import assert_same_search, continuous_db, exact_db, pack_bits
 
@@ -351,6 +352,10 @@ def test_sharded_search_with_rows_sent_sparse(dask_client, monkeypatch):
                    dict(allowed=per_step, preselect="audio")):
             assert_same_search(sh.search(q, P[5], **kw), search.rank_sum_search(P, A, st, ln, q, P[5], **kw),
                                str(kw))
+        # the per-step rows as a synthesis holds them: each distinct row once
+        compact = StepBitsets(np.stack([pack_bits(nearly_full), per_step[1]]), np.arange(per_step.shape[0]) % 2)
+        assert_same_search(sh.search(q, P[5], allowed=compact),
+                           search.rank_sum_search(P, A, st, ln, q, P[5], allowed=np.asarray(compact)))
     finally:
         sh.close()
     assert {"set", "clear", "words"} <= set(kinds)

@@ -60,6 +60,7 @@ covers are unconstrained (all frames allowed, label ``None``).
 from __future__ import annotations
 
 from gesturedb.control.bitsets import (  # noqa: F401
+    StepBitsets,
     candidate_counts,
     count_bits,
     empty_mask,
@@ -115,6 +116,7 @@ __all__ = [
     "Relaxation",
     "ScheduleBitsets",
     "ScheduleItem",
+    "StepBitsets",
     "candidate_counts",
     "closest_percentile_with_candidates",
     "compile_mask",

@@ -177,6 +177,67 @@ def slice_bits(words: np.ndarray, start: int, stop: int) -> np.ndarray:
     return out
 
 
+class StepBitsets:
+    """One allowed bitset per search step, each distinct row stored once.
+
+    A control schedule or a keyword transcript gives a few distinct rows for
+    many steps: a minute of output is 117 steps, each row ``F / 8`` bytes (6.75
+    MB at 1,000 hours), so the ``(steps, W)`` array would be 790 MB where its
+    distinct rows take a few.
+
+    Parameters
+    ----------
+    rows : ndarray [shape=(U, W)], uint64
+        The distinct bitsets (kept read-only).
+    of_step : ndarray [shape=(S,)], int
+        The row of each step, ``0 <= of_step < U``.
+
+    Reads like the ``(S, W)`` array it stands for: ``len``, ``shape``,
+    ``dtype``, ``b[i]`` (step ``i``'s row, a read-only view) and
+    ``np.asarray(b)`` (the whole array, built on demand); ``a & b`` is the
+    step-wise intersection, again with each distinct row once.
+    """
+
+    ndim = 2
+    dtype = np.dtype(np.uint64)
+
+    def __init__(self, rows: np.ndarray, of_step: np.ndarray):
+        rows = _as_words(rows, "StepBitsets: rows")
+        if rows.ndim != 2:
+            raise ParameterError(f"StepBitsets: rows: expected distinct bitsets (U, W); got shape {rows.shape}")
+        of_step = np.asarray(of_step)
+        if of_step.ndim != 1 or (of_step.size and (of_step.dtype.kind not in "iu" or of_step.min() < 0
+                                                   or of_step.max() >= rows.shape[0])):
+            raise ParameterError(f"StepBitsets: of_step: expected (S,) indices into the {rows.shape[0]} rows; "
+                                 f"got {of_step.dtype} {of_step.shape}")
+        self.rows = np.ascontiguousarray(rows)
+        self.rows.setflags(write=False)
+        self.of_step = of_step.astype(np.int64)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.of_step.shape[0]), int(self.rows.shape[1]))
+
+    def __len__(self) -> int:
+        return int(self.of_step.shape[0])
+
+    def __getitem__(self, i):
+        if isinstance(i, (int, np.integer)):
+            return self.rows[self.of_step[i]]
+        return np.asarray(self)[i]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self.rows[self.of_step]
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+    def __and__(self, other: "StepBitsets") -> "StepBitsets":
+        if not isinstance(other, StepBitsets) or other.shape != self.shape:
+            raise ParameterError(f"StepBitsets &: expected StepBitsets of shape {self.shape}; got "
+                                 f"{getattr(other, 'shape', type(other).__name__)}")
+        pairs, of = np.unique(np.stack([self.of_step, other.of_step], 1), axis=0, return_inverse=True)
+        return StepBitsets(self.rows[pairs[:, 0]] & other.rows[pairs[:, 1]], of.reshape(-1))
+
+
 def empty_mask(n_frames: int) -> np.ndarray:
     """Bitset with no frame allowed."""
     return np.zeros(n_words(n_frames), dtype=np.uint64)

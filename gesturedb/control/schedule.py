@@ -2,6 +2,7 @@
 """
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass
@@ -10,7 +11,7 @@ from typing import Mapping, NamedTuple, Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
-from gesturedb.control.bitsets import _check_count, full_mask, n_words
+from gesturedb.control.bitsets import StepBitsets, _check_count, full_mask
 from gesturedb.control.compile import MaskResult, _Compiler
 from gesturedb.control.expression import parse_mask_expression
 
@@ -169,9 +170,11 @@ class ScheduleBitsets:
 
     Attributes
     ----------
+    steps : StepBitsets
+        The allowed-frame bitset of every search step (all ones for an
+        unconstrained step), each distinct row stored once.
     bitsets : ndarray [shape=(steps, ceil(F / 64))], uint64, C-contiguous
-        Row ``i`` is the allowed-frame bitset of search step ``i`` (all ones for an
-        unconstrained step).
+        The same as one array, built on first use (``steps x F / 8`` bytes).
     labels : list of (str or None)
         The schedule expression constraining each step, ``None`` when unconstrained.
     step_start : ndarray [shape=(steps,)], int64
@@ -184,19 +187,23 @@ class ScheduleBitsets:
         The compiled mask of each schedule expression (thresholds for reports).
     """
 
-    bitsets: np.ndarray
+    steps: StepBitsets
     labels: list
     step_start: np.ndarray
     step_len: np.ndarray
     fps: float
     masks: dict
 
+    @functools.cached_property
+    def bitsets(self) -> np.ndarray:
+        return np.ascontiguousarray(np.asarray(self.steps))
+
     def __iter__(self):
         return iter((self.bitsets, self.labels))
 
     @property
     def n_steps(self) -> int:
-        return int(self.bitsets.shape[0])
+        return len(self.steps)
 
     def step_time_s(self, i: int) -> float:
         """Start time of step ``i`` in seconds of output."""
@@ -300,12 +307,12 @@ def schedule_bitsets(
                 masks[item.expr] = comp.compile(parse_mask_expression(item.expr))
             except ParameterError as e:
                 raise _item_error(k, label, str(e)) from e
-    bitsets = np.empty((S, n_words(comp.F)), dtype=np.uint64)
-    bitsets[owner < 0] = full_mask(comp.F)
-    for idx, (_, _, item) in enumerate(items):
-        bitsets[owner == idx] = masks[item.expr].words
+    # row 0: unconstrained, then one row per distinct expression
+    exprs = list(masks)
+    rows = np.stack([full_mask(comp.F)] + [masks[e].words for e in exprs])
+    of_step = np.array([0 if o < 0 else 1 + exprs.index(items[o][2].expr) for o in owner.tolist()], np.int64)
     labels = [None if o < 0 else items[o][2].expr for o in owner.tolist()]
-    return ScheduleBitsets(bitsets, labels, t, n.astype(np.int64), fps, masks)
+    return ScheduleBitsets(StepBitsets(rows, of_step), labels, t, n.astype(np.int64), fps, masks)
 
 
 def _no_step_message(a: float, b: float, centre: np.ndarray, N: int, fps: float, T: int) -> str:

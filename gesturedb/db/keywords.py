@@ -681,6 +681,7 @@ def keyword_step_masks(
     step: int,
     n_out_frames: int,
     only: Sequence[str] | None = None,
+    compact: bool = False,
 ):
     """Per-step allowed bitsets from the keywords of the input speech.
 
@@ -700,6 +701,10 @@ def keyword_step_masks(
         Length of the output at the database fps.
     only : list of str or None
         Use only these keywords (each must have a sub-database).
+
+    compact : bool
+        Return ``bits`` as a :class:`gesturedb.control.StepBitsets` (each distinct
+        row once) instead of the array.
 
     Returns
     -------
@@ -759,12 +764,9 @@ def keyword_step_masks(
     best = order[0]
     has = covered.max(axis=0) > 0
 
-    full = control.full_mask(db.n_frames)
-    bits = np.empty((n_steps, full.shape[0]), dtype=np.uint64)
-    bits[:] = full
-    labels: list[str | None] = [None] * n_steps
-    for i in np.flatnonzero(has):
-        k = keys[int(best[i])]
-        bits[i] = subs[k].mask
-        labels[i] = k
-    return np.ascontiguousarray(bits), labels
+    # row 0: every frame, then one row per keyword
+    rows = np.stack([control.full_mask(db.n_frames)] + [subs[k].mask for k in keys])
+    of_step = np.where(has, best + 1, 0).astype(np.int64)
+    labels: list[str | None] = [keys[int(best[i])] if has[i] else None for i in range(n_steps)]
+    bits = control.StepBitsets(rows, of_step)
+    return (bits if compact else np.ascontiguousarray(np.asarray(bits))), labels

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from gesturedb import search, tables
-from gesturedb.control.bitsets import full_mask, n_words, slice_bits
+from gesturedb.control.bitsets import StepBitsets, full_mask, n_words, slice_bits
 from gesturedb.errors import ParameterError
 
 __all__ = ["ShardedSearch", "top_rows"]
@@ -389,7 +389,8 @@ class ShardedSearch:
         S = np.array([-(-q.shape[0] // N) for q in qs])
         rows = None
         if allowed is not None:
-            allowed = np.asarray(allowed, dtype=np.uint64)
+            if not isinstance(allowed, StepBitsets):  # which reads like (S, W) without building it
+                allowed = np.asarray(allowed, dtype=np.uint64)
             if allowed.ndim not in (1, 2) or allowed.shape[-1] != n_words(self.F):
                 raise ParameterError(f"allowed: expected packed bitsets of {n_words(self.F)} words ({self.F} frames), "
                                      f"(W,) or one row per step (S, W); got shape {allowed.shape}")

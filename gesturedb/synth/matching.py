@@ -295,7 +295,8 @@ class Searcher:
                                             allowed=allowed_now, exclude=excl)
             return rank_sum_search(
                 db.pose_features, db.audio_features, self.seg_start, self.seg_len, q, prev,
-                step=step, k=k, preselect=preselect, allowed=allowed_now, exclude=excl, pose_f16=self._half,
+                step=step, k=k, preselect=preselect, exclude=excl, pose_f16=self._half,
+                allowed=None if allowed_now is None else np.ascontiguousarray(allowed_now),  # StepBitsets: the array
                 pose_proj=self.pose_projection() if preselect == "pose" else None,
             )
 
@@ -368,8 +369,9 @@ class Searcher:
 
     # -- masks ------------------------------------------------------------------
     def _step_masks(self, control, transcript, keywords, *, n_steps, step, T):
-        """Per-step allowed bitsets, (control, keyword) labels and the keyword bitsets; Nones when unconstrained."""
-        from gesturedb.control import full_mask, schedule_bitsets
+        """Per-step allowed bitsets and keyword bitsets (:class:`gesturedb.control.StepBitsets`) and the
+        (control, keyword) label of each step; Nones when unconstrained."""
+        from gesturedb.control import schedule_bitsets
 
         hooks = []
         keyword_bits = None
@@ -380,26 +382,27 @@ class Searcher:
                 sched, controls=self.db.control_datasets, named=self.db.mask_datasets, n_steps=n_steps, step=step,
                 fps=self.db.fps, n_out_frames=T, n_frames=self.db.n_frames,
             )
-            hooks.append(("control", res.bitsets, res.labels))
+            hooks.append(("control", res.steps, res.labels))
         if keywords and transcript is not None:
             from gesturedb.db import keywords as kw
 
             res = kw.keyword_step_masks(self.db, transcript, n_steps=n_steps, step=step, n_out_frames=T,
-                                        only=None if keywords is True else list(keywords))
+                                        only=None if keywords is True else list(keywords), compact=True)
             if res is not None:
                 hooks.append(("keyword", *res))
                 keyword_bits = res[0]
         if not hooks:
             return None, None, None
-        allowed = np.tile(full_mask(self.db.n_frames), (n_steps, 1))
+        # StepBitsets: each distinct row once, not steps x F / 8 bytes
+        allowed = None
         labels = [[None, None] for _ in range(n_steps)]
         for kind, bits, lab in hooks:
-            allowed &= bits
+            allowed = bits if allowed is None else allowed & bits
             for i in range(n_steps):
                 if lab[i] is not None:
                     labels[i][0 if kind == "control" else 1] = lab[i]
         labels = [tuple(x) if any(v is not None for v in x) else None for x in labels]
-        return np.ascontiguousarray(allowed), labels, keyword_bits
+        return allowed, labels, keyword_bits
 
     def _explain(self, exc: SearchError, labels, *, keyword_bits, exclude, step, T) -> SearchError:
         """Name the step, its time and the control that emptied it, and suggest a percentile that works."""
