@@ -308,9 +308,9 @@ def schedule_bitsets(
             except ParameterError as e:
                 raise _item_error(k, label, str(e)) from e
     # row 0: unconstrained, then one row per distinct expression
-    exprs = list(masks)
-    rows = np.stack([full_mask(comp.F)] + [masks[e].words for e in exprs])
-    of_step = np.array([0 if o < 0 else 1 + exprs.index(items[o][2].expr) for o in owner.tolist()], np.int64)
+    row_of = {e: 1 + i for i, e in enumerate(masks)}
+    rows = np.stack([full_mask(comp.F)] + [m.words for m in masks.values()])
+    of_step = np.array([0 if o < 0 else row_of[items[o][2].expr] for o in owner.tolist()], np.int64)
     labels = [None if o < 0 else items[o][2].expr for o in owner.tolist()]
     return ScheduleBitsets(StepBitsets(rows, of_step), labels, t, n.astype(np.int64), fps, masks)
 
