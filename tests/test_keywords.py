@@ -561,6 +561,8 @@ def test_export_real(db_copy, tmp_path):
         for name in ("pose_features", "audio_features", "audio_deltas", "joint_positions", "local_rotations",
                      "root_positions"):
             np.testing.assert_array_equal(getattr(ex, name), getattr(src, name)[frames], err_msg=name)
+        # the stored pose mean is the exported frames' own, not the source's
+        assert np.array_equal(ex.frame_mean("pose_features"), src.pose_features[frames].mean(axis=0, dtype=np.float64))
         assert sorted(ex.controls) == sorted(src.controls)
         for k in src.controls:
             np.testing.assert_array_equal(ex.controls[k], src.controls[k][frames])

@@ -167,8 +167,9 @@ def test_rows_and_means_are_the_arrays_without_loading_them(db_copy, sharded):
         for name in ("pose_features", "local_rotations"):
             want = getattr(full, name).mean(axis=0, dtype=np.float64)
             for chunk in (1, 7, 16384):
-                assert np.array_equal(lazy.frame_mean(name, chunk=chunk), want), (name, chunk)
-            assert np.array_equal(full.frame_mean(name, chunk=100), want)
+                assert np.array_equal(lazy.frame_mean(name, chunk=chunk, stored=False), want), (name, chunk)
+            assert np.array_equal(full.frame_mean(name, chunk=100, stored=False), want)
+            assert np.array_equal(lazy.frame_mean(name), want)  # pose_features: the stored mean
         assert not set(vars(lazy)) & set(Database.FRAME_ARRAYS)
         with pytest.raises(ParameterError, match=rf"frames: expected indices in 0..{F - 1} .*got {F}"):
             lazy.rows("pose_features", [0, F])
@@ -181,6 +182,47 @@ def test_rows_and_means_are_the_arrays_without_loading_them(db_copy, sharded):
         with pytest.raises(ParameterError, match=r"column: expected an index of the second axis of "
                                                  r"root_positions .*got 3"):
             lazy.rows("root_positions", [0], column=3)
+
+
+def test_the_stored_pose_mean_is_numpys_and_reads_no_frames(db_copy, tmp_path):
+    """build writes the pose features' mean beside them, sharding keeps it on the index
+    (not on the shards, which hold a part), and frame_mean reads it without touching a
+    frame; a file without it is read through, and a bad one is a SchemaError."""
+    rep = shard_database(db_copy, 2)
+    with gesturedb.open(db_copy) as full:
+        want = full.pose_features.mean(axis=0, dtype=np.float64)
+    with h5py.File(db_copy, "r") as h5:
+        assert np.array_equal(h5["frames/pose_features"].attrs["mean"], want)
+    for path in rep.shards:
+        with h5py.File(path, "r") as h5:
+            assert "mean" not in h5["frames/pose_features"].attrs
+    # through the index: the attribute alone, no frame read
+    class NoRows:
+        def __init__(self, ds):
+            self.ds, self.shape, self.ndim, self.dtype = ds, ds.shape, ds.ndim, ds.dtype
+
+        def __getitem__(self, key):
+            raise AssertionError(f"read frames {key}")
+
+    with gesturedb.open(rep.index) as idx:
+        real = idx._frame_dataset
+        idx._frame_dataset = lambda name: NoRows(real(name))
+        assert np.array_equal(idx.frame_mean("pose_features"), want)
+        with pytest.raises(AssertionError, match="read frames"):
+            idx.frame_mean("pose_features", stored=False)
+    # a file written before the attribute: the chunked pass, the same bits
+    with h5py.File(db_copy, "r+") as h5:
+        del h5["frames/pose_features"].attrs["mean"]
+    with gesturedb.open(db_copy) as old:
+        assert np.array_equal(old.frame_mean("pose_features", chunk=333), want)
+    for bad, match in ((want[:-1], r"expected float64 of shape \(96,\), got float64 of shape \(95,\)"),
+                       (want.astype(np.float32), r"expected float64 of shape \(96,\), got float32"),
+                       (np.where(np.arange(want.size) == 3, np.nan, want), r"expected finite values, got nan")):
+        with h5py.File(db_copy, "r+") as h5:
+            h5["frames/pose_features"].attrs["mean"] = bad
+        with pytest.raises(SchemaError, match=rf"{os.path.basename(db_copy)}.*frames/pose_features attribute "
+                                              rf"'mean': {match}"):
+            gesturedb.open(db_copy)
 
 
 def test_placement_read_per_recording_is_the_whole_arrays_placement(db_copy):

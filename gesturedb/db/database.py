@@ -246,14 +246,22 @@ class Database:
                  for r in np.split(uniq, cut)]
         return np.concatenate(parts)[inv.reshape(-1)]
 
-    def frame_mean(self, name: str, *, chunk: int = 16384) -> np.ndarray:
+    def frame_mean(self, name: str, *, chunk: int = 16384, stored: bool = True) -> np.ndarray:
         """Mean over frames of a per-frame array, read ``chunk`` frames at a time.
 
         Returns ndarray [shape=(...)], float64: ``getattr(db, name).mean(axis=0,
         dtype=np.float64)`` bit for bit (numpy sums along the first axis one row
         after another, and so does this, carrying the sum from chunk to chunk).
+        Arrays whose mean the writer stored (:data:`schema.MEAN_FIELDS`) read it
+        instead, unless ``stored=False``; files written before it existed are read
+        through.
         """
         ds = self._frame_dataset(name)
+        path = self.FRAME_ARRAYS[name]
+        if stored and path in schema.MEAN_FIELDS:
+            mean = schema.read_mean(self._h5, path, self.path)
+            if mean is not None:
+                return mean.copy()
         loaded = self.__dict__.get(name)
         src = ds if loaded is None else loaded
         acc = np.zeros(ds.shape[1:], dtype=np.float64)

@@ -74,7 +74,8 @@ FIELDS: tuple[Field, ...] = (
     Field("recordings/mirrored", "bool", ("R",), "", "left/right mirrored copy of another recording"),
     # --- per-frame arrays --------------------------------------------------
     Field("frames/pose_features", "float32", ("F", "Dp"), "m",
-          "feature joints in the body frame of the current frame, stacked over the past window"),
+          "feature joints in the body frame of the current frame, stacked over the past window; "
+          "attr `mean`: float64 (Dp,), its mean over frames"),
     Field("frames/audio_features", "float32", ("F", "Da"), "1",
           "13 MFCC + log mean energy per frame, standardised with audio/mean and audio/std"),
     Field("frames/audio_deltas", "float32", ("F", "Da"), "1/frame",
@@ -131,6 +132,14 @@ FIELDS_BY_PATH: dict[str, Field] = {f.path: f for f in FIELDS}
 CONTROLS_GROUP = "controls"  # controls/<name>: float32 (F,), attrs unit, doc
 MASKS_GROUP = "masks"  # masks/<name>: uint64 (B,), attrs definition, thresholds (JSON)
 SUBDB_GROUP = "subdatabases"  # subdatabases/<name>/{start,length,recording} + attrs definition
+
+#: Dataset attribute: the float64 mean over frames of a per-frame array, numpy's
+#: ``arr.mean(axis=0, dtype=np.float64)`` bit for bit, written with the array so that
+#: ``synth --init mean`` reads Dp numbers instead of the whole array (21 GB at 1,000 hours).
+#: Files written before it existed lack it; readers then compute it (Database.frame_mean).
+MEAN_ATTR = "mean"
+#: the per-frame arrays that carry MEAN_ATTR
+MEAN_FIELDS = ("frames/pose_features",)
 
 #: A database split over several files (``gesturedb shard``): the per-frame arrays below live in shard
 #: files of whole recordings; the index file holds everything else and these arrays as HDF5 virtual
@@ -221,6 +230,8 @@ def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str,
     ds = h5.create_dataset(path, data=arr, dtype=_np_dtype(field.dtype))
     ds.attrs["unit"] = field.unit
     ds.attrs["doc"] = field.doc
+    if path in MEAN_FIELDS and arr.shape[0] > 0:
+        ds.attrs[MEAN_ATTR] = arr.mean(axis=0, dtype=np.float64)
     for k, v in (attrs or {}).items():
         ds.attrs[k] = v
 
@@ -285,6 +296,27 @@ _CORE_GROUPS = ("recordings", "frames", "audio", "skeleton", "chunks", "clips", 
 
 #: rows of each per-frame array read by :func:`check_file` (spread over the file): the check stays cheap
 CHECK_SAMPLE_ROWS = 2000
+
+
+def read_mean(h5, path: str, filename: str | os.PathLike | None = None) -> np.ndarray | None:
+    """The :data:`MEAN_ATTR` of the per-frame dataset ``path``, checked; None when the file has none.
+
+    Returns ndarray [shape=(D...,)], float64 (the dataset's shape without its frame axis).
+    Raises :class:`SchemaError` naming the file and the attribute when it has another
+    dtype or shape, or a non-finite value.
+    """
+    ds = h5[path]
+    if MEAN_ATTR not in ds.attrs:
+        return None
+    name = os.fspath(filename) if filename is not None else h5.filename
+    got = np.asarray(ds.attrs[MEAN_ATTR])
+    if got.dtype != np.float64 or got.shape != ds.shape[1:]:
+        raise SchemaError(name, f"{path} attribute {MEAN_ATTR!r}: expected float64 of shape {ds.shape[1:]}, "
+                                f"got {got.dtype} of shape {got.shape}")
+    if not np.isfinite(got).all():
+        raise SchemaError(name, f"{path} attribute {MEAN_ATTR!r}: expected finite values, "
+                                f"got {got[~np.isfinite(got)][0]}")
+    return got
 
 
 def check_file(h5, filename: str | os.PathLike | None = None) -> None:
@@ -401,6 +433,8 @@ def check_file(h5, filename: str | os.PathLike | None = None) -> None:
                  "frames/local_rotations", "frames/root_positions"):
         if not have(path) or F < 1:
             continue
+        if path in MEAN_FIELDS:
+            read_mean(h5, path, name)
         a = h5[path][rows]
         if not np.isfinite(a).all():
             r = int(rows[np.argwhere(~np.isfinite(a))[0][0]])
@@ -539,6 +573,9 @@ def describe() -> str:
         f"| `{SUBDB_GROUP}/<word>/recording` | int32 | (n,) | | recording of each stretch |",
         f"| `{SUBDB_GROUP}/<word>/word_index` | int64 | (n,) | | the occurrence (index into `words/`) |",
         f"| `{SUBDB_GROUP}/<word>/mask` | uint64 | (B,) | | union of the stretches as a bitset over frames |",
+        "",
+        f"Dataset attribute `{MEAN_ATTR}` of {', '.join(f'`{p}`' for p in MEAN_FIELDS)}: float64, the mean over "
+        "frames (numpy's float64 mean along axis 0, bit for bit), so `--init mean` reads no frames.",
         "",
         "Root attributes: " + "; ".join(f"`{k}` ({v})" for k, v in ROOT_ATTRS.items()) + ".",
     ]

@@ -199,7 +199,8 @@ def _fill_shard(h5, src, f0: int, f1: int, of: dict, bar) -> None:
         s = src[p]
         d = h5.create_dataset(p, shape=(f1 - f0,) + s.shape[1:], dtype=s.dtype)
         for k, v in s.attrs.items():
-            d.attrs[k] = v
+            if k != schema.MEAN_ATTR:  # the whole database's, not this part's (the index keeps it)
+                d.attrs[k] = v
         for a in range(f0, f1, COPY_ROWS):
             b = min(a + COPY_ROWS, f1)
             d[a - f0:b - f0] = s[a:b]
