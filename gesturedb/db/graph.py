@@ -15,8 +15,12 @@ frames, the last ``m`` frames of ``p`` against the first ``m`` of ``q``:
   rotation near 180 degrees (w ~ 0) could land on either hemisphere; gestures do not bend
   joints that far.
 - Both are squared Euclidean distances, so with ``x = [sqrt(l1) p, sqrt(l2 / 2) q]`` the
-  whole K x K table is ``|x_a|^2 + |x_b|^2 - 2 x_a . x_b``: one float32 matrix product
-  (BLAS), the result kept in float64.
+  whole K x K table is ``|x_a|^2 + |x_b|^2 - 2 x_a . x_b``: one float64 matrix product
+  (BLAS) over ``x`` rounded to a power-of-two grid fine enough that every product and
+  partial sum is an exact float64 (:func:`transition_costs`). The table is then the same
+  bits whatever the BLAS kernel and the CPU: with a float32 product the costs moved by
+  2e-5 between OpenBLAS's AVX2 and AVX-512 kernels, and with them the graph search's path
+  (the held-out jerk 26.3 on one machine, 25.5 on another).
 
 Edges. ``p -> q`` exists where ``T(p, q) < delta_T``; ``delta_T`` defaults to the
 ``delta_quantile`` (10 %) quantile of all off-diagonal costs of the database (from a
@@ -32,6 +36,9 @@ and standard deviation of the standardised audio features (2 x Da) plus its word
 -> the clip's style signature (speed m/s, radius m, height m). Fitted on the database's
 clips when the graph is built; the held-out error (every 5th clip held out, RMS per
 output standardised by the target std) is stored beside the error of predicting the mean.
+Its normal equations, their solution and its predictions avoid BLAS and LAPACK too (an
+exact Gram matrix, a Cholesky solve and products in numpy's own reductions), so the
+stored model and the predicted styles are also the same bits on every machine.
 """
 from __future__ import annotations
 
@@ -125,15 +132,44 @@ def transition_features(positions, rotations, root, frames, *, l1: float = L1, l
     return x.reshape(K, -1)
 
 
+def _on_grid(*xs: np.ndarray) -> tuple[list[np.ndarray], float]:
+    """The arrays (n_i, D) in units of a power of two ``u``, rounded to integers, and ``u``.
+
+    ``u`` is chosen from the largest magnitude over all of them (one unit, so that their norms
+    and products add up exactly) so that every value is at most ``2^e`` units
+    with ``4 D 4^e <= 2^53``: every product of two of them, every partial sum of D such
+    products, and ``|a|^2 + |b|^2 - 2 a.b``, are integers below ``2^53``, so a float64
+    matrix product computes them exactly in any order, with or without FMA. That makes the
+    result independent of the BLAS kernel (and of the CPU that picks it). The rounding
+    moves a value by at most ``u / 2``: ``2^-(e+1)`` of the largest magnitude (``e = 20``,
+    5e-7, for the ~760 columns of BEAT2's transition features).
+    """
+    D = max(int(xs[0].shape[1]), 1)
+    amax = max((float(np.abs(x).max()) for x in xs if x.size), default=0.0)
+    if not np.isfinite(amax):
+        raise ParameterError(f"features of an exact product (graph costs, style model): expected finite values, "
+                             f"got {amax}")
+    e = (51 - int(np.ceil(np.log2(D)))) // 2
+    if amax == 0.0:
+        return [np.zeros_like(x, dtype=np.float64) for x in xs], 1.0
+    _, ex = np.frexp(amax)  # amax < 2^ex
+    u = float(np.ldexp(1.0, int(ex) - e))
+    return [np.rint(np.asarray(x, dtype=np.float64) / u) for x in xs], u
+
+
 def transition_costs(end_x: np.ndarray, start_x: np.ndarray) -> np.ndarray:
-    """Dense ``T[p, q]`` (K, K), float64, from clip-end and clip-start features by one float32 matmul (BLAS)."""
-    a = np.ascontiguousarray(end_x, dtype=np.float32)
-    b = np.ascontiguousarray(start_x, dtype=np.float32)
-    T = (a @ b.T).astype(np.float64)
+    """Dense ``T[p, q] = |end_x[p] - start_x[q]|^2`` (K, K), float64, the same bits on every machine.
+
+    One float64 matrix product (BLAS) over the features on :func:`_on_grid`'s grid, where
+    it is exact; ``T >= 0`` holds exactly.
+    """
+    (a, b), u = _on_grid(np.asarray(end_x), np.asarray(start_x))
+    T = a @ b.T
     T *= -2.0
-    T += np.einsum("ij,ij->i", end_x, end_x)[:, None]
-    T += np.einsum("ij,ij->i", start_x, start_x)[None, :]
-    return np.maximum(T, 0.0, out=T)
+    T += np.einsum("ij,ij->i", a, a)[:, None]
+    T += np.einsum("ij,ij->i", b, b)[None, :]
+    T *= u * u
+    return T
 
 
 def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE,
@@ -157,8 +193,18 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
     k_min = min(int(min_out), k_max)
     if k_max <= 0:
         return np.zeros(K + 1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), float(delta_T)
-    # the k_max cheapest of every row, in order (stable sort: ties by target index)
-    part = np.argpartition(T, k_max - 1, axis=1)[:, :k_max] if k_max < K - 1 else np.argsort(T, axis=1)[:, :k_max]
+    # the k_max cheapest of every row, ties at the cut to the smaller target index (which of
+    # several equal costs argpartition returns depends on its algorithm, and numpy picks
+    # that by CPU; the k-th smallest value does not)
+    kth = np.partition(T, k_max - 1, axis=1)[:, k_max - 1:k_max]
+    below = T < kth
+    at = T == kth
+    need = k_max - below.sum(1, keepdims=True)  # how many of the tied costs each row takes
+    take = below | (at & (np.cumsum(at, axis=1, dtype=np.int32) <= need))
+    if not np.isfinite(kth).all():  # +inf (the diagonal) or nan: fill from the smallest indices
+        fill = ~take & (np.cumsum(~take, axis=1, dtype=np.int32) <= k_max - take.sum(1, keepdims=True))
+        take |= fill
+    part = np.nonzero(take)[1].reshape(K, k_max)
     vals = np.take_along_axis(T, part, 1)
     o = np.lexsort((part, vals), axis=1)
     part, vals = np.take_along_axis(part, o, 1), np.take_along_axis(vals, o, 1)
@@ -252,13 +298,17 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float | None = None,
         mu, sd = Xt.mean(0), np.maximum(Xt.std(0), 1e-9)
         Z = (Xt - mu) / sd
         ym = Yt.mean(0)
-        A = Z.T @ Z + a * np.eye(Z.shape[1])
-        coef = np.linalg.solve(A, Z.T @ (Yt - ym))
+        # Z^T Z and Z^T (Y - ym) exactly (on a grid, see _on_grid), then a Cholesky solve in
+        # numpy: no BLAS or LAPACK kernel decides the bits
+        (Zg,), uz = _on_grid(Z.T)
+        (Rg,), ur = _on_grid((Yt - ym).T)  # its own unit: the targets are far smaller than Z
+        A = (Zg @ Zg.T) * (uz * uz) + a * np.eye(Z.shape[1])
+        coef = _cholesky_solve(A, (Zg @ Rg.T) * (uz * ur))
         return coef, ym, mu, sd
 
     def predict(m, Xq):
         coef, ym, mu, sd = m
-        return ((Xq - mu) / sd) @ coef + ym
+        return _product((Xq - mu) / sd, coef) + ym
 
     ysd = np.maximum(Y.std(0), 1e-9)
 
@@ -297,7 +347,35 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float | None = None,
 
 def predict_style(model: dict, X: np.ndarray) -> np.ndarray:
     """Style signatures (n, S) predicted from inputs (n, P) by a model from :func:`fit_style_model`."""
-    return ((np.asarray(X, dtype=np.float64) - model["x_mean"]) / model["x_std"]) @ model["coef"] + model["intercept"]
+    return _product((np.asarray(X, dtype=np.float64) - model["x_mean"]) / model["x_std"], model["coef"]) \
+        + model["intercept"]
+
+
+def _product(Z: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """``Z @ W`` (n, P) x (P, S) -> (n, S) as numpy's own elementwise products and sum (no BLAS:
+    the same bits on every machine). For the style model's few inputs and outputs."""
+    return (Z[:, :, None] * W[None, :, :]).sum(axis=1)
+
+
+def _cholesky_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A^-1 B`` for a symmetric positive definite ``A`` (P, P) and ``B`` (P, S), float64, by a
+    Cholesky factorisation written in numpy's elementwise operations and sums (LAPACK's
+    results depend on the BLAS kernel under it; these do not). P is small (the style inputs)."""
+    P = A.shape[0]
+    L = np.zeros_like(A)
+    for j in range(P):
+        d = A[j, j] - (L[j, :j] * L[j, :j]).sum()
+        if not d > 0.0:
+            raise ParameterError(f"style model: expected a positive definite system, got pivot {d!r} at {j}")
+        L[j, j] = np.sqrt(d)
+        L[j + 1:, j] = (A[j + 1:, j] - (L[j + 1:, :j] * L[j, :j]).sum(axis=1)) / L[j, j]
+    Y = np.zeros_like(B, dtype=np.float64)
+    for i in range(P):  # L y = B
+        Y[i] = (B[i] - (L[i, :i, None] * Y[:i]).sum(axis=0)) / L[i, i]
+    X = np.zeros_like(Y)
+    for i in range(P - 1, -1, -1):  # L^T x = y
+        X[i] = (Y[i] - (L[i + 1:, i, None] * X[i + 1:]).sum(axis=0)) / L[i, i]
+    return X
 
 
 def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = TRANSITION_FRAMES,
