@@ -80,3 +80,59 @@ def test_cli_build_with_a_local_cluster(scott_dir, tmp_path, capsys):
     assert main(["build", str(scott_dir), "-o", str(tmp_path / "bad.h5"), "--scheduler", "udp://x"]) == 2
     assert "scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got 'udp://x'" in capsys.readouterr().err
     assert not (tmp_path / "bad.h5").exists()
+
+
+def test_cluster_of_mixed_cpus_builds_the_local_database(scott_dir, tmp_path):
+    """Two worker processes, one running numpy's AVX-512 code and one its AVX2 code (emulated with
+    NPY_DISABLE_CPU_FEATURES, which numpy reads when it is imported: the worker processes are
+    started with it), build the database a local build gives, dataset by dataset; before the
+    audio features used their own logarithm, 80 % of their values depended on the worker."""
+    import platform
+    import subprocess
+    import sys
+
+    distributed = pytest.importorskip("distributed")
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("the emulated CPUs are x86 ones")
+    src = _two_recordings(scott_dir, tmp_path)
+    local = tmp_path / "local.h5"
+    gesturedb.build([src], local, workers=1).close()
+    dask = os.path.join(os.path.dirname(sys.executable), "dask")
+    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp", host="127.0.0.1",
+                                  dashboard_address=":0") as cluster, \
+            distributed.Client(cluster) as client:
+        procs = []
+        try:
+            for disable in ("", "X86_V4"):
+                env = {k: v for k, v in os.environ.items() if k != "NPY_DISABLE_CPU_FEATURES"}
+                if disable:
+                    env["NPY_DISABLE_CPU_FEATURES"] = disable
+                procs.append(subprocess.Popen([dask, "worker", cluster.scheduler_address, "--nthreads", "1",
+                                               "--no-nanny", "--no-dashboard"], env=env,
+                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            client.wait_for_workers(2, timeout=180)
+
+            def log_target():
+                from numpy.lib.introspect import opt_func_info
+                return opt_func_info(func_name="^log$", signature="float64")["log"]["dd"]["current"]
+
+            targets = sorted(client.run(log_target).values())
+            if targets[0] == targets[1]:
+                pytest.skip(f"this CPU has no AVX-512 code in numpy to switch off: {targets}")
+            dist = tmp_path / "dask.h5"
+            with distributed.get_task_stream(client) as stream:
+                gesturedb.build([src], dist, scheduler=client).close()
+            # one recording on each kind of worker (two one-thread workers, two tasks at once)
+            assert len({t["worker"] for t in stream.data}) == 2, stream.data
+        finally:
+            for p in procs:
+                p.terminate()
+            for p in procs:
+                p.wait(timeout=60)
+    a, b = _content(local), _content(dist)
+    assert a.keys() == b.keys()
+    for k in a:
+        if isinstance(a[k], np.ndarray):
+            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
+        else:
+            assert a[k] == b[k], k

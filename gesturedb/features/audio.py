@@ -46,6 +46,35 @@ MAX_PAD_S: float = 1.0
 # silence gets a finite feature (log(1e-10) = -23.0) instead of -inf.
 _FLOOR = 1e-10
 
+# log(2) split so that e * _LN2_HI is exact for |e| < 2^11 (the low 11 bits of its mantissa are 0)
+_LN2_HI = 6.93147180369123816490e-01
+_LN2_LO = 1.90821492927058770002e-10
+# 2 atanh(s) = 2 (s + s^3/3 + s^5/5 + ...): terms up to s^25 reach 2^-53 for |s| <= 0.1716
+_ATANH = tuple(1.0 / (2 * k + 1) for k in range(1, 13))
+
+
+def _log(x: np.ndarray) -> np.ndarray:
+    """Natural logarithm of positive finite float64 values, within about 2 ulp, the same bits on
+    every machine.
+
+    numpy's ``log`` and ``log10`` pick an implementation by CPU (its AVX-512 ones round
+    differently from its AVX2 ones), so a recording's audio features depended on the machine
+    that built them: between the two, 80 % of BEAT2's audio feature values differed, by up to
+    3e-6, and a Dask build on a cluster mixing them depended on which worker took which
+    recording. This uses only ``frexp`` (exact) and IEEE additions, multiplications and one
+    division, which every machine rounds alike.
+    """
+    m, e = np.frexp(np.asarray(x, dtype=np.float64))  # x = m 2^e, m in [0.5, 1)
+    low = m < 0.7071067811865476
+    m = np.where(low, m * 2.0, m)  # now in [sqrt(1/2), sqrt(2)); exact
+    e = (e - low).astype(np.float64)
+    s = (m - 1.0) / (m + 1.0)  # m - 1 is exact (Sterbenz)
+    z = s * s
+    p = np.full_like(z, _ATANH[-1])
+    for c in _ATANH[-2::-1]:
+        p = p * z + c
+    return e * _LN2_HI + ((2.0 * s) * (z * p) + (e * _LN2_LO + 2.0 * s))
+
 
 def n_frames_for_duration(duration_s: float, fps: float) -> int:
     """Number of motion frames that spans a duration.
@@ -187,15 +216,20 @@ def audio_features(
 
     fmax = min(FMAX_HZ, sr / 2.0)
     fmin = min(FMIN_HZ, fmax / 2.0)
-    power = np.abs(librosa.stft(y, n_fft=n_fft, hop_length=hop, win_length=win, window="hann", center=True,
-                                pad_mode="constant")) ** 2
+    spec = librosa.stft(y, n_fft=n_fft, hop_length=hop, win_length=win, window="hann", center=True,
+                        pad_mode="constant")
+    # |z|^2 as re^2 + im^2: numpy's abs of a complex number (a hypot) rounds differently with
+    # and without AVX2, elementwise products and sums do not
+    power = spec.real * spec.real + spec.imag * spec.imag
     basis = librosa.filters.mel(sr=sr, n_fft=n_fft, n_mels=N_MELS, fmin=fmin, fmax=fmax)
     # librosa.feature.melspectrogram, but the projection without BLAS (optimize=False: numpy's own
     # loop): OpenBLAS rounds it differently with other thread counts, and BLAS thread limits are
     # per process while builds run recordings in threads (Dask) or processes; a database must not
     # depend on how it was built (a 1-worker and a 2-worker build differed by 3e-5 here)
     mel = np.einsum("mf,ft->mt", basis, power, optimize=False)
-    log_mel = librosa.power_to_db(mel, ref=1.0, amin=_FLOOR, top_db=None)
+    # librosa.power_to_db(mel, ref=1.0, amin=_FLOOR, top_db=None), with a logarithm that does not
+    # depend on the CPU (see _log), rounded to float32 once
+    log_mel = (_log(np.maximum(mel, _FLOOR)) * (10.0 / math.log(10.0))).astype(np.float32)
     mfcc = librosa.feature.mfcc(S=log_mel, n_mfcc=n_mfcc, dct_type=2, norm="ortho")  # (n_mfcc, n_fine')
 
     # Rectangular 25 ms energy centred at each analysis frame, on the same
@@ -204,7 +238,7 @@ def audio_features(
     starts = np.arange(mfcc.shape[1], dtype=np.int64) * hop + (n_fft - win) // 2
     csum = np.concatenate([[0.0], np.cumsum(padded * padded)])
     energy = (csum[starts + win] - csum[starts]) / win
-    log_energy = np.log(np.maximum(energy, _FLOOR))
+    log_energy = _log(np.maximum(energy, _FLOOR))
 
     fine = np.concatenate([mfcc.T.astype(np.float64), log_energy[:, None]], axis=1)[:n_fine]
     centres_s = np.arange(len(fine), dtype=np.float64) * hop / sr
