@@ -16,6 +16,7 @@ import gesturedb
 from gesturedb.db import schema
 from gesturedb.db.build import BuildConfig, pair_inputs
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
+from tests.dbcontent import differing
 
 STEM = "2_scott_0_1_1"
 
@@ -87,20 +88,7 @@ def test_build_twice_gives_identical_content(scott_dir, scott_db_path, tmp_path)
     again = tmp_path / "again.h5"
     gesturedb.build([scott_dir], again, workers=2).close()
 
-    def content(path):
-        out = {}
-        with h5py.File(path, "r") as h5:
-            h5.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-            out["/attrs"] = {k: (v if not isinstance(v, np.ndarray) else v.tolist()) for k, v in h5.attrs.items()}
-        return out
-
-    a, b = content(scott_db_path), content(again)
-    assert a.keys() == b.keys()
-    for k in a:
-        if isinstance(a[k], np.ndarray):
-            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
-        else:
-            assert a[k] == b[k], k
+    assert differing(scott_db_path, again) == []
 
 
 def test_mirror_doubles_the_database(scott_dir, tmp_path):

@@ -3,12 +3,11 @@ from __future__ import annotations
 
 import os
 
-import h5py
-import numpy as np
 import pytest
 
 import gesturedb
 from gesturedb.errors import GestureDBError, ParameterError
+from tests.dbcontent import differing
 
 STEM = "2_scott_0_1_1"
 
@@ -23,14 +22,6 @@ def _two_recordings(scott_dir, tmp_path):
     return src
 
 
-def _content(path):
-    out = {}
-    with h5py.File(path, "r") as h5:
-        h5.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-        out["/attrs"] = {k: (v if not isinstance(v, np.ndarray) else v.tolist()) for k, v in h5.attrs.items()}
-    return out
-
-
 def test_cluster_build_is_identical_to_local_build(scott_dir, tmp_path, dask_client):
     src = _two_recordings(scott_dir, tmp_path)
     local = tmp_path / "local.h5"
@@ -38,13 +29,7 @@ def test_cluster_build_is_identical_to_local_build(scott_dir, tmp_path, dask_cli
     gesturedb.build([src], local, workers=2).close()
     with gesturedb.build([src], dist, scheduler=dask_client) as db:
         assert [r.name for r in db.recordings] == ["a_scott", "b_scott"]
-    a, b = _content(local), _content(dist)
-    assert a.keys() == b.keys()
-    for k in a:
-        if isinstance(a[k], np.ndarray):
-            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
-        else:
-            assert a[k] == b[k], k
+    assert differing(local, dist) == []
 
 
 def test_failed_task_leaves_nothing_behind(scott_dir, tmp_path, dask_client):
@@ -75,8 +60,7 @@ def test_cli_build_with_a_local_cluster(scott_dir, tmp_path, capsys):
     assert main(["build", str(scott_dir), "-o", str(out), "--scheduler", "local:1", "-q"]) == 0
     ref = tmp_path / "ref.h5"
     gesturedb.build([scott_dir], ref).close()
-    a, b = _content(ref), _content(out)
-    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a if isinstance(a[k], np.ndarray))
+    assert differing(ref, out) == []
     assert main(["build", str(scott_dir), "-o", str(tmp_path / "bad.h5"), "--scheduler", "udp://x"]) == 2
     assert "scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got 'udp://x'" in capsys.readouterr().err
     assert not (tmp_path / "bad.h5").exists()
@@ -129,10 +113,4 @@ def test_cluster_of_mixed_cpus_builds_the_local_database(scott_dir, tmp_path):
                 p.terminate()
             for p in procs:
                 p.wait(timeout=60)
-    a, b = _content(local), _content(dist)
-    assert a.keys() == b.keys()
-    for k in a:
-        if isinstance(a[k], np.ndarray):
-            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
-        else:
-            assert a[k] == b[k], k
+    assert differing(local, dist) == []
