@@ -16,7 +16,10 @@ import gesturedb
 from gesturedb.db import schema
 from gesturedb.db.build import BuildConfig, pair_inputs
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
-from tests.dbcontent import differing
+try:  # tests/ is on sys.path when it is not a package, the repo root when it is
+    from dbcontent import differing
+except ModuleNotFoundError:  # pragma: no cover
+    from tests.dbcontent import differing
 
 STEM = "2_scott_0_1_1"
 

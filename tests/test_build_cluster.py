@@ -7,7 +7,10 @@ import pytest
 
 import gesturedb
 from gesturedb.errors import GestureDBError, ParameterError
-from tests.dbcontent import differing
+try:  # tests/ is on sys.path when it is not a package, the repo root when it is
+    from dbcontent import differing
+except ModuleNotFoundError:  # pragma: no cover
+    from tests.dbcontent import differing
 
 STEM = "2_scott_0_1_1"
 

@@ -16,7 +16,10 @@ import subprocess
 import sys
 
 import pytest
-from tests.dbcontent import differing
+try:  # tests/ is on sys.path when it is not a package, the repo root when it is
+    from dbcontent import differing
+except ModuleNotFoundError:  # pragma: no cover
+    from tests.dbcontent import differing
 
 # each run: build (no mirror) from the real recording, a k-NN and a graph synthesis of one input,
 # then what numpy and OpenBLAS picked on this "CPU"
