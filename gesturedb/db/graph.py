@@ -294,17 +294,19 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float | None = None,
     X = np.asarray(X, dtype=np.float64)
     Y = np.asarray(Y, dtype=np.float64)
 
-    def fit(Xt, Yt, a):
+    def normal_equations(Xt, Yt):
+        """Z^T Z (P, P) and Z^T (Y - ym) (P, S) of the standardised inputs, exactly (on a grid,
+        see _on_grid), so that no BLAS kernel decides the bits; and ym, mu, sd."""
         mu, sd = Xt.mean(0), np.maximum(Xt.std(0), 1e-9)
         Z = (Xt - mu) / sd
         ym = Yt.mean(0)
-        # Z^T Z and Z^T (Y - ym) exactly (on a grid, see _on_grid), then a Cholesky solve in
-        # numpy: no BLAS or LAPACK kernel decides the bits
         (Zg,), uz = _on_grid(Z.T)
         (Rg,), ur = _on_grid((Yt - ym).T)  # its own unit: the targets are far smaller than Z
-        A = (Zg @ Zg.T) * (uz * uz) + a * np.eye(Z.shape[1])
-        coef = _cholesky_solve(A, (Zg @ Rg.T) * (uz * ur))
-        return coef, ym, mu, sd
+        return (Zg @ Zg.T) * (uz * uz), (Zg @ Rg.T) * (uz * ur), ym, mu, sd
+
+    def fit(Xt, Yt, a):
+        G, R, ym, mu, sd = normal_equations(Xt, Yt)
+        return _cholesky_solve(G + a * np.eye(G.shape[0]), R), ym, mu, sd
 
     def predict(m, Xq):
         coef, ym, mu, sd = m
@@ -318,8 +320,17 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float | None = None,
         ug = np.unique(gt)
         if ug.size < 3:  # too few groups to cross-validate: the strongest shrinkage
             return float(RIDGE_ALPHAS[-1])
-        err = np.array([[(((predict(fit(Xt[gt != k], Yt[gt != k], a), Xt[gt == k]) - Yt[gt == k]) / ysd) ** 2).mean()
-                         for k in ug] for a in RIDGE_ALPHAS])  # (alphas, groups)
+        # leave-one-group-out: each fold's normal equations once, the folds' systems of one
+        # strength solved together (one batched Cholesky: thousands of folds on a large database)
+        folds = [normal_equations(Xt[gt != k], Yt[gt != k]) for k in ug]
+        G = np.stack([f[0] for f in folds])
+        R = np.stack([f[1] for f in folds])
+        err = np.empty((len(RIDGE_ALPHAS), ug.size))  # (alphas, groups)
+        for i, a in enumerate(RIDGE_ALPHAS):
+            coefs = _cholesky_solve(G + a * np.eye(G.shape[1]), R)
+            for j, k in enumerate(ug):
+                m = (coefs[j],) + folds[j][2:]
+                err[i, j] = (((predict(m, Xt[gt == k]) - Yt[gt == k]) / ysd) ** 2).mean()
         mean, se = err.mean(1), err.std(1) / np.sqrt(ug.size)
         best = int(np.argmin(mean))
         # the one-standard-error rule (glmnet's lambda.1se): the strongest shrinkage within one
@@ -358,23 +369,27 @@ def _product(Z: np.ndarray, W: np.ndarray) -> np.ndarray:
 
 
 def _cholesky_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``A^-1 B`` for a symmetric positive definite ``A`` (P, P) and ``B`` (P, S), float64, by a
-    Cholesky factorisation written in numpy's elementwise operations and sums (LAPACK's
-    results depend on the BLAS kernel under it; these do not). P is small (the style inputs)."""
-    P = A.shape[0]
+    """``A^-1 B`` for symmetric positive definite ``A`` (..., P, P) and ``B`` (..., P, S), float64,
+    by a Cholesky factorisation written in numpy's elementwise operations and sums (LAPACK's
+    results depend on the BLAS kernel under it; these do not). Leading axes are a batch of
+    independent systems, each solved with the same operations as alone. P is small (the style
+    inputs)."""
+    P = A.shape[-1]
     L = np.zeros_like(A)
     for j in range(P):
-        d = A[j, j] - (L[j, :j] * L[j, :j]).sum()
-        if not d > 0.0:
-            raise ParameterError(f"style model: expected a positive definite system, got pivot {d!r} at {j}")
-        L[j, j] = np.sqrt(d)
-        L[j + 1:, j] = (A[j + 1:, j] - (L[j + 1:, :j] * L[j, :j]).sum(axis=1)) / L[j, j]
-    Y = np.zeros_like(B, dtype=np.float64)
+        d = A[..., j, j] - (L[..., j, :j] * L[..., j, :j]).sum(axis=-1)
+        if not (d > 0.0).all():
+            raise ParameterError(f"style model: expected a positive definite system, got pivot {d.min()!r} at {j}")
+        L[..., j, j] = np.sqrt(d)
+        L[..., j + 1:, j] = (A[..., j + 1:, j] - (L[..., j + 1:, :j] * L[..., j, None, :j]).sum(axis=-1)) \
+            / L[..., j, j, None]
+    Y = np.zeros(np.broadcast_shapes(A.shape[:-2], B.shape[:-2]) + B.shape[-2:])
     for i in range(P):  # L y = B
-        Y[i] = (B[i] - (L[i, :i, None] * Y[:i]).sum(axis=0)) / L[i, i]
+        Y[..., i, :] = (B[..., i, :] - (L[..., i, :i, None] * Y[..., :i, :]).sum(axis=-2)) / L[..., i, i, None]
     X = np.zeros_like(Y)
     for i in range(P - 1, -1, -1):  # L^T x = y
-        X[i] = (Y[i] - (L[i + 1:, i, None] * X[i + 1:]).sum(axis=0)) / L[i, i]
+        X[..., i, :] = (Y[..., i, :] - (L[..., i + 1:, i, None] * X[..., i + 1:, :]).sum(axis=-2)) \
+            / L[..., i, i, None]
     return X
 
 
