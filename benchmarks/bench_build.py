@@ -17,6 +17,7 @@ run (medians over --repeat):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import sys
@@ -55,12 +56,15 @@ def main() -> int:
     args = ap.parse_args()
 
     import gesturedb
-    from gesturedb.db.build import BuildConfig, RecordingSource, _features_for, process_recording
+    from gesturedb.db.build import BuildConfig, RecordingSource, _auto_gap, _features_for, process_recording
     from gesturedb.io import read_audio, read_motion, read_transcript
 
     base = DATA / "beat2-scott" / STEM
     src = RecordingSource(STEM, f"{base}.npz", f"{base}.wav", f"{base}.TextGrid")
     cfg = BuildConfig()
+    # process_recording takes a resolved gap, as gesturedb.build passes it (the default "auto" is
+    # resolved once from every transcript before the recordings are processed)
+    cfg = dataclasses.replace(cfg, gap_s=_auto_gap([src]))
     rec_s = 1906 / 30.0
     process_recording(src, cfg)  # warm-up: librosa/numba imports and caches
 
