@@ -141,6 +141,35 @@ def test_style_model_falls_back_to_the_mean_where_audio_does_not_predict_style()
     assert weak["alpha"] == 0.1 and weak["heldout_rmse"] > 1.1 * weak["mean_rmse"]
 
 
+@pytest.mark.parametrize("n_groups", [12, 400])
+def test_style_model_cross_validation_folds_and_solves(n_groups, monkeypatch):
+    """Leave-one-group-out up to CV_FOLDS groups, CV_FOLDS folds beyond (the cost of the fit
+    stays linear in the clips); each strength solves all folds in one batched Cholesky whose
+    solutions are those of the folds one by one (bit for bit) and of numpy's solver (closely)."""
+    rng = np.random.default_rng(n_groups)
+    X = rng.normal(size=(2 * n_groups, 6))
+    Y = X[:, :3] @ rng.normal(size=(3, 3)) + 0.3 * rng.normal(size=(2 * n_groups, 3))
+    calls = []
+    solve = G._cholesky_solve
+
+    def recording(A, B):
+        out = solve(A, B)
+        calls.append(A.shape[:-2])
+        if A.ndim == 3:
+            for i in range(A.shape[0]):
+                assert np.array_equal(out[i], solve(A[i], B[i]))
+                np.testing.assert_allclose(out[i], np.linalg.solve(A[i], B[i]), rtol=1e-9, atol=1e-12)
+        return out
+
+    monkeypatch.setattr(G, "_cholesky_solve", recording)
+    m = G.fit_style_model(X, Y, groups=np.arange(2 * n_groups) // 2)
+    held = n_groups // 5  # every 5th group is held out of the estimate's fit
+    want = min(n_groups - held, G.CV_FOLDS), min(n_groups, G.CV_FOLDS)
+    batched = [c for c in calls if c]
+    assert batched == [(want[0],)] * len(G.RIDGE_ALPHAS) + [(want[1],)] * len(G.RIDGE_ALPHAS)
+    assert m["heldout_rmse"] < 0.5 * m["mean_rmse"]
+
+
 def test_voiced_segments_find_bursts():
     sr = 16000
     t = np.arange(int(3.0 * sr)) / sr

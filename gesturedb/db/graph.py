@@ -54,6 +54,10 @@ MIN_OUT = 4
 MAX_OUT = 32
 #: ridge strengths the style predictor chooses from by cross-validation (fit_style_model)
 RIDGE_ALPHAS = (0.1, 1.0, 10.0, 100.0, 1e3, 1e4, 1e6)
+#: cross-validation folds of the style predictor: leave-one-group-out up to this many groups,
+#: beyond it this many folds of groups (each fold refits on all other clips: leave-one-out over
+#: the ~60,000 groups of 100 hours would take hours)
+CV_FOLDS = 20
 
 
 def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
@@ -281,7 +285,8 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float | None = None,
     (by order of first appearance) is held out; default: every clip its own group.
 
     ``alpha`` None (default): the ridge strength from :data:`RIDGE_ALPHAS` chosen by
-    leave-one-group-out error on the clips it is fitted on, the strongest within one standard
+    leave-one-group-out error (:data:`CV_FOLDS` folds of groups when there are more groups) on
+    the clips it is fitted on, the strongest within one standard
     error of the best (for the held-out estimate, on the training groups only, so the held-out
     clips choose nothing). The largest strength is
     practically the mean predictor, so where audio does not predict style on a database (a
@@ -317,21 +322,22 @@ def fit_style_model(X: np.ndarray, Y: np.ndarray, *, alpha: float | None = None,
     def choose(Xt, Yt, gt):
         if alpha is not None:
             return float(alpha)
-        ug = np.unique(gt)
+        ug, gi = np.unique(gt, return_inverse=True)
         if ug.size < 3:  # too few groups to cross-validate: the strongest shrinkage
             return float(RIDGE_ALPHAS[-1])
-        # leave-one-group-out: each fold's normal equations once, the folds' systems of one
-        # strength solved together (one batched Cholesky: thousands of folds on a large database)
-        folds = [normal_equations(Xt[gt != k], Yt[gt != k]) for k in ug]
+        n_folds = min(ug.size, CV_FOLDS)
+        fold = gi % n_folds  # up to CV_FOLDS groups: each group its own fold
+        # each fold's normal equations once, the folds' systems of one strength solved together
+        folds = [normal_equations(Xt[fold != f], Yt[fold != f]) for f in range(n_folds)]
         G = np.stack([f[0] for f in folds])
         R = np.stack([f[1] for f in folds])
-        err = np.empty((len(RIDGE_ALPHAS), ug.size))  # (alphas, groups)
+        err = np.empty((len(RIDGE_ALPHAS), n_folds))  # (alphas, folds)
         for i, a in enumerate(RIDGE_ALPHAS):
             coefs = _cholesky_solve(G + a * np.eye(G.shape[1]), R)
-            for j, k in enumerate(ug):
-                m = (coefs[j],) + folds[j][2:]
-                err[i, j] = (((predict(m, Xt[gt == k]) - Yt[gt == k]) / ysd) ** 2).mean()
-        mean, se = err.mean(1), err.std(1) / np.sqrt(ug.size)
+            for f in range(n_folds):
+                m = (coefs[f],) + folds[f][2:]
+                err[i, f] = (((predict(m, Xt[fold == f]) - Yt[fold == f]) / ysd) ** 2).mean()
+        mean, se = err.mean(1), err.std(1) / np.sqrt(n_folds)
         best = int(np.argmin(mean))
         # the one-standard-error rule (glmnet's lambda.1se): the strongest shrinkage within one
         # standard error of the best, so that a few clips that happen to fit do not buy a
