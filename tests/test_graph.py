@@ -113,6 +113,26 @@ def test_edges_threshold_plus_cheapest(K, max_out, ties):
     np.testing.assert_array_equal(cost, T[src, indices])
 
 
+@pytest.mark.parametrize("K,D,ties,delta_T", [(40, 30, False, None), (300, 762, False, None), (1500, 12, False, None),
+                                               (120, 6, True, None), (9, 5, False, 50.0), (2, 4, False, None),
+                                               (1, 4, False, None)])
+def test_edges_from_features_in_blocks_equal_the_whole_table(K, D, ties, delta_T):
+    """The build's blocked path (no K x K table) gives the dense path's edges, costs and
+    delta_T bit for bit, whatever the block: exact costs make a block's values the table's.
+    (K = 1500: the delta_T sample is every 2nd pair.)"""
+    rng = np.random.default_rng(K)
+    if ties:  # few distinct costs: most rows tied at the cut
+        a, b = (rng.integers(0, 2, (K, D)).astype(np.float64) for _ in range(2))
+    else:
+        a, b = rng.normal(size=(K, D)), rng.normal(size=(K, D))
+    want = G.edges_from_costs(G.transition_costs(a, b), delta_T=delta_T, min_out=3, max_out=8)
+    for block in (1, 37, 1 << 24):
+        got = G.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, block_elems=block)
+        for x, y in zip(want[:3], got[:3]):
+            assert x.dtype == y.dtype and np.array_equal(x, y)
+        assert got[3] == want[3]
+
+
 def test_style_model_beats_the_mean_on_learnable_data():
     rng = np.random.default_rng(2)
     X = rng.normal(size=(200, 5))

@@ -181,6 +181,8 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
     """CSR edges (no self-edges): each node's ``T < delta_T`` among its ``max_out`` cheapest, plus its ``min_out`` cheapest.
 
     ``T`` is modified (its diagonal set to +inf). Ties at the cut are broken by target index.
+    ``delta_T`` None: the ``delta_quantile`` quantile of a strided sample of at most ~10^6
+    off-diagonal costs.
 
     Returns
     -------
@@ -189,14 +191,73 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
     K = T.shape[0]
     np.fill_diagonal(T, np.inf)
     if delta_T is None:
-        step = max(1, (K * K) // 1_000_000)
-        sample = T.reshape(-1)[::step]
-        sample = sample[np.isfinite(sample)]
-        delta_T = float(np.quantile(sample, delta_quantile)) if sample.size else 0.0
+        sample = T.reshape(-1)[_sample_pairs(K)]
+        delta_T = _quantile(sample, delta_quantile)
+    rows, cols, cost = _row_edges(T, 0, delta_T, min_out, max_out)
+    return _csr(K, rows, cols, cost) + (float(delta_T),)
+
+
+def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: float | None = None,
+                        delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT, max_out: int = MAX_OUT,
+                        block_elems: int = 1 << 24):
+    """``edges_from_costs(transition_costs(end_x, start_x), ...)`` without the K x K table.
+
+    The costs are computed a block of rows at a time (about ``block_elems`` costs, 128 MB),
+    each row's edges kept and the block dropped, so memory grows with K, not K^2 (the table of
+    120,000 clips, about 100 hours, would be 115 GB). The sample for ``delta_T`` is the same
+    pairs, computed first. The costs are exact on their grid (:func:`_on_grid`), so a block's
+    values are those of the whole table bit for bit, and so are the edges.
+    """
+    (a, b), u = _on_grid(np.asarray(end_x), np.asarray(start_x))
+    K = a.shape[0]
+    na = np.einsum("ij,ij->i", a, a)
+    nb = np.einsum("ij,ij->i", b, b)
+    uu = u * u
+
+    def costs(r0: int, r1: int) -> np.ndarray:  # rows r0..r1 of transition_costs, diagonal +inf
+        T = a[r0:r1] @ b.T
+        T *= -2.0
+        T += na[r0:r1, None]
+        T += nb[None, :]
+        T *= uu
+        d = np.arange(r0, r1)
+        T[d - r0, d] = np.inf
+        return T
+
+    if delta_T is None:
+        flat = _sample_pairs(K)
+        i, j = np.divmod(flat, K)
+        sample = np.empty(flat.size)
+        for s0 in range(0, flat.size, 4096):  # elementwise products and sums: exact, as above
+            ii, jj = i[s0:s0 + 4096], j[s0:s0 + 4096]
+            sample[s0:s0 + 4096] = (na[ii] + nb[jj] - 2.0 * (a[ii] * b[jj]).sum(1)) * uu
+        sample[i == j] = np.inf
+        delta_T = _quantile(sample, delta_quantile)
+    step = max(1, int(block_elems) // max(K, 1))
+    parts = [_row_edges(costs(r0, min(K, r0 + step)), r0, delta_T, min_out, max_out) for r0 in range(0, K, step)]
+    rows, cols, cost = (np.concatenate([p[k] for p in parts]) if parts else np.zeros(0) for k in range(3))
+    return _csr(K, rows.astype(np.int64), cols.astype(np.int64), cost) + (float(delta_T),)
+
+
+def _sample_pairs(K: int) -> np.ndarray:
+    """Flat indices into a K x K table of the pairs delta_T's quantile is taken over (every step-th)."""
+    step = max(1, (K * K) // 1_000_000)
+    return np.arange(0, K * K, step, dtype=np.int64)
+
+
+def _quantile(sample: np.ndarray, q: float) -> float:
+    sample = sample[np.isfinite(sample)]
+    return float(np.quantile(sample, q)) if sample.size else 0.0
+
+
+def _row_edges(T: np.ndarray, r0: int, delta_T: float, min_out: int, max_out: int):
+    """The edges of rows ``r0 ..`` of a cost table whose rows are ``T`` (n, K), diagonal +inf:
+    (rows, cols, cost), each row's in order of cost."""
+    n, K = T.shape
     k_max = min(int(max_out), K - 1)
     k_min = min(int(min_out), k_max)
-    if k_max <= 0:
-        return np.zeros(K + 1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), float(delta_T)
+    if k_max <= 0 or n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
     # the k_max cheapest of every row, ties at the cut to the smaller target index (which of
     # several equal costs argpartition returns depends on its algorithm, and numpy picks
     # that by CPU; the k-th smallest value does not)
@@ -208,20 +269,22 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
     if not np.isfinite(kth).all():  # +inf (the diagonal) or nan: fill from the smallest indices
         fill = ~take & (np.cumsum(~take, axis=1, dtype=np.int32) <= k_max - take.sum(1, keepdims=True))
         take |= fill
-    part = np.nonzero(take)[1].reshape(K, k_max)
+    part = np.nonzero(take)[1].reshape(n, k_max)
     vals = np.take_along_axis(T, part, 1)
     o = np.lexsort((part, vals), axis=1)
     part, vals = np.take_along_axis(part, o, 1), np.take_along_axis(vals, o, 1)
     keep = (vals < delta_T) | (np.arange(k_max)[None, :] < k_min)
     keep &= np.isfinite(vals)
-    rows = np.repeat(np.arange(K), keep.sum(1))
-    cols = part[keep]
-    # CSR wants targets increasing within a row
+    return np.repeat(np.arange(r0, r0 + n), keep.sum(1)), part[keep], vals[keep].astype(np.float64)
+
+
+def _csr(K: int, rows: np.ndarray, cols: np.ndarray, cost: np.ndarray):
+    """indptr, indices, cost with targets increasing within a row."""
     o = np.lexsort((cols, rows))
-    rows, cols = rows[o], cols[o]
+    rows, cols, cost = rows[o], cols[o], cost[o]
     indptr = np.zeros(K + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows, minlength=K), out=indptr[1:])
-    return indptr, cols.astype(np.int64), T[rows, cols].astype(np.float64), float(delta_T)
+    return indptr, cols.astype(np.int64), cost
 
 
 def suggest_gap_s(pauses_s, total_s: float, *, n_sequences: int = 1, target_clip_s: float = 3.0,
@@ -435,11 +498,9 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     for group, part, joints, dt in (("graph", "upper", upper, delta_T), ("graph_lower", "lower", lower, delta_T_lower)):
         ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2, joints=joints, part=part)
         sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2, joints=joints, part=part)
-        T = transition_costs(ex, sx)
+        indptr, indices, cost, dT = edges_from_features(ex, sx, delta_T=dt, delta_quantile=delta_quantile,
+                                                        min_out=min_out, max_out=max_out)
         del ex, sx
-        indptr, indices, cost, dT = edges_from_costs(T, delta_T=dt, delta_quantile=delta_quantile,
-                                                     min_out=min_out, max_out=max_out)
-        del T
         schema.write(h5, f"{group}/indptr", indptr, dims)
         schema.write(h5, f"{group}/indices", indices, dims)
         schema.write(h5, f"{group}/cost", cost, dims)
