@@ -99,3 +99,20 @@ def test_float_wav_written_by_hand_with_format_tag_3(tmp_path):
 def test_bad_rate(tmp_path, sr):
     with pytest.raises(ParameterError, match="sr: expected a positive integer"):
         read_audio(tmp_path / "whatever.wav", sr=sr)
+
+
+def test_audio_duration_reads_the_header_only(scott_dir, tmp_path):
+    """The length the build's automatic gap uses: that of the decoded samples, from the header;
+    a missing or unreadable file is the same one-line error as read_audio's."""
+    from gesturedb.errors import InputFileError
+    from gesturedb.io.audio import audio_duration, read_audio
+
+    wav = scott_dir / "2_scott_0_1_1.wav"
+    x, sr = read_audio(wav, sr=None)
+    assert audio_duration(wav) == x.shape[0] / sr
+    with pytest.raises(InputFileError, match="no such file"):
+        audio_duration(tmp_path / "missing.wav")
+    bad = tmp_path / "bad.wav"
+    bad.write_bytes(b"RIFF\x00\x00\x00\x00WAVEjunk")
+    with pytest.raises(InputFileError, match=r"bad\.wav.*cannot read as audio"):
+        audio_duration(bad)

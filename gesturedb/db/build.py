@@ -620,13 +620,12 @@ def report_notes(recs: list[RecordingData]) -> list[str]:
 def _auto_gap(sources: list[RecordingSource]) -> float:
     """gap_s from the pauses of every transcript (mirrored copies have the same words: not counted twice)."""
     from gesturedb.db.graph import suggest_gap_s
-    from gesturedb.io.audio import read_audio
+    from gesturedb.io.audio import audio_duration
     from gesturedb.io.transcripts import read_transcript
 
     pauses, total, n = [], 0.0, 0
     for src in sources:
-        x, sr = read_audio(src.audio, sr=None)
-        dur = x.shape[0] / sr
+        dur = audio_duration(src.audio)
         if src.span_s is not None:
             dur = min(dur, src.span_s[1]) - src.span_s[0]
         total += dur
