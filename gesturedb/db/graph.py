@@ -167,13 +167,36 @@ def transition_costs(end_x: np.ndarray, start_x: np.ndarray) -> np.ndarray:
     One float64 matrix product (BLAS) over the features on :func:`_on_grid`'s grid, where
     it is exact; ``T >= 0`` holds exactly.
     """
-    (a, b), u = _on_grid(np.asarray(end_x), np.asarray(start_x))
-    T = a @ b.T
-    T *= -2.0
-    T += np.einsum("ij,ij->i", a, a)[:, None]
-    T += np.einsum("ij,ij->i", b, b)[None, :]
-    T *= u * u
-    return T
+    g = _GriddedCosts(end_x, start_x)
+    return g.rows(0, g.K)
+
+
+class _GriddedCosts:
+    """Rows of ``|end_x[p] - start_x[q]|^2`` from the features on :func:`_on_grid`'s grid: any
+    block of rows is exact, so it is the whole table's bit for bit."""
+
+    def __init__(self, end_x: np.ndarray, start_x: np.ndarray):
+        (self.a, self.b), u = _on_grid(np.asarray(end_x), np.asarray(start_x))
+        self.K = self.a.shape[0]
+        self.na = np.einsum("ij,ij->i", self.a, self.a)
+        self.nb = np.einsum("ij,ij->i", self.b, self.b)
+        self.uu = u * u
+
+    def rows(self, r0: int, r1: int) -> np.ndarray:
+        T = self.a[r0:r1] @ self.b.T
+        T *= -2.0
+        T += self.na[r0:r1, None]
+        T += self.nb[None, :]
+        T *= self.uu
+        return T
+
+    def pairs(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """T[i, j] for index arrays, by elementwise products and sums (exact as well)."""
+        out = np.empty(i.shape[0])
+        for s0 in range(0, i.shape[0], 4096):
+            ii, jj = i[s0:s0 + 4096], j[s0:s0 + 4096]
+            out[s0:s0 + 4096] = (self.na[ii] + self.nb[jj] - 2.0 * (self.a[ii] * self.b[jj]).sum(1)) * self.uu
+        return out
 
 
 def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quantile: float = DELTA_QUANTILE,
@@ -208,29 +231,18 @@ def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: floa
     pairs, computed first. The costs are exact on their grid (:func:`_on_grid`), so a block's
     values are those of the whole table bit for bit, and so are the edges.
     """
-    (a, b), u = _on_grid(np.asarray(end_x), np.asarray(start_x))
-    K = a.shape[0]
-    na = np.einsum("ij,ij->i", a, a)
-    nb = np.einsum("ij,ij->i", b, b)
-    uu = u * u
+    g = _GriddedCosts(end_x, start_x)
+    K = g.K
 
     def costs(r0: int, r1: int) -> np.ndarray:  # rows r0..r1 of transition_costs, diagonal +inf
-        T = a[r0:r1] @ b.T
-        T *= -2.0
-        T += na[r0:r1, None]
-        T += nb[None, :]
-        T *= uu
+        T = g.rows(r0, r1)
         d = np.arange(r0, r1)
         T[d - r0, d] = np.inf
         return T
 
     if delta_T is None:
-        flat = _sample_pairs(K)
-        i, j = np.divmod(flat, K)
-        sample = np.empty(flat.size)
-        for s0 in range(0, flat.size, 4096):  # elementwise products and sums: exact, as above
-            ii, jj = i[s0:s0 + 4096], j[s0:s0 + 4096]
-            sample[s0:s0 + 4096] = (na[ii] + nb[jj] - 2.0 * (a[ii] * b[jj]).sum(1)) * uu
+        i, j = np.divmod(_sample_pairs(K), K)
+        sample = g.pairs(i, j)
         sample[i == j] = np.inf
         delta_T = _quantile(sample, delta_quantile)
     step = max(1, int(block_elems) // max(K, 1))
