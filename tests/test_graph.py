@@ -92,6 +92,36 @@ def test_transition_costs_are_exact_integers_on_their_grid(D, scale):
     assert (np.abs(T - direct) <= bound * (1 + 1e-9) + 1e-12 * direct).all()
 
 
+def test_each_body_graph_sees_only_its_own_joints(scott_db):
+    """Changing the arms leaves the lower-body costs alone, changing the legs the upper-body ones."""
+    upper, lower = G.body_parts(scott_db.skeleton.names, scott_db.skeleton.parents)
+    names = scott_db.skeleton.names
+    assert names[0] == "pelvis" and {names[j] for j in lower} == {
+        "pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_foot",
+        "right_foot"}
+    assert len(upper) + len(lower) == len(names) and not set(upper) & set(lower)
+    from gesturedb.motion import Motion
+
+    frames = np.arange(40).reshape(20, 2)
+    motion = scott_db.motion(scott_db.recordings[0].name, 0.0, 4.0)
+    rng = np.random.default_rng(5)
+
+    def costs(rotations, part, joints):
+        m = Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=rotations, root_positions=motion.root_positions)
+        x = G.transition_features(m.positions, m.rotations, m.root_positions, frames, joints=joints, part=part)
+        return G.transition_costs(x[::2], x[1::2])
+
+    base = np.asarray(motion.rotations, dtype=np.float64)
+    for changed, same_part, same_joints, other_part, other_joints in (
+            (upper[upper != 3], "lower", lower, "upper", upper),  # arms etc. (spine1 kept: it is a child of the root)
+            (lower[lower != 0], "upper", upper, "lower", lower)):  # legs
+        rot = base.copy()
+        rot[:, changed] = R.normalize(rot[:, changed] + 0.3 * rng.normal(size=rot[:, changed].shape))
+        np.testing.assert_allclose(costs(rot, same_part, same_joints), costs(base, same_part, same_joints),
+                                   rtol=1e-5, atol=1e-6)
+        assert not np.allclose(costs(rot, other_part, other_joints), costs(base, other_part, other_joints))
+
+
 @pytest.mark.parametrize("K,max_out,ties", [(30, 32, False), (60, 8, False), (40, 8, True), (9, 8, True)])
 def test_edges_threshold_plus_cheapest(K, max_out, ties):
     """The rule taken literally from a stable sort: ties (a few distinct costs, most rows tied
