@@ -33,13 +33,19 @@ def audio_duration(path) -> float:
     InputFileError
         Missing file, or a header libsndfile cannot read.
     """
+    info = _libsndfile(path, sf.info)
+    return float(info.frames) / float(info.samplerate)
+
+
+def _libsndfile(path, call):
+    """``call(path)`` (a soundfile function), a missing file or libsndfile's failure turned into
+    the one-line InputFileError both readers give."""
     if not os.path.isfile(path):
         raise InputFileError(path, "no such file")
     try:
-        info = sf.info(os.fspath(path))
+        return call(os.fspath(path))
     except (sf.LibsndfileError, RuntimeError, TypeError, ValueError) as exc:
         raise InputFileError(path, f"cannot read as audio: {exc}") from None
-    return float(info.frames) / float(info.samplerate)
 
 
 def read_audio(path, *, sr: int | None = 16000) -> tuple[np.ndarray, int]:
@@ -74,12 +80,7 @@ def read_audio(path, *, sr: int | None = 16000) -> tuple[np.ndarray, int]:
         if isinstance(sr, bool) or not integral or sr <= 0:
             raise ParameterError(f"sr: expected a positive integer sample rate in Hz or None; got {sr!r}")
         sr = int(sr)
-    if not os.path.isfile(path):
-        raise InputFileError(path, "no such file")
-    try:
-        data, sr_file = sf.read(os.fspath(path), dtype="float32", always_2d=True)
-    except (sf.LibsndfileError, RuntimeError, TypeError, ValueError) as exc:
-        raise InputFileError(path, f"cannot read as audio: {exc}") from None
+    data, sr_file = _libsndfile(path, lambda p: sf.read(p, dtype="float32", always_2d=True))
     if data.shape[0] == 0:
         raise InputFileError(path, f"no audio samples (0 frames, {data.shape[1]} channel(s) at {sr_file} Hz)")
     bad = ~np.isfinite(data)
