@@ -247,8 +247,8 @@ def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: floa
         delta_T = _quantile(sample, delta_quantile)
     step = max(1, int(block_elems) // max(K, 1))
     parts = [_row_edges(costs(r0, min(K, r0 + step)), r0, delta_T, min_out, max_out) for r0 in range(0, K, step)]
-    rows, cols, cost = (np.concatenate([p[k] for p in parts]) if parts else np.zeros(0) for k in range(3))
-    return _csr(K, rows.astype(np.int64), cols.astype(np.int64), cost) + (float(delta_T),)
+    rows, cols, cost = (np.concatenate(x) for x in zip(*parts)) if parts else _row_edges(np.zeros((0, 0)), 0, 0, 0, 0)
+    return _csr(K, rows, cols, cost) + (float(delta_T),)
 
 
 def _sample_pairs(K: int) -> np.ndarray:
