@@ -163,6 +163,109 @@ def test_edges_from_features_in_blocks_equal_the_whole_table(K, D, ties, delta_T
         assert got[3] == want[3]
 
 
+def _low_rank(rng, K, D, latent=10, dup=0):
+    """(K, D) end and start features with a few dominant directions (as real poses have), and
+    ``dup`` start rows copied from others (exact ties in every row that reaches them)."""
+    h = rng.normal(size=(2 * K, latent)) * 0.6 ** np.arange(latent)
+    x = np.tanh(h @ rng.normal(size=(latent, D)) / 3) + 0.01 * rng.normal(size=(2 * K, D))
+    a, b = x[:K], x[K:]
+    if dup:
+        b[rng.choice(K, dup, replace=False)] = b[rng.choice(K, dup, replace=False)]
+    return a, b
+
+
+def _count_dense_blocks(monkeypatch):
+    calls = []
+    dense = G._row_edges
+    monkeypatch.setattr(G, "_row_edges", lambda T, *a: calls.append(T.shape[0]) or dense(T, *a))
+    return calls
+
+
+@pytest.mark.parametrize("K,D,dup,delta_T,block", [(400, 120, 0, None, 1 << 24), (900, 300, 40, None, 1 << 14),
+                                                    (250, 64, 25, 2.0, 1000), (200, 40, 0, None, 1 << 24)])
+def test_bounded_edges_equal_the_dense_ones(K, D, dup, delta_T, block, monkeypatch):
+    """The projection bounds pick exactly the dense path's edges (ties at the cut from duplicated
+    starts included), and they really did the work: no block fell back to the dense costs."""
+    a, b = _low_rank(np.random.default_rng(K), K, D, dup=dup)
+    want = G.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, method="dense", block_elems=block)
+    calls = _count_dense_blocks(monkeypatch)
+    got = G.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, method="bounded", block_elems=block)
+    assert calls == []
+    for x, y in zip(want[:3], got[:3]):
+        assert x.dtype == y.dtype and np.array_equal(x, y)
+    assert got[3] == want[3]
+    if dup:  # the duplicated starts did tie at some row's cut
+        T = G.transition_costs(a, b)
+        np.fill_diagonal(T, np.inf)
+        kth = np.sort(T, axis=1)[:, 7]
+        assert ((T == kth[:, None]).sum(1) > 1).any()
+
+
+@pytest.mark.parametrize("K", [1, 2, 9, 17, 300, 1000])
+def test_bounded_edges_fall_back_where_bounds_cannot_pay(K, monkeypatch):
+    """Too few clips for the sampled threshold, or features without structure (i.i.d. noise keeps
+    every column): those blocks are computed densely, with the same edges."""
+    rng = np.random.default_rng(K)
+    a, b = rng.normal(size=(K, 200)), rng.normal(size=(K, 200))
+    want = G.edges_from_features(a, b, min_out=3, max_out=8, method="dense")
+    calls = _count_dense_blocks(monkeypatch)
+    got = G.edges_from_features(a, b, min_out=3, max_out=8, method="bounded")
+    assert sum(calls) == K
+    for x, y in zip(want[:3], got[:3]):
+        assert np.array_equal(x, y)
+
+
+def test_auto_bounds_from_bound_min_k_clips(monkeypatch):
+    """method="auto" is what the build uses: bounded from BOUND_MIN_K clips on (and only when the
+    features are wider than the projection), dense below."""
+    a, b = _low_rank(np.random.default_rng(7), 300, 120)
+    calls = _count_dense_blocks(monkeypatch)
+    G.edges_from_features(a, b, max_out=8)
+    assert sum(calls) == 300
+    monkeypatch.setattr(G, "BOUND_MIN_K", 300)
+    calls.clear()
+    G.edges_from_features(a, b, max_out=8)
+    assert calls == []
+    G.edges_from_features(a[:, :G.BOUND_DIMS + 2], b[:, :G.BOUND_DIMS + 2], max_out=8)
+    assert sum(calls) == 300
+
+
+def test_projected_bounds_hold_on_every_pair():
+    """L <= T <= L + 4 r_p r_q (with the margin) for every pair, T exact; and the margin is small
+    against the costs that decide edges."""
+    a, b = _low_rank(np.random.default_rng(3), 300, 150)
+    g = G._GriddedCosts(a, b)
+    B = G._ProjectedBounds.fit(g, 8, J=6)
+    T = g.rows(0, g.K) / g.uu
+    L = B.P @ B.Q.T + B.na[:, None]
+    U = L + 4.0 * B.ra[:, None] * B.rb[None, :]
+    assert (L - B.margin <= T).all() and (T <= U + B.margin).all()
+    np.fill_diagonal(T, np.inf)
+    assert B.margin < 0.01 * np.median(np.sort(T, axis=1)[:, 7])  # against the 8th cheapest of a row
+    assert np.median(U - L) < 0.5 * np.median(T)  # and they bound something
+
+
+def test_bounded_edges_of_real_frames(scott_db, monkeypatch):
+    """Every frame of the real recording as a clip (951 ends against 951 starts, 46 upper-body
+    joints, 644 features): the bounded edges are the dense ones, no block fell back, and fewer
+    than 3 exact costs were computed per edge."""
+    upper, _ = G.body_parts(scott_db.skeleton.names, scott_db.skeleton.parents)
+    pos, rot, root = scott_db.joint_positions, scott_db.local_rotations, scott_db.root_positions
+    f = np.arange(1, pos.shape[0] - 1)
+    ex = G.transition_features(pos, rot, root, np.stack([f - 1, f], 1), joints=upper, part="upper")
+    sx = G.transition_features(pos, rot, root, np.stack([f, f + 1], 1), joints=upper, part="upper")
+    want = G.edges_from_features(ex, sx, method="dense")
+    calls = _count_dense_blocks(monkeypatch)
+    n_pairs = []
+    pairs = G._GriddedCosts.pairs
+    monkeypatch.setattr(G._GriddedCosts, "pairs", lambda self, i, j: n_pairs.append(i.size) or pairs(self, i, j))
+    got = G.edges_from_features(ex, sx, method="bounded")
+    assert calls == []
+    for x, y in zip(want[:3], got[:3]):
+        assert np.array_equal(x, y)
+    assert sum(n_pairs[1:]) < 3 * 32 * len(f)  # [0] is the delta_T sample
+
+
 def test_style_model_beats_the_mean_on_learnable_data():
     rng = np.random.default_rng(2)
     X = rng.normal(size=(200, 5))
