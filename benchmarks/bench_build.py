@@ -64,7 +64,7 @@ def main() -> int:
     cfg = BuildConfig()
     # process_recording takes a resolved gap, as gesturedb.build passes it (the default "auto" is
     # resolved once from every transcript before the recordings are processed)
-    cfg = dataclasses.replace(cfg, gap_s=_auto_gap([src]))
+    cfg = dataclasses.replace(cfg, gap_s=_auto_gap([src])[0])
     rec_s = 1906 / 30.0
     process_recording(src, cfg)  # warm-up: librosa/numba imports and caches
 

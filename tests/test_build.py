@@ -218,3 +218,28 @@ def test_failed_build_keeps_the_existing_database(recording, scott_db_path, tmp_
         gesturedb.build([recording], target)
     assert target.read_bytes() == before
     _assert_nothing_left(out, keep=("db.h5",))
+
+
+def test_each_transcript_is_read_once(scott_dir, tmp_path, monkeypatch):
+    """The automatic gap reads every transcript before any recording is processed; the
+    recordings take those words instead of parsing their files again. The database is the one a
+    build with that gap given explicitly writes (where each recording reads its own file)."""
+    import gesturedb.io
+    import gesturedb.io.transcripts as T
+
+    reads = []
+    real = T.read_transcript
+
+    def counting(path, *a, **kw):
+        reads.append(Path(path).name)
+        return real(path, *a, **kw)
+
+    monkeypatch.setattr(T, "read_transcript", counting)
+    monkeypatch.setattr(gesturedb.io, "read_transcript", counting)
+    with gesturedb.build([scott_dir], tmp_path / "auto.h5", mirror=True) as db:
+        gap = float(db.config["gap_s"])
+    assert reads == [f"{STEM}.TextGrid"]
+    reads.clear()
+    gesturedb.build([scott_dir], tmp_path / "given.h5", mirror=True, gap_s=gap).close()
+    assert reads == [f"{STEM}.TextGrid"]
+    assert differing(tmp_path / "auto.h5", tmp_path / "given.h5") == []

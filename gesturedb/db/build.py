@@ -326,8 +326,13 @@ def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingS
     )
 
 
-def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[RecordingData]:
+def process_recording(source: RecordingSource, cfg: BuildConfig, words=None) -> list[RecordingData]:
     """Read one recording and compute all its features (and its mirrored copy).
+
+    ``words``: the recording's transcript as :func:`gesturedb.io.read_transcript` returns it,
+    when the caller has read it already (the automatic gap reads every transcript first: passing
+    them on spares each recording a second parse, about a tenth of its processing time); None:
+    read here.
 
     Raises :class:`InputFileError` naming the file and field for bad input:
     unreadable or truncated files, NaN, audio and motion durations that differ by
@@ -356,7 +361,8 @@ def process_recording(source: RecordingSource, cfg: BuildConfig) -> list[Recordi
             f"duration: expected within {cfg.max_mismatch_s:g} s of the motion "
             f"({motion_dur:.2f} s in {os.path.basename(source.motion)}), got {audio_dur:.2f} s",
         )
-    words = read_transcript(source.transcript) if source.transcript else None
+    if words is None and source.transcript:
+        words = read_transcript(source.transcript)
     if words is None:
         # no transcript: voiced stretches of the speech stand in for words (empty text), so the
         # recording is still cut into clips at its pauses, as the graph synthesis cuts its input
@@ -584,9 +590,12 @@ def build(
     for r in pairing.recordings:
         schema.check_name(f"recording name of {r.motion}", r.name, schema.RECORDING_NAME_PATTERN)
     check_outputs({"output": out_path}, [p for r in pairing.recordings for p in (r.motion, r.audio, r.transcript)])
+    words = None
     if cfg.gap_s == "auto":
-        cfg = dataclasses.replace(cfg, gap_s=_auto_gap(pairing.recordings))
-    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler)
+        gap, words = _auto_gap(pairing.recordings)
+        cfg = dataclasses.replace(cfg, gap_s=gap)
+    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler,
+                        words=words)
     for r in recs[1:]:
         if not _same_skeleton(recs[0].skeleton, r.skeleton):
             raise InputFileError(
@@ -617,22 +626,23 @@ def report_notes(recs: list[RecordingData]) -> list[str]:
     return out
 
 
-def _auto_gap(sources: list[RecordingSource]) -> float:
-    """gap_s from the pauses of every transcript (mirrored copies have the same words: not counted twice)."""
+def _auto_gap(sources: list[RecordingSource]) -> tuple[float, list]:
+    """gap_s from the pauses of every transcript (mirrored copies have the same words: not counted twice),
+    and each source's transcript as read (None without one), for :func:`process_recording`."""
     from gesturedb.db.graph import suggest_gap_s
     from gesturedb.io.audio import audio_duration
     from gesturedb.io.transcripts import read_transcript
 
-    pauses, total, n = [], 0.0, 0
+    pauses, total, n, words = [], 0.0, 0, []
     for src in sources:
         dur = audio_duration(src.audio)
         if src.span_s is not None:
             dur = min(dur, src.span_s[1]) - src.span_s[0]
         total += dur
         n += 1
+        words.append(read_transcript(src.transcript) if src.transcript else None)
         if src.transcript:
-            w = read_transcript(src.transcript)
-            ws, we = np.asarray(w.start_s), np.asarray(w.end_s)
+            ws, we = np.asarray(words[-1].start_s), np.asarray(words[-1].end_s)
             if src.span_s is not None:
                 keep = (ws >= src.span_s[0]) & (we <= src.span_s[1])
                 ws, we = ws[keep], we[keep]
@@ -640,11 +650,14 @@ def _auto_gap(sources: list[RecordingSource]) -> float:
             ws, we = ws[o], we[o]
             if ws.size > 1:
                 pauses.append(ws[1:] - np.maximum.accumulate(we)[:-1])
-    return suggest_gap_s(np.concatenate(pauses) if pauses else np.zeros(0), total, n_sequences=n)
+    return suggest_gap_s(np.concatenate(pauses) if pauses else np.zeros(0), total, n_sequences=n), words
 
 
 def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress,
-                 scheduler=None) -> list[RecordingData]:
+                 scheduler=None, words=None) -> list[RecordingData]:
+    """process_recording of every source, in input order; ``words``: their transcripts as read
+    already (or None: each is read by its task)."""
+    tasks = [(s, cfg, w) for s, w in zip(sources, words or [None] * len(sources))]
     bar = None
     if progress:
         from tqdm import tqdm
@@ -660,11 +673,11 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
                     bar.update(1)
                     bar.set_postfix_str(sources[i].name)
 
-            for res in process_on_cluster(_process_star, [(s, cfg) for s in sources], scheduler, on_done=done):
+            for res in process_on_cluster(_process_star, tasks, scheduler, on_done=done):
                 out += res  # input order: the content does not depend on scheduling
         elif workers == 1 or len(sources) == 1:
-            for s in sources:
-                out += process_recording(s, cfg)
+            for s, task in zip(sources, tasks):
+                out += process_recording(*task)
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix_str(s.name)
@@ -676,7 +689,7 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
             with ProcessPoolExecutor(max_workers=min(workers, len(sources)),
                                      initializer=single_threaded_worker, initargs=(os.getpid(),)) as ex:
                 # map keeps input order, so the database content does not depend on scheduling
-                for s, res in zip(sources, ex.map(_process_star, [(s, cfg) for s in sources])):
+                for s, res in zip(sources, ex.map(_process_star, tasks)):
                     out += res
                     if bar is not None:
                         bar.update(1)
