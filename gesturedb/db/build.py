@@ -422,7 +422,7 @@ def _same_skeleton(a, b) -> bool:
     return a.same_as(b, atol_m=1e-6) and float(a.length_unit_m) == float(b.length_unit_m)
 
 
-def _write(h5, recs: list[RecordingData], cfg: BuildConfig) -> None:
+def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool = False) -> None:
     from gesturedb.features.audio import audio_deltas
 
     dims: dict[str, int] = {}
@@ -502,7 +502,7 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig) -> None:
     if cfg.graph:
         from gesturedb.db.graph import write_graph
 
-        write_graph(h5)
+        write_graph(h5, progress=bool(progress))
 
 
 def _write_controls_and_masks(h5, recs: list[RecordingData]) -> None:
@@ -603,7 +603,7 @@ def build(
                 f"skeleton: expected the skeleton of {recs[0].source.motion} ({len(recs[0].skeleton.names)} joints), "
                 f"got a different one ({len(r.skeleton.names)} joints); build one database per skeleton",
             )
-    write_atomically(out_path, lambda h5: _write(h5, recs, cfg))
+    write_atomically(out_path, lambda h5: _write(h5, recs, cfg, progress))
     pairing.notes = report_notes(recs)
 
     from gesturedb.db.database import Database

@@ -236,7 +236,7 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
 
 def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: float | None = None,
                         delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT, max_out: int = MAX_OUT,
-                        block_elems: int = 1 << 24, method: str = "auto"):
+                        block_elems: int = 1 << 24, method: str = "auto", on_rows=None):
     """``edges_from_costs(transition_costs(end_x, start_x), ...)`` without the K x K table.
 
     The costs are computed a block of rows at a time (about ``block_elems`` costs, 128 MB),
@@ -254,6 +254,8 @@ def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: floa
     grows with K). Where the bounds keep too many columns to pay (features without
     low-dimensional structure, like i.i.d. noise), the blocks are computed densely from the first
     such block on. ``"auto"``: bounded from :data:`BOUND_MIN_K` clips on, when D > BOUND_DIMS + 2.
+
+    ``on_rows(n)``, if given, is called after each block with its number of rows (a progress bar).
     """
     if method not in ("auto", "dense", "bounded"):
         raise ParameterError(f"method: expected 'auto', 'dense' or 'bounded', got {method!r}")
@@ -286,7 +288,11 @@ def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: floa
             bounds = None  # features without the structure bounds need: the rest densely too
         return _row_edges(costs(r0, r1), r0, delta_T, min_out, max_out)
 
-    parts = [block(r0, min(K, r0 + step)) for r0 in range(0, K, step)]
+    parts = []
+    for r0 in range(0, K, step):
+        parts.append(block(r0, min(K, r0 + step)))
+        if on_rows is not None:
+            on_rows(min(K, r0 + step) - r0)
     rows, cols, cost = (np.concatenate(x) for x in zip(*parts)) if parts else _row_edges(np.zeros((0, 0)), 0, 0, 0, 0)
     return _csr(K, rows, cols, cost) + (float(delta_T),)
 
@@ -632,11 +638,12 @@ def _cholesky_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = TRANSITION_FRAMES,
                 delta_T: float | None = None, delta_T_lower: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
-                max_out: int = MAX_OUT) -> dict:
+                max_out: int = MAX_OUT, progress: bool = False) -> dict:
     """Compute the motion graphs (upper and lower body) and the style model of an open, writable database file.
 
     ``delta_T`` is the upper-body graph's edge threshold, ``delta_T_lower`` the lower-body one's
     (their costs are over different joints; default for each: its ``delta_quantile`` quantile).
+    ``progress``: a progress bar over both graphs' clips on stderr (minutes at 100 hours).
 
     Called by the build (inside :func:`gesturedb.db.storage.write_atomically`) and by
     :func:`add_graph` (inside :func:`gesturedb.db.storage.edit`). Returns a summary dict.
@@ -663,21 +670,23 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     upper, lower = body_parts(schema.read(h5, "skeleton/names"), schema.read(h5, "skeleton/parents"))
     dims = {"K": K}
     summary = {}
-    for group, part, joints, dt in (("graph", "upper", upper, delta_T), ("graph_lower", "lower", lower, delta_T_lower)):
-        ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2, joints=joints, part=part)
-        sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2, joints=joints, part=part)
-        indptr, indices, cost, dT = edges_from_features(ex, sx, delta_T=dt, delta_quantile=delta_quantile,
-                                                        min_out=min_out, max_out=max_out)
-        del ex, sx
-        schema.write(h5, f"{group}/indptr", indptr, dims)
-        schema.write(h5, f"{group}/indices", indices, dims)
-        schema.write(h5, f"{group}/cost", cost, dims)
-        g = h5[group]
-        for k, v in dict(body=part, n_joints=len(joints), l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
-                         delta_quantile=float(delta_quantile), min_out=int(min_out),
-                         max_out=int(max_out)).items():
-            g.attrs[k] = v
-        summary[part] = dict(n_edges=int(indices.shape[0]), delta_T=dT)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=2 * K, unit="clip", desc="motion graphs", disable=None)
+    try:
+        for group, part, joints, dt in (("graph", "upper", upper, delta_T),
+                                        ("graph_lower", "lower", lower, delta_T_lower)):
+            ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2, joints=joints, part=part)
+            sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2, joints=joints, part=part)
+            summary[part] = _write_edges(h5, group, part, joints, ex, sx, dims, l1=l1, l2=l2, m=m, delta_T=dt,
+                                         delta_quantile=delta_quantile, min_out=min_out, max_out=max_out,
+                                         on_rows=bar.update if bar is not None else None)
+            del ex, sx
+    finally:
+        if bar is not None:
+            bar.close()
 
     n_words = r("clips/word_end") - r("clips/word_start")
     X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
@@ -697,6 +706,23 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     return dict(n_nodes=K, n_edges=summary["upper"]["n_edges"], delta_T=summary["upper"]["delta_T"],
                 n_edges_lower=summary["lower"]["n_edges"], delta_T_lower=summary["lower"]["delta_T"],
                 heldout_rmse=model["heldout_rmse"], mean_rmse=model["mean_rmse"])
+
+
+def _write_edges(h5, group: str, part: str, joints, ex: np.ndarray, sx: np.ndarray, dims: dict, *, l1: float,
+                 l2: float, m: int, delta_T, delta_quantile: float, min_out: int, max_out: int, on_rows) -> dict:
+    """One body part's graph from its transition features, written under ``group``."""
+    from gesturedb.db import schema
+
+    indptr, indices, cost, dT = edges_from_features(ex, sx, delta_T=delta_T, delta_quantile=delta_quantile,
+                                                    min_out=min_out, max_out=max_out, on_rows=on_rows)
+    schema.write(h5, f"{group}/indptr", indptr, dims)
+    schema.write(h5, f"{group}/indices", indices, dims)
+    schema.write(h5, f"{group}/cost", cost, dims)
+    g = h5[group]
+    for k, v in dict(body=part, n_joints=len(joints), l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
+                     delta_quantile=float(delta_quantile), min_out=int(min_out), max_out=int(max_out)).items():
+        g.attrs[k] = v
+    return dict(n_edges=int(indices.shape[0]), delta_T=dT)
 
 
 def add_graph(path, **options) -> dict:
