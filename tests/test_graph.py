@@ -68,7 +68,7 @@ def test_transition_costs_match_direct_loops(part, joints):
             assert T[p, q] == pytest.approx(want, rel=1e-5, abs=1e-5)
 
 
-@pytest.mark.parametrize("D,scale", [(762, 1.0), (5, 1e-3), (3000, 40.0)])
+@pytest.mark.parametrize("D,scale", [(762, 1.0), (5, 1e-3), (3000, 40.0), (3, 7.0), (2, 1.0)])
 def test_transition_costs_are_exact_integers_on_their_grid(D, scale):
     """The float64 BLAS product computes |a - b|^2 of the gridded features exactly: the same as
     int64 arithmetic on the grid's integers, for every pair (so no kernel, blocking or FMA can
@@ -82,6 +82,10 @@ def test_transition_costs_are_exact_integers_on_their_grid(D, scale):
     ia, ib = qa.astype(np.int64), qb.astype(np.int64)
     e = (51 - int(np.ceil(np.log2(D)))) // 2  # 4 D 4^e <= 2^53
     assert max(np.abs(ia).max(), np.abs(ib).max()) <= 2 ** e and np.array_equal(ia, qa) and np.array_equal(ib, qb)
+    # the compact grid the costs use: the same integers, in float32 where that holds them (D >= 3)
+    (ca, cb), uc = G._on_grid(a, b, compact=True)
+    assert uc == u and ca.dtype == cb.dtype == (np.float32 if D >= 3 else np.float64)
+    assert np.array_equal(ca, qa) and np.array_equal(cb, qb)
     exact = ((ia[:, None, :] - ib[None, :, :]) ** 2).sum(-1)  # int64: no overflow below 2^63
     assert exact.max() < 2 ** 53
     np.testing.assert_array_equal(T, exact.astype(np.float64) * (u * u))
@@ -90,6 +94,25 @@ def test_transition_costs_are_exact_integers_on_their_grid(D, scale):
     # each value moved by at most u/2, so each difference by at most u: |T - direct| <= 2 u |a - b|_1 + D u^2
     bound = 2 * u * np.abs(a[:, None, :] - b[None, :, :]).sum(-1) + D * u * u
     assert (np.abs(T - direct) <= bound * (1 + 1e-9) + 1e-12 * direct).all()
+
+
+def test_graph_features_in_chunks_equal_the_whole_arrays(scott_db_path):
+    """The build grids the transition features a chunk of clips at a time (two passes, reading only
+    each chunk's frames): the same integers and unit as the whole arrays on one grid."""
+    with h5py.File(scott_db_path, "r") as h5:
+        start, length = h5["clips/start"][()], h5["clips/length"][()]
+        last = start[:, None] + np.array([[-2, -1]]) + length[:, None]
+        first = start[:, None] + np.array([[0, 1]])
+        upper, lower = G.body_parts(schema.read(h5, "skeleton/names"), schema.read(h5, "skeleton/parents"))
+        parts = [("upper", upper), ("lower", lower)]
+        pos, rot, root = (h5[f"frames/{k}"][()] for k in ("joint_positions", "local_rotations", "root_positions"))
+        for chunk in (1, 7, 10 ** 6):
+            for (p, j), g in zip(parts, G._gridded_features(h5, last, first, parts, l1=0.7, l2=0.3, chunk=chunk)):
+                want = G._GriddedCosts(G.transition_features(pos, rot, root, last, joints=j, part=p),
+                                       G.transition_features(pos, rot, root, first, joints=j, part=p))
+                assert g.uu == want.uu and g.a.dtype == want.a.dtype == np.float32
+                assert np.array_equal(g.a, want.a) and np.array_equal(g.b, want.b)
+                assert np.array_equal(g.na, want.na) and np.array_equal(g.nb, want.nb)
 
 
 def test_each_body_graph_sees_only_its_own_joints(scott_db):

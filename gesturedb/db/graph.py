@@ -140,8 +140,11 @@ def transition_features(positions, rotations, root, frames, *, l1: float = L1, l
     return x.reshape(K, -1)
 
 
-def _on_grid(*xs: np.ndarray) -> tuple[list[np.ndarray], float]:
+def _on_grid(*xs: np.ndarray, compact: bool = False) -> tuple[list[np.ndarray], float]:
     """The arrays (n_i, D) in units of a power of two ``u``, rounded to integers, and ``u``.
+
+    ``compact``: float32 arrays where they hold every integer exactly (``e <= 24``: D >= 3),
+    rounded a chunk of rows at a time, so no float64 copy of the whole array is ever made.
 
     ``u`` is chosen from the largest magnitude over all of them (one unit, so that their norms
     and products add up exactly) so that every value is at most ``2^e`` units
@@ -152,17 +155,31 @@ def _on_grid(*xs: np.ndarray) -> tuple[list[np.ndarray], float]:
     moves a value by at most ``u / 2``: ``2^-(e+1)`` of the largest magnitude (``e = 20``,
     5e-7, for the ~760 columns of BEAT2's transition features).
     """
-    D = max(int(xs[0].shape[1]), 1)
     amax = max((float(np.abs(x).max()) for x in xs if x.size), default=0.0)
+    u, dtype = _grid_unit(int(xs[0].shape[1]), amax, compact)
+    if dtype == np.float64:
+        return [np.rint(np.asarray(x, dtype=np.float64) / u) for x in xs], u
+    out = []
+    for x in xs:
+        g = np.empty(x.shape, dtype=dtype)
+        for s0 in range(0, x.shape[0], 8192):
+            g[s0:s0 + 8192] = np.rint(np.asarray(x[s0:s0 + 8192], dtype=np.float64) / u)
+        out.append(g)
+    return out, u
+
+
+def _grid_unit(D: int, amax: float, compact: bool = False) -> tuple[float, type]:
+    """:func:`_on_grid`'s unit ``u`` for D columns whose largest magnitude is ``amax``, and the
+    dtype of the rounded values (float32 with ``compact`` where it holds them exactly)."""
     if not np.isfinite(amax):
         raise ParameterError(f"features of an exact product (graph costs, style model): expected finite values, "
                              f"got {amax}")
-    e = (51 - int(np.ceil(np.log2(D)))) // 2
+    e = (51 - int(np.ceil(np.log2(max(D, 1))))) // 2
+    dtype = np.float32 if compact and e <= 24 else np.float64
     if amax == 0.0:
-        return [np.zeros_like(x, dtype=np.float64) for x in xs], 1.0
+        return 1.0, dtype
     _, ex = np.frexp(amax)  # amax < 2^ex
-    u = float(np.ldexp(1.0, int(ex) - e))
-    return [np.rint(np.asarray(x, dtype=np.float64) / u) for x in xs], u
+    return float(np.ldexp(1.0, int(ex) - e)), dtype
 
 
 def transition_costs(end_x: np.ndarray, start_x: np.ndarray) -> np.ndarray:
@@ -177,18 +194,31 @@ def transition_costs(end_x: np.ndarray, start_x: np.ndarray) -> np.ndarray:
 
 class _GriddedCosts:
     """Rows of ``|end_x[p] - start_x[q]|^2`` from the features on :func:`_on_grid`'s grid: any
-    block of rows is exact, so it is the whole table's bit for bit."""
+    block of rows is exact, so it is the whole table's bit for bit.
 
-    def __init__(self, end_x: np.ndarray, start_x: np.ndarray):
-        (self.a, self.b), u = _on_grid(np.asarray(end_x), np.asarray(start_x))
-        self.K = self.a.shape[0]
-        self.na = np.einsum("ij,ij->i", self.a, self.a)
-        self.nb = np.einsum("ij,ij->i", self.b, self.b)
+    ``a``, ``b``: the grid's integers, in float32 when that holds them exactly (from 3 features
+    on, see :func:`_on_grid`), else float64. Half the memory of float64 (the upper-body features
+    of 1.2M clips are 3 GB each then), and half the bytes of the gathers that dominate
+    :meth:`pairs`; every product and sum is still computed in float64.
+    """
+
+    def __init__(self, end_x: np.ndarray, start_x: np.ndarray, *, u: float | None = None):
+        """From the features (the grid is made here), or with ``u`` from the grid's integers themselves."""
+        if u is None:
+            (a, b), u = _on_grid(np.asarray(end_x), np.asarray(start_x), compact=True)
+        else:
+            a, b = end_x, start_x
+        self.K = a.shape[0]
+        self.na = np.einsum("ij,ij->i", a, a, dtype=np.float64)
+        self.nb = np.einsum("ij,ij->i", b, b, dtype=np.float64)
         self.uu = u * u
-        self._gather = None  # the rows pairs() gathers from, made on its first call
+        self.a, self.b = a, b
+        self._b64 = None  # b in float64 for the BLAS product of rows(), made on its first call
 
     def rows(self, r0: int, r1: int) -> np.ndarray:
-        T = self.a[r0:r1] @ self.b.T
+        if self._b64 is None:
+            self._b64 = self.b.astype(np.float64)
+        T = self.a[r0:r1].astype(np.float64) @ self._b64.T
         T *= -2.0
         T += self.na[r0:r1, None]
         T += self.nb[None, :]
@@ -197,18 +227,12 @@ class _GriddedCosts:
 
     def pairs(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """T[i, j] for index arrays, by elementwise products and sums (exact as well)."""
-        if self._gather is None:
-            # the rows are gathered in float32 when that holds the grid's integers exactly (below
-            # 2^24: from 4 features on), half the bytes of the gather that dominates here
-            small = max(np.abs(self.a).max(initial=0.0), np.abs(self.b).max(initial=0.0)) < 2.0 ** 24
-            self._gather = (self.a.astype(np.float32), self.b.astype(np.float32)) if small else (self.a, self.b)
-        a, b = self._gather
         out = np.empty(i.shape[0])
         for s0 in range(0, i.shape[0], 4096):
             ii, jj = i[s0:s0 + 4096], j[s0:s0 + 4096]
             # products and sums in float64, where every one is exact (einsum's order of
             # summation is not numpy's sum's; it does not matter)
-            dot = np.einsum("ij,ij->i", a[ii], b[jj], dtype=np.float64)
+            dot = np.einsum("ij,ij->i", self.a[ii], self.b[jj], dtype=np.float64)
             out[s0:s0 + 4096] = (self.na[ii] + self.nb[jj] - 2.0 * dot) * self.uu
         return out
 
@@ -257,9 +281,15 @@ def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: floa
 
     ``on_rows(n)``, if given, is called after each block with its number of rows (a progress bar).
     """
+    return _edges(_GriddedCosts(end_x, start_x), delta_T=delta_T, delta_quantile=delta_quantile, min_out=min_out,
+                  max_out=max_out, block_elems=block_elems, method=method, on_rows=on_rows)
+
+
+def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float, min_out: int, max_out: int, block_elems: int,
+           method: str, on_rows):
+    """edges_from_features over features already on their grid (the caller may drop its own copy)."""
     if method not in ("auto", "dense", "bounded"):
         raise ParameterError(f"method: expected 'auto', 'dense' or 'bounded', got {method!r}")
-    g = _GriddedCosts(end_x, start_x)
     K = g.K
 
     def costs(r0: int, r1: int) -> np.ndarray:  # rows r0..r1 of transition_costs, diagonal +inf
@@ -343,7 +373,7 @@ class _ProjectedBounds:
         K, D = a.shape
         J = max(0, min(J, D))
         sa = max(1, (2 * K) // cls.PCA_ROWS)
-        rows = np.concatenate([a[::sa], b[::sa]])
+        rows = np.concatenate([a[::sa], b[::sa]]).astype(np.float64)
         mu = rows.mean(0)
         if J > 0 and K > 1:
             rows -= mu
@@ -663,11 +693,9 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     # clips shorter than m frames repeat their edge frames
     last = start[:, None] + np.maximum(length[:, None] - m + off, 0).clip(max=length[:, None] - 1)
     first = start[:, None] + np.minimum(off, length[:, None] - 1)
-    pos, rot, root = h5["frames/joint_positions"], h5["frames/local_rotations"], h5["frames/root_positions"]
-    need = np.unique(np.concatenate([last.ravel(), first.ravel()]))
-    pos_a, rot_a, root_a = pos[need], rot[need], root[need]
-    idx = lambda f: np.searchsorted(need, f)  # noqa: E731
     upper, lower = body_parts(schema.read(h5, "skeleton/names"), schema.read(h5, "skeleton/parents"))
+    parts = (("graph", "upper", upper, delta_T), ("graph_lower", "lower", lower, delta_T_lower))
+    grids = _gridded_features(h5, last, first, [(part, joints) for _, part, joints, _ in parts], l1=l1, l2=l2)
     dims = {"K": K}
     summary = {}
     bar = None
@@ -676,17 +704,14 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
 
         bar = tqdm(total=2 * K, unit="clip", desc="motion graphs", disable=None)
     try:
-        for group, part, joints, dt in (("graph", "upper", upper, delta_T),
-                                        ("graph_lower", "lower", lower, delta_T_lower)):
-            ex = transition_features(pos_a, rot_a, root_a, idx(last), l1=l1, l2=l2, joints=joints, part=part)
-            sx = transition_features(pos_a, rot_a, root_a, idx(first), l1=l1, l2=l2, joints=joints, part=part)
-            summary[part] = _write_edges(h5, group, part, joints, ex, sx, dims, l1=l1, l2=l2, m=m, delta_T=dt,
+        for (group, part, joints, dt), g in zip(parts, grids):
+            summary[part] = _write_edges(h5, group, part, joints, g, dims, l1=l1, l2=l2, m=m, delta_T=dt,
                                          delta_quantile=delta_quantile, min_out=min_out, max_out=max_out,
                                          on_rows=bar.update if bar is not None else None)
-            del ex, sx
     finally:
         if bar is not None:
             bar.close()
+    del grids
 
     n_words = r("clips/word_end") - r("clips/word_start")
     X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
@@ -708,13 +733,54 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
                 heldout_rmse=model["heldout_rmse"], mean_rmse=model["mean_rmse"])
 
 
-def _write_edges(h5, group: str, part: str, joints, ex: np.ndarray, sx: np.ndarray, dims: dict, *, l1: float,
+#: clips whose transition features are computed at once when the graphs are built
+FEATURE_CHUNK = 16384
+
+
+def _gridded_features(h5, last: np.ndarray, first: np.ndarray, parts, *, l1: float, l2: float,
+                      chunk: int = FEATURE_CHUNK) -> list[_GriddedCosts]:
+    """Per (part, joints): the transition features of every clip's ``last`` and ``first`` frames
+    ((K, m) frame indices), on their grid.
+
+    Computed a chunk of clips at a time, reading only the chunk's frames, and twice: the grid's
+    unit needs the largest magnitude first. So the memory is the grids' float32 integers, not
+    the features' float64 nor every transition frame's joints (at 1.2M clips, 1,000 hours,
+    about 7 GB instead of about 26 GB); the values are those of the whole arrays at once.
+    """
+    pos, rot, root = h5["frames/joint_positions"], h5["frames/local_rotations"], h5["frames/root_positions"]
+    K = last.shape[0]
+
+    def features():  # (s0, [(end_x, start_x) per part]) per chunk
+        for s0 in range(0, max(K, 1), chunk):
+            lc, fc = last[s0:s0 + chunk], first[s0:s0 + chunk]
+            need = np.unique(np.concatenate([lc.ravel(), fc.ravel()]))
+            pa, ra, oa = pos[need], rot[need], root[need]
+            li, fi = np.searchsorted(need, lc), np.searchsorted(need, fc)
+            yield s0, [(transition_features(pa, ra, oa, li, l1=l1, l2=l2, joints=j, part=p),
+                        transition_features(pa, ra, oa, fi, l1=l1, l2=l2, joints=j, part=p)) for p, j in parts]
+
+    amax = [0.0] * len(parts)
+    D = [0] * len(parts)
+    for _, xs in features():
+        for i, (ex, sx) in enumerate(xs):
+            D[i] = ex.shape[1]
+            amax[i] = max([amax[i]] + [float(np.abs(x).max()) for x in (ex, sx) if x.size])
+    units = [_grid_unit(D[i], amax[i], compact=True) for i in range(len(parts))]
+    grids = [(np.empty((K, D[i]), dtype), np.empty((K, D[i]), dtype)) for i, (_, dtype) in enumerate(units)]
+    for s0, xs in features():
+        for (ex, sx), (u, _), (ga, gb) in zip(xs, units, grids):
+            ga[s0:s0 + ex.shape[0]] = np.rint(ex / u)
+            gb[s0:s0 + sx.shape[0]] = np.rint(sx / u)
+    return [_GriddedCosts(ga, gb, u=u) for (ga, gb), (u, _) in zip(grids, units)]
+
+
+def _write_edges(h5, group: str, part: str, joints, g: _GriddedCosts, dims: dict, *, l1: float,
                  l2: float, m: int, delta_T, delta_quantile: float, min_out: int, max_out: int, on_rows) -> dict:
-    """One body part's graph from its transition features, written under ``group``."""
+    """One body part's graph from its gridded transition features, written under ``group``."""
     from gesturedb.db import schema
 
-    indptr, indices, cost, dT = edges_from_features(ex, sx, delta_T=delta_T, delta_quantile=delta_quantile,
-                                                    min_out=min_out, max_out=max_out, on_rows=on_rows)
+    indptr, indices, cost, dT = _edges(g, delta_T=delta_T, delta_quantile=delta_quantile, min_out=min_out,
+                                       max_out=max_out, block_elems=1 << 24, method="auto", on_rows=on_rows)
     schema.write(h5, f"{group}/indptr", indptr, dims)
     schema.write(h5, f"{group}/indices", indices, dims)
     schema.write(h5, f"{group}/cost", cost, dims)
