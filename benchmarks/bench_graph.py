@@ -37,6 +37,7 @@ def main() -> None:
     import numpy as np
 
     from gesturedb import rotations as R
+    from gesturedb.db import edges as E
     from gesturedb.db import graph as G
     from gesturedb.motion import Skeleton
     from gesturedb.synth.assemble import Piece, assemble_pieces
@@ -57,11 +58,11 @@ def main() -> None:
     t0 = time.perf_counter()
     exl = G.transition_features(pos, rot, root, ends, joints=lower, part="lower")
     sxl = G.transition_features(pos, rot, root, starts, joints=lower, part="lower")
-    low_graph = G.edges_from_costs(G.transition_costs(exl, sxl))[:3]
+    low_graph = E.edges_from_costs(E.transition_costs(exl, sxl))[:3]
     ex = G.transition_features(pos, rot, root, ends, joints=upper, part="upper")
     sx = G.transition_features(pos, rot, root, starts, joints=upper, part="upper")
-    T = G.transition_costs(ex, sx)
-    indptr, indices, cost, dT = G.edges_from_costs(T)
+    T = E.transition_costs(ex, sx)
+    indptr, indices, cost, dT = E.edges_from_costs(T)
     t_build = time.perf_counter() - t0
 
     rows = 200
@@ -168,7 +169,7 @@ def edges_at_scale(K: int, D: int = 644, dense: bool = True) -> None:
     """
     import numpy as np
 
-    from gesturedb.db import graph as G
+    from gesturedb.db import edges as E
 
     rng = np.random.default_rng(1)
     h = rng.normal(size=(2 * K, 24)) * 0.8 ** np.arange(24)
@@ -180,17 +181,17 @@ def edges_at_scale(K: int, D: int = 644, dense: bool = True) -> None:
     print(f"\nedges of {K} clips x {D} features (synthetic poses: variance in 8 / 16 / 32 directions "
           f"{w[:8].sum() / w.sum():.3f} / {w[:16].sum() / w.sum():.3f} / {w[:32].sum() / w.sum():.3f})")
     n_pairs = []
-    pairs = G._GriddedCosts.pairs
-    G._GriddedCosts.pairs = lambda self, i, j: n_pairs.append(i.size) or pairs(self, i, j)
+    pairs = E._GriddedCosts.pairs
+    E._GriddedCosts.pairs = lambda self, i, j: n_pairs.append(i.size) or pairs(self, i, j)
     t0 = time.perf_counter()
-    got = G.edges_from_features(a, b, method="bounded")
+    got = E.edges_from_features(a, b, method="bounded")
     t_b = time.perf_counter() - t0
-    G._GriddedCosts.pairs = pairs
-    print(f"  bounded ({G.BOUND_DIMS} directions): {t_b:7.1f} s, exact costs {sum(n_pairs[1:]) / K:.1f} per "
+    E._GriddedCosts.pairs = pairs
+    print(f"  bounded ({E.BOUND_DIMS} directions): {t_b:7.1f} s, exact costs {sum(n_pairs[1:]) / K:.1f} per "
           f"clip for {got[1].shape[0] / K:.1f} edges per clip")
     if dense:
         t0 = time.perf_counter()
-        want = G.edges_from_features(a, b, method="dense")
+        want = E.edges_from_features(a, b, method="dense")
         t_d = time.perf_counter() - t0
         same = all(np.array_equal(u, v) for u, v in zip(want[:3], got[:3])) and want[3] == got[3]
         print(f"  dense: {t_d:7.1f} s; dense / bounded = {t_d / t_b:.1f}x; identical edges: {same}")

@@ -10,6 +10,7 @@ import pytest
 
 import gesturedb
 from gesturedb import rotations as R
+from gesturedb.db import edges as E
 from gesturedb.db import graph as G
 from gesturedb.db import schema
 from gesturedb.errors import SchemaError, SearchError
@@ -59,7 +60,7 @@ def test_transition_costs_match_direct_loops(part, joints):
     kw = dict(l1=0.7, l2=0.3, joints=joints, part=part)
     ex = G.transition_features(pos, rot, root, ends, **kw)
     sx = G.transition_features(pos, rot, root, starts, **kw)
-    T = G.transition_costs(ex, sx)
+    T = E.transition_costs(ex, sx)
     assert T.dtype == np.float64 and T.shape == (K, K)
     for p in range(K):
         for q in range(K):
@@ -77,13 +78,13 @@ def test_transition_costs_are_exact_integers_on_their_grid(D, scale):
     a = rng.normal(size=(23, D)) * scale
     b = rng.normal(size=(31, D)) * scale
     b[0] = a[0]  # an exact zero
-    T = G.transition_costs(a, b)
-    (qa, qb), u = G._on_grid(a, b)
+    T = E.transition_costs(a, b)
+    (qa, qb), u = E._on_grid(a, b)
     ia, ib = qa.astype(np.int64), qb.astype(np.int64)
     e = (51 - int(np.ceil(np.log2(D)))) // 2  # 4 D 4^e <= 2^53
     assert max(np.abs(ia).max(), np.abs(ib).max()) <= 2 ** e and np.array_equal(ia, qa) and np.array_equal(ib, qb)
     # the compact grid the costs use: the same integers, in float32 where that holds them (D >= 3)
-    (ca, cb), uc = G._on_grid(a, b, compact=True)
+    (ca, cb), uc = E._on_grid(a, b, compact=True)
     assert uc == u and ca.dtype == cb.dtype == (np.float32 if D >= 3 else np.float64)
     assert np.array_equal(ca, qa) and np.array_equal(cb, qb)
     exact = ((ia[:, None, :] - ib[None, :, :]) ** 2).sum(-1)  # int64: no overflow below 2^63
@@ -108,7 +109,7 @@ def test_graph_features_in_chunks_equal_the_whole_arrays(scott_db_path):
         pos, rot, root = (h5[f"frames/{k}"][()] for k in ("joint_positions", "local_rotations", "root_positions"))
         for chunk in (1, 7, 10 ** 6):
             for (p, j), g in zip(parts, G._gridded_features(h5, last, first, parts, l1=0.7, l2=0.3, chunk=chunk)):
-                want = G._GriddedCosts(G.transition_features(pos, rot, root, last, joints=j, part=p),
+                want = E._GriddedCosts(G.transition_features(pos, rot, root, last, joints=j, part=p),
                                        G.transition_features(pos, rot, root, first, joints=j, part=p))
                 assert g.uu == want.uu and g.a.dtype == want.a.dtype == np.float32
                 assert np.array_equal(g.a, want.a) and np.array_equal(g.b, want.b)
@@ -132,7 +133,7 @@ def test_each_body_graph_sees_only_its_own_joints(scott_db):
     def costs(rotations, part, joints):
         m = Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=rotations, root_positions=motion.root_positions)
         x = G.transition_features(m.positions, m.rotations, m.root_positions, frames, joints=joints, part=part)
-        return G.transition_costs(x[::2], x[1::2])
+        return E.transition_costs(x[::2], x[1::2])
 
     base = np.asarray(motion.rotations, dtype=np.float64)
     for changed, same_part, same_joints, other_part, other_joints in (
@@ -151,7 +152,7 @@ def test_edges_threshold_plus_cheapest(K, max_out, ties):
     at the cut) go to the smaller target index."""
     rng = np.random.default_rng(1)
     T = rng.integers(0, 4, (K, K)).astype(np.float64) if ties else rng.random((K, K)) * 10
-    indptr, indices, cost, dT = G.edges_from_costs(T.copy(), delta_quantile=0.1, min_out=3, max_out=max_out)
+    indptr, indices, cost, dT = E.edges_from_costs(T.copy(), delta_quantile=0.1, min_out=3, max_out=max_out)
     check_csr(indptr, indices, cost, K)
     dense = np.zeros((K, K), bool)
     src = np.repeat(np.arange(K), np.diff(indptr))
@@ -178,9 +179,9 @@ def test_edges_from_features_in_blocks_equal_the_whole_table(K, D, ties, delta_T
         a, b = (rng.integers(0, 2, (K, D)).astype(np.float64) for _ in range(2))
     else:
         a, b = rng.normal(size=(K, D)), rng.normal(size=(K, D))
-    want = G.edges_from_costs(G.transition_costs(a, b), delta_T=delta_T, min_out=3, max_out=8)
+    want = E.edges_from_costs(E.transition_costs(a, b), delta_T=delta_T, min_out=3, max_out=8)
     for block in (1, 37, 1 << 24):
-        got = G.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, block_elems=block)
+        got = E.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, block_elems=block)
         for x, y in zip(want[:3], got[:3]):
             assert x.dtype == y.dtype and np.array_equal(x, y)
         assert got[3] == want[3]
@@ -199,8 +200,8 @@ def _low_rank(rng, K, D, latent=10, dup=0):
 
 def _count_dense_blocks(monkeypatch):
     calls = []
-    dense = G._row_edges
-    monkeypatch.setattr(G, "_row_edges", lambda T, *a: calls.append(T.shape[0]) or dense(T, *a))
+    dense = E._row_edges
+    monkeypatch.setattr(E, "_row_edges", lambda T, *a: calls.append(T.shape[0]) or dense(T, *a))
     return calls
 
 
@@ -210,15 +211,15 @@ def test_bounded_edges_equal_the_dense_ones(K, D, dup, delta_T, block, monkeypat
     """The projection bounds pick exactly the dense path's edges (ties at the cut from duplicated
     starts included), and they really did the work: no block fell back to the dense costs."""
     a, b = _low_rank(np.random.default_rng(K), K, D, dup=dup)
-    want = G.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, method="dense", block_elems=block)
+    want = E.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, method="dense", block_elems=block)
     calls = _count_dense_blocks(monkeypatch)
-    got = G.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, method="bounded", block_elems=block)
+    got = E.edges_from_features(a, b, delta_T=delta_T, min_out=3, max_out=8, method="bounded", block_elems=block)
     assert calls == []
     for x, y in zip(want[:3], got[:3]):
         assert x.dtype == y.dtype and np.array_equal(x, y)
     assert got[3] == want[3]
     if dup:  # the duplicated starts did tie at some row's cut
-        T = G.transition_costs(a, b)
+        T = E.transition_costs(a, b)
         np.fill_diagonal(T, np.inf)
         kth = np.sort(T, axis=1)[:, 7]
         assert ((T == kth[:, None]).sum(1) > 1).any()
@@ -230,9 +231,9 @@ def test_bounded_edges_fall_back_where_bounds_cannot_pay(K, monkeypatch):
     every column): those blocks are computed densely, with the same edges."""
     rng = np.random.default_rng(K)
     a, b = rng.normal(size=(K, 200)), rng.normal(size=(K, 200))
-    want = G.edges_from_features(a, b, min_out=3, max_out=8, method="dense")
+    want = E.edges_from_features(a, b, min_out=3, max_out=8, method="dense")
     calls = _count_dense_blocks(monkeypatch)
-    got = G.edges_from_features(a, b, min_out=3, max_out=8, method="bounded")
+    got = E.edges_from_features(a, b, min_out=3, max_out=8, method="bounded")
     assert sum(calls) == K
     for x, y in zip(want[:3], got[:3]):
         assert np.array_equal(x, y)
@@ -243,13 +244,13 @@ def test_auto_bounds_from_bound_min_k_clips(monkeypatch):
     features are wider than the projection), dense below."""
     a, b = _low_rank(np.random.default_rng(7), 300, 120)
     calls = _count_dense_blocks(monkeypatch)
-    G.edges_from_features(a, b, max_out=8)
+    E.edges_from_features(a, b, max_out=8)
     assert sum(calls) == 300
-    monkeypatch.setattr(G, "BOUND_MIN_K", 300)
+    monkeypatch.setattr(E, "BOUND_MIN_K", 300)
     calls.clear()
-    G.edges_from_features(a, b, max_out=8)
+    E.edges_from_features(a, b, max_out=8)
     assert calls == []
-    G.edges_from_features(a[:, :G.BOUND_DIMS + 2], b[:, :G.BOUND_DIMS + 2], max_out=8)
+    E.edges_from_features(a[:, :E.BOUND_DIMS + 2], b[:, :E.BOUND_DIMS + 2], max_out=8)
     assert sum(calls) == 300
 
 
@@ -258,7 +259,7 @@ def test_edge_search_reports_its_rows(monkeypatch):
     a, b = _low_rank(np.random.default_rng(8), 500, 100)
     for method in ("dense", "bounded"):
         rows = []
-        G.edges_from_features(a, b, max_out=8, method=method, block_elems=500 * 64, on_rows=rows.append)
+        E.edges_from_features(a, b, max_out=8, method=method, block_elems=500 * 64, on_rows=rows.append)
         assert rows == [64] * 7 + [52]
 
 
@@ -266,8 +267,8 @@ def test_projected_bounds_hold_on_every_pair():
     """L <= T <= L + 4 r_p r_q (with the margin) for every pair, T exact; and the margin is small
     against the costs that decide edges."""
     a, b = _low_rank(np.random.default_rng(3), 300, 150)
-    g = G._GriddedCosts(a, b)
-    B = G._ProjectedBounds.fit(g, 8, J=6)
+    g = E._GriddedCosts(a, b)
+    B = E._ProjectedBounds.fit(g, 8, J=6)
     T = g.rows(0, g.K) / g.uu
     L = B.P @ B.Q.T + B.na[:, None]
     U = L + 4.0 * B.ra[:, None] * B.rb[None, :]
@@ -286,12 +287,12 @@ def test_bounded_edges_of_real_frames(scott_db, monkeypatch):
     f = np.arange(1, pos.shape[0] - 1)
     ex = G.transition_features(pos, rot, root, np.stack([f - 1, f], 1), joints=upper, part="upper")
     sx = G.transition_features(pos, rot, root, np.stack([f, f + 1], 1), joints=upper, part="upper")
-    want = G.edges_from_features(ex, sx, method="dense")
+    want = E.edges_from_features(ex, sx, method="dense")
     calls = _count_dense_blocks(monkeypatch)
     n_pairs = []
-    pairs = G._GriddedCosts.pairs
-    monkeypatch.setattr(G._GriddedCosts, "pairs", lambda self, i, j: n_pairs.append(i.size) or pairs(self, i, j))
-    got = G.edges_from_features(ex, sx, method="bounded")
+    pairs = E._GriddedCosts.pairs
+    monkeypatch.setattr(E._GriddedCosts, "pairs", lambda self, i, j: n_pairs.append(i.size) or pairs(self, i, j))
+    got = E.edges_from_features(ex, sx, method="bounded")
     assert calls == []
     for x, y in zip(want[:3], got[:3]):
         assert np.array_equal(x, y)
