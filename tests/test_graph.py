@@ -263,6 +263,22 @@ def test_edge_search_reports_its_rows(monkeypatch):
         assert rows == [64] * 7 + [52]
 
 
+@pytest.mark.parametrize("method", ["dense", "bounded"])
+def test_edge_blocks_on_threads_equal_one_thread(method, monkeypatch):
+    """From BOUND_MIN_K clips on the blocks of rows run on threads; the edges, and the rows
+    reported to a progress bar, are those of one thread."""
+    a, b = _low_rank(np.random.default_rng(9), 700, 90, dup=30)
+    monkeypatch.setattr(E, "BOUND_MIN_K", 100)
+    out = {}
+    for threads in (1, 4):
+        monkeypatch.setattr(E, "EDGE_THREADS", threads)
+        rows = []
+        out[threads] = E.edges_from_features(a, b, max_out=8, method=method, block_elems=700 * 50, on_rows=rows.append)
+        assert rows == [50] * 14
+    for x, y in zip(out[1], out[4]):
+        assert np.array_equal(x, y)
+
+
 def test_projected_bounds_hold_on_every_pair():
     """L <= T <= L + 4 r_p r_q (with the margin) for every pair, T exact; and the margin is small
     against the costs that decide edges."""

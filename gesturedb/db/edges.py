@@ -17,9 +17,12 @@ row (the back-to-back repeat rule), which also means the output never loops on o
 The search computes every cost a block of rows at a time (memory grows with K), and from
 :data:`BOUND_MIN_K` clips on bounds them first from a few principal directions
 (:class:`_ProjectedBounds`), computing exactly only the pairs that can still be an edge:
-the same edges bit for bit.
+the same edges bit for bit. There the blocks also run on threads (:data:`EDGE_THREADS`).
 """
 from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -32,6 +35,8 @@ MAX_OUT = 32
 BOUND_DIMS = 32
 #: clips from which ``edges_from_features`` bounds the costs instead of computing them all
 BOUND_MIN_K = 4096
+#: threads the edge search runs its blocks of rows on (at most the CPU's), from BOUND_MIN_K clips on
+EDGE_THREADS = 8
 
 
 def _on_grid(*xs: np.ndarray, compact: bool = False) -> tuple[list[np.ndarray], float]:
@@ -212,11 +217,18 @@ def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float, min_out: int, 
             bounds = None  # features without the structure bounds need: the rest densely too
         return _row_edges(costs(r0, r1), r0, delta_T, min_out, max_out)
 
+    ranges = [(r0, min(K, r0 + step)) for r0 in range(0, K, step)]
     parts = []
-    for r0 in range(0, K, step):
-        parts.append(block(r0, min(K, r0 + step)))
-        if on_rows is not None:
-            on_rows(min(K, r0 + step) - r0)
+    # blocks on threads when there are many (numpy releases the GIL in the passes over a
+    # block, which run on one core each); the results are taken in order, so the edges do not
+    # depend on the threads
+    threads = min(os.cpu_count() or 1, EDGE_THREADS) if K >= BOUND_MIN_K else 1
+    with ThreadPoolExecutor(max_workers=max(threads, 1)) as ex:
+        for (r0, r1), part in zip(ranges, ex.map(lambda r: block(*r), ranges) if threads > 1
+                                  else (block(*r) for r in ranges)):
+            parts.append(part)
+            if on_rows is not None:
+                on_rows(r1 - r0)
     rows, cols, cost = (np.concatenate(x) for x in zip(*parts)) if parts else _row_edges(np.zeros((0, 0)), 0, 0, 0, 0)
     return _csr(K, rows, cols, cost) + (float(delta_T),)
 
