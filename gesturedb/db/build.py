@@ -457,12 +457,17 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool = Fal
     W(h5, "recordings/source_fps", [r.source_fps for r in recs], dims)
     W(h5, "recordings/mirrored", [r.mirrored for r in recs], dims)
 
-    W(h5, "frames/pose_features", np.concatenate([r.pose for r in recs]).astype(np.float32), dims)
+    # the largest per-frame arrays a recording at a time, each recording's copy dropped once
+    # written: concatenating them first held a second copy of each (at 100 hours, gigabytes)
+    for path, attr in (("frames/pose_features", "pose"), ("frames/joint_positions", "positions"),
+                       ("frames/local_rotations", "rotations"), ("frames/root_positions", "root")):
+        rows = schema.RowWriter(h5, path, (F,) + getattr(recs[0], attr).shape[1:], dims)
+        for r in recs:
+            rows.write(getattr(r, attr))
+            setattr(r, attr, None)
+        rows.close()
     W(h5, "frames/audio_features", audio, dims)
     W(h5, "frames/audio_deltas", deltas, dims)
-    W(h5, "frames/joint_positions", np.concatenate([r.positions for r in recs]), dims)
-    W(h5, "frames/local_rotations", np.concatenate([r.rotations for r in recs]), dims)
-    W(h5, "frames/root_positions", np.concatenate([r.root for r in recs]), dims)
     W(h5, "frames/recording", np.concatenate([np.full(r.n_frames, i, np.int32) for i, r in enumerate(recs)]), dims)
     W(h5, "audio/mean", mean, dims)
     W(h5, "audio/std", std, dims)

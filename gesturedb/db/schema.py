@@ -199,6 +199,65 @@ def _check_shape(field: Field, arr: np.ndarray, dims: dict[str, int]) -> None:
                 )
 
 
+def _checked(field: Field, data: Any, row0: int = 0) -> np.ndarray:
+    """``data`` as the field's dtype (lossless kinds only) and finite, or a SchemaError naming the field
+    and the first bad index (rows counted from ``row0``)."""
+    if field.dtype == STR:
+        return np.asarray([str(s) for s in data], dtype=object)
+    arr = np.asarray(data)
+    want = np.dtype(field.dtype)
+    if arr.size and arr.dtype.kind != want.kind and not (arr.dtype.kind in "iub" and want.kind in "iub"):
+        raise SchemaError("<writing>", f"{field.path}: expected {want}, got {arr.dtype}")
+    arr = arr.astype(want, copy=False)
+    if want.kind == "f" and arr.size and not np.isfinite(arr).all():
+        idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
+        at = (idx[0] + row0,) + idx[1:]
+        raise SchemaError("<writing>", f"{field.path}: expected finite values, got {arr[idx]} at index {at}; "
+                                       "refusing to write a database with non-finite data")
+    return arr
+
+
+class RowWriter:
+    """One declared dataset of a known shape, written a block of rows at a time.
+
+    The build writes each recording's rows as it goes instead of concatenating every
+    recording first (a second copy of the largest per-frame array: gigabytes at 100 hours).
+    The same checks as :func:`write` (dtype, finite, shape against ``dims``) and the same
+    attributes; :data:`MEAN_ATTR` is accumulated row after row in float64, which is what numpy's
+    ``mean(axis=0, dtype=float64)`` of the whole array does, so its bits are the same (tested).
+    Contiguous, as :func:`write` makes it. Call :meth:`close` after the last rows.
+    """
+
+    def __init__(self, h5, path: str, shape: tuple, dims: dict[str, int]):
+        self.field = FIELDS_BY_PATH[path]
+        _check_shape(self.field, np.broadcast_to(np.zeros((), np.uint8), shape), dims)
+        self.ds = h5.create_dataset(path, shape=shape, dtype=_np_dtype(self.field.dtype))
+        self.ds.attrs["unit"] = self.field.unit
+        self.ds.attrs["doc"] = self.field.doc
+        self.n = 0
+        self.sum = None
+
+    def write(self, data: Any) -> None:
+        """The next rows (after those written so far)."""
+        arr = _checked(self.field, data, self.n)
+        if arr.shape[1:] != self.ds.shape[1:] or self.n + arr.shape[0] > self.ds.shape[0]:
+            raise SchemaError("<writing>", f"{self.field.path}: expected rows of shape {self.ds.shape[1:]} up to "
+                                           f"row {self.ds.shape[0]}, got {arr.shape} at row {self.n}")
+        if arr.shape[0] == 0:
+            return
+        self.ds[self.n:self.n + arr.shape[0]] = arr
+        self.n += arr.shape[0]
+        if self.field.path in MEAN_FIELDS:
+            rows = arr.astype(np.float64)
+            self.sum = np.add.reduce(rows if self.sum is None else np.concatenate([self.sum[None], rows]), axis=0)
+
+    def close(self) -> None:
+        if self.n != self.ds.shape[0]:
+            raise SchemaError("<writing>", f"{self.field.path}: expected {self.ds.shape[0]} rows, got {self.n}")
+        if self.sum is not None:
+            self.ds.attrs[MEAN_ATTR] = self.sum / self.n
+
+
 def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str, Any] | None = None) -> None:
     """Write one declared dataset, checking its dtype and shape.
 
@@ -214,18 +273,7 @@ def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str,
         Symbolic dimension sizes seen so far; filled in and checked across datasets.
     """
     field = FIELDS_BY_PATH[path]
-    if field.dtype == STR:
-        arr = np.asarray([str(s) for s in data], dtype=object)
-    else:
-        arr = np.asarray(data)
-        want = np.dtype(field.dtype)
-        if arr.size and arr.dtype.kind != want.kind and not (arr.dtype.kind in "iub" and want.kind in "iub"):
-            raise SchemaError("<writing>", f"{path}: expected {want}, got {arr.dtype}")
-        arr = arr.astype(want, copy=False)
-        if want.kind == "f" and arr.size and not np.isfinite(arr).all():
-            idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
-            raise SchemaError("<writing>", f"{path}: expected finite values, got {arr[idx]} at index {idx}; "
-                                           "refusing to write a database with non-finite data")
+    arr = _checked(field, data)
     _check_shape(field, arr, dims)
     ds = h5.create_dataset(path, data=arr, dtype=_np_dtype(field.dtype))
     ds.attrs["unit"] = field.unit
