@@ -39,8 +39,9 @@ def test_every_declared_field_has_unit_doc_and_known_dims():
         assert all(isinstance(d, int) or d in known for d in f.shape), f
 
 
+@pytest.mark.parametrize("grows", [False, True])
 @pytest.mark.parametrize("sizes", [[1000], [3, 0, 400, 1, 596], [1] * 50])
-def test_row_writer_equals_one_write(tmp_path, sizes):
+def test_row_writer_equals_one_write(tmp_path, sizes, grows):
     """Rows written a block at a time (the build: a recording at a time) give the dataset and the
     stored mean of one write of the whole array, bit for bit, whatever the blocks (a column of
     -0.0 included, where the start of the sum shows)."""
@@ -52,15 +53,17 @@ def test_row_writer_equals_one_write(tmp_path, sizes):
         want, want_mean = h5["frames/pose_features"][()], h5["frames/pose_features"].attrs[schema.MEAN_ATTR]
     with h5py.File(tmp_path / "rows.h5", "w") as h5:
         dims: dict = {}
-        rows = schema.RowWriter(h5, "frames/pose_features", x.shape, dims)
-        assert dims == {"F": x.shape[0], "Dp": 96}
+        rows = schema.RowWriter(h5, "frames/pose_features", (None, 96) if grows else x.shape, dims)
+        assert dims == ({} if grows else {"F": x.shape[0], "Dp": 96})  # a growing one's at close
         s0 = 0
         for n in sizes:
             rows.write(x[s0:s0 + n].astype(np.float64) if n == 3 else x[s0:s0 + n])  # converted like write
             s0 += n
         rows.close()
+        assert dims == {"F": x.shape[0], "Dp": 96}
         got, got_mean = h5["frames/pose_features"][()], h5["frames/pose_features"].attrs[schema.MEAN_ATTR]
-        assert h5["frames/pose_features"].chunks is None  # contiguous, as write makes it
+        # contiguous, as write makes it, when the rows are known; else chunks of about 4 MB
+        assert h5["frames/pose_features"].chunks == (None if not grows else ((1 << 22) // 384, 96))
     assert got.tobytes() == want.tobytes() and got_mean.tobytes() == want_mean.tobytes()
 
 
@@ -79,3 +82,13 @@ def test_row_writer_errors_name_the_field_and_the_row(tmp_path):
             rows.close()
         with pytest.raises(SchemaError, match=r"frames/root_positions: axis 1 expected 3, got 4"):
             schema.RowWriter(h5, "frames/root_positions", (10, 4), {})
+
+
+def test_growing_row_writer_checks_its_rows_against_other_datasets_at_close(tmp_path):
+    with h5py.File(tmp_path / "x.h5", "w") as h5:
+        dims: dict = {}
+        schema.write(h5, "frames/audio_features", np.zeros((5, 14), np.float32), dims)
+        rows = schema.RowWriter(h5, "frames/pose_features", (None, 96), dims)
+        rows.write(np.zeros((3, 96), np.float32))
+        with pytest.raises(SchemaError, match=r"frames/pose_features: dimension F expected 5 \(from another dataset\), got 3"):
+            rows.close()

@@ -16,7 +16,7 @@ import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -422,7 +422,32 @@ def _same_skeleton(a, b) -> bool:
     return a.same_as(b, atol_m=1e-6) and float(a.length_unit_m) == float(b.length_unit_m)
 
 
-def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool = False) -> None:
+class _FrameWriter:
+    """The database's largest per-frame arrays (pose features, joint positions and rotations, root),
+    appended a recording at a time; each recording's copy is dropped once written."""
+
+    FIELDS = (("frames/pose_features", "pose"), ("frames/joint_positions", "positions"),
+              ("frames/local_rotations", "rotations"), ("frames/root_positions", "root"))
+
+    def __init__(self, h5):
+        self.h5 = h5
+        self.rows: list[schema.RowWriter] = []
+
+    def add(self, r: RecordingData) -> None:
+        if not self.rows:
+            self.rows = [schema.RowWriter(self.h5, path, (None,) + getattr(r, attr).shape[1:], {})
+                         for path, attr in self.FIELDS]
+        for rows, (_, attr) in zip(self.rows, self.FIELDS):
+            rows.write(getattr(r, attr))
+            setattr(r, attr, None)
+
+    def close(self, dims: dict) -> None:
+        for rows in self.rows:
+            rows.dims = dims
+            rows.close()
+
+
+def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, frames: _FrameWriter) -> None:
     from gesturedb.features.audio import audio_deltas
 
     dims: dict[str, int] = {}
@@ -457,15 +482,7 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool = Fal
     W(h5, "recordings/source_fps", [r.source_fps for r in recs], dims)
     W(h5, "recordings/mirrored", [r.mirrored for r in recs], dims)
 
-    # the largest per-frame arrays a recording at a time, each recording's copy dropped once
-    # written: concatenating them first held a second copy of each (at 100 hours, gigabytes)
-    for path, attr in (("frames/pose_features", "pose"), ("frames/joint_positions", "positions"),
-                       ("frames/local_rotations", "rotations"), ("frames/root_positions", "root")):
-        rows = schema.RowWriter(h5, path, (F,) + getattr(recs[0], attr).shape[1:], dims)
-        for r in recs:
-            rows.write(getattr(r, attr))
-            setattr(r, attr, None)
-        rows.close()
+    frames.close(dims)  # written as the recordings came (build)
     W(h5, "frames/audio_features", audio, dims)
     W(h5, "frames/audio_deltas", deltas, dims)
     W(h5, "frames/recording", np.concatenate([np.full(r.n_frames, i, np.int32) for i, r in enumerate(recs)]), dims)
@@ -599,16 +616,26 @@ def build(
     if cfg.gap_s == "auto":
         gap, words = _auto_gap(pairing.recordings)
         cfg = dataclasses.replace(cfg, gap_s=gap)
-    recs = _process_all(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler,
-                        words=words)
-    for r in recs[1:]:
-        if not _same_skeleton(recs[0].skeleton, r.skeleton):
-            raise InputFileError(
-                r.source.motion,
-                f"skeleton: expected the skeleton of {recs[0].source.motion} ({len(recs[0].skeleton.names)} joints), "
-                f"got a different one ({len(r.skeleton.names)} joints); build one database per skeleton",
-            )
-    write_atomically(out_path, lambda h5: _write(h5, recs, cfg, progress))
+    recs: list[RecordingData] = []
+
+    def fill(h5):
+        # each recording's large per-frame arrays go into the file as it arrives and are
+        # dropped; the rest (audio before standardisation, controls, clips, words) is written
+        # once all are in
+        frames = _FrameWriter(h5)
+        for r in _iter_processed(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler,
+                                 words=words):
+            if recs and not _same_skeleton(recs[0].skeleton, r.skeleton):
+                raise InputFileError(
+                    r.source.motion,
+                    f"skeleton: expected the skeleton of {recs[0].source.motion} ({len(recs[0].skeleton.names)} "
+                    f"joints), got a different one ({len(r.skeleton.names)} joints); build one database per skeleton",
+                )
+            frames.add(r)
+            recs.append(r)
+        _write(h5, recs, cfg, progress, frames)
+
+    write_atomically(out_path, fill)
     pairing.notes = report_notes(recs)
 
     from gesturedb.db.database import Database
@@ -658,34 +685,40 @@ def _auto_gap(sources: list[RecordingSource]) -> tuple[float, list]:
     return suggest_gap_s(np.concatenate(pauses) if pauses else np.zeros(0), total, n_sequences=n), words
 
 
-def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress,
-                 scheduler=None, words=None) -> list[RecordingData]:
-    """process_recording of every source, in input order; ``words``: their transcripts as read
-    already (or None: each is read by its task)."""
+def _iter_processed(sources: list[RecordingSource], cfg: BuildConfig, *, workers: int, progress,
+                    scheduler=None, words=None) -> Iterator[RecordingData]:
+    """process_recording of every source, each result yielded in input order as soon as it and those
+    before it are done (so the caller can write it and let it go); ``words``: the transcripts as
+    read already (or None: each is read by its task)."""
     tasks = [(s, cfg, w) for s, w in zip(sources, words or [None] * len(sources))]
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=len(sources), unit="rec", desc="building", disable=None)
-    out: list[RecordingData] = []
+
+    def done(i):
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(sources[i].name)
+
     try:
         if scheduler is not None:
-            from gesturedb.db.cluster import process_on_cluster
+            from gesturedb.db.cluster import iter_on_cluster
 
-            def done(i):
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix_str(sources[i].name)
-
-            for res in process_on_cluster(_process_star, tasks, scheduler, on_done=done):
-                out += res  # input order: the content does not depend on scheduling
+            # tasks finish in any order; input order keeps the content independent of scheduling
+            ready, nxt = {}, 0
+            for i, res in iter_on_cluster(_process_star, tasks, scheduler):
+                done(i)
+                ready[i] = res
+                while nxt in ready:
+                    yield from ready.pop(nxt)
+                    nxt += 1
         elif workers == 1 or len(sources) == 1:
-            for s, task in zip(sources, tasks):
-                out += process_recording(*task)
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix_str(s.name)
+            for i, task in enumerate(tasks):
+                res = process_recording(*task)
+                done(i)
+                yield from res
         else:
             from concurrent.futures import ProcessPoolExecutor
 
@@ -694,12 +727,9 @@ def _process_all(sources: list[RecordingSource], cfg: BuildConfig, *, workers: i
             with ProcessPoolExecutor(max_workers=min(workers, len(sources)),
                                      initializer=single_threaded_worker, initargs=(os.getpid(),)) as ex:
                 # map keeps input order, so the database content does not depend on scheduling
-                for s, res in zip(sources, ex.map(_process_star, tasks)):
-                    out += res
-                    if bar is not None:
-                        bar.update(1)
-                        bar.set_postfix_str(s.name)
+                for i, res in enumerate(ex.map(_process_star, tasks)):
+                    done(i)
+                    yield from res
     finally:
         if bar is not None:
             bar.close()
-    return out
