@@ -88,7 +88,8 @@ def test_growing_row_writer_checks_its_rows_against_other_datasets_at_close(tmp_
     with h5py.File(tmp_path / "x.h5", "w") as h5:
         dims: dict = {}
         schema.write(h5, "frames/audio_features", np.zeros((5, 14), np.float32), dims)
-        rows = schema.RowWriter(h5, "frames/pose_features", (None, 96), dims)
+        rows = schema.RowWriter(h5, "frames/pose_features", (None, 96), dims, chunk_rows=7)
+        assert h5["frames/pose_features"].chunks == (7, 96)  # the build's: its first recording's length
         rows.write(np.zeros((3, 96), np.float32))
         with pytest.raises(SchemaError, match=r"frames/pose_features: dimension F expected 5 \(from another dataset\), got 3"):
             rows.close()

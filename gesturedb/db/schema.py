@@ -227,13 +227,15 @@ class RowWriter:
     ``mean(axis=0, dtype=float64)`` of the whole array does, so its bits are the same (tested).
 
     ``shape[0]``: the number of rows, and the dataset is contiguous as :func:`write` makes it;
-    or None: it grows with each write (chunked, about 4 MB a chunk), and its first dimension
-    is checked against ``dims`` at :meth:`close`. Call :meth:`close` after the last rows.
+    or None: it grows with each write (chunked: ``chunk_rows`` rows a chunk, at most about
+    4 MB; a chunk is stored whole, so a small file wants chunks no longer than its first
+    block), and its first dimension is checked against ``dims`` at :meth:`close`. Call
+    :meth:`close` after the last rows.
     """
 
     CHUNK_BYTES = 1 << 22
 
-    def __init__(self, h5, path: str, shape: tuple, dims: dict[str, int]):
+    def __init__(self, h5, path: str, shape: tuple, dims: dict[str, int], chunk_rows: int | None = None):
         self.field = FIELDS_BY_PATH[path]
         self.dims = dims
         rows = shape[0]
@@ -243,9 +245,9 @@ class RowWriter:
         dtype = _np_dtype(self.field.dtype)
         if rows is None:
             row_bytes = max(1, int(np.prod(shape[1:], dtype=np.int64)) * np.dtype(dtype).itemsize)
+            n = self.CHUNK_BYTES // row_bytes if chunk_rows is None else min(int(chunk_rows), self.CHUNK_BYTES // row_bytes)
             self.ds = h5.create_dataset(path, shape=(0,) + tuple(shape[1:]), maxshape=(None,) + tuple(shape[1:]),
-                                        chunks=(max(1, self.CHUNK_BYTES // row_bytes),) + tuple(shape[1:]),
-                                        dtype=dtype)
+                                        chunks=(max(1, n),) + tuple(shape[1:]), dtype=dtype)
         else:
             self.ds = h5.create_dataset(path, shape=shape, dtype=dtype)
         self.grows = rows is None
