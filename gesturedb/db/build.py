@@ -444,8 +444,7 @@ class _FrameWriter:
 
     def close(self, dims: dict) -> None:
         for rows in self.rows:
-            rows.dims = dims
-            rows.close()
+            rows.close(dims)
 
 
 def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, frames: _FrameWriter) -> None:

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 from gesturedb.errors import ParameterError
 
-__all__ = ["dask_client", "iter_on_cluster", "process_on_cluster"]
+__all__ = ["dask_client", "iter_on_cluster"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
 
@@ -53,23 +53,10 @@ def dask_client(scheduler) -> Iterator[object]:
         yield client
 
 
-def process_on_cluster(fn: Callable, items: Sequence, scheduler, *, on_done: Callable | None = None) -> list:
-    """``[fn(x) for x in items]`` as Dask tasks, results in input order.
-
-    ``on_done(i)`` is called on the client as each task finishes (progress bar).
-    The first failed task's exception is raised after the others were cancelled.
-    """
-    results: list = [None] * len(items)
-    for i, res in iter_on_cluster(fn, items, scheduler):
-        results[i] = res
-        if on_done is not None:
-            on_done(i)
-    return results
-
-
 def iter_on_cluster(fn: Callable, items: Sequence, scheduler) -> Iterator[tuple[int, object]]:
     """``(i, fn(items[i]))`` as each Dask task finishes, for callers that store each
-    result as it comes rather than holding them all (the refiner's training windows).
+    result as it comes rather than holding them all (the build's recordings, the refiner's
+    training windows).
 
     The first failed task's exception is raised after the others were cancelled.
     """

@@ -273,7 +273,11 @@ class RowWriter:
             rows = arr.astype(np.float64)
             self.sum = np.add.reduce(rows if self.sum is None else np.concatenate([self.sum[None], rows]), axis=0)
 
-    def close(self) -> None:
+    def close(self, dims: dict[str, int] | None = None) -> None:
+        """After the last rows; ``dims``: what a growing dataset's rows are checked against (default:
+        the ``dims`` it was made with)."""
+        if dims is not None:
+            self.dims = dims
         if self.n != self.ds.shape[0]:
             raise SchemaError("<writing>", f"{self.field.path}: expected {self.ds.shape[0]} rows, got {self.n}")
         if self.grows:
