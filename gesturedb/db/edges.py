@@ -21,6 +21,7 @@ the same edges bit for bit. There the blocks also run on threads (:data:`EDGE_TH
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -101,12 +102,18 @@ class _GriddedCosts:
     :meth:`pairs`; every product and sum is still computed in float64.
     """
 
-    def __init__(self, end_x: np.ndarray, start_x: np.ndarray, *, u: float | None = None):
-        """From the features (the grid is made here), or with ``u`` from the grid's integers themselves."""
-        if u is None:
-            (a, b), u = _on_grid(np.asarray(end_x), np.asarray(start_x), compact=True)
-        else:
-            a, b = end_x, start_x
+    def __init__(self, end_x: np.ndarray, start_x: np.ndarray):
+        (a, b), u = _on_grid(np.asarray(end_x), np.asarray(start_x), compact=True)
+        self._set(a, b, u)
+
+    @classmethod
+    def from_grid(cls, a: np.ndarray, b: np.ndarray, u: float) -> "_GriddedCosts":
+        """From the grid's integers and its unit (features gridded elsewhere, a chunk at a time)."""
+        g = cls.__new__(cls)
+        g._set(a, b, u)
+        return g
+
+    def _set(self, a: np.ndarray, b: np.ndarray, u: float) -> None:
         self.K = a.shape[0]
         self.na = np.einsum("ij,ij->i", a, a, dtype=np.float64)
         self.nb = np.einsum("ij,ij->i", b, b, dtype=np.float64)
@@ -184,8 +191,8 @@ def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: floa
                   max_out=max_out, block_elems=block_elems, method=method, on_rows=on_rows)
 
 
-def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float, min_out: int, max_out: int, block_elems: int,
-           method: str, on_rows):
+def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
+           max_out: int = MAX_OUT, block_elems: int = 1 << 24, method: str = "auto", on_rows=None):
     """edges_from_features over features already on their grid (the caller may drop its own copy)."""
     if method not in ("auto", "dense", "bounded"):
         raise ParameterError(f"method: expected 'auto', 'dense' or 'bounded', got {method!r}")
@@ -208,14 +215,15 @@ def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float, min_out: int, 
     if method == "bounded" or (method == "auto" and K >= BOUND_MIN_K and g.a.shape[1] > BOUND_DIMS + 2):
         bounds = _ProjectedBounds.fit(g, k)
 
-    def block(r0: int, r1: int):
+    def block(r: tuple[int, int]):
         nonlocal bounds
-        if bounds is not None:
-            got = bounds.edges(r0, r1, delta_T, min_out, max_out)
+        b = bounds  # read once: another thread may drop it meanwhile
+        if b is not None:
+            got = b.edges(r[0], r[1], delta_T, min_out, max_out)
             if got is not None:
                 return got
             bounds = None  # features without the structure bounds need: the rest densely too
-        return _row_edges(costs(r0, r1), r0, delta_T, min_out, max_out)
+        return _row_edges(costs(*r), r[0], delta_T, min_out, max_out)
 
     ranges = [(r0, min(K, r0 + step)) for r0 in range(0, K, step)]
     parts = []
@@ -223,9 +231,10 @@ def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float, min_out: int, 
     # block, which run on one core each); the results are taken in order, so the edges do not
     # depend on the threads
     threads = min(os.cpu_count() or 1, EDGE_THREADS) if K >= BOUND_MIN_K else 1
-    with ThreadPoolExecutor(max_workers=max(threads, 1)) as ex:
-        for (r0, r1), part in zip(ranges, ex.map(lambda r: block(*r), ranges) if threads > 1
-                                  else (block(*r) for r in ranges)):
+    with contextlib.ExitStack() as stack:
+        results = map(block, ranges) if threads <= 1 else \
+            stack.enter_context(ThreadPoolExecutor(max_workers=threads)).map(block, ranges)
+        for (r0, r1), part in zip(ranges, results):
             parts.append(part)
             if on_rows is not None:
                 on_rows(r1 - r0)
