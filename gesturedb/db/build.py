@@ -436,8 +436,8 @@ class _FrameWriter:
     def add(self, r: RecordingData) -> None:
         if not self.rows:
             # chunks no longer than the first recording: a small database is not padded to 4 MB chunks
-            self.rows = [schema.RowWriter(self.h5, path, (None,) + getattr(r, attr).shape[1:], {},
-                                          chunk_rows=max(1, r.n_frames)) for path, attr in self.FIELDS]
+            self.rows = [schema.RowWriter(self.h5, path, getattr(r, attr).shape[1:], chunk_rows=max(1, r.n_frames))
+                         for path, attr in self.FIELDS]
         for rows, (_, attr) in zip(self.rows, self.FIELDS):
             rows.write(getattr(r, attr))
             setattr(r, attr, None)

@@ -218,39 +218,28 @@ def _checked(field: Field, data: Any, row0: int = 0) -> np.ndarray:
 
 
 class RowWriter:
-    """One declared dataset written a block of rows at a time.
+    """One declared per-row dataset that grows a block of rows at a time.
 
-    The build writes each recording's rows as it arrives instead of holding every recording
+    The build appends each recording's rows as it arrives instead of holding every recording
     and concatenating them (at 100 hours, tens of gigabytes on the client). The same checks as
-    :func:`write` (dtype, finite, shape against ``dims``) and the same attributes;
-    :data:`MEAN_ATTR` is accumulated row after row in float64, which is what numpy's
-    ``mean(axis=0, dtype=float64)`` of the whole array does, so its bits are the same (tested).
-
-    ``shape[0]``: the number of rows, and the dataset is contiguous as :func:`write` makes it;
-    or None: it grows with each write (chunked: ``chunk_rows`` rows a chunk, at most about
-    4 MB; a chunk is stored whole, so a small file wants chunks no longer than its first
-    block), and its first dimension is checked against ``dims`` at :meth:`close`. Call
-    :meth:`close` after the last rows.
+    :func:`write` (dtype, finite; the trailing dimensions now, the rows against ``dims`` at
+    :meth:`close`) and the same attributes; :data:`MEAN_ATTR` is accumulated row after row in
+    float64, which is what numpy's ``mean(axis=0, dtype=float64)`` of the whole array does, so
+    its bits are the same (tested). Chunked: ``chunk_rows`` rows a chunk, at most about 4 MB (a
+    chunk is stored whole, so a small file wants chunks no longer than its first block).
     """
 
     CHUNK_BYTES = 1 << 22
 
-    def __init__(self, h5, path: str, shape: tuple, dims: dict[str, int], chunk_rows: int | None = None):
+    def __init__(self, h5, path: str, row_shape: tuple, chunk_rows: int | None = None):
         self.field = FIELDS_BY_PATH[path]
-        self.dims = dims
-        rows = shape[0]
-        # the trailing dimensions now (against a copy of dims when the rows are not known yet)
-        _check_shape(self.field, np.broadcast_to(np.zeros((), np.uint8), (rows or 0,) + tuple(shape[1:])),
-                     dims if rows is not None else dict(dims, **{self.field.shape[0]: 0}))
+        row_shape = tuple(row_shape)
+        _check_shape(self.field, np.broadcast_to(np.zeros((), np.uint8), (0,) + row_shape), {})
         dtype = _np_dtype(self.field.dtype)
-        if rows is None:
-            row_bytes = max(1, int(np.prod(shape[1:], dtype=np.int64)) * np.dtype(dtype).itemsize)
-            n = self.CHUNK_BYTES // row_bytes if chunk_rows is None else min(int(chunk_rows), self.CHUNK_BYTES // row_bytes)
-            self.ds = h5.create_dataset(path, shape=(0,) + tuple(shape[1:]), maxshape=(None,) + tuple(shape[1:]),
-                                        chunks=(max(1, n),) + tuple(shape[1:]), dtype=dtype)
-        else:
-            self.ds = h5.create_dataset(path, shape=shape, dtype=dtype)
-        self.grows = rows is None
+        row_bytes = max(1, int(np.prod(row_shape, dtype=np.int64)) * np.dtype(dtype).itemsize)
+        n = self.CHUNK_BYTES // row_bytes if chunk_rows is None else min(int(chunk_rows), self.CHUNK_BYTES // row_bytes)
+        self.ds = h5.create_dataset(path, shape=(0,) + row_shape, maxshape=(None,) + row_shape,
+                                    chunks=(max(1, n),) + row_shape, dtype=dtype)
         self.ds.attrs["unit"] = self.field.unit
         self.ds.attrs["doc"] = self.field.doc
         self.n = 0
@@ -259,29 +248,21 @@ class RowWriter:
     def write(self, data: Any) -> None:
         """The next rows (after those written so far)."""
         arr = _checked(self.field, data, self.n)
-        if arr.shape[1:] != self.ds.shape[1:] or (not self.grows and self.n + arr.shape[0] > self.ds.shape[0]):
-            limit = "" if self.grows else f" up to row {self.ds.shape[0]}"
-            raise SchemaError("<writing>", f"{self.field.path}: expected rows of shape {self.ds.shape[1:]}{limit}, "
+        if arr.shape[1:] != self.ds.shape[1:]:
+            raise SchemaError("<writing>", f"{self.field.path}: expected rows of shape {self.ds.shape[1:]}, "
                                            f"got {arr.shape} at row {self.n}")
         if arr.shape[0] == 0:
             return
-        if self.grows:
-            self.ds.resize(self.n + arr.shape[0], axis=0)
+        self.ds.resize(self.n + arr.shape[0], axis=0)
         self.ds[self.n:self.n + arr.shape[0]] = arr
         self.n += arr.shape[0]
         if self.field.path in MEAN_FIELDS:
             rows = arr.astype(np.float64)
             self.sum = np.add.reduce(rows if self.sum is None else np.concatenate([self.sum[None], rows]), axis=0)
 
-    def close(self, dims: dict[str, int] | None = None) -> None:
-        """After the last rows; ``dims``: what a growing dataset's rows are checked against (default:
-        the ``dims`` it was made with)."""
-        if dims is not None:
-            self.dims = dims
-        if self.n != self.ds.shape[0]:
-            raise SchemaError("<writing>", f"{self.field.path}: expected {self.ds.shape[0]} rows, got {self.n}")
-        if self.grows:
-            _check_shape(self.field, np.broadcast_to(np.zeros((), np.uint8), self.ds.shape), self.dims)
+    def close(self, dims: dict[str, int]) -> None:
+        """After the last rows: their number checked against (and recorded in) ``dims``."""
+        _check_shape(self.field, np.broadcast_to(np.zeros((), np.uint8), self.ds.shape), dims)
         if self.sum is not None:
             self.ds.attrs[MEAN_ATTR] = self.sum / self.n
 
