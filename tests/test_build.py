@@ -252,3 +252,41 @@ def test_the_file_is_not_padded_by_its_growable_datasets(scott_db_path):
         n = int(h5.attrs["n_frames"])
         assert h5["frames/pose_features"].chunks[0] <= n
     assert os.path.getsize(scott_db_path) / n < 3000
+
+
+def test_streamed_build_equals_the_whole_arrays(scott_dir, tmp_path):
+    """The real recording cut into three takes, mirrored (six recordings of different lengths):
+    the streamed file's audio, deltas, controls, recording index and percentile masks are those
+    computed by numpy on every recording's arrays concatenated, bit for bit."""
+    from gesturedb import control
+    from gesturedb.db.build import process_recording
+    from gesturedb.db.takes import RecordingSource
+    from gesturedb.features.audio import audio_deltas
+
+    files = [str(scott_dir / f"{STEM}{ext}") for ext in (".npz", ".wav", ".TextGrid")]
+    sources = [RecordingSource(name, *files, span_s=span)
+               for name, span in (("a", (0.0, 20.0)), ("b", (20.0, 41.3)), ("c", (41.3, 63.5)))]
+    config = dict(mirror=True, gap_s=0.3, graph=False)
+    with gesturedb.build(sources, tmp_path / "db.h5", **config):
+        pass
+    recs = [r for s in sources for r in process_recording(s, BuildConfig.from_kwargs(**config))]
+    assert len({r.n_frames for r in recs}) == 3 and len(recs) == 6
+    raw = np.concatenate([r.audio_raw for r in recs]).astype(np.float64)
+    mean, std = raw.mean(axis=0), np.maximum(raw.std(axis=0), 1e-6)
+    controls = {k: np.concatenate([r.controls[k] for r in recs]).astype(np.float32) for k in sorted(recs[0].controls)}
+    want = {
+        "audio/mean": mean, "audio/std": std,
+        "frames/audio_features": ((raw - mean) / std).astype(np.float32),
+        "frames/audio_deltas": np.concatenate(
+            [audio_deltas(((r.audio_raw.astype(np.float64) - mean) / std).astype(np.float32)) for r in recs]),
+        "frames/recording": np.concatenate([np.full(r.n_frames, i, np.int32) for i, r in enumerate(recs)]),
+        "frames/pose_features": np.concatenate([r.pose for r in recs]),
+    }
+    want.update({f"controls/{k}": v for k, v in controls.items()})
+    want.update({f"masks/{k}": m.words for k, m in control.percentile_masks(controls).items()})
+    with h5py.File(tmp_path / "db.h5", "r") as h5:
+        assert [s.decode() for s in h5["recordings/name"][()]] == [r.name for r in recs]
+        assert sorted(k for k in h5["masks"] if k.endswith(("_high", "_low"))) == sorted(k[6:] for k in want if k.startswith("masks/"))
+        for path, arr in want.items():
+            got = h5[path][()]
+            assert got.dtype == arr.dtype and got.tobytes() == arr.tobytes(), path

@@ -2,9 +2,10 @@
 
 A recording is a motion file (BVH or SMPL-X npz), a speech WAV and, optionally, a
 transcript (TextGrid, GENEA TSV or JSON) that share a file stem. Each recording
-is processed on its own (in worker processes when ``workers > 1``), then the
-results are concatenated in a fixed order, the audio features are standardised
-with statistics of the whole database, and everything is written through
+is processed on its own (in worker processes when ``workers > 1``); its per-frame
+arrays are appended to the file in input order as it arrives
+(:mod:`gesturedb.db.framewriter`, which then standardises the audio features with
+statistics of the whole database), and everything is written through
 :mod:`gesturedb.db.schema` into a temporary file beside the target that is renamed
 on success. A failed or interrupted build leaves no partial file and any
 existing database untouched; the same inputs and configuration give the same
@@ -22,6 +23,7 @@ import numpy as np
 
 from gesturedb.db import schema
 from gesturedb._version import __version__
+from gesturedb.db.framewriter import FrameWriter
 from gesturedb.db.storage import write_atomically
 from gesturedb.db.takes import (  # noqa: F401  (re-exported: build is where callers look)
     MIRROR_NOTE_REL, PAIRING_COLUMNS, RecordingSource, infer_speaker, mirrored_copy, read_pairing_file,
@@ -254,7 +256,7 @@ class RecordingData:
     skeleton: object
     feature_joints: dict
     pose: np.ndarray            # (n, Dp) float32
-    audio_raw: np.ndarray       # (n, Da) float64, before standardisation
+    audio_raw: np.ndarray       # (n, Da) float32, before standardisation
     positions: np.ndarray       # (n, J, 3)
     rotations: np.ndarray       # (n, J, 4)
     root: np.ndarray            # (n, 3)
@@ -381,7 +383,7 @@ def process_recording(source: RecordingSource, cfg: BuildConfig, words=None) -> 
 
     motion = motion.resample(cfg.fps)
     # one audio analysis serves the recording and its mirrored copy
-    audio_raw = audio_features(samples, sr, fps=cfg.fps, n_frames=motion.n_frames, n_mfcc=cfg.n_mfcc).astype(np.float64)
+    audio_raw = audio_features(samples, sr, fps=cfg.fps, n_frames=motion.n_frames, n_mfcc=cfg.n_mfcc)
     _check_finite(source.audio, "audio features", audio_raw)
     out = [_features_for(motion, audio_raw, words, cfg, source, mirrored=False, source_fps=src_fps)]
     out[0].notes += notes
@@ -422,47 +424,11 @@ def _same_skeleton(a, b) -> bool:
     return a.same_as(b, atol_m=1e-6) and float(a.length_unit_m) == float(b.length_unit_m)
 
 
-class _FrameWriter:
-    """The database's largest per-frame arrays (pose features, joint positions and rotations, root),
-    appended a recording at a time; each recording's copy is dropped once written."""
-
-    FIELDS = (("frames/pose_features", "pose"), ("frames/joint_positions", "positions"),
-              ("frames/local_rotations", "rotations"), ("frames/root_positions", "root"))
-
-    def __init__(self, h5):
-        self.h5 = h5
-        self.rows: list[schema.RowWriter] = []
-
-    def add(self, r: RecordingData) -> None:
-        if not self.rows:
-            # chunks no longer than the first recording: a small database is not padded to 4 MB chunks
-            self.rows = [schema.RowWriter(self.h5, path, getattr(r, attr).shape[1:], chunk_rows=max(1, r.n_frames))
-                         for path, attr in self.FIELDS]
-        for rows, (_, attr) in zip(self.rows, self.FIELDS):
-            rows.write(getattr(r, attr))
-            setattr(r, attr, None)
-
-    def close(self, dims: dict) -> None:
-        for rows in self.rows:
-            rows.close(dims)
-
-
-def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, frames: _FrameWriter) -> None:
-    from gesturedb.features.audio import audio_deltas
-
+def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, frames: FrameWriter) -> None:
     dims: dict[str, int] = {}
     starts = np.cumsum([0] + [r.n_frames for r in recs])[:-1]
     F = int(sum(r.n_frames for r in recs))
     W = schema.write
-
-    # audio standardisation: cosine distance on raw MFCCs would be dominated by c0 and energy
-    raw = np.concatenate([r.audio_raw for r in recs])
-    mean = raw.mean(axis=0)
-    std = np.maximum(raw.std(axis=0), 1e-6)
-    audio = ((raw - mean) / std).astype(np.float32)
-    deltas = np.concatenate(
-        [audio_deltas(((r.audio_raw - mean) / std).astype(np.float32)) for r in recs]
-    ).astype(np.float32)
 
     h5.attrs["schema_version"] = schema.SCHEMA_VERSION
     h5.attrs["gesturedb_version"] = __version__
@@ -482,10 +448,8 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, fram
     W(h5, "recordings/source_fps", [r.source_fps for r in recs], dims)
     W(h5, "recordings/mirrored", [r.mirrored for r in recs], dims)
 
-    frames.close(dims)  # written as the recordings came (build)
-    W(h5, "frames/audio_features", audio, dims)
-    W(h5, "frames/audio_deltas", deltas, dims)
-    W(h5, "frames/recording", np.concatenate([np.full(r.n_frames, i, np.int32) for i, r in enumerate(recs)]), dims)
+    # written as the recordings came (build); the audio is standardised now
+    mean, std = frames.close(dims)
     W(h5, "audio/mean", mean, dims)
     W(h5, "audio/std", std, dims)
 
@@ -520,35 +484,26 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, fram
     W(h5, "words/end_s", np.concatenate([r.words[1] for r in recs]), dims)
     W(h5, "words/text", [t for r in recs for t in r.words[2]], dims)
 
-    _write_controls_and_masks(h5, recs)
+    write_default_masks(h5, h5[schema.CONTROLS_GROUP])
     if cfg.graph:
         from gesturedb.db.graph import write_graph
 
         write_graph(h5, progress=bool(progress))
 
 
-def _write_controls_and_masks(h5, recs: list[RecordingData]) -> None:
-    from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
+def write_default_masks(h5, controls) -> None:
+    """Precompute the 15th/85th-percentile masks of every control feature (Habibie et al. Sec. 4.1).
 
-    names = sorted(recs[0].controls)
-    controls = {k: np.concatenate([r.controls[k] for r in recs]).astype(np.float32) for k in names}
-    g = h5.create_group(schema.CONTROLS_GROUP)
-    for k in names:
-        ds = g.create_dataset(k, data=controls[k])
-        ds.attrs["unit"] = CONTROL_UNITS.get(k, "")
-        ds.attrs["doc"] = CONTROL_DOCS.get(k, "")
-    write_default_masks(h5, controls)
-
-
-def write_default_masks(h5, controls: dict[str, np.ndarray]) -> None:
-    """Precompute the 15th/85th-percentile masks of every control feature (Habibie et al. Sec. 4.1)."""
+    ``controls`` maps names to (F,) arrays or HDF5 datasets; one feature is read at a time.
+    """
     from gesturedb import control
 
     g = h5.require_group(schema.MASKS_GROUP)
-    for name, res in control.percentile_masks(controls).items():
-        ds = g.create_dataset(name, data=res.words)
-        ds.attrs["definition"] = res.expr
-        schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
+    for feature in controls:
+        for name, res in control.percentile_masks({feature: controls[feature][()]}).items():
+            ds = g.create_dataset(name, data=res.words)
+            ds.attrs["definition"] = res.expr
+            schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
 
 
 def build(
@@ -619,10 +574,9 @@ def build(
     recs: list[RecordingData] = []
 
     def fill(h5):
-        # each recording's large per-frame arrays go into the file as it arrives and are
-        # dropped; the rest (audio before standardisation, controls, clips, words) is written
-        # once all are in
-        frames = _FrameWriter(h5)
+        # each recording's per-frame arrays go into the file as it arrives and are dropped;
+        # the rest (clips, chunks, words) is written once all are in
+        frames = FrameWriter(h5)
         for r in _iter_processed(pairing.recordings, cfg, workers=workers, progress=progress, scheduler=scheduler,
                                  words=words):
             if recs and not _same_skeleton(recs[0].skeleton, r.skeleton):

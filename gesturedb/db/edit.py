@@ -49,7 +49,7 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
         masks = h5.require_group(schema.MASKS_GROUP)
         for k in [k for k in masks if k.endswith(("_high", "_low")) and k.rsplit("_", 1)[0] in controls]:
             del masks[k]
-        write_default_masks(h5, {k: g[k][()] for k in sorted(g)})
+        write_default_masks(h5, {k: g[k] for k in sorted(g)})
     return sorted(controls)
 
 

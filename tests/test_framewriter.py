@@ -1,0 +1,86 @@
+"""gesturedb.db.framewriter: per-frame arrays appended a recording at a time, the audio
+standardised afterwards in two passes over the file, against numpy on the whole arrays."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import h5py
+import numpy as np
+import pytest
+
+from gesturedb.db import schema
+from gesturedb.db.framewriter import MIN_AUDIO_STD, FrameWriter
+from gesturedb.features.audio import audio_deltas
+from gesturedb.features.controls import CONTROL_NAMES
+
+J, DA = 5, 14
+
+
+def _recording(rng, n, *, constant_column=False):
+    # MFCC-like: columns of very different offsets and scales, so a sum in another order
+    # would round differently
+    audio = (rng.standard_normal((n, DA)) * rng.uniform(0.01, 80, DA) + rng.uniform(-500, 500, DA)).astype(np.float32)
+    if constant_column:
+        audio[:, 3] = 7.25
+    return SimpleNamespace(
+        n_frames=n,
+        pose=rng.standard_normal((n, 96)).astype(np.float32),
+        positions=rng.standard_normal((n, J, 3)).astype(np.float32),
+        rotations=rng.standard_normal((n, J, 4)).astype(np.float32),
+        root=rng.standard_normal((n, 3)).astype(np.float32),
+        audio_raw=audio,
+        controls={k: rng.standard_normal(n).astype(np.float32) for k in CONTROL_NAMES},
+    )
+
+
+@pytest.mark.parametrize("lengths", [[1], [7, 1, 300, 2], [64] * 9, [2500, 13]])
+@pytest.mark.parametrize("constant_column", [False, True])
+def test_streamed_build_arrays_equal_whole_array_numpy(tmp_path, lengths, constant_column):
+    rng = np.random.default_rng(len(lengths) * 1000 + sum(lengths))
+    recs = [_recording(rng, n, constant_column=constant_column) for n in lengths]
+    # what the build computed on the concatenated recordings before it streamed them
+    raw = np.concatenate([r.audio_raw for r in recs]).astype(np.float64)
+    mean = raw.mean(axis=0)
+    std = np.maximum(raw.std(axis=0), MIN_AUDIO_STD)
+    want = {
+        "frames/pose_features": np.concatenate([r.pose for r in recs]),
+        "frames/joint_positions": np.concatenate([r.positions for r in recs]),
+        "frames/local_rotations": np.concatenate([r.rotations for r in recs]),
+        "frames/root_positions": np.concatenate([r.root for r in recs]),
+        "frames/recording": np.concatenate([np.full(n, i, np.int32) for i, n in enumerate(lengths)]),
+        "frames/audio_features": ((raw - mean) / std).astype(np.float32),
+        "frames/audio_deltas": np.concatenate(
+            [audio_deltas(((r.audio_raw.astype(np.float64) - mean) / std).astype(np.float32)) for r in recs]),
+    }
+    want.update({f"controls/{k}": np.concatenate([r.controls[k] for r in recs]) for k in CONTROL_NAMES})
+
+    dims: dict = {}
+    with h5py.File(tmp_path / "f.h5", "w") as h5:
+        w = FrameWriter(h5)
+        for r in recs:
+            w.add(r)
+            assert r.pose is None and r.audio_raw is None and r.controls is None  # the client drops them
+        got_mean, got_std = w.close(dims)
+        assert got_mean.tobytes() == mean.tobytes() and got_std.tobytes() == std.tobytes()
+        for path, arr in want.items():
+            ds = h5[path]
+            assert ds.dtype == arr.dtype and ds.shape == arr.shape, path
+            assert ds[()].tobytes() == arr.tobytes(), path
+        assert h5["frames/pose_features"].attrs[schema.MEAN_ATTR].tobytes() == \
+            want["frames/pose_features"].mean(axis=0, dtype=np.float64).tobytes()
+        assert sorted(h5[schema.CONTROLS_GROUP]) == sorted(CONTROL_NAMES)
+        assert all(h5[f"controls/{k}"].attrs["unit"] is not None for k in CONTROL_NAMES)
+    assert dims["F"] == sum(lengths)
+    if constant_column:
+        assert std[3] == MIN_AUDIO_STD and np.all(want["frames/audio_features"][:, 3] == 0)
+
+
+def test_rows_of_a_different_width_are_refused(tmp_path):
+    rng = np.random.default_rng(0)
+    a, b = _recording(rng, 10), _recording(rng, 10)
+    b.audio_raw = b.audio_raw[:, :5]
+    with h5py.File(tmp_path / "f.h5", "w") as h5:
+        w = FrameWriter(h5)
+        w.add(a)
+        with pytest.raises(schema.SchemaError, match=r"frames/audio_features: expected rows of shape \(14,\), got \(10, 5\) at row 10"):
+            w.add(b)
