@@ -1,6 +1,7 @@
 """Motion graph at the paper's scale: 6,000 clips of 1-10 s (synthetic arrays), 60 s of speech.
 
     python benchmarks/bench_graph.py [--clips 6000] [--threads 2] [--edges-clips 20000] [--skip-dense]
+                                     [--scheduler local:2|tcp://HOST:PORT]
 
 Measures, in one run:
 - graph build: the upper-body and the lower-body graph (Sec. 4.1; 46 and 9 of the 55
@@ -14,7 +15,8 @@ Measures, in one run:
   Python loop over every node's in-edges (timed on one step, scaled to all steps);
 - the build's edge search over --edges-clips clips with the structure of real poses: dense
   against bounded (the projection bounds of gesturedb.db.graph), with a check that the edges
-  are identical.
+  are identical; with --scheduler, the bounded search also as Dask tasks (the cluster started
+  before the clock, the features' scatter to every worker timed), against the local threads.
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ def main() -> None:
     ap.add_argument("--edges-clips", type=int, default=20000,
                     help="also time the edge search over this many structured clips, dense against bounded (0: skip)")
     ap.add_argument("--skip-dense", action="store_true", help="time only the bounded edge search at --edges-clips")
+    ap.add_argument("--scheduler", default=None, help="also run the bounded edge search on this Dask scheduler")
     args = ap.parse_args()
     os.environ.setdefault("OPENBLAS_NUM_THREADS", str(args.threads))
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
@@ -154,10 +157,10 @@ def main() -> None:
           f"baseline {t_dense * 1e3:.0f} ms, {t_dense / t_vit:.0f}x slower)  goal < 100 ms")
     print(f"output frames {motion.shape[0]}; lower-body graph {low_graph[1].shape[0]} edges")
     if args.edges_clips:
-        edges_at_scale(args.edges_clips, dense=not args.skip_dense)
+        edges_at_scale(args.edges_clips, dense=not args.skip_dense, scheduler=args.scheduler)
 
 
-def edges_at_scale(K: int, D: int = 644, dense: bool = True) -> None:
+def edges_at_scale(K: int, D: int = 644, dense: bool = True, scheduler=None) -> None:
     """The build's edge search (edges_from_features) over K clips, dense against bounded.
 
     The random clips above have no structure, which no bound can use (every column is kept:
@@ -189,6 +192,17 @@ def edges_at_scale(K: int, D: int = 644, dense: bool = True) -> None:
     E._GriddedCosts.pairs = pairs
     print(f"  bounded ({E.BOUND_DIMS} directions): {t_b:7.1f} s, exact costs {sum(n_pairs[1:]) / K:.1f} per "
           f"clip for {got[1].shape[0] / K:.1f} edges per clip")
+    if scheduler is not None:
+        from gesturedb.db.cluster import dask_client
+
+        with dask_client(scheduler) as client:
+            n = sum(client.nthreads().values())
+            t0 = time.perf_counter()
+            on = E.edges_from_features(a, b, method="bounded", scheduler=client)
+            t_c = time.perf_counter() - t0
+        same = all(np.array_equal(u, v) for u, v in zip(on, got))
+        print(f"  bounded on Dask ({n} worker threads): {t_c:7.1f} s; local threads / Dask = {t_b / t_c:.2f}x; "
+              f"identical edges: {same}")
     if dense:
         t0 = time.perf_counter()
         want = E.edges_from_features(a, b, method="dense")

@@ -23,8 +23,8 @@ def add_parser(sub) -> None:
     p.add_argument("-o", "--output", required=True, metavar="DB.h5")
     p.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1), help="processes (default: %(default)s)")
     p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
-                   help="process recordings as Dask tasks (a LocalCluster of N workers or a running scheduler); "
-                   "this process still writes the file")
+                   help="process recordings and the motion graphs' edge search as Dask tasks (a LocalCluster of N "
+                   "workers or a running scheduler); this process still writes the file")
     p.add_argument("-r", "--recursive", action="store_true", help="also take files in sub-folders")
     p.add_argument("--fps", type=float_range(1, 1000), default=15.0, help="database frame rate (default: %(default)s)")
     p.add_argument("--chunk-frames", type=int, default=64, help="fixed chunk length (default: %(default)s)")

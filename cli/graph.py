@@ -16,6 +16,9 @@ def add_parser(sub) -> None:
     p.add_argument("--delta-lower", type=float, default=None, dest="delta_T_lower",
                    help="lower-body edge threshold on T (default: the 10%% quantile of its costs)")
     p.add_argument("--min-out", type=int, default=4, help="cheapest out-edges every clip keeps (default: 4)")
+    p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
+                   help="run the edge search's blocks of rows as Dask tasks (a LocalCluster of N workers or a "
+                   "running scheduler); the same graphs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(run=run)
 
@@ -24,7 +27,7 @@ def run(args) -> int:
     from gesturedb.db.graph import add_graph
 
     s = add_graph(args.db, delta_T=args.delta_T, delta_T_lower=args.delta_T_lower, min_out=args.min_out,
-                  progress=not args.quiet)
+                  progress=not args.quiet, scheduler=args.scheduler)
     print(f"{args.db}: motion graphs over {s['n_nodes']} clips: upper body {s['n_edges']} edges (delta_T "
           f"{s['delta_T']:.4g}), lower body {s['n_edges_lower']} edges (delta_T {s['delta_T_lower']:.4g}); "
           f"style predictor held-out RMS {s['heldout_rmse']:.3f} vs {s['mean_rmse']:.3f} for the mean (in target std)")

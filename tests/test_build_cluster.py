@@ -47,6 +47,23 @@ def test_failed_task_leaves_nothing_behind(scott_dir, tmp_path, dask_client):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["db.h5", "in"]
 
 
+def test_failed_graph_task_leaves_nothing_behind(scott_dir, tmp_path, dask_client, monkeypatch):
+    """A motion-graph task that fails on a worker (this cluster's workers are threads of this
+    process, so the patch reaches them): the build raises it, and the file is as before."""
+    from gesturedb.db import edges as E
+
+    def broken(self, r0, r1, *a):
+        raise MemoryError(f"rows {r0}-{r1}")
+
+    monkeypatch.setattr(E._Shared, "block", broken)
+    out = tmp_path / "db.h5"
+    out.write_bytes(b"previous")
+    with pytest.raises(MemoryError, match="rows 0-"):
+        gesturedb.build([scott_dir], out, scheduler=dask_client)
+    assert out.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == ["db.h5"]
+
+
 def test_scheduler_validation(scott_dir, tmp_path):
     for bad, msg in (("local:0", "expected local:N with N >= 1"), ("http://x:1", "expected 'local:N' or 'tcp://HOST:PORT'"),
                      (3, "expected 'local:N', 'tcp://HOST:PORT' or a distributed.Client")):

@@ -673,3 +673,50 @@ def test_upper_body_follows_one_path_and_root_and_legs_the_other(mirrored_db, sc
         assert total == pytest.approx(o["total_cost_lower"], rel=1e-9)
         assert all(x["data_cost"] == pytest.approx(o["l_dur"] * abs(np.log(
             synth.length[x["node"]] / (s["out_end"] - s["out_start"]))), abs=1e-9) for x, s in zip(low, res.steps))
+
+
+@pytest.mark.parametrize("method", ["dense", "bounded"])
+def test_edge_blocks_on_dask_equal_the_local_ones(method, dask_client, monkeypatch):
+    """The blocks of rows as Dask tasks (2 workers, a range of blocks each, finishing in any
+    order): the local edges, every row reported once."""
+    a, b = _low_rank(np.random.default_rng(10), 700, 90, dup=30)
+    want = E.edges_from_features(a, b, max_out=8, method=method, block_elems=700 * 50)
+    rows = []
+    got = E.edges_from_features(a, b, max_out=8, method=method, block_elems=700 * 50, on_rows=rows.append,
+                                scheduler=dask_client)
+    # 14 blocks of 50 rows, 8 tasks wanted for 2 worker threads: 7 tasks of 2 blocks
+    assert sorted(rows) == [100] * 7
+    for x, y in zip(want, got):
+        assert np.array_equal(x, y)
+
+
+def test_edge_blocks_on_dask_fall_back_like_the_local_ones(dask_client):
+    """Features without structure: the tasks' blocks go dense as the local ones do, same edges."""
+    rng = np.random.default_rng(11)
+    a, b = rng.normal(size=(300, 200)), rng.normal(size=(300, 200))
+    want = E.edges_from_features(a, b, min_out=3, max_out=8, method="dense")
+    got = E.edges_from_features(a, b, min_out=3, max_out=8, method="bounded", block_elems=300 * 20,
+                                scheduler=dask_client)
+    for x, y in zip(want, got):
+        assert np.array_equal(x, y)
+
+
+def test_cli_graph_on_a_local_cluster_rebuilds_the_same_graphs(scott_db_path, tmp_path, capsys):
+    """`gesturedb graph DB --scheduler local:2`: worker processes (the features and bounds are
+    pickled to them), started and stopped by the command; the graphs are the build's."""
+    from gesturedb.cli.main import main
+
+    db = tmp_path / "db.h5"
+    shutil.copy(scott_db_path, db)
+    with h5py.File(db, "r+") as h5:
+        for grp in ("graph", "graph_lower", "style_model"):
+            del h5[grp]
+    assert main(["graph", str(db), "--scheduler", "local:2", "-q"]) == 0
+    assert "motion graphs over" in capsys.readouterr().out
+    with h5py.File(scott_db_path, "r") as a, h5py.File(db, "r") as b:
+        for grp in ("graph", "graph_lower"):
+            for k in ("indptr", "indices", "cost"):
+                assert a[f"{grp}/{k}"][()].tobytes() == b[f"{grp}/{k}"][()].tobytes(), f"{grp}/{k}"
+            assert dict(a[grp].attrs) == dict(b[grp].attrs)
+    assert main(["graph", str(db), "--scheduler", "udp://x", "-q"]) == 2
+    assert "scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got 'udp://x'" in capsys.readouterr().err

@@ -13,6 +13,7 @@ HDF5 content.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 from dataclasses import dataclass, field
@@ -424,7 +425,8 @@ def _same_skeleton(a, b) -> bool:
     return a.same_as(b, atol_m=1e-6) and float(a.length_unit_m) == float(b.length_unit_m)
 
 
-def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, frames: FrameWriter) -> None:
+def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, frames: FrameWriter,
+           scheduler=None) -> None:
     dims: dict[str, int] = {}
     starts = np.cumsum([0] + [r.n_frames for r in recs])[:-1]
     F = int(sum(r.n_frames for r in recs))
@@ -488,7 +490,7 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, fram
     if cfg.graph:
         from gesturedb.db.graph import write_graph
 
-        write_graph(h5, progress=bool(progress))
+        write_graph(h5, progress=bool(progress), scheduler=scheduler)
 
 
 def write_default_masks(h5, controls) -> None:
@@ -531,10 +533,11 @@ def build(
     progress : bool
         Show a progress bar (tqdm, on stderr).
     scheduler : str or distributed.Client, optional
-        Process the recordings as Dask tasks instead of local processes:
-        ``"local:N"`` (a LocalCluster of N workers), ``"tcp://HOST:PORT"`` or a
-        Client (see :mod:`gesturedb.db.cluster`). This process stays the only
-        writer of the file; the database is identical to a local build.
+        Process the recordings, and the motion graphs' edge search, as Dask tasks
+        instead of local processes: ``"local:N"`` (a LocalCluster of N workers),
+        ``"tcp://HOST:PORT"`` or a Client (see :mod:`gesturedb.db.cluster`). This
+        process stays the only writer of the file; the database is identical to a
+        local build.
     **config
         Any field of :class:`BuildConfig` (``fps``, ``chunk_frames``, ``gap_s``, ``mirror``, ...).
 
@@ -587,9 +590,15 @@ def build(
                 )
             frames.add(r)
             recs.append(r)
-        _write(h5, recs, cfg, progress, frames)
+        _write(h5, recs, cfg, progress, frames, scheduler)
 
-    write_atomically(out_path, fill)
+    with contextlib.ExitStack() as stack:
+        if scheduler is not None:
+            from gesturedb.db.cluster import dask_client
+
+            # one cluster for the recordings and the motion graphs ("local:N" starts it here)
+            scheduler = stack.enter_context(dask_client(scheduler))
+        write_atomically(out_path, fill)
     pairing.notes = report_notes(recs)
 
     from gesturedb.db.database import Database

@@ -17,7 +17,8 @@ row (the back-to-back repeat rule), which also means the output never loops on o
 The search computes every cost a block of rows at a time (memory grows with K), and from
 :data:`BOUND_MIN_K` clips on bounds them first from a few principal directions
 (:class:`_ProjectedBounds`), computing exactly only the pairs that can still be an edge:
-the same edges bit for bit. There the blocks also run on threads (:data:`EDGE_THREADS`).
+the same edges bit for bit. There the blocks also run on threads (:data:`EDGE_THREADS`), or,
+given a Dask scheduler, as tasks on its workers.
 """
 from __future__ import annotations
 
@@ -121,6 +122,10 @@ class _GriddedCosts:
         self.a, self.b = a, b
         self._b64 = None  # b in float64 for the BLAS product of rows(), made on its first call
 
+    def __getstate__(self):
+        # the float64 copy of b is remade where it is needed (a Dask worker): not shipped
+        return {**self.__dict__, "_b64": None}
+
     def rows(self, r0: int, r1: int) -> np.ndarray:
         if self._b64 is None:
             self._b64 = self.b.astype(np.float64)
@@ -166,7 +171,7 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
 
 def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: float | None = None,
                         delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT, max_out: int = MAX_OUT,
-                        block_elems: int = 1 << 24, method: str = "auto", on_rows=None):
+                        block_elems: int = 1 << 24, method: str = "auto", on_rows=None, scheduler=None):
     """``edges_from_costs(transition_costs(end_x, start_x), ...)`` without the K x K table.
 
     The costs are computed a block of rows at a time (about ``block_elems`` costs, 128 MB),
@@ -186,24 +191,26 @@ def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: floa
     such block on. ``"auto"``: bounded from :data:`BOUND_MIN_K` clips on, when D > BOUND_DIMS + 2.
 
     ``on_rows(n)``, if given, is called after each block with its number of rows (a progress bar).
+
+    ``scheduler`` (a ``distributed.Client``, ``"local:N"`` or ``"tcp://HOST:PORT"``): the blocks
+    run as Dask tasks, a range of them each, with the features and bounds sent once to every
+    worker; the same edges (``on_rows`` then hears of each task's rows).
     """
     return _edges(_GriddedCosts(end_x, start_x), delta_T=delta_T, delta_quantile=delta_quantile, min_out=min_out,
-                  max_out=max_out, block_elems=block_elems, method=method, on_rows=on_rows)
+                  max_out=max_out, block_elems=block_elems, method=method, on_rows=on_rows, scheduler=scheduler)
 
 
 def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
-           max_out: int = MAX_OUT, block_elems: int = 1 << 24, method: str = "auto", on_rows=None):
-    """edges_from_features over features already on their grid (the caller may drop its own copy)."""
+           max_out: int = MAX_OUT, block_elems: int = 1 << 24, method: str = "auto", on_rows=None, scheduler=None):
+    """edges_from_features over features already on their grid (the caller may drop its own copy).
+
+    ``scheduler`` (a ``distributed.Client``, ``"local:N"`` or ``"tcp://HOST:PORT"``): the rows'
+    blocks run as Dask tasks (:func:`_edges_on_cluster`) instead of on this machine's threads;
+    the same edges.
+    """
     if method not in ("auto", "dense", "bounded"):
         raise ParameterError(f"method: expected 'auto', 'dense' or 'bounded', got {method!r}")
     K = g.K
-
-    def costs(r0: int, r1: int) -> np.ndarray:  # rows r0..r1 of transition_costs, diagonal +inf
-        T = g.rows(r0, r1)
-        d = np.arange(r0, r1)
-        T[d - r0, d] = np.inf
-        return T
-
     if delta_T is None:
         i, j = np.divmod(_sample_pairs(K), K)
         sample = g.pairs(i, j)
@@ -214,17 +221,38 @@ def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float = DELTA_QUANTIL
     bounds = None
     if method == "bounded" or (method == "auto" and K >= BOUND_MIN_K and g.a.shape[1] > BOUND_DIMS + 2):
         bounds = _ProjectedBounds.fit(g, k)
+    if scheduler is not None:
+        parts = _edges_on_cluster(_Shared(g, bounds), step, delta_T, min_out, max_out, scheduler, on_rows)
+    else:
+        parts = _edges_here(_Shared(g, bounds), step, delta_T, min_out, max_out, on_rows)
+    rows, cols, cost = (np.concatenate(x) for x in zip(*parts)) if parts else _row_edges(np.zeros((0, 0)), 0, 0, 0, 0)
+    return _csr(K, rows, cols, cost) + (float(delta_T),)
 
-    def block(r: tuple[int, int]):
-        nonlocal bounds
-        b = bounds  # read once: another thread may drop it meanwhile
+
+class _Shared:
+    """What every block of rows reads: the gridded features and their bounds (or None). One
+    object, so that shipping it to a Dask worker sends ``g`` once (``bounds`` refers to it)."""
+
+    def __init__(self, g: "_GriddedCosts", bounds: "_ProjectedBounds | None"):
+        self.g, self.bounds = g, bounds
+
+    def block(self, r0: int, r1: int, delta_T: float, min_out: int, max_out: int):
+        """The edges of rows r0..r1 (rows, cols, cost), bounded while the bounds pay, else dense."""
+        b = self.bounds  # read once: another thread may drop it meanwhile
         if b is not None:
-            got = b.edges(r[0], r[1], delta_T, min_out, max_out)
+            got = b.edges(r0, r1, delta_T, min_out, max_out)
             if got is not None:
                 return got
-            bounds = None  # features without the structure bounds need: the rest densely too
-        return _row_edges(costs(*r), r[0], delta_T, min_out, max_out)
+            self.bounds = None  # features without the structure bounds need: the rest densely too
+        T = self.g.rows(r0, r1)
+        d = np.arange(r0, r1)
+        T[d - r0, d] = np.inf  # no self-edges
+        return _row_edges(T, r0, delta_T, min_out, max_out)
 
+
+def _edges_here(shared: _Shared, step: int, delta_T: float, min_out: int, max_out: int, on_rows) -> list:
+    """Every block's edges on this machine, in block order."""
+    K = shared.g.K
     ranges = [(r0, min(K, r0 + step)) for r0 in range(0, K, step)]
     parts = []
     # blocks on threads when there are many (numpy releases the GIL in the passes over a
@@ -232,14 +260,60 @@ def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float = DELTA_QUANTIL
     # depend on the threads
     threads = min(os.cpu_count() or 1, EDGE_THREADS) if K >= BOUND_MIN_K else 1
     with contextlib.ExitStack() as stack:
-        results = map(block, ranges) if threads <= 1 else \
-            stack.enter_context(ThreadPoolExecutor(max_workers=threads)).map(block, ranges)
+        results = map(lambda r: shared.block(*r, delta_T, min_out, max_out), ranges) if threads <= 1 else \
+            stack.enter_context(ThreadPoolExecutor(max_workers=threads)).map(
+                lambda r: shared.block(*r, delta_T, min_out, max_out), ranges)
         for (r0, r1), part in zip(ranges, results):
             parts.append(part)
             if on_rows is not None:
                 on_rows(r1 - r0)
-    rows, cols, cost = (np.concatenate(x) for x in zip(*parts)) if parts else _row_edges(np.zeros((0, 0)), 0, 0, 0, 0)
-    return _csr(K, rows, cols, cost) + (float(delta_T),)
+    return parts
+
+
+#: Dask tasks per worker thread in :func:`_edges_on_cluster` (a few, so a slow worker is not
+#: the last one everybody waits for)
+TASKS_PER_THREAD = 4
+
+
+def _range_task(shared: _Shared, r0: int, r1: int, step: int, delta_T: float, min_out: int, max_out: int):
+    """A Dask task: the edges of rows r0..r1, a block of ``step`` rows at a time, concatenated."""
+    parts = [shared.block(b0, min(r1, b0 + step), delta_T, min_out, max_out) for b0 in range(r0, r1, step)]
+    return tuple(np.concatenate(x) for x in zip(*parts))
+
+
+def _edges_on_cluster(shared: _Shared, step: int, delta_T: float, min_out: int, max_out: int, scheduler,
+                      on_rows) -> list:
+    """Every block's edges as Dask tasks: the features and bounds are sent once to every worker
+    (``scatter``, broadcast), each task computes a range of whole blocks, and the ranges are put
+    back in order. A block's edges do not depend on where it runs, so they are the local ones."""
+    from distributed import as_completed
+
+    from gesturedb.db.cluster import dask_client
+
+    K = shared.g.K
+    with dask_client(scheduler) as client:
+        threads = max(1, sum(client.nthreads().values()))
+        n_blocks = -(-K // step)
+        per = step * max(1, -(-n_blocks // (TASKS_PER_THREAD * threads)))
+        ranges = [(r0, min(K, r0 + per)) for r0 in range(0, K, per)]
+        [data] = client.scatter([shared], broadcast=True, hash=False)
+        futures = [client.submit(_range_task, data, r0, r1, step, delta_T, min_out, max_out, pure=False)
+                   for r0, r1 in ranges]
+        index = {f.key: i for i, f in enumerate(futures)}
+        parts = [None] * len(ranges)
+        try:
+            for fut in as_completed(futures):
+                i = index[fut.key]
+                parts[i] = fut.result()  # re-raises the task's exception
+                fut.release()
+                if on_rows is not None:
+                    on_rows(ranges[i][1] - ranges[i][0])
+        except BaseException:
+            client.cancel(futures)
+            raise
+        finally:
+            client.cancel([data])
+    return parts
 
 
 class _ProjectedBounds:

@@ -36,6 +36,8 @@ stored model and the predicted styles are also the same bits on every machine.
 """
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from gesturedb.db.edges import DELTA_QUANTILE, MAX_OUT, MIN_OUT, _edges, _grid_unit, _GriddedCosts, _on_grid
@@ -305,12 +307,15 @@ def _cholesky_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = TRANSITION_FRAMES,
                 delta_T: float | None = None, delta_T_lower: float | None = None, delta_quantile: float = DELTA_QUANTILE, min_out: int = MIN_OUT,
-                max_out: int = MAX_OUT, progress: bool = False) -> dict:
+                max_out: int = MAX_OUT, progress: bool = False, scheduler=None) -> dict:
     """Compute the motion graphs (upper and lower body) and the style model of an open, writable database file.
 
     ``delta_T`` is the upper-body graph's edge threshold, ``delta_T_lower`` the lower-body one's
     (their costs are over different joints; default for each: its ``delta_quantile`` quantile).
     ``progress``: a progress bar over both graphs' clips on stderr (minutes at 100 hours).
+    ``scheduler`` (``"local:N"``, ``"tcp://HOST:PORT"`` or a ``distributed.Client``): the edge
+    search's blocks of rows run as Dask tasks (hours at 1,000 hours on one machine); the
+    same graphs.
 
     Called by the build (inside :func:`gesturedb.db.storage.write_atomically`) and by
     :func:`add_graph` (inside :func:`gesturedb.db.storage.edit`). Returns a summary dict.
@@ -335,19 +340,20 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     grids = _gridded_features(h5, last, first, [(part, joints) for _, part, joints, _ in parts], l1=l1, l2=l2)
     dims = {"K": K}
     summary = {}
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    with contextlib.ExitStack() as stack:
+        if scheduler is not None:
+            from gesturedb.db.cluster import dask_client
 
-        bar = tqdm(total=2 * K, unit="clip", desc="motion graphs", disable=None)
-    try:
+            scheduler = stack.enter_context(dask_client(scheduler))  # one cluster for both graphs
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = stack.enter_context(tqdm(total=2 * K, unit="clip", desc="motion graphs", disable=None))
         for (group, part, joints, dt), g in zip(parts, grids):
             summary[part] = _write_edges(h5, group, part, joints, g, dims, l1=l1, l2=l2, m=m, delta_T=dt,
                                          delta_quantile=delta_quantile, min_out=min_out, max_out=max_out,
-                                         on_rows=bar.update if bar is not None else None)
-    finally:
-        if bar is not None:
-            bar.close()
+                                         on_rows=bar.update if bar is not None else None, scheduler=scheduler)
     del grids
 
     n_words = r("clips/word_end") - r("clips/word_start")
@@ -413,12 +419,13 @@ def _gridded_features(h5, last: np.ndarray, first: np.ndarray, parts, *, l1: flo
 
 
 def _write_edges(h5, group: str, part: str, joints, g: _GriddedCosts, dims: dict, *, l1: float,
-                 l2: float, m: int, delta_T, delta_quantile: float, min_out: int, max_out: int, on_rows) -> dict:
+                 l2: float, m: int, delta_T, delta_quantile: float, min_out: int, max_out: int, on_rows,
+                 scheduler=None) -> dict:
     """One body part's graph from its gridded transition features, written under ``group``."""
     from gesturedb.db import schema
 
     indptr, indices, cost, dT = _edges(g, delta_T=delta_T, delta_quantile=delta_quantile, min_out=min_out,
-                                       max_out=max_out, on_rows=on_rows)
+                                       max_out=max_out, on_rows=on_rows, scheduler=scheduler)
     schema.write(h5, f"{group}/indptr", indptr, dims)
     schema.write(h5, f"{group}/indices", indices, dims)
     schema.write(h5, f"{group}/cost", cost, dims)
@@ -432,7 +439,8 @@ def _write_edges(h5, group: str, part: str, joints, g: _GriddedCosts, dims: dict
 def add_graph(path, **options) -> dict:
     """Add (or replace) the motion graphs of an existing database file, upgrading a version-1 or -2 file.
 
-    Written through :func:`gesturedb.db.storage.edit` (temporary copy + rename).
+    Written through :func:`gesturedb.db.storage.edit` (temporary copy + rename). ``options``:
+    those of :func:`write_graph` (``scheduler`` included).
     """
     from gesturedb.db import schema, storage
 
