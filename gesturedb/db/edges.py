@@ -259,10 +259,13 @@ def _edges_here(shared: _Shared, step: int, delta_T: float, min_out: int, max_ou
     # block, which run on one core each); the results are taken in order, so the edges do not
     # depend on the threads
     threads = min(os.cpu_count() or 1, EDGE_THREADS) if K >= BOUND_MIN_K else 1
+
+    def run(r: tuple[int, int]):
+        return shared.block(*r, delta_T, min_out, max_out)
+
     with contextlib.ExitStack() as stack:
-        results = map(lambda r: shared.block(*r, delta_T, min_out, max_out), ranges) if threads <= 1 else \
-            stack.enter_context(ThreadPoolExecutor(max_workers=threads)).map(
-                lambda r: shared.block(*r, delta_T, min_out, max_out), ranges)
+        results = map(run, ranges) if threads <= 1 else \
+            stack.enter_context(ThreadPoolExecutor(max_workers=threads)).map(run, ranges)
         for (r0, r1), part in zip(ranges, results):
             parts.append(part)
             if on_rows is not None:
