@@ -58,7 +58,9 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=15)
     ap.add_argument("--batch", type=int, default=64)
     args = ap.parse_args(argv)
-    from distributed import Client, LocalCluster
+    from distributed import Client
+
+    from gesturedb.db.cluster import local_cluster
 
     M = args.frames // L
     F = M * L
@@ -77,8 +79,8 @@ def main(argv=None):
     prev = pose[12345].copy()
     q = rng.standard_normal((N, DA), dtype=np.float32)
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      memory_limit=0) as cluster, Client(cluster) as client:
+    # as `synth --scheduler local:2` starts it
+    with local_cluster(2, memory_limit=0) as cluster, Client(cluster) as client:
         t = time.perf_counter()
         sh = ShardedSearch(pose, audio, st, ln, client=client, parts=2, threads=1)
         client.gather(sh.shards)
