@@ -1,12 +1,13 @@
-"""Dask for the build: recordings as tasks on a cluster, the client the only writer.
+"""Dask for the build and the search: tasks on a cluster, the client the only writer.
 
 ``scheduler`` is ``"local:N"`` (a :class:`distributed.LocalCluster` of N
-single-threaded worker processes, started and shut down here),
+single-threaded worker processes, started and shut down here: :func:`local_cluster`),
 ``"tcp://HOST:PORT"`` (an existing scheduler), or a ``distributed.Client``
-the caller owns. Workers only compute: each returns the
-:class:`gesturedb.db.build.RecordingData` of one recording to the client,
-which writes the HDF5 file through :mod:`gesturedb.db.storage` as a local
-build does. A failed task raises on the client before anything is written.
+the caller owns. Workers only compute: in a build each returns the
+:class:`gesturedb.db.build.RecordingData` of one recording, then the edges of a
+range of the motion graphs' rows, to the client, which writes the HDF5 file
+through :mod:`gesturedb.db.storage` as a local build does. A failed task raises
+on the client before anything is written.
 """
 from __future__ import annotations
 
