@@ -254,6 +254,20 @@ def test_the_file_is_not_padded_by_its_growable_datasets(scott_db_path):
     assert os.path.getsize(scott_db_path) / n < 3000
 
 
+def test_narrow_frame_arrays_are_not_cut_into_tiny_chunks(scott_db_path):
+    """Chunks of one recording's rows, but at least 32 kB: the controls, the recording index and
+    the audio (4 to 56 bytes a frame) were 3.8 kB chunks, three times slower to read back."""
+    from gesturedb.db.framewriter import MIN_CHUNK_BYTES
+
+    with h5py.File(scott_db_path, "r") as h5:
+        narrow = ["frames/recording", "frames/audio_features", "frames/audio_deltas"] + \
+                 [f"{schema.CONTROLS_GROUP}/{k}" for k in h5[schema.CONTROLS_GROUP]]
+        for path in narrow:
+            ds = h5[path]
+            assert ds.chunks is not None and ds.chunks[0] * ds.dtype.itemsize * int(np.prod(ds.shape[1:])) \
+                >= MIN_CHUNK_BYTES, path
+
+
 def test_streamed_build_equals_the_whole_arrays(scott_dir, tmp_path):
     """The real recording cut into three takes, mirrored (six recordings of different lengths):
     the streamed file's audio, deltas, controls, recording index and percentile masks are those

@@ -23,6 +23,8 @@ from gesturedb.db import schema
 
 #: standard deviations under this are taken as this, so a constant feature is not divided by zero
 MIN_AUDIO_STD = 1e-6
+#: smallest chunk of a per-frame dataset (rows of float32 or int32), bytes
+MIN_CHUNK_BYTES = 1 << 15
 
 
 def _add_rows(total: np.ndarray | None, rows: np.ndarray) -> np.ndarray:
@@ -52,17 +54,26 @@ class FrameWriter:
     def _open(self, r) -> None:
         from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
 
-        # chunks no longer than the first recording: a small database is not padded to 4 MB chunks
         n = max(1, r.n_frames)
-        self.rows = [schema.RowWriter(self.h5, path, getattr(r, attr).shape[1:], chunk_rows=n)
-                     for path, attr in self.FIELDS]
-        self.recording = schema.RowWriter(self.h5, "frames/recording", (), chunk_rows=n)
-        self.audio = schema.RowWriter(self.h5, "frames/audio_features", r.audio_raw.shape[1:], chunk_rows=n)
-        self.deltas = schema.RowWriter(self.h5, "frames/audio_deltas", r.audio_raw.shape[1:], chunk_rows=n)
+
+        def rows(row_shape) -> int:
+            # a chunk of the first recording's rows (a small database is not padded to 4 MB
+            # chunks), but at least MIN_CHUNK_BYTES: the narrow arrays' chunks of one 951-frame
+            # recording were 3.8 kB, and reading them back took 3x as long as 32 kB chunks
+            row_bytes = 4 * int(np.prod(row_shape, dtype=np.int64))
+            return max(n, -(-MIN_CHUNK_BYTES // max(1, row_bytes)))
+
+        self.rows = []
+        for path, attr in self.FIELDS:
+            shape = getattr(r, attr).shape[1:]
+            self.rows.append(schema.RowWriter(self.h5, path, shape, chunk_rows=rows(shape)))
+        self.recording = schema.RowWriter(self.h5, "frames/recording", (), chunk_rows=rows(()))
+        da = r.audio_raw.shape[1:]
+        self.audio = schema.RowWriter(self.h5, "frames/audio_features", da, chunk_rows=rows(da))
+        self.deltas = schema.RowWriter(self.h5, "frames/audio_deltas", da, chunk_rows=rows(da))
         g = self.h5.create_group(schema.CONTROLS_GROUP)
         for k in sorted(r.controls):
-            ds = g.create_dataset(k, shape=(0,), maxshape=(None,), chunks=(min(n, schema.RowWriter.CHUNK_BYTES // 4),),
-                                  dtype=np.float32)
+            ds = g.create_dataset(k, shape=(0,), maxshape=(None,), chunks=(rows(()),), dtype=np.float32)
             ds.attrs["unit"] = CONTROL_UNITS.get(k, "")
             ds.attrs["doc"] = CONTROL_DOCS.get(k, "")
             self.controls[k] = ds
