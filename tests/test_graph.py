@@ -720,3 +720,15 @@ def test_cli_graph_on_a_local_cluster_rebuilds_the_same_graphs(scott_db_path, tm
             assert dict(a[grp].attrs) == dict(b[grp].attrs)
     assert main(["graph", str(db), "--scheduler", "udp://x", "-q"]) == 2
     assert "scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got 'udp://x'" in capsys.readouterr().err
+
+
+def test_add_graph_checks_the_scheduler_before_copying_the_database(scott_db_path, tmp_path, monkeypatch):
+    """A wrong scheduler fails before storage.edit copies the file (minutes for a large one)."""
+    from gesturedb.db import storage
+    from gesturedb.errors import ParameterError
+
+    copies = []
+    monkeypatch.setattr(storage, "edit", lambda *a, **k: copies.append(a) or pytest.fail("copied"))
+    with pytest.raises(ParameterError, match="scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got 'udp://x'"):
+        G.add_graph(scott_db_path, scheduler="udp://x")
+    assert copies == []

@@ -444,10 +444,17 @@ def add_graph(path, **options) -> dict:
     """
     from gesturedb.db import schema, storage
 
-    with storage.edit(path, upgrade=True) as h5:
-        for grp in ("graph", "graph_lower", "style_model"):
-            if grp in h5:
-                del h5[grp]
-        summary = write_graph(h5, **options)
-        h5.attrs["schema_version"] = schema.SCHEMA_VERSION
+    with contextlib.ExitStack() as stack:
+        if options.get("scheduler") is not None:
+            from gesturedb.db.cluster import dask_client
+
+            # connect (or start the cluster) before the database is copied: a wrong address
+            # fails at once instead of after copying a large file
+            options["scheduler"] = stack.enter_context(dask_client(options["scheduler"]))
+        with storage.edit(path, upgrade=True) as h5:
+            for grp in ("graph", "graph_lower", "style_model"):
+                if grp in h5:
+                    del h5[grp]
+            summary = write_graph(h5, **options)
+            h5.attrs["schema_version"] = schema.SCHEMA_VERSION
     return summary
