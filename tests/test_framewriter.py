@@ -84,3 +84,15 @@ def test_rows_of_a_different_width_are_refused(tmp_path):
         w.add(a)
         with pytest.raises(schema.SchemaError, match=r"frames/audio_features: expected rows of shape \(14,\), got \(10, 5\) at row 10"):
             w.add(b)
+
+
+def test_chunks_stay_between_32_kb_and_4_mb(tmp_path):
+    """A first recording of 2M frames would have made 8 MB chunks of each control; a short one,
+    3.8 kB chunks of the narrow arrays."""
+    for n, want in ((2_000_000, 1 << 20), (10, 1 << 13)):
+        rec = _recording(np.random.default_rng(n), n)
+        with h5py.File(tmp_path / f"{n}.h5", "w") as h5:
+            FrameWriter(h5).add(rec)
+            assert h5[f"{schema.CONTROLS_GROUP}/hand_speed"].chunks == (want,)
+            assert h5["frames/recording"].chunks == (want,)
+            assert h5["frames/pose_features"].chunks[0] * 384 <= schema.RowWriter.CHUNK_BYTES

@@ -58,10 +58,11 @@ class FrameWriter:
 
         def rows(row_shape) -> int:
             # a chunk of the first recording's rows (a small database is not padded to 4 MB
-            # chunks), but at least MIN_CHUNK_BYTES: the narrow arrays' chunks of one 951-frame
-            # recording were 3.8 kB, and reading them back took 3x as long as 32 kB chunks
-            row_bytes = 4 * int(np.prod(row_shape, dtype=np.int64))
-            return max(n, -(-MIN_CHUNK_BYTES // max(1, row_bytes)))
+            # chunks), at most 4 MB as RowWriter's, but at least MIN_CHUNK_BYTES: the narrow
+            # arrays' chunks of one 951-frame recording were 3.8 kB, and reading them back
+            # took 3x as long as 32 kB chunks
+            row_bytes = max(1, 4 * int(np.prod(row_shape, dtype=np.int64)))
+            return min(max(n, -(-MIN_CHUNK_BYTES // row_bytes)), max(1, schema.RowWriter.CHUNK_BYTES // row_bytes))
 
         self.rows = []
         for path, attr in self.FIELDS:
