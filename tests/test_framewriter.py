@@ -87,12 +87,17 @@ def test_rows_of_a_different_width_are_refused(tmp_path):
 
 
 def test_chunks_stay_between_32_kb_and_4_mb(tmp_path):
-    """A first recording of 2M frames would have made 8 MB chunks of each control; a short one,
-    3.8 kB chunks of the narrow arrays."""
-    for n, want in ((2_000_000, 1 << 20), (10, 1 << 13)):
-        rec = _recording(np.random.default_rng(n), n)
-        with h5py.File(tmp_path / f"{n}.h5", "w") as h5:
-            FrameWriter(h5).add(rec)
-            assert h5[f"{schema.CONTROLS_GROUP}/hand_speed"].chunks == (want,)
-            assert h5["frames/recording"].chunks == (want,)
-            assert h5["frames/pose_features"].chunks[0] * 384 <= schema.RowWriter.CHUNK_BYTES
+    """A chunk is the first recording's rows, within [32 kB, 4 MB]: a first recording of 2M
+    frames would have made 8 MB chunks of each control; one of 10, 40-byte chunks."""
+    from gesturedb.db.framewriter import chunk_rows
+
+    assert chunk_rows(2_000_000, 4) == 1 << 20 and chunk_rows(2_000_000, 384) == (1 << 22) // 384
+    assert chunk_rows(951, 4) == 1 << 13 and chunk_rows(951, 56) == 951 and chunk_rows(951, 384) == 951
+    assert chunk_rows(10, 1 << 23) == 1  # a row wider than 4 MB: one row a chunk
+    rec = _recording(np.random.default_rng(0), 10)
+    with h5py.File(tmp_path / "f.h5", "w") as h5:
+        FrameWriter(h5).add(rec)
+        assert h5[f"{schema.CONTROLS_GROUP}/hand_speed"].chunks == (1 << 13,)
+        assert h5["frames/recording"].chunks == (1 << 13,)
+        assert h5["frames/audio_features"].chunks == (586, DA)
+        assert h5["frames/pose_features"].chunks == (86, 96)

@@ -27,6 +27,19 @@ MIN_AUDIO_STD = 1e-6
 MIN_CHUNK_BYTES = 1 << 15
 
 
+def chunk_rows(first_rows: int, row_bytes: int) -> int:
+    """Rows per chunk of a growable per-frame dataset whose first recording has ``first_rows``.
+
+    The first recording's rows, so that a small database is not padded to 4 MB chunks; at most
+    :attr:`schema.RowWriter.CHUNK_BYTES` (4 MB); at least :data:`MIN_CHUNK_BYTES`: the narrow
+    arrays' chunks of one 951-frame recording were 3.8 kB, and reading them back took 3x as
+    long as 32 kB chunks.
+    """
+    row_bytes = max(1, int(row_bytes))
+    lo = -(-MIN_CHUNK_BYTES // row_bytes)
+    return max(1, min(max(int(first_rows), lo), schema.RowWriter.CHUNK_BYTES // row_bytes))
+
+
 def _add_rows(total: np.ndarray | None, rows: np.ndarray) -> np.ndarray:
     """``total + rows.sum(axis=0)`` in float64, adding row after row as numpy's axis-0 sum does."""
     rows = np.asarray(rows, dtype=np.float64)
@@ -54,15 +67,8 @@ class FrameWriter:
     def _open(self, r) -> None:
         from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
 
-        n = max(1, r.n_frames)
-
         def rows(row_shape) -> int:
-            # a chunk of the first recording's rows (a small database is not padded to 4 MB
-            # chunks), at most 4 MB as RowWriter's, but at least MIN_CHUNK_BYTES: the narrow
-            # arrays' chunks of one 951-frame recording were 3.8 kB, and reading them back
-            # took 3x as long as 32 kB chunks
-            row_bytes = max(1, 4 * int(np.prod(row_shape, dtype=np.int64)))
-            return min(max(n, -(-MIN_CHUNK_BYTES // row_bytes)), max(1, schema.RowWriter.CHUNK_BYTES // row_bytes))
+            return chunk_rows(r.n_frames, 4 * int(np.prod(row_shape, dtype=np.int64)))
 
         self.rows = []
         for path, attr in self.FIELDS:
