@@ -7,6 +7,7 @@ so, never silently.
 from __future__ import annotations
 
 import os
+import resource
 import subprocess
 import sys
 import warnings
@@ -34,9 +35,13 @@ def test_fuzz_target_finds_nothing_in_a_few_seconds(target, tmp_path):
         warnings.warn(missing)
         pytest.skip(missing)
     env = dict(os.environ, OMP_NUM_THREADS="1")
+    # libFuzzer's memory limit (2 GB by default) is on the process's peak RSS, which Linux
+    # carries over from this process through fork and exec: after a test that used 4 GB here,
+    # every target stopped at once with "out-of-memory". The limit is 2 GB above that peak.
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
     proc = subprocess.run(
         [sys.executable, str(FUZZ / f"fuzz_{target}.py"), f"-max_total_time={SECONDS}",
-         f"-artifact_prefix={tmp_path}/"],
+         f"-rss_limit_mb={peak_mb + 2048}", f"-artifact_prefix={tmp_path}/"],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
     )
     # libFuzzer: exit 0 after max_total_time; a Python exception is a crash with its traceback on stderr
