@@ -64,12 +64,9 @@ def run(args) -> int:
             torch.set_num_threads(args.threads)
         cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed, stride=args.stride,
                           checkpoint_every_s=args.checkpoint_every)
-        from contextlib import nullcontext
+        from gesturedb.db.cluster import optional_client
 
-        from gesturedb.db.cluster import dask_client
-
-        with gesturedb.open(args.db) as db, \
-                (dask_client(args.scheduler) if args.scheduler else nullcontext()) as client:
+        with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
             tr = train(db, args.output, config=cfg, resume=args.resume, progress=True,
                        log=lambda m: print(m, file=sys.stderr), client=client, parts=args.parts,
                        workers=args.workers)

@@ -77,11 +77,9 @@ def run(args) -> int:
                   [args.db, args.audio, args.transcript, getattr(args, "target_skeleton", None)])
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
-    from contextlib import nullcontext
+    from gesturedb.db.cluster import optional_client
 
-    from gesturedb.db.cluster import dask_client
-
-    with gesturedb.open(args.db) as db, (dask_client(args.scheduler) if args.scheduler else nullcontext()) as client:
+    with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
         refiner = None
         if args.refiner:
             from gesturedb.refiner import load_refiner

@@ -13,7 +13,6 @@ HDF5 content.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
 from dataclasses import dataclass, field
@@ -592,12 +591,10 @@ def build(
             recs.append(r)
         _write(h5, recs, cfg, progress, frames, scheduler)
 
-    with contextlib.ExitStack() as stack:
-        if scheduler is not None:
-            from gesturedb.db.cluster import dask_client
+    from gesturedb.db.cluster import optional_client
 
-            # one cluster for the recordings and the motion graphs ("local:N" starts it here)
-            scheduler = stack.enter_context(dask_client(scheduler))
+    # one cluster for the recordings and the motion graphs ("local:N" starts it here)
+    with optional_client(scheduler) as scheduler:
         write_atomically(out_path, fill)
     pairing.notes = report_notes(recs)
 

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 from gesturedb.errors import ParameterError
 
-__all__ = ["dask_client", "iter_on_cluster", "local_cluster"]
+__all__ = ["dask_client", "iter_on_cluster", "local_cluster", "optional_client"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
 
@@ -50,6 +50,18 @@ def dask_client(scheduler) -> Iterator[object]:
     except OSError as exc:
         raise ParameterError(f"scheduler: expected a reachable Dask scheduler at {scheduler}; got {exc}") from None
     with client:
+        yield client
+
+
+@contextlib.contextmanager
+def optional_client(scheduler) -> Iterator[object]:
+    """:func:`dask_client` for ``scheduler``, or None when it is None (no Dask: the caller runs
+    locally). For callers that take an optional ``--scheduler`` and open it once for all their
+    tasks."""
+    if scheduler is None:
+        yield None
+        return
+    with dask_client(scheduler) as client:
         yield client
 
 

@@ -340,11 +340,10 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     grids = _gridded_features(h5, last, first, [(part, joints) for _, part, joints, _ in parts], l1=l1, l2=l2)
     dims = {"K": K}
     summary = {}
-    with contextlib.ExitStack() as stack:
-        if scheduler is not None:
-            from gesturedb.db.cluster import dask_client
+    from gesturedb.db.cluster import optional_client
 
-            scheduler = stack.enter_context(dask_client(scheduler))  # one cluster for both graphs
+    with contextlib.ExitStack() as stack:
+        scheduler = stack.enter_context(optional_client(scheduler))  # one cluster for both graphs
         bar = None
         if progress:
             from tqdm import tqdm
@@ -443,18 +442,15 @@ def add_graph(path, **options) -> dict:
     those of :func:`write_graph` (``scheduler`` included).
     """
     from gesturedb.db import schema, storage
+    from gesturedb.db.cluster import optional_client
 
-    with contextlib.ExitStack() as stack:
-        if options.get("scheduler") is not None:
-            from gesturedb.db.cluster import dask_client
-
-            # connect (or start the cluster) before the database is copied: a wrong address
-            # fails at once instead of after copying a large file
-            options["scheduler"] = stack.enter_context(dask_client(options["scheduler"]))
+    # connect (or start the cluster) before the database is copied: a wrong address fails at
+    # once instead of after copying a large file
+    with optional_client(options.pop("scheduler", None)) as client:
         with storage.edit(path, upgrade=True) as h5:
             for grp in ("graph", "graph_lower", "style_model"):
                 if grp in h5:
                     del h5[grp]
-            summary = write_graph(h5, **options)
+            summary = write_graph(h5, scheduler=client, **options)
             h5.attrs["schema_version"] = schema.SCHEMA_VERSION
     return summary
