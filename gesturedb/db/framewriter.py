@@ -9,9 +9,9 @@ per recording is its clips, chunks and words.
 
 The audio features are standardised with the mean and standard deviation of the whole
 database, which are known only after the last recording. They are therefore written
-raw first (they are float32 until standardised, so the dataset holds them exactly), and :meth:`FrameWriter.close` makes two passes over the file, a recording at
-a time: the squared deviations, then the standardised features (in place) and their
-deltas. Both statistics are accumulated row after row in float64, which is what
+raw first (they are float32 until standardised, so the dataset holds them exactly), and
+:meth:`FrameWriter.close` makes two passes over the file, a recording at a time: the
+squared deviations, then the standardised features (in place) and their deltas. Both statistics are accumulated row after row in float64, which is what
 numpy's ``mean``/``std`` along axis 0 of the whole array do, so the file has the
 bits of a build that concatenated everything (tested).
 """
@@ -38,12 +38,6 @@ def chunk_rows(first_rows: int, row_bytes: int) -> int:
     row_bytes = max(1, int(row_bytes))
     lo = -(-MIN_CHUNK_BYTES // row_bytes)
     return max(1, min(max(int(first_rows), lo), schema.RowWriter.CHUNK_BYTES // row_bytes))
-
-
-def _add_rows(total: np.ndarray | None, rows: np.ndarray) -> np.ndarray:
-    """``total + rows.sum(axis=0)`` in float64, adding row after row as numpy's axis-0 sum does."""
-    rows = np.asarray(rows, dtype=np.float64)
-    return np.add.reduce(rows if total is None else np.concatenate([total[None], rows]), axis=0)
 
 
 class FrameWriter:
@@ -95,7 +89,7 @@ class FrameWriter:
             setattr(r, attr, None)
         self.recording.write(np.full(r.n_frames, len(self.lengths), np.int32))
         self.audio.write(r.audio_raw)
-        self.audio_sum = _add_rows(self.audio_sum, r.audio_raw)
+        self.audio_sum = schema.add_rows(self.audio_sum, r.audio_raw)
         r.audio_raw = None
         for k, ds in self.controls.items():
             ds.resize(n0 + r.n_frames, axis=0)
@@ -122,7 +116,7 @@ class FrameWriter:
         sq = None
         for a, b in self._recordings():
             x = ds[a:b].astype(np.float64) - mean
-            sq = _add_rows(sq, x * x)
+            sq = schema.add_rows(sq, x * x)
         # cosine distance on raw MFCCs would be dominated by c0 and energy
         std = np.maximum(np.sqrt(sq / F), MIN_AUDIO_STD)
         for a, b in self._recordings():

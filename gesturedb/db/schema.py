@@ -217,6 +217,14 @@ def _checked(field: Field, data: Any, row0: int = 0) -> np.ndarray:
     return arr
 
 
+def add_rows(total: np.ndarray | None, rows: Any) -> np.ndarray:
+    """``total + rows.sum(axis=0)`` in float64, adding row after row as numpy's axis-0 sum of the
+    whole array does (so a sum over blocks of rows has the whole array's bits; ``total`` None:
+    nothing yet)."""
+    rows = np.asarray(rows, dtype=np.float64)
+    return np.add.reduce(rows if total is None else np.concatenate([total[None], rows]), axis=0)
+
+
 class RowWriter:
     """One declared per-row dataset that grows a block of rows at a time.
 
@@ -257,8 +265,7 @@ class RowWriter:
         self.ds[self.n:self.n + arr.shape[0]] = arr
         self.n += arr.shape[0]
         if self.field.path in MEAN_FIELDS:
-            rows = arr.astype(np.float64)
-            self.sum = np.add.reduce(rows if self.sum is None else np.concatenate([self.sum[None], rows]), axis=0)
+            self.sum = add_rows(self.sum, arr)
 
     def close(self, dims: dict[str, int]) -> None:
         """After the last rows: their number checked against (and recorded in) ``dims``."""
