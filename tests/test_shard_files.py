@@ -269,6 +269,52 @@ def test_a_missing_or_foreign_shard_is_a_clear_error(db_copy, tmp_path):
     assert str(err.value).startswith(f"{rep.index}: shards[0]") and "is missing" in str(err.value)
 
 
+def test_a_worker_refuses_a_stale_copy_of_a_shard(db_copy, scott_dir, tmp_path, dask_client):
+    """The client checks the folder when it opens the index, but a worker on another machine
+    reads its own copy: that copy, if stale (another sharding's file at the same path), is
+    refused on the worker with the file and the worker named, not searched."""
+    from gesturedb.synth import Searcher
+
+    rep = shard_database(db_copy, 2)
+    other = shard_database(db_copy, 2, index=str(tmp_path / "other.h5"))
+    speech = scott_dir / "inputs/2_scott_0_2_2.wav"
+    with gesturedb.open(rep.index) as idx:  # the client's check passes here
+        shutil.copyfile(other.shards[1], rep.shards[1])  # what the worker will see
+        with pytest.raises(SchemaError) as err:
+            Searcher(idx, client=dask_client).synthesize(speech, smooth=False)
+    msg = str(err.value)
+    assert msg.startswith(f"{rep.shards[1]}: on Dask worker ") and "expected the shard" in msg
+    assert "'part': 2" in msg and "same paths as the client" in msg, msg
+
+
+def test_load_shard_checks_the_file_it_is_given(db_copy):
+    """The worker-side check alone: the file's part, token and frames, its feature widths, a
+    missing file; the shard it expects is read."""
+    from gesturedb.db.shards import _load_shard
+
+    rep = shard_database(db_copy, 2)
+    with gesturedb.open(rep.index) as idx:
+        entries = idx.shard_entries
+        Dp, Da = idx.h5["frames/pose_features"].shape[1], idx.h5["frames/audio_features"].shape[1]
+    (f0, f1), path = entries[0]["frames"], entries[0]["file"]
+    want = schema.shard_expected(entries, 0)
+    seg = (np.array([0], np.int64), np.array([f1 - f0], np.int64))
+    shard = _load_shard(path, want, f1 - f0, Dp, Da, *seg, False)
+    with h5py.File(path, "r") as h5:
+        np.testing.assert_array_equal(shard.pose, h5["frames/pose_features"][()])
+    cases = [((path, schema.shard_expected(entries, 1), entries[1]["frames"][1] - entries[1]["frames"][0], Dp, Da),
+              "expected the shard .*'part': 2.* got .*'part': 1"),
+             ((path, {**want, "token": "x"}, f1 - f0, Dp, Da), "expected the shard .*'token': 'x'"),
+             ((path, want, f1 - f0, Dp + 1, Da),
+              rf"frames/pose_features: expected shape \({f1 - f0}, {Dp + 1}\), got \({f1 - f0}, {Dp}\)"),
+             ((path, want, f1 - f0, Dp, Da - 1), r"frames/audio_features: expected shape"),
+             ((path + ".gone", want, f1 - f0, Dp, Da), r"is missing")]
+    for args, pattern in cases:
+        with pytest.raises(SchemaError, match=pattern) as err:
+            _load_shard(*args, *seg, False)
+        assert str(err.value).startswith(f"{args[0]}: on Dask worker (not a worker): ")
+
+
 def test_cli_shard_and_one_line_errors(db_copy, capsys):
     from gesturedb.cli.main import main
 
@@ -346,3 +392,47 @@ def test_refiner_training_data_over_shards_is_the_local_data(db_copy, dask_clien
         for name in ("frame_audio", "frame_real", "starts", "ks", "joints"):
             np.testing.assert_array_equal(getattr(other, name), getattr(local, name), err_msg=name)
         np.testing.assert_array_equal(other.fake(every), local.fake(every), err_msg="knn")
+
+def test_cli_synth_on_workers_started_by_hand(db_copy, scott_dir, tmp_path, capsys):
+    """`gesturedb synth INDEX --scheduler tcp://HOST:PORT` as on machines of one's own: a
+    scheduler, and two `dask worker` processes started from the command line in another folder.
+    Each reads its shard file by its absolute path; the BVH is the local one byte for byte.
+    A scheduler that does not answer is a one-line error and exit 2, with nothing written."""
+    import subprocess
+    import sys
+
+    from gesturedb.cli.main import main
+
+    distributed = pytest.importorskip("distributed")
+    rep = shard_database(db_copy, 2)
+    speech = str(scott_dir / "inputs/2_scott_0_3_3.wav")
+    local, remote = tmp_path / "local.bvh", tmp_path / "remote.bvh"
+    assert main(["synth", db_copy, "--audio", speech, "-o", str(local)]) == 0
+    elsewhere = tmp_path / "worker-cwd"
+    elsewhere.mkdir()
+    dask = os.path.join(os.path.dirname(sys.executable), "dask")
+    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp", host="127.0.0.1",
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as watch:
+        procs = [subprocess.Popen([dask, "worker", cluster.scheduler_address, "--nthreads", "1", "--no-dashboard"],
+                                  cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                 for _ in range(2)]
+        try:
+            watch.wait_for_workers(2, timeout=180)
+            with distributed.get_task_stream(watch) as stream:
+                assert main(["synth", rep.index, "--audio", speech, "-o", str(remote),
+                             "--scheduler", cluster.scheduler_address]) == 0
+        finally:
+            for p in procs:
+                p.terminate()
+            for p in procs:
+                p.wait(timeout=60)
+    assert remote.read_bytes() == local.read_bytes()
+    # each worker read one shard file
+    loads = [t["worker"] for t in stream.data if t["key"].startswith("_load_shard")]
+    assert len(loads) == 2 and len(set(loads)) == 2, stream.data
+    capsys.readouterr()
+    gone = tmp_path / "gone.bvh"
+    assert main(["synth", rep.index, "--audio", speech, "-o", str(gone), "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "scheduler: expected a reachable Dask scheduler at tcp://127.0.0.1:1" in err
+    assert not gone.exists()

@@ -557,7 +557,6 @@ def check_shards(h5, filename: str | os.PathLike | None = None) -> None:
     A missing shard would otherwise read as fill values (HDF5 virtual datasets do not fail),
     so every shard file is opened here and its ``shard_of`` attribute compared with the index.
     """
-    h5py = _h5py()
     name = os.fspath(filename) if filename is not None else h5.filename
     entries = shard_entries(h5, name)
     n_frames = int(h5.attrs.get("n_frames", -1))
@@ -565,27 +564,44 @@ def check_shards(h5, filename: str | os.PathLike | None = None) -> None:
         raise SchemaError(name, f"{SHARDS_ATTR}: expected shards covering frames 0..{n_frames}, got 0.."
                                 f"{entries[-1]['frames'][1]}")
     for i, e in enumerate(entries):
-        where = f"{SHARDS_ATTR}[{i}] ({os.path.basename(e['file'])})"
-        if not os.path.isfile(e["file"]):
-            raise SchemaError(name, f"{where}: shard file {e['file']} is missing (an index needs every shard "
-                                    f"beside it)")
-        try:
-            with h5py.File(e["file"], "r") as sh:
-                of = _json_or(sh, SHARD_OF_ATTR, None)
-                of = of if isinstance(of, dict) else None
-                shapes = {p: sh[p].shape for p in SHARDED_FIELDS if p in sh}
-        except OSError as exc:
-            raise SchemaError(name, f"{where}: cannot read the shard file {e['file']} ({exc})") from None
-        want = {"token": e["token"], "part": i + 1, "parts": len(entries), "frames": list(e["frames"])}
-        got = {k: (of or {}).get(k) for k in want}
-        if got != want:
-            raise SchemaError(name, f"{where}: expected the shard {want} of this index, got {got} in "
-                                    f"{e['file']} (a shard of another sharding; shard the database again)")
         n = e["frames"][1] - e["frames"][0]
-        for p in SHARDED_FIELDS:
-            if p in h5 and (p not in shapes or shapes[p][:1] != (n,) or shapes[p][1:] != h5[p].shape[1:]):
-                raise SchemaError(name, f"{where}: {p}: expected shape {(n,) + h5[p].shape[1:]}, got "
-                                        f"{shapes.get(p, 'no dataset')}")
+        shapes = {p: (n,) + h5[p].shape[1:] for p in SHARDED_FIELDS if p in h5}
+        problem = shard_file_problem(e["file"], shard_expected(entries, i), shapes)
+        if problem is not None:
+            raise SchemaError(name, f"{SHARDS_ATTR}[{i}] ({os.path.basename(e['file'])}): {problem}")
+
+
+def shard_expected(entries: list[dict], i: int) -> dict:
+    """The ``shard_of`` attribute shard ``i`` of :func:`shard_entries` must carry."""
+    e = entries[i]
+    return {"token": e["token"], "part": i + 1, "parts": len(entries), "frames": list(e["frames"])}
+
+
+def shard_file_problem(path: str, expected: dict, shapes: dict[str, tuple]) -> str | None:
+    """What keeps the file at ``path`` from being the shard ``expected`` (:func:`shard_expected`)
+    with datasets of ``shapes`` (name -> shape), or None if it is that shard.
+
+    Checked by the index when it is opened and again by every Dask worker that reads a shard
+    (:mod:`gesturedb.db.shards`): a worker on another machine may see another copy of the folder.
+    """
+    h5py = _h5py()
+    if not os.path.isfile(path):
+        return f"shard file {path} is missing (an index needs every shard beside it)"
+    try:
+        with h5py.File(path, "r") as sh:
+            of = _json_or(sh, SHARD_OF_ATTR, None)
+            of = of if isinstance(of, dict) else None
+            got_shapes = {p: sh[p].shape for p in shapes if p in sh}
+    except OSError as exc:
+        return f"cannot read the shard file {path} ({exc})"
+    got = {k: (of or {}).get(k) for k in expected}
+    if got != expected:
+        return (f"expected the shard {expected} of this index, got {got} in {path} (a shard of another "
+                f"sharding; shard the database again)")
+    for p, shape in shapes.items():
+        if got_shapes.get(p) != tuple(shape):
+            return f"{p}: expected shape {tuple(shape)}, got {got_shapes.get(p, 'no dataset')}"
+    return None
 
 
 #: names of saved masks: an identifier the mask language can refer to, at most 64 characters

@@ -27,7 +27,8 @@ import numpy as np
 
 from gesturedb import search, tables
 from gesturedb.control.bitsets import StepBitsets, full_mask, n_words, slice_bits
-from gesturedb.errors import ParameterError
+from gesturedb.db import schema
+from gesturedb.errors import ParameterError, SchemaError
 
 __all__ = ["ShardedSearch", "top_rows"]
 
@@ -66,13 +67,33 @@ def _make_shard(pose, audio, seg_start, seg_len, projection):
     return _Shard(pose, audio, seg_start, seg_len, projection)
 
 
-def _load_shard(path, seg_start, seg_len, projection):
-    """On the worker: read a shard file's features (``gesturedb shard``) and keep them resident."""
+def _load_shard(path, expected, n_frames, Dp, Da, seg_start, seg_len, projection):
+    """On the worker: read a shard file's features (``gesturedb shard``) and keep them resident.
+
+    The worker checks the file itself (``expected``: :func:`gesturedb.db.schema.shard_expected`;
+    n_frames rows of Dp pose and Da audio values): the client checked its own view of the
+    folder when it opened the index, but a worker on another machine reads its own copy, and
+    a stale one would search other frames without a word.
+    """
     import h5py
 
+    shapes = {"frames/pose_features": (n_frames, Dp), "frames/audio_features": (n_frames, Da)}
+    problem = schema.shard_file_problem(path, expected, shapes)
+    if problem is not None:
+        raise SchemaError(path, f"on Dask worker {_worker_address()}: {problem}. Every worker must see the "
+                                f"index's shard files at the same paths as the client (a shared or copied folder)")
     with h5py.File(path, "r") as h5:
         pose, audio = h5["frames/pose_features"][()], h5["frames/audio_features"][()]
     return _Shard(pose, audio, seg_start, seg_len, projection)
+
+
+def _worker_address() -> str:
+    try:
+        from distributed import get_worker
+
+        return get_worker().address
+    except (ImportError, ValueError):  # called outside a worker (tests)
+        return "(not a worker)"
 
 
 def _shard_table(shard, prev, q, preselect, allowed_row, exclude, threads):
@@ -313,8 +334,9 @@ class ShardedSearch:
             self.seg_ranges.append((a, b))
             self.frame_ranges.append((f0, int(e["frames"][1])))
             w = [workers[len(self.shards) % len(workers)]] if workers else None
-            self.shards.append(client.submit(_load_shard, e["file"], seg_start[a:b] - f0, seg_len[a:b], projection,
-                                             workers=w, pure=False))
+            self.shards.append(client.submit(_load_shard, e["file"], schema.shard_expected(entries, i),
+                                             int(e["frames"][1]) - f0, self.Dp, self.Da,
+                                             seg_start[a:b] - f0, seg_len[a:b], projection, workers=w, pure=False))
         return self
 
     @classmethod
