@@ -60,3 +60,28 @@ def dask_client():
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         yield client
+
+
+@pytest.fixture(scope="session")
+def hand_started_workers(tmp_path_factory):
+    """A Dask scheduler and two `dask worker` processes started from the command line in a folder
+    of their own, as on machines one sets up by hand: yields (scheduler address, a Client that
+    only watches). Their working folder is not the tests', so a relative path sent to them fails."""
+    import subprocess
+
+    distributed = pytest.importorskip("distributed")
+    elsewhere = tmp_path_factory.mktemp("worker-cwd")
+    dask = os.path.join(_BIN, "dask")
+    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp", host="127.0.0.1",
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as watch:
+        procs = [subprocess.Popen([dask, "worker", cluster.scheduler_address, "--nthreads", "1", "--no-dashboard"],
+                                  cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                 for _ in range(2)]
+        try:
+            watch.wait_for_workers(2, timeout=180)
+            yield cluster.scheduler_address, watch
+        finally:
+            for p in procs:
+                p.terminate()
+            for p in procs:
+                p.wait(timeout=60)

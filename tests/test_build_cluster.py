@@ -1,6 +1,7 @@
 """Building on Dask: the same database as a local build, the client the only writer."""
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import pytest
@@ -33,6 +34,39 @@ def test_cluster_build_is_identical_to_local_build(scott_dir, tmp_path, dask_cli
     with gesturedb.build([src], dist, scheduler=dask_client) as db:
         assert [r.name for r in db.recordings] == ["a_scott", "b_scott"]
     assert differing(local, dist) == []
+
+
+def test_cli_build_with_relative_paths_on_workers_started_by_hand(scott_dir, tmp_path, monkeypatch,
+                                                                  hand_started_workers):
+    """`gesturedb build in -o db.h5 --scheduler tcp://HOST:PORT` from the input's folder, with
+    workers running in a folder of their own: they get absolute paths (a relative one failed to
+    open there), and the database stores the paths as given, as a local build does."""
+    from gesturedb.cli.main import main
+
+    address, _ = hand_started_workers
+    _two_recordings(scott_dir, tmp_path)
+    monkeypatch.chdir(tmp_path)
+    assert main(["build", "in", "-o", "local.h5", "--no-graph", "-q"]) == 0
+    assert main(["build", "in", "-o", "dask.h5", "--no-graph", "-q", "--scheduler", address]) == 0
+    assert differing(tmp_path / "local.h5", tmp_path / "dask.h5") == []
+    with gesturedb.open(tmp_path / "dask.h5") as db:
+        assert db.h5["recordings/motion_path"].asstr()[0] == os.path.join("in", "a_scott.npz")
+
+
+def test_a_file_the_worker_cannot_see_is_named_with_the_worker(scott_dir, tmp_path):
+    from gesturedb.db.build import BuildConfig, RecordingSource, _process_on_worker
+    from gesturedb.errors import InputFileError
+
+    src = _two_recordings(scott_dir, tmp_path)
+    ok = RecordingSource("a_scott", str(src / "a_scott.npz"), str(src / "a_scott.wav"), str(src / "a_scott.TextGrid"))
+    assert _process_on_worker((ok, BuildConfig(gap_s=0.4), None))[0].n_frames > 0
+    for field in ("motion", "audio", "transcript"):
+        bad = dataclasses.replace(ok, **{field: str(tmp_path / f"elsewhere.{field}")})
+        with pytest.raises(InputFileError) as err:
+            _process_on_worker((bad, BuildConfig(gap_s=0.4), None))
+        assert str(err.value) == (f"{tmp_path}/elsewhere.{field}: not found on Dask worker (not a worker): every "
+                                  f"worker must see the input files at the same paths as the client (a shared or "
+                                  f"copied folder)")
 
 
 def test_failed_task_leaves_nothing_behind(scott_dir, tmp_path, dask_client):

@@ -115,3 +115,29 @@ def test_training_from_the_cache_is_training_from_memory(scott_db, serial, tmp_p
         assert a.step() == b.step()
     for k, v in a.G.state_dict().items():
         assert torch.equal(v, b.G.state_dict()[k]), k
+
+
+def test_a_worker_refuses_another_copy_of_the_database(scott_db, serial):
+    """On Dask the workers open the database by the client's path, which on another machine
+    may be another file: the task checks the identity the client sent before assembling."""
+    frame_maps = serial.starts[:2, None] + np.arange(64)
+    seams = [np.array([0, 8])] * 2
+    task = (os.path.abspath(scott_db.path), D.database_identity(scott_db), frame_maps, seams, serial.joints)
+    np.testing.assert_array_equal(D._assemble_task(task),
+                                  D.assemble_windows(scott_db, frame_maps, seams, serial.joints))
+    with pytest.raises(D.InputFileError) as err:
+        D._assemble_task((task[0], "0" * 16, *task[2:]))
+    msg = str(err.value)
+    assert msg.startswith(f"{task[0]}: on Dask worker (not a worker): expected the database the client opened "
+                          f"(identity 0000000000000000), got another one ({scott_db.n_frames} frames, identity "
+                          f"{task[1]})"), msg
+
+
+def test_training_data_on_workers_started_by_hand(scott_db, serial, hand_started_workers):
+    """The self-search and the assembly on `dask worker` processes running in a folder of their
+    own (they open the database by its absolute path): the data made in this process."""
+    import distributed
+
+    address, _ = hand_started_workers
+    with distributed.Client(address) as client:
+        _same(serial, D.make_training_data(scott_db, seed=2, stride=10, client=client))

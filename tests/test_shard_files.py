@@ -393,39 +393,22 @@ def test_refiner_training_data_over_shards_is_the_local_data(db_copy, dask_clien
             np.testing.assert_array_equal(getattr(other, name), getattr(local, name), err_msg=name)
         np.testing.assert_array_equal(other.fake(every), local.fake(every), err_msg="knn")
 
-def test_cli_synth_on_workers_started_by_hand(db_copy, scott_dir, tmp_path, capsys):
-    """`gesturedb synth INDEX --scheduler tcp://HOST:PORT` as on machines of one's own: a
-    scheduler, and two `dask worker` processes started from the command line in another folder.
-    Each reads its shard file by its absolute path; the BVH is the local one byte for byte.
-    A scheduler that does not answer is a one-line error and exit 2, with nothing written."""
-    import subprocess
-    import sys
+def test_cli_synth_on_workers_started_by_hand(db_copy, scott_dir, tmp_path, capsys, hand_started_workers):
+    """`gesturedb synth INDEX --scheduler tcp://HOST:PORT` as on machines of one's own (workers
+    started by `dask worker` in another folder): each reads its shard file by its absolute path;
+    the BVH is the local one byte for byte. A scheduler that does not answer is a one-line error
+    and exit 2, with nothing written."""
+    import distributed
 
     from gesturedb.cli.main import main
 
-    distributed = pytest.importorskip("distributed")
+    address, watch = hand_started_workers
     rep = shard_database(db_copy, 2)
     speech = str(scott_dir / "inputs/2_scott_0_3_3.wav")
     local, remote = tmp_path / "local.bvh", tmp_path / "remote.bvh"
     assert main(["synth", db_copy, "--audio", speech, "-o", str(local)]) == 0
-    elsewhere = tmp_path / "worker-cwd"
-    elsewhere.mkdir()
-    dask = os.path.join(os.path.dirname(sys.executable), "dask")
-    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp", host="127.0.0.1",
-                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as watch:
-        procs = [subprocess.Popen([dask, "worker", cluster.scheduler_address, "--nthreads", "1", "--no-dashboard"],
-                                  cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-                 for _ in range(2)]
-        try:
-            watch.wait_for_workers(2, timeout=180)
-            with distributed.get_task_stream(watch) as stream:
-                assert main(["synth", rep.index, "--audio", speech, "-o", str(remote),
-                             "--scheduler", cluster.scheduler_address]) == 0
-        finally:
-            for p in procs:
-                p.terminate()
-            for p in procs:
-                p.wait(timeout=60)
+    with distributed.get_task_stream(watch) as stream:
+        assert main(["synth", rep.index, "--audio", speech, "-o", str(remote), "--scheduler", address]) == 0
     assert remote.read_bytes() == local.read_bytes()
     # each worker read one shard file
     loads = [t["worker"] for t in stream.data if t["key"].startswith("_load_shard")]

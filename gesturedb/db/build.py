@@ -416,6 +416,25 @@ def _process_star(args):
     return process_recording(*args)
 
 
+def _on_worker_paths(source: RecordingSource) -> RecordingSource:
+    """``source`` with absolute paths, for a Dask worker: it may run in another folder."""
+    return dataclasses.replace(source, motion=os.path.abspath(source.motion), audio=os.path.abspath(source.audio),
+                               transcript=source.transcript and os.path.abspath(source.transcript))
+
+
+def _process_on_worker(args):
+    """:func:`process_recording` on a Dask worker, whose machine must see the input files at the
+    paths the client gave (made absolute by the client, see :func:`_on_worker_paths`)."""
+    from gesturedb.db.cluster import worker_address
+
+    source = args[0]
+    for path in (source.motion, source.audio, source.transcript if args[2] is None else None):
+        if path and not os.path.isfile(path):
+            raise InputFileError(path, f"not found on Dask worker {worker_address()}: every worker must see the "
+                                       f"input files at the same paths as the client (a shared or copied folder)")
+    return process_recording(*args)
+
+
 # --------------------------------------------------------------------------
 # assembly and writing
 # --------------------------------------------------------------------------
@@ -668,8 +687,11 @@ def _iter_processed(sources: list[RecordingSource], cfg: BuildConfig, *, workers
 
             # tasks finish in any order; input order keeps the content independent of scheduling
             ready, nxt = {}, 0
-            for i, res in iter_on_cluster(_process_star, tasks, scheduler):
+            remote = [(_on_worker_paths(s), cfg, w) for s, cfg, w in tasks]
+            for i, res in iter_on_cluster(_process_on_worker, remote, scheduler):
                 done(i)
+                for r in res:
+                    r.source = sources[i]  # the paths as given, as a local build stores them
                 ready[i] = res
                 while nxt in ready:
                     yield from ready.pop(nxt)

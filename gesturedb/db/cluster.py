@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 from gesturedb.errors import ParameterError
 
-__all__ = ["dask_client", "iter_on_cluster", "local_cluster", "optional_client"]
+__all__ = ["dask_client", "iter_on_cluster", "local_cluster", "optional_client", "worker_address"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
 
@@ -104,3 +104,14 @@ def iter_on_cluster(fn: Callable, items: Sequence, scheduler) -> Iterator[tuple[
         except BaseException:
             client.cancel(futures)
             raise
+
+
+def worker_address() -> str:
+    """The address of the Dask worker running the calling task, for messages about what that
+    worker sees (its own files, on its own machine); ``"(not a worker)"`` outside one."""
+    try:
+        from distributed import get_worker
+
+        return get_worker().address
+    except (ImportError, ValueError):  # ValueError: no worker runs this code
+        return "(not a worker)"

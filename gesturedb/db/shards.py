@@ -28,6 +28,7 @@ import numpy as np
 from gesturedb import search, tables
 from gesturedb.control.bitsets import StepBitsets, full_mask, n_words, slice_bits
 from gesturedb.db import schema
+from gesturedb.db.cluster import worker_address
 from gesturedb.errors import ParameterError, SchemaError
 
 __all__ = ["ShardedSearch", "top_rows"]
@@ -80,20 +81,11 @@ def _load_shard(path, expected, n_frames, Dp, Da, seg_start, seg_len, projection
     shapes = {"frames/pose_features": (n_frames, Dp), "frames/audio_features": (n_frames, Da)}
     problem = schema.shard_file_problem(path, expected, shapes)
     if problem is not None:
-        raise SchemaError(path, f"on Dask worker {_worker_address()}: {problem}. Every worker must see the "
+        raise SchemaError(path, f"on Dask worker {worker_address()}: {problem}. Every worker must see the "
                                 f"index's shard files at the same paths as the client (a shared or copied folder)")
     with h5py.File(path, "r") as h5:
         pose, audio = h5["frames/pose_features"][()], h5["frames/audio_features"][()]
     return _Shard(pose, audio, seg_start, seg_len, projection)
-
-
-def _worker_address() -> str:
-    try:
-        from distributed import get_worker
-
-        return get_worker().address
-    except (ImportError, ValueError):  # called outside a worker (tests)
-        return "(not a worker)"
 
 
 def _shard_table(shard, prev, q, preselect, allowed_row, exclude, threads):

@@ -254,7 +254,18 @@ def assemble_windows(db, frame_maps: np.ndarray, seams, joints: np.ndarray) -> n
 
 
 def _assemble_task(args):
-    return assemble_windows(*args)
+    """:func:`assemble_windows` on a Dask worker, which opens the database by the client's
+    path: on another machine that may be another copy, so it must be the client's."""
+    path, identity, *rest = args
+    db = _worker_database(path)
+    if database_identity(db) != identity:
+        from gesturedb.db.cluster import worker_address
+
+        raise InputFileError(path, f"on Dask worker {worker_address()}: expected the database the client opened "
+                                   f"(identity {identity}), got another one ({db.n_frames} frames, identity "
+                                   f"{database_identity(db)}): every worker must see the same file at the same "
+                                   f"path (a shared or copied folder)")
+    return assemble_windows(db, *rest)
 
 
 def window_starts(db, *, window: int = WINDOW, stride: int = STRIDE) -> np.ndarray:
@@ -417,8 +428,8 @@ def _assemble_all(db, frame_maps, seams, joints, out, *, progress, client, worke
     if client is not None:
         from gesturedb.db.cluster import iter_on_cluster
 
-        path = os.path.abspath(db.path)
-        tasks = [(path, frame_maps[a:b], seams[a:b], joints) for a, b in pieces]
+        path, identity = os.path.abspath(db.path), database_identity(db)
+        tasks = [(path, identity, frame_maps[a:b], seams[a:b], joints) for a, b in pieces]
         for k, block in iter_on_cluster(_assemble_task, tasks, client):
             store(k, block)
         return
