@@ -165,8 +165,7 @@ def edges_from_costs(T: np.ndarray, *, delta_T: float | None = None, delta_quant
     if delta_T is None:
         sample = T.reshape(-1)[_sample_pairs(K)]
         delta_T = _quantile(sample, delta_quantile)
-    rows, cols, cost = _row_edges(T, 0, delta_T, min_out, max_out)
-    return _csr(K, rows, cols, cost) + (float(delta_T),)
+    return _csr(K, [_block_csr(0, K, *_row_edges(T, 0, delta_T, min_out, max_out))]) + (float(delta_T),)
 
 
 def edges_from_features(end_x: np.ndarray, start_x: np.ndarray, *, delta_T: float | None = None,
@@ -225,8 +224,7 @@ def _edges(g: "_GriddedCosts", *, delta_T, delta_quantile: float = DELTA_QUANTIL
         parts = _edges_on_cluster(_Shared(g, bounds), step, delta_T, min_out, max_out, scheduler, on_rows)
     else:
         parts = _edges_here(_Shared(g, bounds), step, delta_T, min_out, max_out, on_rows)
-    rows, cols, cost = (np.concatenate(x) for x in zip(*parts)) if parts else _row_edges(np.zeros((0, 0)), 0, 0, 0, 0)
-    return _csr(K, rows, cols, cost) + (float(delta_T),)
+    return _csr(K, parts) + (float(delta_T),)
 
 
 class _Shared:
@@ -237,17 +235,18 @@ class _Shared:
         self.g, self.bounds = g, bounds
 
     def block(self, r0: int, r1: int, delta_T: float, min_out: int, max_out: int):
-        """The edges of rows r0..r1 (rows, cols, cost), bounded while the bounds pay, else dense."""
+        """The edges of rows r0..r1 as :func:`_block_csr` pieces, bounded while the bounds pay,
+        else dense."""
         b = self.bounds  # read once: another thread may drop it meanwhile
         if b is not None:
             got = b.edges(r0, r1, delta_T, min_out, max_out)
             if got is not None:
-                return got
+                return _block_csr(r0, r1, *got)
             self.bounds = None  # features without the structure bounds need: the rest densely too
         T = self.g.rows(r0, r1)
         d = np.arange(r0, r1)
         T[d - r0, d] = np.inf  # no self-edges
-        return _row_edges(T, r0, delta_T, min_out, max_out)
+        return _block_csr(r0, r1, *_row_edges(T, r0, delta_T, min_out, max_out))
 
 
 def _edges_here(shared: _Shared, step: int, delta_T: float, min_out: int, max_out: int, on_rows) -> list:
@@ -279,7 +278,8 @@ TASKS_PER_THREAD = 4
 
 
 def _range_task(shared: _Shared, r0: int, r1: int, step: int, delta_T: float, min_out: int, max_out: int):
-    """A Dask task: the edges of rows r0..r1, a block of ``step`` rows at a time, concatenated."""
+    """A Dask task: the edges of rows r0..r1, a block of ``step`` rows at a time, concatenated
+    (one :func:`_block_csr` piece)."""
     parts = [shared.block(b0, min(r1, b0 + step), delta_T, min_out, max_out) for b0 in range(r0, r1, step)]
     return tuple(np.concatenate(x) for x in zip(*parts))
 
@@ -365,15 +365,20 @@ class _ProjectedBounds:
         K, D = a.shape
         J = max(0, min(J, D))
         sa = max(1, (2 * K) // cls.PCA_ROWS)
-        rows = np.concatenate([a[::sa], b[::sa]]).astype(np.float64)
-        mu = rows.mean(0)
+        # the sample's mean, then its scatter matrix, in float64 chunks of rows: a float64 copy
+        # of the whole sample was 0.9 GB at 120k clips, half the graphs' peak memory there
+        sample = (a[::sa], b[::sa])
+        chunks = [(x, c0) for x in sample for c0 in range(0, x.shape[0], 8192)]
+        mu = sum(x[c0:c0 + 8192].sum(0, dtype=np.float64) for x, c0 in chunks) / sum(x.shape[0] for x in sample)
         if J > 0 and K > 1:
-            rows -= mu
-            _, V = np.linalg.eigh(rows.T @ rows)
+            S = np.zeros((D, D))
+            for x, c0 in chunks:
+                d = x[c0:c0 + 8192] - mu
+                S += d.T @ d
+            _, V = np.linalg.eigh(S)
             U = np.ascontiguousarray(V[:, ::-1][:, :J])
         else:
             U = np.zeros((D, 0))
-        del rows
 
         def project(x):
             z, r, n2 = np.empty((K, U.shape[1])), np.empty(K), np.empty(K)
@@ -474,10 +479,24 @@ def _row_edges(T: np.ndarray, r0: int, delta_T: float, min_out: int, max_out: in
     return np.repeat(np.arange(r0, r0 + n), keep.sum(1)), part[keep], vals[keep].astype(np.float64)
 
 
-def _csr(K: int, rows: np.ndarray, cols: np.ndarray, cost: np.ndarray):
-    """indptr, indices, cost with targets increasing within a row."""
+def _block_csr(r0: int, r1: int, rows: np.ndarray, cols: np.ndarray, cost: np.ndarray):
+    """The edges (rows, cols, cost) of rows r0..r1 as a piece of the CSR graph: (edges per row
+    (r1 - r0,), targets increasing within each row, their costs), all int64 / float64.
+
+    Ordered block by block, as the blocks come, so the whole graph never exists as (row, col,
+    cost) triples plus their sorted copies: at 1.2M clips that was about 3 GB more at the end of
+    each graph.
+    """
     o = np.lexsort((cols, rows))
-    rows, cols, cost = rows[o], cols[o], cost[o]
+    counts = np.bincount(rows - r0, minlength=r1 - r0).astype(np.int64, copy=False)
+    return counts, cols[o].astype(np.int64, copy=False), cost[o].astype(np.float64, copy=False)
+
+
+def _csr(K: int, pieces: list) -> tuple:
+    """indptr (K + 1,), indices, cost from the :func:`_block_csr` pieces of rows 0..K in order."""
+    if not pieces:
+        return np.zeros(K + 1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+    counts, cols, cost = (np.concatenate(x) for x in zip(*pieces))
     indptr = np.zeros(K + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows, minlength=K), out=indptr[1:])
-    return indptr, cols.astype(np.int64), cost
+    np.cumsum(counts, out=indptr[1:])
+    return indptr, cols, cost

@@ -37,6 +37,7 @@ stored model and the predicted styles are also the same bits on every machine.
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -337,6 +338,7 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     first = start[:, None] + np.minimum(off, length[:, None] - 1)
     upper, lower = body_parts(schema.read(h5, "skeleton/names"), schema.read(h5, "skeleton/parents"))
     parts = (("graph", "upper", upper, delta_T), ("graph_lower", "lower", lower, delta_T_lower))
+    # made one at a time, each dropped after its graph: one body part's grid in memory at a time
     grids = _gridded_features(h5, last, first, [(part, joints) for _, part, joints, _ in parts], l1=l1, l2=l2)
     dims = {"K": K}
     summary = {}
@@ -353,7 +355,7 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
             summary[part] = _write_edges(h5, group, part, joints, g, dims, l1=l1, l2=l2, m=m, delta_T=dt,
                                          delta_quantile=delta_quantile, min_out=min_out, max_out=max_out,
                                          on_rows=bar.update if bar is not None else None, scheduler=scheduler)
-    del grids
+            del g  # before the next part's grid is made
 
     n_words = r("clips/word_end") - r("clips/word_start")
     X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
@@ -376,45 +378,48 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
 
 
 #: clips whose transition features are computed at once when the graphs are built
-FEATURE_CHUNK = 16384
+FEATURE_CHUNK = 4096
 
 
 def _gridded_features(h5, last: np.ndarray, first: np.ndarray, parts, *, l1: float, l2: float,
-                      chunk: int = FEATURE_CHUNK) -> list[_GriddedCosts]:
-    """Per (part, joints): the transition features of every clip's ``last`` and ``first`` frames
-    ((K, m) frame indices), on their grid.
+                      chunk: int = FEATURE_CHUNK) -> Iterator[_GriddedCosts]:
+    """Per (part, joints), in turn: the transition features of every clip's ``last`` and ``first``
+    frames ((K, m) frame indices), on their grid.
 
-    Computed a chunk of clips at a time, reading only the chunk's frames, and twice: the grid's
-    unit needs the largest magnitude first. So the memory is the grids' float32 integers, not
-    the features' float64 nor every transition frame's joints (at 120k clips the graphs peaked
-    at 1.8 GB instead of 3.7; about 9 GB instead of about 40 at 1.2M clips, 1,000 hours); the
-    values are those of the whole arrays at once.
+    Computed a chunk of clips at a time, reading only the chunk's frames: one pass for every
+    part's largest magnitude (the grid's unit), then one per part, made when the caller asks
+    for it. So the memory is one part's grid of float32 integers at a time, not the features'
+    float64 nor every transition frame's joints (at 120k clips the graphs peak at 1.2 GB, 1.8
+    with both grids held at once and 3.7 with every frame's features; about 8 GB at 1.2M clips,
+    1,000 hours); the values are those of the whole arrays at once. A caller that drops each
+    grid before asking for the next holds one at a time (the lower body's is 1 kB per clip).
     """
     pos, rot, root = h5["frames/joint_positions"], h5["frames/local_rotations"], h5["frames/root_positions"]
     K = last.shape[0]
 
-    def features():  # (s0, [(end_x, start_x) per part]) per chunk
+    def features(which):  # (s0, [(end_x, start_x) per part in which]) per chunk
         for s0 in range(0, max(K, 1), chunk):
             lc, fc = last[s0:s0 + chunk], first[s0:s0 + chunk]
             need = np.unique(np.concatenate([lc.ravel(), fc.ravel()]))
             pa, ra, oa = pos[need], rot[need], root[need]
             li, fi = np.searchsorted(need, lc), np.searchsorted(need, fc)
             yield s0, [(transition_features(pa, ra, oa, li, l1=l1, l2=l2, joints=j, part=p),
-                        transition_features(pa, ra, oa, fi, l1=l1, l2=l2, joints=j, part=p)) for p, j in parts]
+                        transition_features(pa, ra, oa, fi, l1=l1, l2=l2, joints=j, part=p)) for p, j in which]
 
     amax = [0.0] * len(parts)
     D = [0] * len(parts)
-    for _, xs in features():
+    for _, xs in features(parts):
         for i, (ex, sx) in enumerate(xs):
             D[i] = ex.shape[1]
             amax[i] = max([amax[i]] + [float(np.abs(x).max()) for x in (ex, sx) if x.size])
-    units = [_grid_unit(D[i], amax[i], compact=True) for i in range(len(parts))]
-    grids = [(np.empty((K, D[i]), dtype), np.empty((K, D[i]), dtype)) for i, (_, dtype) in enumerate(units)]
-    for s0, xs in features():
-        for (ex, sx), (u, _), (ga, gb) in zip(xs, units, grids):
+    for i, part in enumerate(parts):
+        u, dtype = _grid_unit(D[i], amax[i], compact=True)
+        ga, gb = np.empty((K, D[i]), dtype), np.empty((K, D[i]), dtype)
+        for s0, [(ex, sx)] in features([part]):
             ga[s0:s0 + ex.shape[0]] = np.rint(ex / u)
             gb[s0:s0 + sx.shape[0]] = np.rint(sx / u)
-    return [_GriddedCosts.from_grid(ga, gb, u) for (ga, gb), (u, _) in zip(grids, units)]
+        yield _GriddedCosts.from_grid(ga, gb, u)
+        del ga, gb
 
 
 def _write_edges(h5, group: str, part: str, joints, g: _GriddedCosts, dims: dict, *, l1: float,
