@@ -116,6 +116,62 @@ def test_graph_features_in_chunks_equal_the_whole_arrays(scott_db_path):
                 assert np.array_equal(g.na, want.na) and np.array_equal(g.nb, want.nb)
 
 
+def test_csr_made_block_by_block_is_the_whole_sort(rng=np.random.default_rng(5)):
+    """_block_csr orders each block's edges as it comes; put together they are the CSR of all
+    the (row, target, cost) triples sorted at once (edges of a row in any order, empty rows
+    and empty blocks included)."""
+    for K in (1, 7, 300):
+        rows, cols, cost = [], [], []
+        for r in range(K):
+            n = int(rng.integers(0, 6)) if r % 5 else 0
+            rows += [r] * n
+            cols += list(rng.choice(K, size=min(n, K), replace=False))
+            cost += list(rng.random(min(n, K)))
+        rows, cols, cost = np.array(rows, np.int64), np.array(cols, np.int64), np.array(cost)
+        o = np.lexsort((cols, rows))
+        want_ptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=K))])
+        for step in (1, 3, K):
+            pieces = []
+            for r0 in range(0, K, step):
+                r1 = min(K, r0 + step)
+                sel = rng.permutation(np.flatnonzero((rows >= r0) & (rows < r1)))  # any order within a block
+                pieces.append(E._block_csr(r0, r1, rows[sel], cols[sel].astype(np.int32), cost[sel]))
+            indptr, indices, c = E._csr(K, pieces)
+            check_csr(indptr, indices, c, K)
+            np.testing.assert_array_equal(indptr, want_ptr)
+            np.testing.assert_array_equal(indices, cols[o])
+            np.testing.assert_array_equal(c, cost[o])
+
+
+def test_the_second_body_part_is_gridded_after_the_first_is_done(scott_db_path, monkeypatch):
+    """write_graph holds one body part's grid at a time: the lower body's is made (its rounding
+    pass) only when the upper body's graph is written and its grid dropped."""
+    import weakref
+
+    events, live = [], []
+    tf, we = G.transition_features, G._write_edges
+    monkeypatch.setattr(G, "transition_features", lambda *a, **k: events.append(("features", k["part"])) or tf(*a, **k))
+
+    def write_edges(h5, group, part, joints, g, *a, **k):
+        live.append(weakref.ref(g))
+        events.append(("edges", part, sum(r() is not None for r in live)))
+        return we(h5, group, part, joints, g, *a, **k)
+
+    monkeypatch.setattr(G, "_write_edges", write_edges)
+    with h5py.File(scott_db_path, "r") as src, h5py.File("mem.h5", "w", driver="core", backing_store=False) as h5:
+        for name in ("frames", "clips", "skeleton", "recordings"):
+            src.copy(name, h5)
+        G.write_graph(h5)
+    # pass 1: both parts' magnitudes; then the upper part's rounding, its edges, the lower's
+    # rounding, its edges, with one grid alive at each
+    n = [e for e in events if e[0] == "features"]
+    half = len(n) // 2
+    assert {p for _, p in n[:half]} == {"upper", "lower"}
+    i_up, i_low = events.index(("edges", "upper", 1)), events.index(("edges", "lower", 1))
+    assert {e for e in events[half:i_up]} == {("features", "upper")}
+    assert {e for e in events[i_up + 1:i_low]} == {("features", "lower")}
+
+
 def test_each_body_graph_sees_only_its_own_joints(scott_db):
     """Changing the arms leaves the lower-body costs alone, changing the legs the upper-body ones."""
     upper, lower = G.body_parts(scott_db.skeleton.names, scott_db.skeleton.parents)
