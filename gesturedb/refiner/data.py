@@ -58,7 +58,10 @@ def database_identity(db) -> str:
     sk = db.skeleton
     h.update("|".join(sk.names).encode())
     h.update(np.asarray(sk.parents, dtype=np.int64).tobytes())
-    h.update(f"{db.n_frames}|{db.fps}|{db.pose_features.shape[1]}|{db.audio_features.shape[1]}".encode())
+    # the widths from the datasets' shapes: reading the arrays for them would load the pose
+    # features into every Dask worker that checks the identity (and into an index's client)
+    Dp, Da = (db.h5[f"frames/{k}"].shape[1] for k in ("pose_features", "audio_features"))
+    h.update(f"{db.n_frames}|{db.fps}|{Dp}|{Da}".encode())
     h.update(np.asarray(db.audio_mean, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
 
