@@ -179,3 +179,31 @@ def test_local_cluster_workers_keep_glibc_malloc_defaults(monkeypatch):
     with dask_client("local:1") as client:
         env = client.run(lambda: {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OPENBLAS_NUM_THREADS")})
     assert [v for v in env.values()] == [{"MALLOC_TRIM_THRESHOLD_": None, "OPENBLAS_NUM_THREADS": "1"}]
+
+
+def test_workers_running_other_gesturedb_code_are_refused(scott_dir, tmp_path, dask_client, monkeypatch):
+    """A worker set up by hand with another installation (emulated: its code_identity differs, or
+    it cannot run the check) is refused before any task, with a one-line reason; nothing written.
+    Before, an older worker failed inside Dask with a traceback, and a changed one built other
+    features without a word."""
+    from gesturedb.db import cluster
+
+    real = cluster._source_hash  # what code_identity returns (not patched below)
+    assert cluster.code_identity() == real() and len(real()) == 16
+    assert dask_client.run(cluster.code_identity) == {a: real() for a in dask_client.scheduler_info()["workers"]}
+    src = _two_recordings(scott_dir, tmp_path)
+
+    def on_workers(value):  # client.run gives dask_worker to the function that asks for it
+        return lambda dask_worker=None: real() if dask_worker is None else value()
+
+    def older():
+        raise AttributeError("module 'gesturedb.db.cluster' has no attribute 'code_identity'")
+
+    for fake, msg in ((lambda: "0123456789abcdef", r"got other code on 2 of 2 worker\(s\), first \S+ "
+                                                    r"\(code 0123456789abcdef\)\. Install the same gesturedb"),
+                      (older, r"a worker could not check its own \(AttributeError: module")):
+        monkeypatch.setattr(cluster, "code_identity", on_workers(fake))
+        with pytest.raises(ParameterError, match=rf"^scheduler: expected every worker to run this gesturedb "
+                                                 rf"\(code {real()}\); {msg}"):
+            gesturedb.build([src], tmp_path / "db.h5", scheduler=dask_client)
+        assert not (tmp_path / "db.h5").exists()

@@ -12,12 +12,16 @@ on the client before anything is written.
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
+import os
 import re
 from collections.abc import Callable, Iterator, Sequence
 
 from gesturedb.errors import ParameterError
 
-__all__ = ["dask_client", "iter_on_cluster", "local_cluster", "optional_client", "worker_address"]
+__all__ = ["check_workers_code", "code_identity", "dask_client", "iter_on_cluster", "local_cluster", "optional_client",
+           "worker_address"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
 
@@ -31,6 +35,7 @@ def dask_client(scheduler) -> Iterator[object]:
         raise ParameterError(
             "scheduler: expected dask[distributed] to be installed (pip install 'dask[distributed]')") from None
     if isinstance(scheduler, Client):
+        check_workers_code(scheduler)
         yield scheduler
         return
     if not isinstance(scheduler, str):
@@ -50,6 +55,7 @@ def dask_client(scheduler) -> Iterator[object]:
     except OSError as exc:
         raise ParameterError(f"scheduler: expected a reachable Dask scheduler at {scheduler}; got {exc}") from None
     with client:
+        check_workers_code(client)
         yield client
 
 
@@ -115,3 +121,46 @@ def worker_address() -> str:
         return get_worker().address
     except (ImportError, ValueError):  # ValueError: no worker runs this code
         return "(not a worker)"
+
+
+def code_identity() -> str:
+    """A short hash of this process's gesturedb Python sources (their paths and bytes; about
+    3 ms, once per process). Two installations with the same hash run the same code."""
+    return _source_hash()
+
+
+@functools.lru_cache(maxsize=1)
+def _source_hash() -> str:
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    h = hashlib.sha256()
+    for folder, dirs, files in os.walk(root):
+        dirs.sort()
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(folder, name)
+            h.update(os.path.relpath(path, root).encode())
+            with open(path, "rb") as f:
+                h.update(f.read())
+    return h.hexdigest()[:16]
+
+
+def check_workers_code(client) -> None:
+    """Raise :class:`ParameterError` unless every worker of ``client`` runs the gesturedb code
+    this process runs (:func:`code_identity`).
+
+    Workers set up by hand on other machines may carry another installation: an older one fails
+    on a task with a traceback from inside Dask, a changed one computes other features without a
+    word, and the database would then depend on which worker took which recording. Workers that
+    join later are not checked. (The LocalClusters started here run this installation.)
+    """
+    mine = code_identity()
+    try:
+        theirs = client.run(code_identity)
+    except Exception as exc:  # noqa: BLE001 - e.g. a worker without gesturedb, or an older one
+        raise ParameterError(f"scheduler: expected every worker to run this gesturedb (code {mine}); a worker "
+                             f"could not check its own ({type(exc).__name__}: {exc})") from None
+    other = sorted(a for a, h in theirs.items() if h != mine)
+    if other:
+        raise ParameterError(f"scheduler: expected every worker to run this gesturedb (code {mine}); got other "
+                             f"code on {len(other)} of {len(theirs)} worker(s), first {other[0]} (code "
+                             f"{theirs[other[0]]}). Install the same gesturedb on every worker: results would "
+                             f"otherwise depend on which worker ran a task")
