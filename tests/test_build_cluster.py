@@ -193,16 +193,25 @@ def test_workers_running_other_gesturedb_code_are_refused(scott_dir, tmp_path, d
     assert dask_client.run(cluster.code_identity) == {a: real() for a in dask_client.scheduler_info()["workers"]}
     src = _two_recordings(scott_dir, tmp_path)
 
-    def on_workers(value):  # client.run gives dask_worker to the function that asks for it
-        return lambda dask_worker=None: real() if dask_worker is None else value()
+    def on(kind, value):  # client.run and run_on_scheduler give the Worker or Scheduler as dask_worker
+        return lambda dask_worker=None: value() if type(dask_worker).__name__ == kind else real()
+
+    def on_workers(value):
+        return on("Worker", value)
+
+    def on_scheduler(value):
+        return on("Scheduler", value)
 
     def older():
         raise AttributeError("module 'gesturedb.db.cluster' has no attribute 'code_identity'")
 
-    for fake, msg in ((lambda: "0123456789abcdef", r"got other code on 2 of 2 worker\(s\), first \S+ "
-                                                    r"\(code 0123456789abcdef\)\. Install the same gesturedb"),
-                      (older, r"a worker could not check its own \(AttributeError: module")):
-        monkeypatch.setattr(cluster, "code_identity", on_workers(fake))
+    for where, fake, msg in (
+            (on_workers, lambda: "0123456789abcdef",
+             r"got other code on 2 of 2 worker\(s\) and the scheduler, first \S+ \(code 0123456789abcdef\)\. Install the same gesturedb"),
+            (on_scheduler, lambda: "0123456789abcdef",
+             r"got other code on 1 of 2 worker\(s\) and the scheduler, first \S+ \(the scheduler\) \(code 0123456789abcdef\)"),
+            (on_workers, older, r"a worker could not check its own \(AttributeError: module")):
+        monkeypatch.setattr(cluster, "code_identity", where(fake))
         with pytest.raises(ParameterError, match=rf"^scheduler: expected every worker to run this gesturedb "
                                                  rf"\(code {real()}\); {msg}"):
             gesturedb.build([src], tmp_path / "db.h5", scheduler=dask_client)

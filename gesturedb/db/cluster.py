@@ -144,8 +144,8 @@ def _source_hash() -> str:
 
 
 def check_workers_code(client) -> None:
-    """Raise :class:`ParameterError` unless every worker of ``client`` runs the gesturedb code
-    this process runs (:func:`code_identity`).
+    """Raise :class:`ParameterError` unless every worker of ``client``, and its scheduler, run the
+    gesturedb code this process runs (:func:`code_identity`).
 
     Workers set up by hand on other machines may carry another installation: an older one fails
     on a task with a traceback from inside Dask, a changed one computes other features without a
@@ -155,12 +155,14 @@ def check_workers_code(client) -> None:
     mine = code_identity()
     try:
         theirs = client.run(code_identity)
+        # the scheduler unpickles the tasks too: an older gesturedb there failed every build
+        theirs[f"{client.scheduler.address} (the scheduler)"] = client.run_on_scheduler(code_identity)
     except Exception as exc:  # noqa: BLE001 - e.g. a worker without gesturedb, or an older one
         raise ParameterError(f"scheduler: expected every worker to run this gesturedb (code {mine}); a worker "
                              f"could not check its own ({type(exc).__name__}: {exc})") from None
     other = sorted(a for a, h in theirs.items() if h != mine)
     if other:
         raise ParameterError(f"scheduler: expected every worker to run this gesturedb (code {mine}); got other "
-                             f"code on {len(other)} of {len(theirs)} worker(s), first {other[0]} (code "
+                             f"code on {len(other)} of {len(theirs) - 1} worker(s) and the scheduler, first {other[0]} (code "
                              f"{theirs[other[0]]}). Install the same gesturedb on every worker: results would "
                              f"otherwise depend on which worker ran a task")
