@@ -62,26 +62,40 @@ def dask_client():
         yield client
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def hand_started_workers(tmp_path_factory):
-    """A Dask scheduler and two `dask worker` processes started from the command line in a folder
-    of their own, as on machines one sets up by hand: yields (scheduler address, a Client that
-    only watches). Their working folder is not the tests', so a relative path sent to them fails."""
+    """A `dask scheduler` and two `dask worker` processes started from the command line, in a
+    folder of their own and a session of their own, as on machines one sets up by hand: yields
+    (scheduler address, a Client that only watches). Their working folder is not the tests', so
+    a relative path sent to them fails. One set per test module: none of it runs in pytest's
+    process, and none outlives the tests that use it."""
+    import json
+    import signal
     import subprocess
+    import time
 
     distributed = pytest.importorskip("distributed")
     elsewhere = tmp_path_factory.mktemp("worker-cwd")
+    info = elsewhere / "scheduler.json"
     dask = os.path.join(_BIN, "dask")
-    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp", host="127.0.0.1",
-                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as watch:
-        procs = [subprocess.Popen([dask, "worker", cluster.scheduler_address, "--nthreads", "1", "--no-dashboard"],
-                                  cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-                 for _ in range(2)]
-        try:
+    quiet = dict(cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(info)], **quiet)]
+    try:
+        for _ in range(600):
+            if info.exists() and info.stat().st_size:
+                break
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        procs += [subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-dashboard"], **quiet)
+                  for _ in range(2)]
+        with distributed.Client(address, timeout="60s") as watch:
             watch.wait_for_workers(2, timeout=180)
-            yield cluster.scheduler_address, watch
-        finally:
-            for p in procs:
-                p.terminate()
-            for p in procs:
-                p.wait(timeout=60)
+            yield address, watch
+    finally:
+        # killed with their process groups (a worker's nanny and its worker process): a polite
+        # shutdown took 8 s per set
+        for p in procs[::-1]:
+            os.killpg(p.pid, signal.SIGKILL)
+        for p in procs:
+            p.wait(timeout=60)
