@@ -125,7 +125,10 @@ def worker_address() -> str:
 
 def code_identity() -> str:
     """A short hash of this process's gesturedb Python sources (their paths and bytes; about
-    3 ms, once per process). Two installations with the same hash run the same code."""
+    3 ms, once per process). Two installations with the same hash run the same code.
+
+    A plain function (the cache is :func:`_source_hash`'s): it is what the workers and the
+    scheduler are asked to run, by name."""
     return _source_hash()
 
 
@@ -163,6 +166,6 @@ def check_workers_code(client) -> None:
     other = sorted(a for a, h in theirs.items() if h != mine)
     if other:
         raise ParameterError(f"scheduler: expected every worker to run this gesturedb (code {mine}); got other "
-                             f"code on {len(other)} of {len(theirs) - 1} worker(s) and the scheduler, first {other[0]} (code "
-                             f"{theirs[other[0]]}). Install the same gesturedb on every worker: results would "
-                             f"otherwise depend on which worker ran a task")
+                             f"code on {len(other)} of {len(theirs) - 1} worker(s) and the scheduler, first "
+                             f"{other[0]} (code {theirs[other[0]]}). Install the same gesturedb on every worker: "
+                             f"results would otherwise depend on which worker ran a task")
