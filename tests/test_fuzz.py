@@ -44,8 +44,15 @@ def test_fuzz_target_finds_nothing_in_a_few_seconds(target, tmp_path):
          f"-rss_limit_mb={peak_mb + 2048}", f"-artifact_prefix={tmp_path}/"],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
     )
-    # libFuzzer: exit 0 after max_total_time; a Python exception is a crash with its traceback on stderr
-    assert proc.returncode == 0, f"fuzz_{target} found a crash:\n{proc.stderr[-4000:]}"
+    # libFuzzer: exit 0 after max_total_time. On a Python exception atheris prints the traceback on
+    # STDOUT and exits ("fuzz target exited" on stderr), so both go into the message, and the input
+    # itself as hex: a CI run's tmp_path is gone by the time anyone reads the log.
+    if proc.returncode != 0:
+        found = sorted(tmp_path.glob("crash-*"))
+        data = found[0].read_bytes() if found else b""
+        shown = data.hex() if len(data) <= 4096 else f"{len(data)} bytes, too long to show"
+        pytest.fail(f"fuzz_{target} found a crash (exit {proc.returncode}):\n--- stdout\n{proc.stdout[-3000:]}\n"
+                    f"--- stderr\n{proc.stderr[-1500:]}\n--- input ({len(data)} bytes, hex)\n{shown}")
     assert "Done" in proc.stderr and " runs in " in proc.stderr, proc.stderr[-2000:]
     assert not list(tmp_path.glob("crash-*"))
 

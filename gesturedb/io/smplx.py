@@ -26,6 +26,7 @@ Export
 """
 from __future__ import annotations
 
+import lzma
 import math
 import tokenize
 import zipfile
@@ -176,9 +177,10 @@ def _check_declared_size(path, data, key) -> None:
 #: What numpy raises on a damaged .npz or .npy (each found by tests/fuzz/fuzz_npz.py): zlib.error, a corrupt
 #: deflate stream; NotImplementedError, a zip compression or "version needed" this Python cannot read;
 #: RuntimeError, an encrypted entry; EOFError, a truncated entry; tokenize.TokenError and SyntaxError,
-#: a damaged header dict (numpy 2.4 parses it with Python's tokenizer and literal_eval).
-_NPZ_ERRORS = (OSError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError, EOFError,
-               tokenize.TokenError, SyntaxError)
+#: a damaged header dict (numpy 2.4 parses it with Python's tokenizer and literal_eval); lzma.LZMAError, an
+#: entry marked LZMA-compressed (zip method 14) whose properties are damaged (bz2's errors are OSErrors).
+_NPZ_ERRORS = (OSError, ValueError, zipfile.BadZipFile, zlib.error, lzma.LZMAError, NotImplementedError,
+               RuntimeError, EOFError, tokenize.TokenError, SyntaxError)
 
 
 def _array(path, data, key, shape_desc):
