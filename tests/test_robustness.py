@@ -370,6 +370,33 @@ def test_disk_full_during_a_build_names_the_file(tmp_path):
     assert _tmp_files(tmp_path) == [] and not (tmp_path / "out.h5").exists()
 
 
+def test_an_input_that_vanishes_during_a_write_is_named_not_the_output(tmp_path):
+    """An OSError about another file (an input read while filling, here or on a Dask worker)
+    names that file; one about the output or its temporary file stays "cannot write"."""
+    import errno
+
+    from gesturedb.db import storage
+
+    out = tmp_path / "out.h5"
+    out.write_bytes(b"previous")
+    gone = tmp_path / "input.h5"
+
+    def read_input(h5):
+        raise FileNotFoundError(errno.ENOENT, "No such file or directory", str(gone))
+
+    with pytest.raises(InputFileError) as info:
+        storage.write_atomically(out, read_input)
+    assert str(info.value) == f"{gone}: No such file or directory (while writing {out}, which is left as it was)"
+
+    def own_temporary(h5):
+        raise PermissionError(errno.EACCES, "Permission denied", h5.filename)
+
+    for fill in (own_temporary, lambda h5: (_ for _ in ()).throw(OSError(errno.EIO, "Input/output error"))):
+        with pytest.raises(InputFileError, match=f"^{out}: cannot write: "):
+            storage.write_atomically(out, fill)
+    assert out.read_bytes() == b"previous" and _tmp_files(tmp_path) == []
+
+
 def test_listing_into_head_is_quiet(db_copy):
     p = subprocess.run(f"{sys.executable} -m gesturedb.cli masks {db_copy} list | head -1",
                        shell=True, capture_output=True, text=True, timeout=120)

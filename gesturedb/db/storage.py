@@ -190,6 +190,7 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
         raise ParameterError(f"output: {out_path} is a folder; expected a file name such as DB.h5")
     with sigterm_as_interrupt() as signals, locked(out_path):
         remove_stale_temporaries(out_path)
+        tmp = None
         try:
             tmp = _mkstemp(out_path)
             with h5py.File(tmp, "w", track_order=True) as h5:
@@ -209,8 +210,22 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
             if disk is not None:
                 raise _os_error(out_path, disk) from None
             if isinstance(exc, OSError) and not isinstance(exc, GestureDBError):
+                other = _other_file(exc, (out_path, tmp))
+                if other is not None:
+                    # an input that ``fill`` read (on a Dask worker, say) is not the output
+                    raise InputFileError(other, f"{exc.strerror or exc} (while writing {out_path}, which is left "
+                                                f"as it was)") from None
                 raise _os_error(out_path, exc) from None
             raise
+
+
+def _other_file(exc: OSError, own) -> str | None:
+    """The file an OSError names when it is none of ``own`` (the output and its temporary)."""
+    name = exc.filename
+    if name is None or isinstance(name, int):
+        return None
+    name = os.fsdecode(name)
+    return None if any(p is not None and os.path.abspath(name) == os.path.abspath(p) for p in own) else name
 
 
 @contextlib.contextmanager
