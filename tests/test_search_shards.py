@@ -397,3 +397,41 @@ def test_allowed_of_the_wrong_width_is_refused(dask_client):
                       allowed=np.zeros(3, np.uint64))
     finally:
         sh.close()
+
+
+def test_workers_searching_with_another_kernel_are_refused(dask_client, scott_db, monkeypatch):
+    """A worker whose kernel is not this process's (emulated: it reports 'scalar') is refused
+    before any shard is sent, naming it. The reason: on the real database the kernels' table
+    distances differ in their last bits, so exact ties between shards would break by worker."""
+    from gesturedb.db import cluster
+    from gesturedb.errors import ParameterError
+
+    P, A = scott_db.pose_features, scott_db.audio_features
+    st, ln = np.asarray(scott_db.chunks.start), np.asarray(scott_db.chunks.length)
+    kinds = search.kernels()
+    if len(kinds) > 1:
+        got = {}
+        for isa in (kinds[0], kinds[-1]):
+            with search.simd(isa):
+                got[isa] = tables.preselect_table(P, A, st, ln, P[100], A[300:308])
+        assert np.array_equal(got[kinds[0]][0], got[kinds[-1]][0])  # the same starts...
+        assert not all(np.array_equal(a, b) for a, b in zip(got[kinds[0]][1:], got[kinds[-1]][1:]))  # ...not bits
+
+    workers = sorted(dask_client.scheduler_info()["workers"])
+    mine = search.get_simd()
+    other = "scalar" if mine != "scalar" else "avx2"
+    real_run = dask_client.run
+    monkeypatch.setattr(dask_client, "run", lambda fn, *a, **k: {w: other if w == workers[1] else mine
+                                                                  for w in workers}
+                        if fn is search.get_simd else real_run(fn, *a, **k))
+    submitted = []
+    monkeypatch.setattr(dask_client, "submit", lambda *a, **k: submitted.append(a))
+    with pytest.raises(ParameterError, match=rf"^scheduler: expected every worker to search with this process's "
+                                             rf"kernel \({mine}\); got {other} on {workers[1]} \(1 of 2 worker"):
+        ShardedSearch(P, A, st, ln, client=dask_client, parts=2)
+    with pytest.raises(ParameterError, match=r"set GESTUREDB_SIMD to a kernel every machine runs"):
+        ShardedSearch.from_shard_files([{"file": "x.h5", "frames": [0, P.shape[0]]}], st, ln, n_frames=P.shape[0],
+                                       Dp=P.shape[1], Da=A.shape[1], client=dask_client)
+    assert submitted == []
+    monkeypatch.setattr(dask_client, "run", real_run)
+    cluster.check_workers_kernel(dask_client)  # the real workers: this process's kernel

@@ -241,3 +241,28 @@ def test_refiner_training_data_needs_the_database_on_both_hosts(two_hosts, scott
     for name in ("audio", "real", "fake"):
         np.testing.assert_array_equal(getattr(there, name)(idx), getattr(here, name)(idx), err_msg=name)
     assert two_hosts.tasks_by_host(stream, "_assemble_task").keys() == {"a", "b"}, stream.data
+
+
+def test_a_host_searching_with_another_kernel_is_refused(two_hosts, scott_dir, tmp_path, capsys):
+    """Host B switched to the scalar kernel (as on a CPU without AVX2): before, the sharded
+    synthesis of a mirrored database differed from one machine's (ties between a recording and its
+    mirror broke by worker); now it is refused, naming host B's worker, exit 2, nothing written."""
+    from gesturedb import search
+
+    if search.get_simd() == "scalar":
+        pytest.skip("this CPU searches with the scalar kernel already")
+    db = tmp_path / "mirrored.h5"
+    gesturedb.build([scott_dir], db, mirror=True).close()
+    b = next(w for w in two_hosts.watch.scheduler_info()["workers"] if w.startswith(f"tcp://{two_hosts.b_address}:"))
+    [before] = two_hosts.watch.run(search.get_simd, workers=[b]).values()
+    two_hosts.watch.run(search.set_simd, "scalar", workers=[b])
+    try:
+        out = tmp_path / "out.bvh"
+        capsys.readouterr()
+        assert main(["synth", str(db), "--audio", str(scott_dir / "inputs/2_scott_0_3_3.wav"), "-o", str(out),
+                     "--scheduler", two_hosts.address, "--parts", "2"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and f"got scalar on {b} (1 of 2 worker(s) differ)" in err, err
+        assert not out.exists()
+    finally:
+        two_hosts.watch.run(search.set_simd, before, workers=[b])
