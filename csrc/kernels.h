@@ -5,10 +5,26 @@
 // oracle the SIMD versions are tested against. Names follow <op>_<dtype>_<isa>.
 //
 // Determinism contract (the search relies on it for its tie rules and for
-// "batched equals one-by-one"): within one ISA, the value computed for a row or
-// a window depends only on the values in it, never on its address, its position
-// in the batch or the batch size. Two bit-identical frames therefore always
-// get bit-identical distances, so duplicated data produces exact ties.
+// "batched equals one-by-one"): the value computed for a row or a window
+// depends only on the values in it, never on its address, its position in the
+// batch or the batch size. Two bit-identical frames therefore always get
+// bit-identical distances, so duplicated data produces exact ties.
+//
+// The exact kernels (l2sq_rows_f32, cosdots_f32 and their _pairs) also give
+// the same bits on every ISA, so a search gives the same result on any CPU,
+// and the shards of one search on a cluster of mixed CPUs compare like rows of
+// one table (a recording and its mirror tie exactly in audio: with distances
+// rounded per ISA, the tie broke by the worker that held each shard). They all
+// follow one order, the AVX-512 one, for a sum over len terms t_j:
+//   two sets of 16 float lanes A and B, all +0; chunk c = [16c, 16c + 16):
+//   the full chunks go alternately to A and B (A first), lane l of a chunk
+//   being updated acc[l] = fmaf(x_l, y_l, acc[l]) (one rounding); a last,
+//   partial chunk goes to B, its missing lanes as fmaf(0, 0, acc[l]);
+//   then s[l] = A[l] + B[l], and the tree s[i] + s[i+8], then + [i+4],
+//   + [i+2], + [i+1].
+// (l2sq: x = y = row_j - v_j, rounded to float; cosdots: x = q_j, y = a_j for
+// <q, a> and x = y = a_j for <a, a>.) The scalar versions spell that order out
+// with std::fmaf, and the tests compare all ISAs bit for bit.
 #pragma once
 
 #include <cstdint>

@@ -27,62 +27,119 @@ GDB_AVX2 inline float hsum256(__m256 v) {
 
 }  // namespace
 
+// The exact kernels in the order of kernels.h: its 16-lane sets A and B are
+// two registers each here (lanes 0-7, 8-15), and the tail a masked load
+// (vmaskmovps reads nothing where the mask is off, so no read past the row).
+namespace {
+
+// first n of 8 lanes set, n in [0, 8]: load 8 ints from kFirst + 8 - n
+alignas(32) constexpr int32_t kFirst[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
+
+GDB_AVX2 inline __m256i first_lanes(int64_t n) {
+    n = n < 0 ? 0 : (n > 8 ? 8 : n);
+    return _mm256_loadu_si256(reinterpret_cast<const __m256i*>(kFirst + 8 - n));
+}
+
+// The tail masks of a length: the lanes 0-7 and 8-15 of the last, partial chunk.
+struct TailMasks {
+    int64_t tail;
+    __m256i m0, m1;
+};
+
+GDB_AVX2 inline TailMasks tail_masks(int64_t len) {
+    const int64_t tail = len & 15;
+    return {tail, first_lanes(tail), first_lanes(tail - 8)};
+}
+
+// (A + B) of kernels.h summed by its tree: lanes (i, i+8), then hsum256's (i, i+4), (i, i+2), (i, i+1)
+GDB_AVX2 inline float canonical_total(__m256 a0, __m256 a1, __m256 b0, __m256 b1) {
+    return hsum256(_mm256_add_ps(_mm256_add_ps(a0, b0), _mm256_add_ps(a1, b1)));
+}
+
+GDB_AVX2 inline float l2sq_one(const float* row, const float* v, int64_t dim, const TailMasks& t) {
+    __m256 a0 = _mm256_setzero_ps(), a1 = _mm256_setzero_ps();
+    __m256 b0 = _mm256_setzero_ps(), b1 = _mm256_setzero_ps();
+    int64_t j = 0;
+    for (; j + 32 <= dim; j += 32) {
+        const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(row + j), _mm256_loadu_ps(v + j));
+        const __m256 d1 = _mm256_sub_ps(_mm256_loadu_ps(row + j + 8), _mm256_loadu_ps(v + j + 8));
+        const __m256 d2 = _mm256_sub_ps(_mm256_loadu_ps(row + j + 16), _mm256_loadu_ps(v + j + 16));
+        const __m256 d3 = _mm256_sub_ps(_mm256_loadu_ps(row + j + 24), _mm256_loadu_ps(v + j + 24));
+        a0 = _mm256_fmadd_ps(d0, d0, a0);
+        a1 = _mm256_fmadd_ps(d1, d1, a1);
+        b0 = _mm256_fmadd_ps(d2, d2, b0);
+        b1 = _mm256_fmadd_ps(d3, d3, b1);
+    }
+    if (j + 16 <= dim) {
+        const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(row + j), _mm256_loadu_ps(v + j));
+        const __m256 d1 = _mm256_sub_ps(_mm256_loadu_ps(row + j + 8), _mm256_loadu_ps(v + j + 8));
+        a0 = _mm256_fmadd_ps(d0, d0, a0);
+        a1 = _mm256_fmadd_ps(d1, d1, a1);
+        j += 16;
+    }
+    if (t.tail) {
+        const __m256 d2 = _mm256_sub_ps(_mm256_maskload_ps(row + j, t.m0), _mm256_maskload_ps(v + j, t.m0));
+        const __m256 d3 = _mm256_sub_ps(_mm256_maskload_ps(row + j + 8, t.m1), _mm256_maskload_ps(v + j + 8, t.m1));
+        b0 = _mm256_fmadd_ps(d2, d2, b0);
+        b1 = _mm256_fmadd_ps(d3, d3, b1);
+    }
+    return canonical_total(a0, a1, b0, b1);
+}
+
+// <q, a> (and <a, a> when nrm is not null) of one window
+GDB_AVX2 inline float cosdots_one(const float* a, const float* q, int64_t len, const TailMasks& t, float* nrm) {
+    __m256 a0 = _mm256_setzero_ps(), a1 = _mm256_setzero_ps(), b0 = _mm256_setzero_ps(), b1 = _mm256_setzero_ps();
+    __m256 n0 = _mm256_setzero_ps(), n1 = _mm256_setzero_ps(), m0 = _mm256_setzero_ps(), m1 = _mm256_setzero_ps();
+    int64_t j = 0;
+    for (; j + 32 <= len; j += 32) {
+        const __m256 x0 = _mm256_loadu_ps(a + j), x1 = _mm256_loadu_ps(a + j + 8);
+        const __m256 x2 = _mm256_loadu_ps(a + j + 16), x3 = _mm256_loadu_ps(a + j + 24);
+        a0 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j), x0, a0);
+        a1 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j + 8), x1, a1);
+        b0 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j + 16), x2, b0);
+        b1 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j + 24), x3, b1);
+        if (nrm) {
+            n0 = _mm256_fmadd_ps(x0, x0, n0);
+            n1 = _mm256_fmadd_ps(x1, x1, n1);
+            m0 = _mm256_fmadd_ps(x2, x2, m0);
+            m1 = _mm256_fmadd_ps(x3, x3, m1);
+        }
+    }
+    if (j + 16 <= len) {
+        const __m256 x0 = _mm256_loadu_ps(a + j), x1 = _mm256_loadu_ps(a + j + 8);
+        a0 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j), x0, a0);
+        a1 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j + 8), x1, a1);
+        if (nrm) {
+            n0 = _mm256_fmadd_ps(x0, x0, n0);
+            n1 = _mm256_fmadd_ps(x1, x1, n1);
+        }
+        j += 16;
+    }
+    if (t.tail) {
+        const __m256 x2 = _mm256_maskload_ps(a + j, t.m0), x3 = _mm256_maskload_ps(a + j + 8, t.m1);
+        b0 = _mm256_fmadd_ps(_mm256_maskload_ps(q + j, t.m0), x2, b0);
+        b1 = _mm256_fmadd_ps(_mm256_maskload_ps(q + j + 8, t.m1), x3, b1);
+        if (nrm) {
+            m0 = _mm256_fmadd_ps(x2, x2, m0);
+            m1 = _mm256_fmadd_ps(x3, x3, m1);
+        }
+    }
+    if (nrm) *nrm = canonical_total(n0, n1, m0, m1);
+    return canonical_total(a0, a1, b0, b1);
+}
+
+}  // namespace
+
 GDB_AVX2 void l2sq_rows_f32_avx2(const float* rows, int64_t n_rows, int64_t dim,
                                  const float* v, float* out) {
-    for (int64_t r = 0; r < n_rows; ++r) {
-        const float* row = rows + r * dim;
-        // two accumulators hide the FMA latency on long rows
-        __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
-        int64_t j = 0;
-        for (; j + 16 <= dim; j += 16) {
-            const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(row + j), _mm256_loadu_ps(v + j));
-            const __m256 d1 = _mm256_sub_ps(_mm256_loadu_ps(row + j + 8), _mm256_loadu_ps(v + j + 8));
-            acc0 = _mm256_fmadd_ps(d0, d0, acc0);
-            acc1 = _mm256_fmadd_ps(d1, d1, acc1);
-        }
-        if (j + 8 <= dim) {
-            const __m256 d0 = _mm256_sub_ps(_mm256_loadu_ps(row + j), _mm256_loadu_ps(v + j));
-            acc0 = _mm256_fmadd_ps(d0, d0, acc0);
-            j += 8;
-        }
-        float s = hsum256(_mm256_add_ps(acc0, acc1));
-        for (; j < dim; ++j) {
-            const float d = row[j] - v[j];
-            s += d * d;
-        }
-        out[r] = s;
-    }
+    const TailMasks t = tail_masks(dim);
+    for (int64_t r = 0; r < n_rows; ++r) out[r] = l2sq_one(rows + r * dim, v, dim, t);
 }
 
 GDB_AVX2 void cosdots_f32_avx2(const float* base, int64_t n_win, int64_t stride,
                                int64_t len, const float* q, float* qa, float* aa) {
-    for (int64_t w = 0; w < n_win; ++w) {
-        const float* a = base + w * stride;
-        __m256 dot0 = _mm256_setzero_ps(), dot1 = _mm256_setzero_ps();
-        __m256 nrm0 = _mm256_setzero_ps(), nrm1 = _mm256_setzero_ps();
-        int64_t j = 0;
-        for (; j + 16 <= len; j += 16) {
-            const __m256 a0 = _mm256_loadu_ps(a + j), a1 = _mm256_loadu_ps(a + j + 8);
-            dot0 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j), a0, dot0);
-            dot1 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j + 8), a1, dot1);
-            nrm0 = _mm256_fmadd_ps(a0, a0, nrm0);
-            nrm1 = _mm256_fmadd_ps(a1, a1, nrm1);
-        }
-        if (j + 8 <= len) {
-            const __m256 a0 = _mm256_loadu_ps(a + j);
-            dot0 = _mm256_fmadd_ps(_mm256_loadu_ps(q + j), a0, dot0);
-            nrm0 = _mm256_fmadd_ps(a0, a0, nrm0);
-            j += 8;
-        }
-        float d = hsum256(_mm256_add_ps(dot0, dot1));
-        float n = hsum256(_mm256_add_ps(nrm0, nrm1));
-        for (; j < len; ++j) {
-            d += q[j] * a[j];
-            n += a[j] * a[j];
-        }
-        qa[w] = d;
-        aa[w] = n;
-    }
+    const TailMasks t = tail_masks(len);
+    for (int64_t w = 0; w < n_win; ++w) qa[w] = cosdots_one(base + w * stride, q, len, t, aa + w);
 }
 
 // --- batched-search filter ---------------------------------------------------
@@ -310,15 +367,14 @@ GDB_AVX2_F16C float l2sq_blocks_f16_avx2(const uint16_t* blocks, int64_t f0, int
 // The single-row kernel itself for each pair: bit-identical by construction.
 GDB_AVX2 void l2sq_pairs_f32_avx2(const float* const* rows, const float* const* vs, int64_t n,
                                   int64_t dim, float* out) {
-    for (int64_t i = 0; i < n; ++i) l2sq_rows_f32_avx2(rows[i], 1, dim, vs[i], out + i);
+    const TailMasks t = tail_masks(dim);
+    for (int64_t i = 0; i < n; ++i) out[i] = l2sq_one(rows[i], vs[i], dim, t);
 }
 
 GDB_AVX2 void cosdots_pairs_f32_avx2(const float* const* wins, const float* const* qs, int64_t n,
                                      int64_t len, float* qa) {
-    for (int64_t i = 0; i < n; ++i) {
-        float aa;
-        cosdots_f32_avx2(wins[i], 1, 0, len, qs[i], qa + i, &aa);
-    }
+    const TailMasks t = tail_masks(len);
+    for (int64_t i = 0; i < n; ++i) qa[i] = cosdots_one(wins[i], qs[i], len, t, nullptr);
 }
 
 namespace {

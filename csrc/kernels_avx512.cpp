@@ -25,7 +25,9 @@ namespace gesturedb {
 
 namespace {
 
-// Sum of the 16 lanes as the tree ((i, i+8), (i, i+4), (i, i+2), (i, i+1)).
+// Sum of the 16 lanes as the tree ((i, i+8), (i, i+4), (i, i+2), (i, i+1)): the
+// order of kernels.h that every ISA's exact kernels follow (written out rather
+// than _mm512_reduce_add_ps, whose order is the compiler's to choose).
 GDB_AVX512 inline float reduce_tree(__m512 a) {
     const __m256 s8 = _mm256_add_ps(_mm512_castps512_ps256(a), _mm512_extractf32x8_ps(a, 1));
     const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_extractf128_ps(s8, 1));
@@ -140,8 +142,8 @@ GDB_AVX512 void cosdots_f32_avx512(const float* base, int64_t n_win, int64_t str
             dot1 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(tail_mask, q + j), a1, dot1);
             nrm1 = _mm512_fmadd_ps(a1, a1, nrm1);
         }
-        qa[w] = _mm512_reduce_add_ps(_mm512_add_ps(dot0, dot1));
-        aa[w] = _mm512_reduce_add_ps(_mm512_add_ps(nrm0, nrm1));
+        qa[w] = reduce_tree(_mm512_add_ps(dot0, dot1));
+        aa[w] = reduce_tree(_mm512_add_ps(nrm0, nrm1));
     }
 }
 
@@ -428,7 +430,7 @@ GDB_AVX512 void cosdots_pairs_f32_avx512(const float* const* wins, const float* 
         if (tail)
             dot1 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(tail_mask, q + j), _mm512_maskz_loadu_ps(tail_mask, a + j),
                                    dot1);
-        qa[i] = _mm512_reduce_add_ps(_mm512_add_ps(dot0, dot1));
+        qa[i] = reduce_tree(_mm512_add_ps(dot0, dot1));
     }
 }
 

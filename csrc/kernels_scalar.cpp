@@ -1,8 +1,12 @@
 // Scalar kernels: the reference every SIMD kernel is checked against.
 //
-// Accumulate in double: these loops are the oracle for the float32 SIMD paths,
-// so they should carry as little rounding of their own as possible. Products of
-// two floats are exact in double, leaving only the (tiny) summation error.
+// The exact kernels (l2sq_rows, cosdots) spell out the summation order of
+// kernels.h lane by lane, so that every ISA gives the same bits (they used to
+// accumulate in double, closer to the float64 reference but not to the SIMD
+// paths, and a search then depended on the CPU it ran on). std::fmaf is the
+// one-rounding FMA of the SIMD paths: the FMA instruction where the CPU has
+// one (glibc's ifunc), a correctly rounded software version elsewhere.
+// The filters below keep float64 or plain loops: only bounds depend on them.
 #include "kernels.h"
 
 #include <cmath>
@@ -11,30 +15,62 @@
 
 namespace gesturedb {
 
+namespace {
+
+constexpr int kLanes = 16;
+
+// Lanes A and B of kernels.h for a sum over len terms x_j y_j; x(j), y(j) give the factors.
+template <class X, class Y>
+inline void canonical_lanes(int64_t len, X x, Y y, float* A, float* B) {
+    for (int l = 0; l < kLanes; ++l) A[l] = B[l] = 0.0f;
+    int64_t j = 0;
+    for (; j + 2 * kLanes <= len; j += 2 * kLanes)
+        for (int l = 0; l < kLanes; ++l) {
+            A[l] = std::fmaf(x(j + l), y(j + l), A[l]);
+            B[l] = std::fmaf(x(j + kLanes + l), y(j + kLanes + l), B[l]);
+        }
+    if (j + kLanes <= len) {
+        for (int l = 0; l < kLanes; ++l) A[l] = std::fmaf(x(j + l), y(j + l), A[l]);
+        j += kLanes;
+    }
+    if (j < len)
+        for (int l = 0; l < kLanes; ++l)
+            B[l] = j + l < len ? std::fmaf(x(j + l), y(j + l), B[l]) : std::fmaf(0.0f, 0.0f, B[l]);
+}
+
+// A + B, then the tree (i, i+8), (i, i+4), (i, i+2), (i, i+1).
+inline float canonical_total(const float* A, const float* B) {
+    float s[kLanes];
+    for (int l = 0; l < kLanes; ++l) s[l] = A[l] + B[l];
+    for (int half = kLanes / 2; half >= 1; half /= 2)
+        for (int i = 0; i < half; ++i) s[i] = s[i] + s[i + half];
+    return s[0];
+}
+
+}  // namespace
+
 void l2sq_rows_f32_scalar(const float* rows, int64_t n_rows, int64_t dim,
                           const float* v, float* out) {
+    float A[kLanes], B[kLanes];
     for (int64_t r = 0; r < n_rows; ++r) {
         const float* row = rows + r * dim;
-        double acc = 0.0;
-        for (int64_t j = 0; j < dim; ++j) {
-            const double d = double(row[j]) - double(v[j]);
-            acc += d * d;
-        }
-        out[r] = float(acc);
+        const auto d = [&](int64_t j) { return row[j] - v[j]; };
+        canonical_lanes(dim, d, d, A, B);
+        out[r] = canonical_total(A, B);
     }
 }
 
 void cosdots_f32_scalar(const float* base, int64_t n_win, int64_t stride,
                         int64_t len, const float* q, float* qa, float* aa) {
+    float A[kLanes], B[kLanes];
     for (int64_t w = 0; w < n_win; ++w) {
         const float* a = base + w * stride;
-        double dot = 0.0, norm = 0.0;
-        for (int64_t j = 0; j < len; ++j) {
-            dot += double(q[j]) * double(a[j]);
-            norm += double(a[j]) * double(a[j]);
-        }
-        qa[w] = float(dot);
-        aa[w] = float(norm);
+        const auto qj = [&](int64_t j) { return q[j]; };
+        const auto aj = [&](int64_t j) { return a[j]; };
+        canonical_lanes(len, qj, aj, A, B);
+        qa[w] = canonical_total(A, B);
+        canonical_lanes(len, aj, aj, A, B);
+        aa[w] = canonical_total(A, B);
     }
 }
 

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 from gesturedb.errors import ParameterError
 
-__all__ = ["check_workers_code", "check_workers_kernel", "code_identity", "dask_client", "iter_on_cluster", "local_cluster", "optional_client",
+__all__ = ["check_workers_code", "code_identity", "dask_client", "iter_on_cluster", "local_cluster", "optional_client",
            "worker_address"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
@@ -169,34 +169,3 @@ def check_workers_code(client) -> None:
                              f"code on {len(other)} of {len(theirs) - 1} worker(s) and the scheduler, first "
                              f"{other[0]} (code {theirs[other[0]]}). Install the same gesturedb on every worker: "
                              f"results would otherwise depend on which worker ran a task")
-
-
-def check_workers_kernel(client) -> None:
-    """Raise :class:`ParameterError` unless every worker of ``client`` searches with the kernel this
-    process searches with (:func:`gesturedb.search.get_simd`).
-
-    The scalar, AVX2 and AVX-512 kernels sum in different orders, so a distance may differ in its
-    last bits between them (``../shared/spec/search.md`` allows it only at near-ties). Inside one
-    process every candidate gets the same kernel, and exact ties stay ties. Across shards on
-    machines with different CPUs they do not: a mirrored recording's audio, or a take recorded
-    twice, ties exactly with its twin, and which one wins would depend on the worker that held
-    each shard. (Measured on two hosts, one searching with the scalar kernel: the sharded synthesis
-    of a mirrored database differed from the single machine's for 4 of 4 inputs.) The build does
-    not search and needs no check.
-    """
-    from gesturedb import search
-
-    mine = search.get_simd()
-    try:
-        theirs = client.run(search.get_simd)
-    except Exception as exc:  # noqa: BLE001 - e.g. a worker that cannot import the kernel
-        raise ParameterError(f"scheduler: expected every worker to search with this process's kernel ({mine}); "
-                             f"a worker could not say which it uses ({type(exc).__name__}: {exc})") from None
-    other = sorted(a for a, k in theirs.items() if k != mine)
-    if other:
-        raise ParameterError(f"scheduler: expected every worker to search with this process's kernel ({mine}); got "
-                             f"{theirs[other[0]]} on {other[0]} ({len(other)} of {len(theirs)} worker(s) differ). "
-                             f"Kernels round distances differently, so ties between shards (a mirrored recording's "
-                             f"audio, a repeated take) would break unlike one machine's search: set GESTUREDB_SIMD "
-                             f"to a kernel every machine runs (scalar, avx2 or avx512) for this process and every "
-                             f"worker")

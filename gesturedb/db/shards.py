@@ -28,7 +28,7 @@ import numpy as np
 from gesturedb import search, tables
 from gesturedb.control.bitsets import StepBitsets, full_mask, n_words, slice_bits
 from gesturedb.db import schema
-from gesturedb.db.cluster import check_workers_kernel, worker_address
+from gesturedb.db.cluster import worker_address
 from gesturedb.errors import ParameterError, SchemaError
 
 __all__ = ["ShardedSearch", "top_rows"]
@@ -257,7 +257,6 @@ class ShardedSearch:
         M = seg_start.shape[0]
         if isinstance(parts, bool) or not isinstance(parts, (int, np.integer)) or not 1 <= parts <= max(M, 1):
             raise ParameterError(f"parts: expected an int in [1, {M}] (segments); got {parts!r}")
-        check_workers_kernel(client)
         self.client = client
         self.F, self.Dp, self.Da = pose.shape[0], pose.shape[1], audio.shape[1]
         self.seg_start, self.seg_len = seg_start, seg_len
@@ -311,7 +310,6 @@ class ShardedSearch:
                                  f"inside one shard file, but it crosses a shard boundary")
         if (np.diff(owner) < 0).any():
             raise ParameterError("seg_start: expected segments in frame order for a sharded search")
-        check_workers_kernel(client)
         self = cls.__new__(cls)
         self.client = client
         self.F, self.Dp, self.Da = int(n_frames), int(Dp), int(Da)
