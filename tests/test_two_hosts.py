@@ -110,14 +110,19 @@ def two_hosts(tmp_path_factory, scott_dir):
     dask = os.path.join(_BIN, "dask")
     quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        _run("ip", "netns", "add", ns)
-        _run("ip", "link", "add", veth_a, "type", "veth", "peer", "name", veth_b)
-        _run("ip", "link", "set", veth_b, "netns", ns)
-        _run("ip", "addr", "add", f"{a_addr}/24", "dev", veth_a)
-        _run("ip", "link", "set", veth_a, "up")
-        for cmd in (["ip", "addr", "add", f"{b_addr}/24", "dev", veth_b], ["ip", "link", "set", veth_b, "up"],
-                    ["ip", "link", "set", "lo", "up"]):
-            _run("ip", "netns", "exec", ns, *cmd)
+        try:
+            _run("ip", "netns", "add", ns)
+            _run("ip", "link", "add", veth_a, "type", "veth", "peer", "name", veth_b)
+            _run("ip", "link", "set", veth_b, "netns", ns)
+            _run("ip", "addr", "add", f"{a_addr}/24", "dev", veth_a)
+            _run("ip", "link", "set", veth_a, "up")
+            for cmd in (["ip", "addr", "add", f"{b_addr}/24", "dev", veth_b], ["ip", "link", "set", veth_b, "up"],
+                        ["ip", "link", "set", "lo", "up"]):
+                _run("ip", "netns", "exec", ns, *cmd)
+        except subprocess.CalledProcessError as exc:  # e.g. a container without veth devices
+            reason = f"{' '.join(exc.cmd)} failed: {exc.stderr.strip()}"
+            warnings.warn(f"two-host Dask tests NOT run: {reason}")
+            pytest.skip(reason)
         info = elsewhere / "scheduler.json"
         procs.append(subprocess.Popen([dask, "scheduler", "--host", a_addr, "--port", "0", "--no-dashboard",
                                        "--scheduler-file", str(info)], cwd=elsewhere, **quiet))
