@@ -216,3 +216,30 @@ def test_workers_running_other_gesturedb_code_are_refused(scott_dir, tmp_path, d
                                                  rf"\(code {real()}\); {msg}"):
             gesturedb.build([src], tmp_path / "db.h5", scheduler=dask_client)
         assert not (tmp_path / "db.h5").exists()
+
+
+def test_code_identity_is_the_same_for_a_checkout_and_an_installed_copy(tmp_path):
+    """gesturedb.cli is cli/ in a checkout (editable install) and gesturedb/cli/ once installed:
+    a copy laid out as pip installs it, imported in another process, has this checkout's code
+    identity (walking the package folder alone gave another hash, and a client in a checkout
+    refused workers that had pip-installed the same commit). A changed CLI file changes it."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from gesturedb.db import cluster
+
+    root = Path(__file__).resolve().parents[1]
+    site = tmp_path / "site"
+    skip = shutil.ignore_patterns("__pycache__")
+    shutil.copytree(root / "gesturedb", site / "gesturedb", ignore=skip)
+    shutil.copytree(root / "cli", site / "gesturedb" / "cli", ignore=skip)
+    probe = ("import sys; sys.path.insert(0, sys.argv[1]); import gesturedb; "
+             "from gesturedb.db import cluster; print(gesturedb.__file__, cluster.code_identity())")
+    out = subprocess.run([sys.executable, "-c", probe, str(site)], cwd=tmp_path, capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == [str(site / "gesturedb" / "__init__.py"), cluster.code_identity()]
+    main_py = site / "gesturedb" / "cli" / "main.py"
+    main_py.write_text(main_py.read_text() + "\n# changed\n")
+    assert cluster.tree_hash(str(site / "gesturedb"), str(site / "gesturedb" / "cli")) != cluster.code_identity()
