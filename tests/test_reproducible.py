@@ -5,8 +5,9 @@ numpy picks its implementations of ``log``, of ``abs`` of complex numbers and ot
 the same way. The build and the synthesis avoid every such choice (the audio features' own
 logarithm and ``re^2 + im^2``, the motion graph's exact products, the style model's numpy
 Cholesky), so that a database does not depend on the machine, or on the Dask worker, that
-built it. Other CPUs are emulated with ``NPY_DISABLE_CPU_FEATURES`` and ``OPENBLAS_CORETYPE``
-in subprocesses; controls check that those really switch implementations.
+built it; gesturedb's own search kernels (scalar, AVX2, AVX-512, also picked by CPU) sum in one
+order. Other CPUs are emulated with ``NPY_DISABLE_CPU_FEATURES``, ``OPENBLAS_CORETYPE`` and
+``GESTUREDB_SIMD`` in subprocesses; controls check that those really switch implementations.
 """
 from __future__ import annotations
 
@@ -35,26 +36,33 @@ for method in ("knn", "graph"):
     assert main(["synth", out + "/db.h5", "--method", method, "--audio", inp + ".wav", "--transcript",
                  inp + ".TextGrid", "-o", out + f"/{method}.bvh", "--npz", out + f"/{method}.npz"]) == 0
 x = np.random.default_rng(0).standard_normal((300, 700), dtype=np.float32)
+from gesturedb import search
 print(opt_func_info(func_name="^log$", signature="float64")["log"]["dd"]["current"],
-      hashlib.sha256((x @ x.T).tobytes()).hexdigest())
+      hashlib.sha256((x @ x.T).tobytes()).hexdigest(), search.get_simd())
 """
 
+_ENV = ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE", "GESTUREDB_SIMD")
 CPUS = {
     "this machine": {},
-    "AVX2": {"NPY_DISABLE_CPU_FEATURES": "X86_V4", "OPENBLAS_CORETYPE": "Haswell"},
-    "SSE4": {"NPY_DISABLE_CPU_FEATURES": "X86_V4 X86_V3", "OPENBLAS_CORETYPE": "Prescott"},
+    "AVX2": {"NPY_DISABLE_CPU_FEATURES": "X86_V4", "OPENBLAS_CORETYPE": "Haswell", "GESTUREDB_SIMD": "avx2"},
+    "SSE4": {"NPY_DISABLE_CPU_FEATURES": "X86_V4 X86_V3", "OPENBLAS_CORETYPE": "Prescott",
+             "GESTUREDB_SIMD": "scalar"},
 }
 
 
 def test_build_and_synthesis_are_the_same_bits_on_every_x86_cpu(scott_dir, tmp_path):
     if platform.machine() not in ("x86_64", "AMD64"):
         pytest.skip("the emulated CPUs are x86 ones")
+    from gesturedb import search
+
     runs = {}
     for cpu, env_extra in CPUS.items():
         out = tmp_path / cpu.replace(" ", "_")
         out.mkdir()
-        env = {k: v for k, v in os.environ.items() if k not in ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")}
+        env = {k: v for k, v in os.environ.items() if k not in _ENV}
         env.update(env_extra)
+        if env.get("GESTUREDB_SIMD") not in (None, *search.kernels()):
+            env.pop("GESTUREDB_SIMD")  # a CPU without AVX2: its own kernel is the scalar one anyway
         r = subprocess.run([sys.executable, "-c", _SCRIPT, str(scott_dir), str(out)], env=env,
                            capture_output=True, text=True, timeout=900)
         assert r.returncode == 0, r.stderr[-3000:]
@@ -64,6 +72,8 @@ def test_build_and_synthesis_are_the_same_bits_on_every_x86_cpu(scott_dir, tmp_p
     blas = {cpu: v[1][1] for cpu, v in runs.items()}
     assert targets["AVX2"] == "X86_V3" and targets["SSE4"].startswith("baseline"), targets
     assert blas["AVX2"] != blas["SSE4"], "OPENBLAS_CORETYPE did not change the kernel"
+    simd = {cpu: v[1][2] for cpu, v in runs.items()}
+    assert simd["SSE4"] == "scalar" and simd["AVX2"] in ("avx2", "scalar"), simd
 
     ref_dir = runs["this machine"][0]
     for cpu in ("AVX2", "SSE4"):
