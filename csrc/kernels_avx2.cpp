@@ -1,4 +1,6 @@
-// AVX2 + FMA kernels: 8 float lanes, vector loop + scalar tail.
+// AVX2 + FMA kernels: 8 float lanes; the exact ones (l2sq_rows, cosdots) hold
+// kernels.h's 16-lane order in register pairs with a masked tail, the filters
+// run a vector loop and a scalar tail.
 //
 // Compiled with per-function target attributes (not -mavx2 for the file) so the
 // rest of the extension keeps baseline x86-64 code and runs on any CPU; these
