@@ -69,33 +69,18 @@ def hand_started_workers(tmp_path_factory):
     (scheduler address, a Client that only watches). Their working folder is not the tests', so
     a relative path sent to them fails. One set per test module: none of it runs in pytest's
     process, and none outlives the tests that use it."""
-    import json
-    import signal
     import subprocess
-    import time
+
+    from daskprocs import QUIET, kill_groups, start_scheduler, worker_command
 
     distributed = pytest.importorskip("distributed")
     elsewhere = tmp_path_factory.mktemp("worker-cwd")
-    info = elsewhere / "scheduler.json"
-    dask = os.path.join(_BIN, "dask")
-    quiet = dict(cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(info)], **quiet)]
+    scheduler, address = start_scheduler(elsewhere, "127.0.0.1")
+    procs = [scheduler]
     try:
-        for _ in range(600):
-            if info.exists() and info.stat().st_size:
-                break
-            time.sleep(0.1)
-        address = json.loads(info.read_text())["address"]
-        procs += [subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-dashboard"], **quiet)
-                  for _ in range(2)]
+        procs += [subprocess.Popen(worker_command(address), cwd=elsewhere, **QUIET) for _ in range(2)]
         with distributed.Client(address, timeout="60s") as watch:
             watch.wait_for_workers(2, timeout=180)
             yield address, watch
     finally:
-        # killed with their process groups (a worker's nanny and its worker process): a polite
-        # shutdown took 8 s per set
-        for p in procs[::-1]:
-            os.killpg(p.pid, signal.SIGKILL)
-        for p in procs:
-            p.wait(timeout=60)
+        kill_groups(procs)

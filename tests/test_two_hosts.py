@@ -18,10 +18,8 @@ the tests are skipped with a warning that says so, never silently.
 """
 from __future__ import annotations
 
-import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -33,16 +31,18 @@ import pytest
 import gesturedb
 from gesturedb.cli.main import main
 
-_BIN = os.path.dirname(sys.executable)
+from daskprocs import QUIET, kill_groups, start_scheduler, worker_command
+
 STEM = "2_scott_0_1_1"
 
 # Host B: its own /dev/shm, where it keeps its copy of the recordings (bound over the data
 # folder, at the same path) and its own gesturedb (installed as pip lays it out, first on its
-# PYTHONPATH); then its own /tmp, over everything this session wrote; then a dask worker
-# listening on its own address. The copies are read before /tmp is covered.
+# PYTHONPATH); then its own /tmp, over everything this session wrote; then the dask worker
+# command given after the two folders, listening on its own address. The copies are read
+# before /tmp is covered.
 _HOST_B = r"""
 set -e
-data=$1; site=$2; sched=$3; addr=$4; dask=$5
+data=$1; site=$2; shift 2
 mount -t tmpfs gesturedb-host-b /dev/shm
 cp -a "$data" /dev/shm/data
 cp -a "$site" /dev/shm/site
@@ -50,7 +50,7 @@ mount --bind /dev/shm/data "$data"
 mount -t tmpfs gesturedb-host-b-tmp /tmp
 cd /
 export PYTHONPATH=/dev/shm/site
-exec "$dask" worker "$sched" --host "$addr" --nthreads 1 --no-dashboard --name host-b
+exec "$@"
 """
 
 
@@ -125,8 +125,6 @@ def two_hosts(tmp_path_factory, scott_dir):
     site = tmp_path_factory.mktemp("host-b-site")
     _installed_copy(site)
     b_log = tmp_path_factory.mktemp("host-b-log") / "worker.log"
-    dask = os.path.join(_BIN, "dask")
-    quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         try:
             _run("ip", "netns", "add", ns)
@@ -141,20 +139,15 @@ def two_hosts(tmp_path_factory, scott_dir):
             reason = f"{' '.join(exc.cmd)} failed: {exc.stderr.strip()}"
             warnings.warn(f"two-host Dask tests NOT run: {reason}")
             pytest.skip(reason)
-        info = elsewhere / "scheduler.json"
-        procs.append(subprocess.Popen([dask, "scheduler", "--host", a_addr, "--port", "0", "--no-dashboard",
-                                       "--scheduler-file", str(info)], cwd=elsewhere, **quiet))
-        for _ in range(600):
-            if info.exists() and info.stat().st_size:
-                break
-            time.sleep(0.1)
-        address = json.loads(info.read_text())["address"]
-        procs.append(subprocess.Popen([dask, "worker", address, "--host", a_addr, "--nthreads", "1",
-                                       "--no-dashboard", "--name", "host-a"], cwd=elsewhere, **quiet))
+        scheduler, address = start_scheduler(elsewhere, a_addr)
+        procs.append(scheduler)
+        procs.append(subprocess.Popen(worker_command(address, "--host", a_addr, "--name", "host-a"), cwd=elsewhere,
+                                      **QUIET))
         with open(b_log, "w") as log:
             b = subprocess.Popen(["ip", "netns", "exec", ns, "unshare", "--mount", "--propagation", "private",
-                                  "bash", "-c", _HOST_B, "host-b", str(scott_dir.resolve()), str(site), address,
-                                  b_addr, dask], stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
+                                  "bash", "-c", _HOST_B, "host-b", str(scott_dir.resolve()), str(site),
+                                  *worker_command(address, "--host", b_addr, "--name", "host-b")],
+                                 stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
         procs.append(b)
         with distributed.Client(address, timeout="60s") as watch:
             for _ in range(1800):
@@ -172,13 +165,7 @@ def two_hosts(tmp_path_factory, scott_dir):
                 b_worker: "/dev/shm/site/gesturedb/__init__.py"}
             yield TwoHosts(address, watch, b_addr, b.pid)
     finally:
-        for p in procs[::-1]:
-            try:
-                os.killpg(p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        for p in procs:
-            p.wait(timeout=60)
+        kill_groups(procs)
         subprocess.run(["ip", "netns", "del", ns], capture_output=True)  # takes its end of the veth pair along
         subprocess.run(["ip", "link", "del", veth_a], capture_output=True)
 
