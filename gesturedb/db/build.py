@@ -425,13 +425,12 @@ def _on_worker_paths(source: RecordingSource) -> RecordingSource:
 def _process_on_worker(args):
     """:func:`process_recording` on a Dask worker, whose machine must see the input files at the
     paths the client gave (made absolute by the client, see :func:`_on_worker_paths`)."""
-    from gesturedb.db.cluster import worker_address
+    from gesturedb.db.cluster import check_on_worker
 
     source = args[0]
     for path in (source.motion, source.audio, source.transcript if args[2] is None else None):
-        if path and not os.path.isfile(path):
-            raise InputFileError(path, f"not found on Dask worker {worker_address()}: every worker must see the "
-                                       f"input files at the same paths as the client (a shared or copied folder)")
+        if path:
+            check_on_worker(path, "the input files")
     return process_recording(*args)
 
 

@@ -18,9 +18,9 @@ import os
 import re
 from collections.abc import Callable, Iterator, Sequence
 
-from gesturedb.errors import ParameterError
+from gesturedb.errors import InputFileError, ParameterError
 
-__all__ = ["check_workers_code", "code_identity", "dask_client", "iter_on_cluster", "local_cluster", "optional_client",
+__all__ = ["check_on_worker", "check_workers_code", "code_identity", "dask_client", "iter_on_cluster", "local_cluster", "optional_client",
            "worker_address"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
@@ -121,6 +121,15 @@ def worker_address() -> str:
         return get_worker().address
     except (ImportError, ValueError):  # ValueError: no worker runs this code
         return "(not a worker)"
+
+
+def check_on_worker(path: str, what: str) -> None:
+    """Raise :class:`InputFileError` unless ``path`` is a file on the machine of the Dask worker
+    running the calling task; ``what`` names the files that must be shared (e.g. "the input
+    files")."""
+    if not os.path.isfile(path):
+        raise InputFileError(path, f"not found on Dask worker {worker_address()}: every worker must see {what} "
+                                   f"at the same paths as the client (a shared or copied folder)")
 
 
 def code_identity() -> str:

@@ -259,12 +259,10 @@ def assemble_windows(db, frame_maps: np.ndarray, seams, joints: np.ndarray) -> n
 def _assemble_task(args):
     """:func:`assemble_windows` on a Dask worker, which opens the database by the client's
     path: on another machine that may be another copy, so it must be the client's."""
-    from gesturedb.db.cluster import worker_address
+    from gesturedb.db.cluster import check_on_worker, worker_address
 
     path, identity, *rest = args
-    if not os.path.isfile(path):
-        raise InputFileError(path, f"not found on Dask worker {worker_address()}: every worker must see the "
-                                   f"database at the same path as the client (a shared or copied folder)")
+    check_on_worker(path, "the database")
     db = _worker_database(path)
     if database_identity(db) != identity:
         raise InputFileError(path, f"on Dask worker {worker_address()}: expected the database the client opened "
