@@ -30,6 +30,29 @@ def worker_command(address: str, *options: str) -> list[str]:
     return [DASK, "worker", address, "--nthreads", "1", "--no-dashboard", *options]
 
 
+def veth_pair(ns: str, veth_a: str, veth_b: str, a_addr: str, b_addr: str) -> None:
+    """A network namespace ``ns`` (a second host) reached from this one over a veth pair:
+    ``a_addr`` here on ``veth_a``, ``b_addr`` there on ``veth_b``, one /24. Needs root; raises
+    ``subprocess.CalledProcessError`` (its stderr says why) where the machine cannot."""
+    def run(*cmd):
+        subprocess.run(cmd, check=True, capture_output=True, text=True)
+
+    run("ip", "netns", "add", ns)
+    run("ip", "link", "add", veth_a, "type", "veth", "peer", "name", veth_b)
+    run("ip", "link", "set", veth_b, "netns", ns)
+    run("ip", "addr", "add", f"{a_addr}/24", "dev", veth_a)
+    run("ip", "link", "set", veth_a, "up")
+    for cmd in (["ip", "addr", "add", f"{b_addr}/24", "dev", veth_b], ["ip", "link", "set", veth_b, "up"],
+                ["ip", "link", "set", "lo", "up"]):
+        run("ip", "netns", "exec", ns, *cmd)
+
+
+def remove_veth(ns: str, veth_a: str) -> None:
+    """Undo :func:`veth_pair` (whatever part of it was made)."""
+    subprocess.run(["ip", "netns", "del", ns], capture_output=True)  # takes its end of the pair along
+    subprocess.run(["ip", "link", "del", veth_a], capture_output=True)
+
+
 def kill_groups(procs) -> None:
     """SIGKILL each process's group (a worker's nanny and its worker process; a polite shutdown
     took 8 s per set), last started first, and reap them."""

@@ -31,7 +31,7 @@ import pytest
 import gesturedb
 from gesturedb.cli.main import main
 
-from daskprocs import QUIET, kill_groups, start_scheduler, worker_command
+from daskprocs import QUIET, kill_groups, remove_veth, start_scheduler, veth_pair, worker_command
 
 STEM = "2_scott_0_1_1"
 
@@ -127,14 +127,7 @@ def two_hosts(tmp_path_factory, scott_dir):
     b_log = tmp_path_factory.mktemp("host-b-log") / "worker.log"
     try:
         try:
-            _run("ip", "netns", "add", ns)
-            _run("ip", "link", "add", veth_a, "type", "veth", "peer", "name", veth_b)
-            _run("ip", "link", "set", veth_b, "netns", ns)
-            _run("ip", "addr", "add", f"{a_addr}/24", "dev", veth_a)
-            _run("ip", "link", "set", veth_a, "up")
-            for cmd in (["ip", "addr", "add", f"{b_addr}/24", "dev", veth_b], ["ip", "link", "set", veth_b, "up"],
-                        ["ip", "link", "set", "lo", "up"]):
-                _run("ip", "netns", "exec", ns, *cmd)
+            veth_pair(ns, veth_a, veth_b, a_addr, b_addr)
         except subprocess.CalledProcessError as exc:  # e.g. a container without veth devices
             reason = f"{' '.join(exc.cmd)} failed: {exc.stderr.strip()}"
             warnings.warn(f"two-host Dask tests NOT run: {reason}")
@@ -166,8 +159,7 @@ def two_hosts(tmp_path_factory, scott_dir):
             yield TwoHosts(address, watch, b_addr, b.pid)
     finally:
         kill_groups(procs)
-        subprocess.run(["ip", "netns", "del", ns], capture_output=True)  # takes its end of the veth pair along
-        subprocess.run(["ip", "link", "del", veth_a], capture_output=True)
+        remove_veth(ns, veth_a)
 
 
 @pytest.fixture(scope="module")
