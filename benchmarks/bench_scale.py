@@ -7,9 +7,9 @@ median latency of one pose step
   - in this process through the PoseProjection filter in binary16 (2 threads and 1 thread),
   - through ShardedSearch: 2 shards on a LocalCluster of 2 single-threaded
     worker processes, each shard with its own PoseProjection, merged here from
-    the shards' top lists (one round trip: 2 tasks, gather, merge),
+    the shards' top lists (one round trip: a call to each shard's actor, merge),
   - the same shards merged from their whole tables, as ShardedSearch did
-    before the top lists (2 table tasks, gather, rank every row, 1 row fetch),
+    before the top lists (2 table calls, rank every row, 1 row fetch),
 and checks that all choose the same window. Memory per frame of each format
 is printed too. Then a batch of --batch queries (the database's own segment
 audio, 8 steps each, as the refiner's training data): rank_sum_search_batch in
@@ -33,23 +33,17 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_search import DA, DP, interleaved, motion_pose  # noqa: E402
 from gesturedb import search, tables  # noqa: E402
-from gesturedb.db.shards import ShardedSearch, _shard_row, _shard_table, top_rows  # noqa: E402
+from gesturedb.db.shards import ShardedSearch, top_rows  # noqa: E402
 
 L, N = 64, 8
 
 
 def tables_step(sh, q, prev):
-    """One pose step over ``sh``'s shards merged from their whole tables (the baseline)."""
-    c = sh.client
-    parts = c.gather([c.submit(_shard_table, x, prev, q, "pose", None, None, sh.threads, pure=False)
-                      for x in sh.shards])
-    s = np.concatenate([t[0] for t in parts])
-    r = tables.rank_table(s, np.concatenate([t[1] for t in parts]), np.concatenate([t[2] for t in parts]))
-    m = r[0]
-    j = next(j for j, (a, b) in enumerate(sh.seg_ranges) if a <= m < b)
-    g = int(sh.seg_start[m] + s[m])
-    c.submit(_shard_row, sh.shards[j], g + q.shape[0] - 1 - sh.frame_ranges[j][0], pure=False).result()
-    return m, int(s[m])
+    """One pose step over ``sh``'s shards merged from their whole tables (the baseline): every
+    shard's table to the client, ranked there, then a second call for the next pose."""
+    m, start = sh._whole_tables(prev, q, "pose", None, None, 1)[:2]
+    sh._row(m, int(sh.seg_start[m] + start) + q.shape[0] - 1)
+    return m, start
 
 
 def main(argv=None):
