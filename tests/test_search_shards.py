@@ -103,6 +103,33 @@ def test_steps_call_each_shard_directly(dask_client):
         sh.close()
 
 
+def test_a_lost_worker_is_a_one_line_error():
+    """A worker process killed after the shards were set up: the next step fails with a
+    SearchError naming the shard (first before the scheduler knows, then after), not Dask's
+    error from inside an actor call."""
+    import os
+    import signal
+    import time
+
+    from distributed import Client
+
+    from gesturedb.db.cluster import local_cluster
+    from gesturedb.errors import SearchError
+
+    rng = np.random.default_rng(32)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=40)
+    q = rng.standard_normal((24, A.shape[1])).astype(np.float32)
+    with local_cluster(2, memory_limit=0) as cluster, Client(cluster) as client:
+        sh = ShardedSearch(P, A, st, ln, client=client, parts=2)
+        assert_same_search(sh.search(q, P[5]), search.rank_sum_search(P, A, st, ln, q, P[5]))
+        who = client.who_has(sh.shards[1])[sh.shards[1].key][0]
+        os.kill(client.run(os.getpid, workers=[who])[who], signal.SIGKILL)
+        for pause in (0.0, 2.0):
+            time.sleep(pause)
+            with pytest.raises(SearchError, match=r"^shard 2 of 2: its Dask worker was lost during the search"):
+                sh.search(q, P[5])
+
+
 @pytest.mark.parametrize("parts", [2, 3])
 def test_sharded_search_real_database(dask_client, scott_db, parts):
     P = np.ascontiguousarray(scott_db.pose_features[:], dtype=np.float32)

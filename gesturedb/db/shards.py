@@ -29,7 +29,7 @@ from gesturedb import search, tables
 from gesturedb.control.bitsets import StepBitsets, full_mask, n_words, slice_bits
 from gesturedb.db import schema
 from gesturedb.db.cluster import worker_address
-from gesturedb.errors import ParameterError, SchemaError
+from gesturedb.errors import ParameterError, SchemaError, SearchError
 
 __all__ = ["ShardedSearch", "top_rows"]
 
@@ -365,11 +365,30 @@ class ShardedSearch:
             for j, sh in enumerate(self.shards)]
         self._actors = None
 
-    def _calls(self) -> list:
-        """The shards' actors (waiting for the shards the first time)."""
+    def _on_shards(self, calls: list) -> list:
+        """Run ``calls``, (shard index, method of :class:`_ShardActor`, args) each, on the shards'
+        actors at once; their results in order.
+
+        A worker lost since the shards were set up (its machine restarted, say) took its shard
+        and actor with it; the calls then fail with a one-line error naming the shard, not
+        Dask's. (The shards are pinned to their workers, so Dask would not set them up again
+        elsewhere: a new search, or synthesis, places them on the workers there are.)
+        """
         if self._actors is None:
             self._actors = [f.result() for f in self._actor_futures]
-        return self._actors
+        futs, out = [], []
+        j = 0
+        try:
+            for j, name, args in calls:
+                futs.append(getattr(self._actors[j], name)(*args))  # raises once Dask knows the worker is gone
+            for (j, _, _), f in zip(calls, futs):
+                out.append(f.result())  # OSError: the worker did not answer
+            return out
+        except (RuntimeError, OSError) as exc:
+            if isinstance(exc, RuntimeError) and self._actor_futures[j].status == "finished":
+                raise  # the method's own error
+            raise SearchError(f"shard {j + 1} of {len(self.shards)}: its Dask worker was lost during the search "
+                              f"({exc}); search again to place the shards on the workers there are") from exc
 
     @classmethod
     def for_database(cls, db, seg_start, seg_len, *, client, parts: int = 2, **kw) -> "ShardedSearch":
@@ -468,22 +487,21 @@ class ShardedSearch:
             groups: dict[int, list[int]] = {}
             for i in live:  # windows of equal length share a kernel call (the last may be shorter)
                 groups.setdefault(min(N, qs[i].shape[0] - t), []).append(i)
-            futs, owners = [], []
-            actors = self._calls()
+            calls, owners = [], []
             for n, idx in groups.items():
-                for j, ((a, b), actor) in enumerate(zip(self.seg_ranges, actors)):
+                for j, (a, b) in enumerate(self.seg_ranges):
                     # about 64 MB of tables per task on the worker
                     chunk = int(np.clip((64 << 20) // (20 * max(b - a, 1)), 16, 256))
                     for c0 in range(0, len(idx), chunk):
                         ids = idx[c0:c0 + chunk]
                         e = None if ex is None else (ex[ids][:, a:b] if ex.ndim == 2 else ex[a:b])
-                        futs.append(actor.top_batch(
+                        calls.append((j, "top_batch", (
                             np.stack([prev[i] for i in ids]), np.stack([qs[i][t:t + n] for i in ids]), preselect,
-                            None if shard_rows is None else shard_rows[j], e, self.threads, top))
+                            None if shard_rows is None else shard_rows[j], e, self.threads, top)))
                         owners.append(ids)
             replies: dict[int, list] = {i: [] for i in live}
             # futures were submitted shard by shard within each group: replies stay in shard order
-            for ids, res in zip(owners, (f.result() for f in futs)):
+            for ids, res in zip(owners, self._on_shards(calls)):
                 for i, r in zip(ids, res):
                     replies[i].append(r)
             for i in live:
@@ -518,10 +536,10 @@ class ShardedSearch:
 
     def _whole_tables(self, prev, q, preselect, shard_rows, exclude, k):
         """A step ranked over every shard's whole table (when the top lists do not settle it)."""
-        parts = [f.result() for f in [
-            actor.table(prev, q, preselect, None if shard_rows is None else shard_rows[j],
-                        None if exclude is None else exclude[a:b], self.threads)
-            for j, (actor, (a, b)) in enumerate(zip(self._calls(), self.seg_ranges))]]
+        parts = self._on_shards([
+            (j, "table", (prev, q, preselect, None if shard_rows is None else shard_rows[j],
+                          None if exclude is None else exclude[a:b], self.threads))
+            for j, (a, b) in enumerate(self.seg_ranges)])
         s = np.concatenate([x[0] for x in parts])
         dp = np.concatenate([x[1] for x in parts])
         da = np.concatenate([x[2] for x in parts])
@@ -533,7 +551,7 @@ class ShardedSearch:
     def _row(self, m, g):
         """Pose row ``g`` (a global frame of segment m) from the shard holding it."""
         j = next(j for j, (a, b) in enumerate(self.seg_ranges) if a <= m < b)
-        return self._calls()[j].row(g - self.frame_ranges[j][0]).result()
+        return self._on_shards([(j, "row", (g - self.frame_ranges[j][0],))])[0]
 
     def close(self) -> None:
         """Release the shards on the workers."""
