@@ -43,12 +43,13 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE), str(HERE.parent / "tests")]
 
-from bench_search import DA, DP, motion_pose  # noqa: E402
+from bench_scale import scale_db  # noqa: E402
+from bench_search import DA, DP  # noqa: E402
 from daskprocs import QUIET, kill_groups, remove_veth, start_scheduler, veth_pair, worker_command  # noqa: E402
 from gesturedb import search  # noqa: E402
 from gesturedb.db.shards import ShardedSearch, top_rows  # noqa: E402
 
-L, N = 64, 8
+N = 8
 
 
 def _pump(src: socket.socket, dst: socket.socket, delay) -> None:
@@ -177,16 +178,10 @@ def main(argv=None):
             client.wait_for_workers(2, timeout=120)
             sets[name] = client
 
-        M = args.frames // L
-        F = M * L
         rng = np.random.default_rng(0)
-        t = time.perf_counter()
-        pose = motion_pose(rng, F, n_rec=max(1, F // 4000))
-        audio = rng.standard_normal((F, DA), dtype=np.float32)
-        st = np.arange(M, dtype=np.int64) * L
-        ln = np.full(M, L, np.int64)
-        print(f"{F} frames ({F / 15 / 3600:.0f} h at 15 fps), {M} segments, pose {DP} and audio {DA} wide; "
-              f"generated in {time.perf_counter() - t:.0f} s; L = {top_rows(M)} rows per list")
+        pose, audio, st, ln = scale_db(rng, args.frames)
+        M = st.shape[0]
+        print(f"pose {DP} and audio {DA} wide; L = {top_rows(M)} rows per list")
         shs = {}
         for name, client in sets.items():
             t = time.perf_counter()

@@ -38,6 +38,20 @@ from gesturedb.db.shards import ShardedSearch, top_rows  # noqa: E402
 L, N = 64, 8
 
 
+def scale_db(rng, frames: int):
+    """The benchmark's database of about ``frames`` frames: synthetic motion (a recording per 4,000
+    frames) and i.i.d. audio, in 64-frame segments: (pose, audio, seg_start, seg_len)."""
+    M = frames // L
+    F = M * L
+    t = time.perf_counter()
+    pose = motion_pose(rng, F, n_rec=max(1, F // 4000))
+    audio = rng.standard_normal((F, DA), dtype=np.float32)
+    st = np.arange(M, dtype=np.int64) * L
+    ln = np.full(M, L, np.int64)
+    print(f"{F} frames ({F / 15 / 3600:.0f} h at 15 fps), {M} segments; generated in {time.perf_counter() - t:.0f} s")
+    return pose, audio, st, ln
+
+
 def tables_step(sh, q, prev):
     """One pose step over ``sh``'s shards merged from their whole tables (the baseline): every
     shard's table to the client, ranked there, then a second call for the next pose."""
@@ -56,15 +70,9 @@ def main(argv=None):
 
     from gesturedb.db.cluster import local_cluster
 
-    M = args.frames // L
-    F = M * L
     rng = np.random.default_rng(0)
-    t = time.perf_counter()
-    pose = motion_pose(rng, F, n_rec=max(1, F // 4000))
-    audio = rng.standard_normal((F, DA), dtype=np.float32)
-    st = np.arange(M, dtype=np.int64) * L
-    ln = np.full(M, L, np.int64)
-    print(f"{F} frames ({F / 15 / 3600:.0f} h at 15 fps), {M} segments; generated in {time.perf_counter() - t:.0f} s")
+    pose, audio, st, ln = scale_db(rng, args.frames)
+    F, M = pose.shape[0], st.shape[0]
     t = time.perf_counter()
     proj = search.PoseProjection(pose, half=True)  # as ShardedSearch and Searcher use it
     t_proj = time.perf_counter() - t

@@ -291,7 +291,7 @@ class ShardedSearch:
         cuts = np.maximum.accumulate(np.minimum(cuts, M))
         self.seg_ranges = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
         workers = sorted(client.scheduler_info()["workers"])
-        self.frame_ranges, self.shards = [], []
+        self.frame_ranges, self.shards, placed = [], [], []
         for i, (a, b) in enumerate(self.seg_ranges):
             f0 = int(seg_start[a:b].min())
             f1 = int((seg_start[a:b] + seg_len[a:b]).max())
@@ -300,7 +300,8 @@ class ShardedSearch:
             args = [client.scatter(x, workers=w) for x in
                     (pose[f0:f1], audio[f0:f1], seg_start[a:b] - f0, seg_len[a:b])]
             self.shards.append(client.submit(_make_shard, *args, projection, workers=w, pure=False))
-        self._start_actors(workers)
+            placed.append(w)
+        self._start_actors(placed)
 
     @classmethod
     def from_shard_files(cls, entries, seg_start, seg_len, *, n_frames: int, Dp: int, Da: int, client,
@@ -341,7 +342,7 @@ class ShardedSearch:
         self.threads = int(threads)
         self._set_top(top_rows)
         workers = sorted(client.scheduler_info()["workers"])
-        self.seg_ranges, self.frame_ranges, self.shards = [], [], []
+        self.seg_ranges, self.frame_ranges, self.shards, placed = [], [], [], []
         for i, e in enumerate(entries):
             a, b = (int(v) for v in np.searchsorted(owner, [i, i + 1], side="left"))
             if b == a:
@@ -353,16 +354,16 @@ class ShardedSearch:
             self.shards.append(client.submit(_load_shard, e["file"], schema.shard_expected(entries, i),
                                              int(e["frames"][1]) - f0, self.Dp, self.Da,
                                              seg_start[a:b] - f0, seg_len[a:b], projection, workers=w, pure=False))
-        self._start_actors(workers)
+            placed.append(w)
+        self._start_actors(placed)
         return self
 
-    def _start_actors(self, workers) -> None:
-        # each on its shard's worker, holding the shard (no copy); resolved at the first step,
-        # so that a shard's own error (a stale file, say) is raised there, as by a task
-        self._actor_futures = [
-            self.client.submit(_ShardActor, sh, actor=True, pure=False,
-                               workers=[workers[j % len(workers)]] if workers else None)
-            for j, sh in enumerate(self.shards)]
+    def _start_actors(self, placed) -> None:
+        # each on its shard's worker (``placed``: the shards' worker restrictions), holding the
+        # shard (no copy); resolved at the first step, so that a shard's own error (a stale
+        # file, say) is raised there, as by a task
+        self._actor_futures = [self.client.submit(_ShardActor, sh, actor=True, pure=False, workers=w)
+                               for sh, w in zip(self.shards, placed)]
         self._actors = None
 
     def _on_shards(self, calls: list) -> list:
@@ -490,7 +491,7 @@ class ShardedSearch:
             calls, owners = [], []
             for n, idx in groups.items():
                 for j, (a, b) in enumerate(self.seg_ranges):
-                    # about 64 MB of tables per task on the worker
+                    # about 64 MB of tables per call on the worker
                     chunk = int(np.clip((64 << 20) // (20 * max(b - a, 1)), 16, 256))
                     for c0 in range(0, len(idx), chunk):
                         ids = idx[c0:c0 + chunk]
@@ -500,7 +501,7 @@ class ShardedSearch:
                             None if shard_rows is None else shard_rows[j], e, self.threads, top)))
                         owners.append(ids)
             replies: dict[int, list] = {i: [] for i in live}
-            # futures were submitted shard by shard within each group: replies stay in shard order
+            # calls are made shard by shard within each group: replies stay in shard order
             for ids, res in zip(owners, self._on_shards(calls)):
                 for i, r in zip(ids, res):
                     replies[i].append(r)
