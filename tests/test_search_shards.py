@@ -7,6 +7,7 @@ import pytest
 from gesturedb import search, tables
 from gesturedb.control import StepBitsets
 from gesturedb.db.shards import ShardedSearch
+from gesturedb.errors import ParameterError
 from test_search import assert_same_search, continuous_db, exact_db, pack_bits
 
 
@@ -101,6 +102,33 @@ def test_steps_call_each_shard_directly(dask_client):
         assert [who[f.key] for f in sh._actor_futures] == held and len({w for ws in held for w in ws}) == 2
     finally:
         sh.close()
+
+
+def test_a_shard_takes_its_workers_threads():
+    """Without ``threads`` a shard's kernel calls take as many threads as its worker has (an
+    actor's calls run one at a time, so a batch's chunks no longer spread over the worker's
+    threads as tasks did); the results are the same with any count."""
+    import distributed
+
+    rng = np.random.default_rng(33)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=40)
+    qs = [rng.standard_normal((30, A.shape[1])).astype(np.float32) for _ in range(3)]
+    init = P[[3, 9, 27]]
+    ref = search.rank_sum_search_batch(P, A, st, ln, qs, init)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=3, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        for threads, used in ((None, 3), (1, 1), (2, 2)):
+            sh = ShardedSearch(P, A, st, ln, client=client, parts=2, threads=threads)
+            try:
+                for a, b in zip(sh.search_batch(qs, init), ref):
+                    assert_same_search(a, b)
+                assert_same_search(sh.search(qs[0], init[0]), ref[0])
+                assert [a.nthreads for a in sh._actors] == [3, 3] and (sh.threads or 3) == used
+            finally:
+                sh.close()
+        for bad in (0, 1.5, True):
+            with pytest.raises(ParameterError, match="threads: expected None or an int >= 1"):
+                ShardedSearch(P, A, st, ln, client=client, parts=2, threads=bad)
 
 
 def test_a_lost_worker_is_a_one_line_error():

@@ -213,14 +213,22 @@ class _ShardActor:
     the worker holding the shard (the scheduler only placed it there).
     """
 
+    nthreads: int = 1  # the worker's threads, set there (declared here for the client's proxy)
+
     def __init__(self, shard: _Shard):
+        from distributed import get_worker
+
         self.shard = shard
+        # an actor's calls run one at a time on a thread of its own, not on the worker's
+        # threads as tasks do: the kernel takes the worker's threads instead
+        self.nthreads = get_worker().state.nthreads
 
-    def top_batch(self, *args):
-        return _shard_top_batch(self.shard, *args)
+    def top_batch(self, prevs, wins, preselect, allowed_row, exclude, threads, top):
+        return _shard_top_batch(self.shard, prevs, wins, preselect, allowed_row, exclude,
+                                threads or self.nthreads, top)
 
-    def table(self, *args):
-        return _shard_table(self.shard, *args)
+    def table(self, prev, q, preselect, allowed_row, exclude, threads):
+        return _shard_table(self.shard, prev, q, preselect, allowed_row, exclude, threads or self.nthreads)
 
     def row(self, f):
         return _shard_row(self.shard, f)
@@ -260,8 +268,11 @@ class ShardedSearch:
         Number of shards: contiguous runs of segments of about equal frame counts.
     projection : bool
         Each shard builds its :class:`gesturedb.search.PoseProjection` (same results).
-    threads : int
-        Kernel threads per shard step (1: parallelism comes from the workers).
+    threads : int or None
+        Kernel threads per call on a shard; None: as many as its worker has (``dask worker
+        --nthreads 8`` gives its shard 8; each worker of a ``local:N`` cluster has one). A
+        shard's calls run one after another on its actor's thread, so these threads are
+        what a batch's chunks of queries share.
     top_rows : int or None
         Rows per distance each shard sends per step (L); None: :func:`top_rows`
         of the segment count and k. Any L >= 1 gives the same results; a small
@@ -274,7 +285,7 @@ class ShardedSearch:
     """
 
     def __init__(self, pose, audio, seg_start, seg_len, *, client, parts: int = 2,
-                 projection: bool = True, threads: int = 1, top_rows: int | None = None):
+                 projection: bool = True, threads: int | None = None, top_rows: int | None = None):
         seg_start = np.ascontiguousarray(seg_start, dtype=np.int64)
         seg_len = np.ascontiguousarray(seg_len, dtype=np.int64)
         M = seg_start.shape[0]
@@ -283,8 +294,7 @@ class ShardedSearch:
         self.client = client
         self.F, self.Dp, self.Da = pose.shape[0], pose.shape[1], audio.shape[1]
         self.seg_start, self.seg_len = seg_start, seg_len
-        self.threads = int(threads)
-        self._set_top(top_rows)
+        self._set_options(threads, top_rows)
         # cut between segments so that every shard has about F / parts frames of segments
         cum = np.cumsum(seg_len)
         cuts = [0] + [int(np.searchsorted(cum, cum[-1] * i / parts, side="left")) + 1 for i in range(1, parts)] + [M]
@@ -305,7 +315,7 @@ class ShardedSearch:
 
     @classmethod
     def from_shard_files(cls, entries, seg_start, seg_len, *, n_frames: int, Dp: int, Da: int, client,
-                         projection: bool = True, threads: int = 1,
+                         projection: bool = True, threads: int | None = None,
                          top_rows: int | None = None) -> "ShardedSearch":
         """One shard per shard file of an index (``gesturedb shard``), each read by its worker.
 
@@ -339,8 +349,7 @@ class ShardedSearch:
         self.client = client
         self.F, self.Dp, self.Da = int(n_frames), int(Dp), int(Da)
         self.seg_start, self.seg_len = seg_start, seg_len
-        self.threads = int(threads)
-        self._set_top(top_rows)
+        self._set_options(threads, top_rows)
         workers = sorted(client.scheduler_info()["workers"])
         self.seg_ranges, self.frame_ranges, self.shards, placed = [], [], [], []
         for i, e in enumerate(entries):
@@ -411,7 +420,11 @@ class ShardedSearch:
                                         Da=db.h5["frames/audio_features"].shape[1], client=client, **kw)
         return cls(db.pose_features, db.audio_features, seg_start, seg_len, client=client, parts=parts, **kw)
 
-    def _set_top(self, top) -> None:
+    def _set_options(self, threads, top) -> None:
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
+                                    or threads < 1):
+            raise ParameterError(f"threads: expected None or an int >= 1; got {threads!r}")
+        self.threads = None if threads is None else int(threads)
         if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
             raise ParameterError(f"top_rows: expected None or an int >= 1; got {top!r}")
         self.top_rows = None if top is None else int(top)
