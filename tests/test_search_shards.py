@@ -131,6 +131,31 @@ def test_a_shard_takes_its_workers_threads():
                 ShardedSearch(P, A, st, ln, client=client, parts=2, threads=bad)
 
 
+def test_shards_with_equal_segment_arrays_keep_their_own_data():
+    """Equal 64-frame segments cut in 2 give both shards the same local segment arrays. Scattered
+    under keys made from their content, the second shard's copy shared the first's key, and the
+    first shard's release could take it: 1 of 10 constructions lost its actor's dependency (2 of
+    2 on the mirrored database of test_two_hosts). Each scatter now has a key of its own."""
+    from distributed import Client
+
+    from gesturedb.db.cluster import local_cluster
+
+    rng = np.random.default_rng(35)
+    M = 40
+    P = rng.standard_normal((64 * M, 24), dtype=np.float32)
+    A = rng.standard_normal((64 * M, 14), dtype=np.float32)
+    st, ln = np.arange(M, dtype=np.int64) * 64, np.full(M, 64, np.int64)
+    q = rng.standard_normal((24, 14), dtype=np.float32)
+    ref = search.rank_sum_search(P, A, st, ln, q, P[1])
+    with local_cluster(2, memory_limit=0) as cluster, Client(cluster) as client:
+        for _ in range(30):
+            sh = ShardedSearch(P, A, st, ln, client=client, parts=2)
+            try:
+                assert_same_search(sh.search(q, P[1]), ref)
+            finally:
+                sh.close()
+
+
 def test_a_lost_worker_is_a_one_line_error():
     """A worker process killed after the shards were set up: the next step fails with a
     SearchError naming the shard (first before the scheduler knows, then after), not Dask's

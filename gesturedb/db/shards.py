@@ -307,7 +307,10 @@ class ShardedSearch:
             f1 = int((seg_start[a:b] + seg_len[a:b]).max())
             self.frame_ranges.append((f0, f1))
             w = [workers[i % len(workers)]] if workers else None
-            args = [client.scatter(x, workers=w) for x in
+            # keys of their own (hash=False): two shards' segment arrays are often equal, and a
+            # key made from the content made the second shard's copy the first's, which the
+            # first shard's release could take away
+            args = [client.scatter(x, workers=w, hash=False) for x in
                     (pose[f0:f1], audio[f0:f1], seg_start[a:b] - f0, seg_len[a:b])]
             self.shards.append(client.submit(_make_shard, *args, projection, workers=w, pure=False))
             placed.append(w)
