@@ -156,31 +156,56 @@ def test_shards_with_equal_segment_arrays_keep_their_own_data():
                 sh.close()
 
 
-def test_a_lost_worker_is_a_one_line_error():
-    """A worker process killed after the shards were set up: the next step fails with a
-    SearchError naming the shard (first before the scheduler knows, then after), not Dask's
-    error from inside an actor call."""
+def test_a_lost_worker_gives_its_shards_to_the_others():
+    """A worker process killed between steps (its nanny starts a new one at another address): the
+    next step sets its shard up again on the workers there are and the search goes on, exactly
+    as one process searches; the shard is no longer on the dead worker."""
     import os
     import signal
-    import time
 
     from distributed import Client
 
     from gesturedb.db.cluster import local_cluster
-    from gesturedb.errors import SearchError
 
     rng = np.random.default_rng(32)
     P, A, st, ln = continuous_db(rng, Dp=24, n_segments=40)
     q = rng.standard_normal((24, A.shape[1])).astype(np.float32)
+    ref = search.rank_sum_search(P, A, st, ln, q, P[5])
     with local_cluster(2, memory_limit=0) as cluster, Client(cluster) as client:
         sh = ShardedSearch(P, A, st, ln, client=client, parts=2)
-        assert_same_search(sh.search(q, P[5]), search.rank_sum_search(P, A, st, ln, q, P[5]))
-        who = client.who_has(sh.shards[1])[sh.shards[1].key][0]
-        os.kill(client.run(os.getpid, workers=[who])[who], signal.SIGKILL)
-        for pause in (0.0, 2.0):
-            time.sleep(pause)
-            with pytest.raises(SearchError, match=r"^shard 2 of 2: its Dask worker was lost during the search"):
-                sh.search(q, P[5])
+        assert_same_search(sh.search(q, P[5]), ref)
+        dead = client.who_has(sh.shards[1])[sh.shards[1].key][0]
+        os.kill(client.run(os.getpid, workers=[dead])[dead], signal.SIGKILL)
+        assert_same_search(sh.search(q, P[5]), ref)
+        where = client.who_has(sh.shards)
+        assert dead not in {w for f in sh.shards for w in where[f.key]}
+        assert_same_search(sh.search_batch([q, q[4:]], np.stack([P[5], P[8]]))[1],
+                           search.rank_sum_search(P, A, st, ln, q[4:], P[8]))
+
+
+def test_no_worker_left_is_a_one_line_error():
+    """Every worker gone: a SearchError naming the shard, not Dask's error from an actor call."""
+    import time
+
+    import distributed
+
+    from gesturedb.errors import SearchError
+
+    rng = np.random.default_rng(34)
+    P, A, st, ln = continuous_db(rng, Dp=24, n_segments=20)
+    q = rng.standard_normal((16, A.shape[1])).astype(np.float32)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        sh = ShardedSearch(P, A, st, ln, client=client, parts=2)
+        sh.search(q, P[1])
+        cluster.scale(0)
+        for _ in range(300):
+            if not client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.workers)):
+                break
+            time.sleep(0.1)
+        with pytest.raises(SearchError, match=r"^shard [12] of 2: its Dask worker was lost during the search .*"
+                                              r"no other worker could take the shard"):
+            sh.search(q, P[1])
 
 
 @pytest.mark.parametrize("parts", [2, 3])

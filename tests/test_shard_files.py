@@ -101,6 +101,36 @@ def test_synth_on_the_index_writes_the_same_bvh(db_copy, scott_dir, tmp_path):
     assert a.read_bytes() == b.read_bytes()
 
 
+def test_a_lost_worker_reads_its_shard_file_again_elsewhere(db_copy, scott_dir):
+    """The worker holding a shard file's rows killed during a synthesis over an index: a live
+    worker reads that file again (the client sends no rows) and the synthesis is the one of a
+    single process."""
+    import os
+    import signal
+
+    import distributed
+
+    from gesturedb.db.cluster import local_cluster
+    from gesturedb.synth import Searcher
+
+    rep = shard_database(db_copy, 2)
+    speech = scott_dir / "inputs/2_scott_0_2_2.wav"
+    with gesturedb.open(db_copy) as one, gesturedb.open(rep.index) as idx, \
+            local_cluster(2, memory_limit=0) as cluster, distributed.Client(cluster) as client:
+        want = Searcher(one).synthesize(speech, smooth=False)
+        s = Searcher(idx, client=client)
+        np.testing.assert_array_equal(s.synthesize(speech, smooth=False).positions, want.positions)
+        f = s._sharded.shards[0]
+        dead = client.who_has(f)[f.key][0]
+        os.kill(client.run(os.getpid, workers=[dead])[dead], signal.SIGKILL)
+        with distributed.get_task_stream(client) as stream:
+            got = s.synthesize(speech, smooth=False)
+        np.testing.assert_array_equal(got.positions, want.positions)
+        loads = [t for t in stream.data if t["key"].startswith("_load_shard")]
+        assert len(loads) == 1 and loads[0]["worker"] != dead, stream.data
+        assert not [t for t in stream.data if t["key"].startswith("_make_shard")]
+
+
 def test_workers_read_their_own_shard_files(db_copy, scott_dir, dask_client, monkeypatch):
     from gesturedb.db.shards import ShardedSearch
     from gesturedb.synth import Searcher

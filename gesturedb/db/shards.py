@@ -262,7 +262,8 @@ class ShardedSearch:
     ----------
     pose, audio, seg_start, seg_len
         The whole database, as for :func:`gesturedb.search.rank_sum_search`
-        (read once here to cut the shards; each shard then lives on one worker).
+        (cut here into shards, each sent to one worker; kept by reference, not
+        copied, to send a shard again should its worker be lost).
     client : distributed.Client
     parts : int >= 1
         Number of shards: contiguous runs of segments of about equal frame counts.
@@ -300,21 +301,14 @@ class ShardedSearch:
         cuts = [0] + [int(np.searchsorted(cum, cum[-1] * i / parts, side="left")) + 1 for i in range(1, parts)] + [M]
         cuts = np.maximum.accumulate(np.minimum(cuts, M))
         self.seg_ranges = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
-        workers = sorted(client.scheduler_info()["workers"])
-        self.frame_ranges, self.shards, placed = [], [], []
-        for i, (a, b) in enumerate(self.seg_ranges):
+        self.frame_ranges, self._recipes = [], []
+        for a, b in self.seg_ranges:
             f0 = int(seg_start[a:b].min())
             f1 = int((seg_start[a:b] + seg_len[a:b]).max())
             self.frame_ranges.append((f0, f1))
-            w = [workers[i % len(workers)]] if workers else None
-            # keys of their own (hash=False): two shards' segment arrays are often equal, and a
-            # key made from the content made the second shard's copy the first's, which the
-            # first shard's release could take away
-            args = [client.scatter(x, workers=w, hash=False) for x in
-                    (pose[f0:f1], audio[f0:f1], seg_start[a:b] - f0, seg_len[a:b])]
-            self.shards.append(client.submit(_make_shard, *args, projection, workers=w, pure=False))
-            placed.append(w)
-        self._start_actors(placed)
+            # the caller's arrays, not copies: sliced (and sent) again if the shard's worker is lost
+            self._recipes.append(("arrays", (pose, audio, f0, f1, seg_start[a:b] - f0, seg_len[a:b], projection)))
+        self._place_all()
 
     @classmethod
     def from_shard_files(cls, entries, seg_start, seg_len, *, n_frames: int, Dp: int, Da: int, client,
@@ -353,8 +347,7 @@ class ShardedSearch:
         self.F, self.Dp, self.Da = int(n_frames), int(Dp), int(Da)
         self.seg_start, self.seg_len = seg_start, seg_len
         self._set_options(threads, top_rows)
-        workers = sorted(client.scheduler_info()["workers"])
-        self.seg_ranges, self.frame_ranges, self.shards, placed = [], [], [], []
+        self.seg_ranges, self.frame_ranges, self._recipes = [], [], []
         for i, e in enumerate(entries):
             a, b = (int(v) for v in np.searchsorted(owner, [i, i + 1], side="left"))
             if b == a:
@@ -362,46 +355,104 @@ class ShardedSearch:
             f0 = int(e["frames"][0])
             self.seg_ranges.append((a, b))
             self.frame_ranges.append((f0, int(e["frames"][1])))
-            w = [workers[len(self.shards) % len(workers)]] if workers else None
-            self.shards.append(client.submit(_load_shard, e["file"], schema.shard_expected(entries, i),
-                                             int(e["frames"][1]) - f0, self.Dp, self.Da,
-                                             seg_start[a:b] - f0, seg_len[a:b], projection, workers=w, pure=False))
-            placed.append(w)
-        self._start_actors(placed)
+            self._recipes.append(("file", (e["file"], schema.shard_expected(entries, i), int(e["frames"][1]) - f0,
+                                           self.Dp, self.Da, seg_start[a:b] - f0, seg_len[a:b], projection)))
+        self._place_all()
         return self
 
-    def _start_actors(self, placed) -> None:
-        # each on its shard's worker (``placed``: the shards' worker restrictions), holding the
-        # shard (no copy); resolved at the first step, so that a shard's own error (a stale
-        # file, say) is raised there, as by a task
-        self._actor_futures = [self.client.submit(_ShardActor, sh, actor=True, pure=False, workers=w)
-                               for sh, w in zip(self.shards, placed)]
+    def _place_all(self) -> None:
+        """Every shard on a worker, in turn by address (as many shards per worker as it takes)."""
+        workers = sorted(self.client.scheduler_info()["workers"])
+        n = len(self._recipes)
+        self.shards, self._actor_futures, self._workers = [None] * n, [None] * n, [None] * n
+        for j in range(n):
+            self._place(j, workers[j % len(workers)] if workers else None)
+
+    def _place(self, j: int, worker) -> None:
+        """Set shard ``j`` up on ``worker`` (an address; None: where Dask likes) from its recipe,
+        and its actor beside it, holding the shard without a copy. Both are resolved at the
+        first call, so that a shard's own error (a stale file, say) is raised there."""
+        w = None if worker is None else [worker]
+        kind, args = self._recipes[j]
+        if kind == "arrays":
+            pose, audio, f0, f1, st, ln, projection = args
+            # keys of their own (hash=False): two shards' segment arrays are often equal, and a
+            # key made from the content made the second shard's copy the first's, which the
+            # first shard's release could take away
+            fn, args = _make_shard, [self.client.scatter(x, workers=w, hash=False)
+                                     for x in (pose[f0:f1], audio[f0:f1], st, ln)]
+            args.append(projection)
+        else:
+            fn = _load_shard
+        self.shards[j] = self.client.submit(fn, *args, workers=w, pure=False)
+        self._actor_futures[j] = self.client.submit(_ShardActor, self.shards[j], actor=True, pure=False, workers=w)
+        self._workers[j] = worker
         self._actors = None
+
+    def _wait(self, j: int, f):
+        """The result of call ``f`` to shard ``j``. OSError when the worker did not answer, or has
+        left the cluster: asked every second while waiting, since a call to a lost actor whose
+        shard Dask cannot set up again (no worker left) would wait for it forever."""
+        while True:
+            try:
+                return f.result(timeout=1.0)
+            except TimeoutError:
+                if self._workers[j] is not None and self._workers[j] not in self._live_workers():
+                    raise OSError(f"worker {self._workers[j]} left the cluster") from None
+
+    def _live_workers(self) -> set:
+        return set(self.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.workers)))
+
+    def _replace_lost(self, j: int, timeout: float = 30.0) -> bool:
+        """After a call to shard ``j`` failed for want of its worker: once the scheduler has
+        dropped that worker, set every shard it held up again on the workers left (the one
+        with the fewest shards first). False if the worker is still listed after ``timeout``
+        seconds or none is left."""
+        import time
+
+        deadline = time.monotonic() + timeout
+        alive = self._live_workers()
+        while self._workers[j] in alive:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.1)
+            alive = self._live_workers()
+        if not alive:
+            return False
+        for i, w in enumerate(self._workers):
+            if w is not None and w not in alive:
+                load = {a: sum(x == a for x in self._workers) for a in alive}
+                self._place(i, min(sorted(alive), key=load.__getitem__))
+        return True
 
     def _on_shards(self, calls: list) -> list:
         """Run ``calls``, (shard index, method of :class:`_ShardActor`, args) each, on the shards'
         actors at once; their results in order.
 
-        A worker lost since the shards were set up (its machine restarted, say) took its shard
-        and actor with it; the calls then fail with a one-line error naming the shard, not
-        Dask's. (The shards are pinned to their workers, so Dask would not set them up again
-        elsewhere: a new search, or synthesis, places them on the workers there are.)
+        A worker lost since the shards were set up (its machine restarted, say) took its shards
+        and actors with it. They are then set up again on the workers left (a shard file read
+        again there, or the shard's frames sent again from this process) and the calls run
+        once more; if that cannot be done, or fails too, a one-line error names the shard.
         """
-        if self._actors is None:
-            self._actors = [f.result() for f in self._actor_futures]
-        futs, out = [], []
-        j = 0
-        try:
-            for j, name, args in calls:
-                futs.append(getattr(self._actors[j], name)(*args))  # raises once Dask knows the worker is gone
-            for (j, _, _), f in zip(calls, futs):
-                out.append(f.result())  # OSError: the worker did not answer
-            return out
-        except (RuntimeError, OSError) as exc:
-            if isinstance(exc, RuntimeError) and self._actor_futures[j].status == "finished":
-                raise  # the method's own error
-            raise SearchError(f"shard {j + 1} of {len(self.shards)}: its Dask worker was lost during the search "
-                              f"({exc}); search again to place the shards on the workers there are") from exc
+        for attempt in (0, 1):
+            if self._actors is None:
+                self._actors = [f.result() for f in self._actor_futures]
+            futs, out = [], []
+            j = 0
+            try:
+                for j, name, args in calls:
+                    futs.append(getattr(self._actors[j], name)(*args))  # raises once Dask knows the worker is gone
+                for (j, _, _), f in zip(calls, futs):
+                    out.append(self._wait(j, f))
+                return out
+            except (RuntimeError, OSError) as exc:
+                if isinstance(exc, RuntimeError) and self._actor_futures[j].status == "finished":
+                    raise  # the method's own error
+                if attempt == 0 and self._replace_lost(j):
+                    continue
+                raise SearchError(f"shard {j + 1} of {len(self.shards)}: its Dask worker was lost during the search "
+                                  f"({exc}), and no other worker could take the shard") from exc
+        raise AssertionError("unreachable")
 
     @classmethod
     def for_database(cls, db, seg_start, seg_len, *, client, parts: int = 2, **kw) -> "ShardedSearch":
@@ -573,4 +624,4 @@ class ShardedSearch:
     def close(self) -> None:
         """Release the shards on the workers."""
         self.client.cancel(self._actor_futures + self.shards)
-        self.shards, self._actor_futures, self._actors = [], [], None
+        self.shards, self._actor_futures, self._workers, self._actors = [], [], [], None
