@@ -401,6 +401,7 @@ class ShardedSearch:
                     raise OSError(f"worker {self._workers[j]} left the cluster") from None
 
     def _live_workers(self) -> set:
+        """The scheduler's workers now (the client's own view lags behind by seconds)."""
         return set(self.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.workers)))
 
     def _replace_lost(self, j: int, timeout: float = 30.0) -> bool:
