@@ -20,9 +20,11 @@ forwarder. Prints, in one run:
     A and B at 1 Gbit/s and 100 Mbit/s; A and B through the forwarder at round trips of 0,
     1 and 5 ms; with the extra time each adds over both on A;
   - a 24 s search (45 steps) on the first two sets and the forwarder at 1 ms, and a check
-    that every set chooses the windows one process does.
+    that every set chooses the windows one process does;
+  - a batch of --batch queries x 8 steps (the refiner's self-search) on both shards on A, and on
+    A and B unlimited, at 1 Gbit/s and at 100 Mbit/s, with the bytes it moved over the link.
 
-Usage:  sudo python benchmarks/bench_network.py [--frames 2500000] [--reps 21] [--count 40]
+Usage:  sudo python benchmarks/bench_network.py [--frames 2500000] [--reps 21] [--count 40] [--batch 256]
 """
 from __future__ import annotations
 
@@ -134,6 +136,7 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=2_500_000)
     ap.add_argument("--reps", type=int, default=21)
     ap.add_argument("--count", type=int, default=40, help="steps counted on the link")
+    ap.add_argument("--batch", type=int, default=256, help="queries of the batch")
     args = ap.parse_args(argv)
     if os.geteuid() != 0:
         sys.exit("bench_network: needs root (a network namespace and a veth pair)")
@@ -258,6 +261,27 @@ def main(argv=None):
             print(f"  {name + (', RTT 1 ms' if rtt else ''):<22s} {1e3 * dt:7.1f} ms; same windows as one process: "
                   f"{bool((res.frames == whole.frames).all())}; steps not settled by the lists: {sh.unsettled}")
         delay.value = 0.0
+
+        # a batch (the refiner's self-search: each query a segment's own audio, that segment
+        # excluded): every query's lists cross the link at every step
+        B = args.batch
+        idx = np.linspace(0, M - 1, B).astype(int)
+        queries = [audio[st[i]:st[i] + 64] for i in idx]
+        init = pose[rng.integers(0, pose.shape[0], B)]
+        ex = np.zeros((B, M), bool)
+        ex[np.arange(B), idx] = True
+        local = search.rank_sum_search_batch(pose, audio, st, ln, queries, init, step=N, exclude=ex, pose_proj=proj)
+        print(f"\na batch of {B} queries x 8 steps:")
+        for name, rate in (("one host", None), ("two hosts", None), ("two hosts", "1gbit"), ("two hosts", "100mbit")):
+            _tc(veth_a, ns, rate)
+            c0, t = _counters(veth_a), time.perf_counter()
+            got = shs[name].search_batch(queries, init, step=N, exclude=ex)
+            dt, moved = time.perf_counter() - t, _counters(veth_a) - c0
+            same = all((a.frames == b.frames).all() for a, b in zip(got, local))
+            link = "" if name == "one host" else (f"; over the link {moved[1] / 1e6:.2f} MB to B, {moved[0] / 1e6:.2f} MB "
+                                                  f"from B ({moved[0] / (8 * B) / 1e3:.1f} kB per query and step)")
+            print(f"  {name + (f', {rate}' if rate else ''):<22s} {dt:6.2f} s{link}; same as one process: {same}")
+        _tc(veth_a, ns, None)
         for sh in shs.values():
             sh.close()
     finally:
