@@ -7,15 +7,16 @@ every row, but the winner can be settled from short lists: a segment outside
 the first L rows by pose distance has ``rp >= L``, one outside the first L by
 audio distance ``ra >= L``, so any segment with ``R < L`` is in both lists, and
 the global first L by either distance are among the shards' own first L. Each
-shard therefore sends only its first L rows by each distance (and the next
-pose of the segments in both of its lists); the client merges them, and when
+shard therefore sends only its first L rows by each distance, each with the
+distance it is ranked by, and the start and next pose of the few rows that can
+be the choice (see :func:`_top_lists`); the client merges them, and when
 the k-th best of the segments in both global lists has ``R < L`` that is
 exactly the step's choice. Otherwise (rare: L grows with the square root of
 the segment count, see :func:`top_rows`) the step falls back to the shards'
 whole tables, ranked by :func:`gesturedb.tables.rank_table`. Every step
 chooses exactly what :func:`gesturedb.search.rank_sum_search` chooses on the
 whole database (same instruction set). Per settled step the network carries
-the previous pose and the query window out and about 2 L rows of 28 bytes plus
+the previous pose and the query window out and L rows of 8 bytes, L of 12 and
 a few pose rows back, in one round trip, instead of M rows of 20 bytes and a
 second round trip for the next pose.
 """
@@ -115,23 +116,38 @@ def _first(keys: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
 
 
 def _top_lists(s, dp, da, top: int):
-    """A table's first ``top`` rows by each distance.
+    """A table's first ``top`` rows by each distance, as a shard sends them.
 
-    Returns (K, rows, s, dp, da, both): K the segments with a candidate;
-    ``rows`` (ascending segment indices) the union of both lists with their
-    table values; ``both`` the rows in both lists (ascending).
+    Returns (K, pose_rows, pose_dist, audio_rows, audio_dist, keep, keep_start): K the
+    segments with a candidate; each list's rows (int32, in rank order) with only the
+    distance it is ranked by; ``keep`` (int32, ascending) the rows that can be the step's
+    choice, with their starts. A segment chosen from the lists has a rank sum R below
+    ``top`` over all shards, so also over its own shard's rows (a rank there counts fewer
+    rows): ``keep`` is the rows in both lists with a local rank sum below ``top``, or every
+    row when the shard has at most ``top`` (the client then ranks them all). 8 + 12 bytes a
+    list row where whole table rows were 28, and starts and next poses for a few rows
+    instead of every row in both lists.
     """
     valid = np.flatnonzero(s >= 0)
     by_pose = _first(_order_keys(dp), valid, top)
     by_audio = _first(_order_keys(da), valid, top)
-    rows = np.union1d(by_pose, by_audio)
-    return valid.size, rows, s[rows], dp[rows], da[rows], np.intersect1d(by_pose, by_audio)
+    if valid.size <= top:
+        keep = valid
+    else:
+        rp = np.full(s.shape[0], top, np.int64)
+        rp[by_pose] = np.arange(by_pose.size)
+        ra = np.full(s.shape[0], top, np.int64)
+        ra[by_audio] = np.arange(by_audio.size)
+        keep = np.intersect1d(by_pose, by_audio)
+        keep = keep[rp[keep] + ra[keep] < top]
+    return (valid.size, by_pose.astype(np.int32), dp[by_pose], by_audio.astype(np.int32), da[by_audio],
+            keep.astype(np.int32), s[keep].astype(np.int32))
 
 
 def _shard_top_batch(shard, prevs, wins, preselect, allowed_row, exclude, threads, top):
     """On the worker: for each query of one step (previous poses (Q, Dp), windows
-    (Q, n, Da)), :func:`_top_lists` of the shard's table and the pose each row in
-    both lists would continue from, (len(both), Dp). The tables come from one
+    (Q, n, Da)), :func:`_top_lists` of the shard's table and the pose each of its kept
+    rows would continue from, (len(keep), Dp). The tables come from one
     blocked kernel call of the shard's kept :class:`gesturedb.tables.PreselectBatch`."""
     if prevs.shape[0] == 1:  # one query: the single step, whose threads share its segments
         s, dp, da = (x[None] for x in _shard_table(shard, prevs[0], wins[0], preselect, allowed_row,
@@ -142,8 +158,8 @@ def _shard_top_batch(shard, prevs, wins, preselect, allowed_row, exclude, thread
     out = []
     for i in range(prevs.shape[0]):
         lists = _top_lists(s[i], dp[i], da[i], top)
-        both = lists[5]
-        out.append(lists + (shard.pose[shard.seg_start[both] + s[i, both] + wins.shape[1] - 1],))
+        keep = lists[5]
+        out.append(lists + (shard.pose[shard.seg_start[keep] + s[i, keep] + wins.shape[1] - 1],))
     return out
 
 
@@ -160,7 +176,8 @@ def top_rows(n_segments: int, k: int = 1) -> int:
 
 
 def _merge_tops(replies, seg_ranges, top: int, k: int):
-    """The step's choice from the shards' lists, or None when they do not settle it.
+    """The step's choice from the shards' lists (:func:`_top_lists` plus next poses), or None
+    when they do not settle it.
 
     Returns (m, start, pose_rank, audio_rank, K, pose_dist, audio_dist, next_pose),
     m = -1 when no segment has a candidate.
@@ -168,35 +185,38 @@ def _merge_tops(replies, seg_ranges, top: int, k: int):
     K = sum(int(r[0]) for r in replies)
     if K == 0:
         return (-1,) + (0,) * 7
-    m = np.concatenate([r[1] + a for r, (a, _) in zip(replies, seg_ranges)])  # ascending: shards in order
-    s = np.concatenate([r[2] for r in replies])
-    dp = np.concatenate([r[3] for r in replies])
+    pm = np.concatenate([r[1].astype(np.int64) + a for r, (a, _) in zip(replies, seg_ranges)])
+    dp = np.concatenate([r[2] for r in replies])
+    am = np.concatenate([r[3].astype(np.int64) + a for r, (a, _) in zip(replies, seg_ranges)])
     da = np.concatenate([r[4] for r in replies])
     if all(int(r[0]) <= top for r in replies):
         # every shard sent all its rows: rank them as they are (in segment order)
-        c, rp, ra, _ = tables.rank_table(s, dp, da, k=k)
+        op, oa = np.argsort(pm, kind="stable"), np.argsort(am, kind="stable")
+        m = pm[op]
+        c, rp, ra, _ = tables.rank_table(np.zeros(m.size, np.int64), dp[op], da[oa], k=k)
+        seg, pdist, adist = int(m[c]), float(dp[op][c]), float(da[oa][c])
     else:
         if k >= K:
             return None  # "the last" of fewer than k: needs every row's rank
         # the global first `top` by each distance are among the shards' first `top`
-        rp = np.full(m.size, -1, np.int64)
-        rp[np.lexsort((m, _order_keys(dp)))[:top]] = np.arange(top)
-        ra = np.full(m.size, -1, np.int64)
-        ra[np.lexsort((m, _order_keys(da)))[:top]] = np.arange(top)
-        both = np.flatnonzero((rp >= 0) & (ra >= 0))
+        p_order = np.lexsort((pm, _order_keys(dp)))[:top]
+        a_order = np.lexsort((am, _order_keys(da)))[:top]
+        both, ip, ia = np.intersect1d(pm[p_order], am[a_order], assume_unique=True, return_indices=True)
         if both.size < k:
             return None
-        R = rp[both] + ra[both]
-        c = int(both[np.lexsort((rp[both], R))[k - 1]])  # (R, rp) orders them; rp is unique
+        R = ip + ia
+        c = np.lexsort((ip, R))[k - 1]  # (R, rp) orders them; rp is unique
         # every segment outside both lists has R >= top
-        if R[np.searchsorted(both, c)] >= top:
+        if R[c] >= top:
             return None
-        rp, ra = int(rp[c]), int(ra[c])
-    seg = int(m[c])
+        seg, rp, ra = int(both[c]), int(ip[c]), int(ia[c])
+        pdist, adist = float(dp[p_order[ip[c]]]), float(da[a_order[ia[c]]])
     j = next(j for j, (a, b) in enumerate(seg_ranges) if a <= seg < b)
-    local = replies[j][5]
-    nxt = replies[j][6][int(np.searchsorted(local, seg - seg_ranges[j][0]))]
-    return seg, int(s[c]), int(rp), int(ra), K, float(dp[c]), float(da[c]), nxt
+    keep = replies[j][5]
+    i = int(np.searchsorted(keep, seg - seg_ranges[j][0]))
+    # its local rank sum is at most its global one: its shard kept it (see _top_lists)
+    assert i < keep.size and keep[i] == seg - seg_ranges[j][0], (seg, j)
+    return seg, int(replies[j][6][i]), rp, ra, K, pdist, adist, replies[j][7][i]
 
 
 def _shard_row(shard, f):
