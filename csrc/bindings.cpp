@@ -517,6 +517,28 @@ PYBIND11_MODULE(_core, m) {
     }, py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
        py::arg("k"), "Ranks over a pre-selection table (use gesturedb.search.rank_table).");
 
+    m.def("table_top_lists", [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t n) {
+        require_ndim(start, 2, "starts");
+        const int64_t Q = start.shape(0), M = start.shape(1);
+        auto same_shape = [&](const py::array& arr, const char* name) {
+            if (arr.ndim() != 2 || arr.shape(0) != Q || arr.shape(1) != M)
+                throw std::invalid_argument(std::string(name) + ": expected (" + std::to_string(Q) + ", " +
+                                            std::to_string(M) + "); got " + shape_str(arr));
+        };
+        same_shape(pose_dist, "pose_dist");
+        same_shape(audio_dist, "audio_dist");
+        if (n < 1) throw std::invalid_argument("n: expected >= 1; got " + std::to_string(n));
+        py::array_t<int32_t> by_pose({Q, n}), by_audio({Q, n});
+        py::array_t<int64_t> n_cand(Q);
+        {
+            py::gil_scoped_release release;
+            table_top_lists(start.data(), pose_dist.data(), audio_dist.data(), Q, M, n, by_pose.mutable_data(),
+                            by_audio.mutable_data(), n_cand.mutable_data());
+        }
+        return py::make_tuple(n_cand, by_pose, by_audio);
+    }, py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
+       py::arg("n"), "Top lists of pre-selection tables (use gesturedb.tables.top_lists).");
+
     m.def("search", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
                        const F32& query, const F32& init_pose, int64_t window, int64_t k,
                        const std::string& preselect, const std::optional<U64>& allowed,

@@ -303,6 +303,36 @@ struct Selection {
     double* da;    // its audio distance
 };
 
+// Moves the n smallest items of v (n < v.size(), unique under operator<) to
+// its front, sorted. A radix pre-selection first: the keys of every item
+// share the bits above the highest bit in which the smallest and the
+// largest key differ, so the 11 bits below it order the items as their
+// keys do; one histogram pass finds the digit of the n-th smallest, and
+// only the items up to that digit (a few times n, typically) go through
+// nth_element. hist: scratch.
+template <class T, class KeyFn>
+void select_smallest(std::vector<T>& v, int32_t n, KeyFn key, std::vector<uint32_t>& hist) {
+    uint64_t lo = ~uint64_t(0), hi = 0;
+    for (const T& x : v) {
+        const uint64_t k = key(x);
+        lo = k < lo ? k : lo;
+        hi = k > hi ? k : hi;
+    }
+    const uint64_t diff = lo ^ hi;
+    const int bits = diff ? 64 - __builtin_clzll(diff) : 0;
+    const int shift = std::max(0, bits - 11);
+    hist.assign(2048, 0);
+    for (const T& x : v) ++hist[(key(x) >> shift) & 2047];
+    uint32_t cum = 0, b = 0;
+    for (; b < 2048; ++b) {
+        cum += hist[b];
+        if (cum >= uint32_t(n)) break;
+    }
+    const auto mid = std::partition(v.begin(), v.end(), [&](const T& x) { return ((key(x) >> shift) & 2047) <= b; });
+    std::nth_element(v.begin(), v.begin() + (n - 1), mid);
+    std::sort(v.begin(), v.begin() + n);
+}
+
 // Spec steps 4-5 over a Selection.
 //
 // Only the first k segments in (R, rp) order matter, and R = rp + ra >= L for
@@ -362,8 +392,8 @@ private:
             pdp_[i] = (uint64_t(kdp_[i]) << 32) | uint32_t(i);
             pda_[i] = {kda_[i], i};
         }
-        select_smallest(pdp_, kTop, [](uint64_t x) { return x; });
-        select_smallest(pda_, kTop, [](const std::pair<uint64_t, int32_t>& x) { return x.first; });
+        select_smallest(pdp_, kTop, [](uint64_t x) { return x; }, hist_);
+        select_smallest(pda_, kTop, [](const std::pair<uint64_t, int32_t>& x) { return x.first; }, hist_);
         rp_.assign(K, -1);
         for (int32_t r = 0; r < kTop; ++r) rp_[int32_t(pdp_[r] & 0xFFFFFFFFu)] = r;
         known_.clear();
@@ -380,36 +410,6 @@ private:
         rp_out = rp;
         ra_out = int64_t(key >> 32) - rp;
         return true;
-    }
-
-    // Moves the n smallest items of v (n < v.size(), unique under operator<) to
-    // its front, sorted. A radix pre-selection first: the keys of every item
-    // share the bits above the highest bit in which the smallest and the
-    // largest key differ, so the 11 bits below it order the items as their
-    // keys do; one histogram pass finds the digit of the n-th smallest, and
-    // only the items up to that digit (a few times n, typically) go through
-    // nth_element.
-    template <class T, class KeyFn>
-    void select_smallest(std::vector<T>& v, int32_t n, KeyFn key) {
-        uint64_t lo = ~uint64_t(0), hi = 0;
-        for (const T& x : v) {
-            const uint64_t k = key(x);
-            lo = k < lo ? k : lo;
-            hi = k > hi ? k : hi;
-        }
-        const uint64_t diff = lo ^ hi;
-        const int bits = diff ? 64 - __builtin_clzll(diff) : 0;
-        const int shift = std::max(0, bits - 11);
-        hist_.assign(2048, 0);
-        for (const T& x : v) ++hist_[(key(x) >> shift) & 2047];
-        uint32_t cum = 0, b = 0;
-        for (; b < 2048; ++b) {
-            cum += hist_[b];
-            if (cum >= uint32_t(n)) break;
-        }
-        const auto mid = std::partition(v.begin(), v.end(), [&](const T& x) { return ((key(x) >> shift) & 2047) <= b; });
-        std::nth_element(v.begin(), v.begin() + (n - 1), mid);
-        std::sort(v.begin(), v.begin() + n);
     }
 
     void full(int32_t K, int64_t k, int32_t& c, int64_t& rp_out, int64_t& ra_out) {
@@ -887,6 +887,51 @@ TableRank rank_table(const int64_t* start, const float* pose_dist, const double*
         out.audio_rank = r.audio_rank;
     }
     return out;
+}
+
+void table_top_lists(const int64_t* start, const float* pose_dist, const double* audio_dist, int64_t Q,
+                     int64_t M, int64_t n, int32_t* by_pose, int32_t* by_audio, int64_t* n_cand) {
+    if (n < 1) throw std::invalid_argument("n: expected >= 1");
+    if (M > int64_t(std::numeric_limits<int32_t>::max()))
+        throw std::invalid_argument("table: expected fewer than 2^31 rows");
+    // (key, row) pairs are unique and order as the ranker orders rows: ties by row index
+    std::vector<uint64_t> p;
+    std::vector<std::pair<uint64_t, int32_t>> a;
+    std::vector<uint32_t> hist;
+    for (int64_t q = 0; q < Q; ++q) {
+        const int64_t* s = start + q * M;
+        const float* dp = pose_dist + q * M;
+        const double* da = audio_dist + q * M;
+        // written in place: a pair built and then pushed back went through the stack, and
+        // loading it whole after two smaller stores stalled every row (perf: 40% of the call)
+        p.resize(M);
+        a.resize(M);
+        int64_t K = 0;
+        for (int64_t m = 0; m < M; ++m) {
+            if (s[m] < 0) continue;
+            p[K] = (uint64_t(order_key(dp[m])) << 32) | uint32_t(m);
+            a[K].first = order_key(da[m]);
+            a[K].second = int32_t(m);
+            ++K;
+        }
+        p.resize(K);
+        a.resize(K);
+        const int64_t take = std::min(n, K);
+        if (take < K) {
+            select_smallest(p, int32_t(take), [](uint64_t x) { return x; }, hist);
+            select_smallest(a, int32_t(take), [](const std::pair<uint64_t, int32_t>& x) { return x.first; }, hist);
+        } else {
+            std::sort(p.begin(), p.end());
+            std::sort(a.begin(), a.end());
+        }
+        int32_t* bp = by_pose + q * n;
+        int32_t* ba = by_audio + q * n;
+        for (int64_t r = 0; r < n; ++r) {
+            bp[r] = r < take ? int32_t(p[r] & 0xFFFFFFFFu) : -1;
+            ba[r] = r < take ? a[r].second : -1;
+        }
+        n_cand[q] = K;
+    }
 }
 
 void StepEngine::preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt,

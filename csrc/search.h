@@ -142,6 +142,13 @@ struct TableRank {
 TableRank rank_table(const int64_t* start, const float* pose_dist, const double* audio_dist, int64_t M,
                      int64_t k);
 
+// The first n rows of each of Q tables of M rows (row-major, start -1: no
+// candidate) by pose distance and by audio distance, in the order the ranker
+// ranks them (order key, then row): a shard's top lists. by_pose, by_audio:
+// (Q, n), -1 past a table's candidates; n_cand: (Q,) rows with a candidate.
+void table_top_lists(const int64_t* start, const float* pose_dist, const double* audio_dist, int64_t Q,
+                     int64_t M, int64_t n, int32_t* by_pose, int32_t* by_audio, int64_t* n_cand);
+
 // A whole search of query (T, Da) from init_pose (Dp,), steps at t = 0, N, 2N...
 // Returns -1 on success, else the index of the step that found no candidate
 // (entries from that step on are left unwritten).

@@ -12,6 +12,8 @@ global segment order, are exactly the ranks of one database holding them all
   shard keeps on its worker).
 - :func:`preselect_table_batch`: one such call without keeping anything.
 - :func:`rank_table`: the kernel's ranker over a table.
+- :func:`top_lists`: the first rows of tables by each distance, as the ranker
+  orders them (what a shard sends instead of its table).
 
 Arguments are validated here with the same messages as :mod:`gesturedb.search`.
 """
@@ -35,7 +37,7 @@ from gesturedb.search import (
     _threads,
 )
 
-__all__ = ["preselect_table", "PreselectBatch", "preselect_table_batch", "rank_table"]
+__all__ = ["preselect_table", "PreselectBatch", "preselect_table_batch", "rank_table", "top_lists"]
 
 METHODS = ("auto", "blocked", "per_query")
 
@@ -172,3 +174,38 @@ def rank_table(starts, pose_dist, audio_dist, *, k=1):
     # the kernel's own ranker (radix sort, top-list shortcut): the same ranks as a step
     m, rp, ra, K = _core().rank_table(s, dp, da, k)
     return None if m < 0 else (int(m), int(rp), int(ra), int(K))
+
+
+def top_lists(starts, pose_dist, audio_dist, n):
+    """The first ``n`` rows of each table by pose distance and by audio distance.
+
+    Rows are ordered as the ranker ranks them: by distance (-0 equal to +0, every
+    NaN last and equal to the others), ties by row index; rows without a
+    candidate (start -1) are left out. Position ``r`` of a list is that row's
+    rank within its table. A shard sends these lists instead of its table.
+
+    Parameters
+    ----------
+    starts, pose_dist, audio_dist : ndarray [shape=(M,) or (Q, M)]
+        Tables as returned by :func:`preselect_table` (one) or
+        :meth:`PreselectBatch.tables` (Q), int64 / float32 / float64.
+    n : int >= 1
+        List length.
+
+    Returns
+    -------
+    n_candidates : ndarray [shape=() or (Q,)], int64
+        Rows with a candidate.
+    by_pose, by_audio : ndarray [shape=(n,) or (Q, n)], int32
+        Row indices, first first; -1 past ``n_candidates``.
+    """
+    n = _positive_int(n, "n")
+    s = np.ascontiguousarray(starts, dtype=np.int64)
+    dp = np.ascontiguousarray(pose_dist, dtype=np.float32)
+    da = np.ascontiguousarray(audio_dist, dtype=np.float64)
+    if s.ndim not in (1, 2) or dp.shape != s.shape or da.shape != s.shape:
+        raise ParameterError(f"top_lists: expected three (M,) or (Q, M) arrays; got {s.shape}, {dp.shape}, "
+                             f"{da.shape}")
+    K, bp, ba = _core().table_top_lists(s.reshape(-1, s.shape[-1]), dp.reshape(-1, s.shape[-1]),
+                                        da.reshape(-1, s.shape[-1]), n)
+    return (K[0], bp[0], ba[0]) if s.ndim == 1 else (K, bp, ba)

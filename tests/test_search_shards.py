@@ -53,6 +53,43 @@ def test_rank_table_matches_numpy_with_ties_and_gaps(M):
     assert tables.rank_table(np.full(3, -1), np.zeros(3, np.float32), np.zeros(3), k=1) is None
 
 
+@pytest.mark.parametrize("M", [1, 6, 300, 5000])
+def test_top_lists_are_the_rankers_order(M):
+    """The kernel's top lists are the first rows by (distance, row), -0 equal to +0 and NaN
+    last (numpy oracle: the keys the merge uses), rows without a candidate left out, -1
+    past them; one table or several at once."""
+    from gesturedb.db.shards import _order_keys
+
+    rng = np.random.default_rng(40 + M)
+    Q = 7
+    s = np.where(rng.random((Q, M)) < 0.8, rng.integers(1, 50, (Q, M)), -1).astype(np.int64)
+    dp = rng.integers(0, 4, (Q, M)).astype(np.float32)  # many ties
+    dp[1] = rng.random(M)
+    dp[rng.random((Q, M)) < 0.05] = -0.0
+    dp[rng.random((Q, M)) < 0.02] = np.nan
+    da = rng.integers(0, 6, (Q, M)) / 4.0
+    da[rng.random((Q, M)) < 0.02] = np.nan
+    s[2] = -1  # a table without candidates
+    for n in (1, 3, 256, M + 5):
+        K, bp, ba = tables.top_lists(s, dp, da, n)
+        assert bp.shape == ba.shape == (Q, n) and bp.dtype == np.int32
+        for q in range(Q):
+            valid = np.flatnonzero(s[q] >= 0)
+            assert K[q] == valid.size
+            for got, x in ((bp[q], dp[q]), (ba[q], da[q])):
+                want = valid[np.lexsort((valid, _order_keys(x[valid])))][:n]
+                np.testing.assert_array_equal(got[:want.size], want)
+                assert (got[want.size:] == -1).all()
+        one = tables.top_lists(s[1], dp[1], da[1], n)
+        assert one[0] == K[1]
+        np.testing.assert_array_equal(one[1], bp[1])
+        np.testing.assert_array_equal(one[2], ba[1])
+    with pytest.raises(ParameterError, match="top_lists: expected three"):
+        tables.top_lists(s, dp[:, :-1] if M > 1 else dp[:1], da, 4)
+    with pytest.raises(ParameterError, match="n"):
+        tables.top_lists(s, dp, da, 0)
+
+
 @pytest.mark.parametrize("parts", [2, 3])
 def test_sharded_search_random_data(dask_client, parts):
     rng = np.random.default_rng(12 + parts)
@@ -252,7 +289,7 @@ def _split_replies(s, dp, da, cuts, top):
 
     replies = []
     for a, b in zip(cuts[:-1], cuts[1:]):
-        lists = _top_lists(s[a:b], dp[a:b], da[a:b], top)
+        [lists] = _top_lists(s[None, a:b], dp[None, a:b], da[None, a:b], top)
         replies.append(lists + ((lists[5] + a).astype(np.float32)[:, None],))
     return replies, list(zip(cuts[:-1], cuts[1:]))
 

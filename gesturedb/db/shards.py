@@ -107,19 +107,12 @@ def _order_keys(x: np.ndarray) -> np.ndarray:
     return k
 
 
-def _first(keys: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
-    """The n rows of ``idx`` (ascending) first by (key, index), in that order."""
-    if idx.size > n:
-        kth = np.partition(keys[idx], n - 1)[n - 1]
-        idx = idx[keys[idx] <= kth]  # at least n rows: all below the n-th key, and its ties
-    return idx[np.lexsort((idx, keys[idx]))][:n]
+def _top_lists(s, dp, da, top: int) -> list:
+    """Tables' first ``top`` rows by each distance, as a shard sends them, one per table.
 
-
-def _top_lists(s, dp, da, top: int):
-    """A table's first ``top`` rows by each distance, as a shard sends them.
-
-    Returns (K, pose_rows, pose_dist, audio_rows, audio_dist, keep, keep_start): K the
-    segments with a candidate; each list's rows (int32, in rank order) with only the
+    ``s``, ``dp``, ``da``: (Q, M) tables. Each item is (K, pose_rows, pose_dist,
+    audio_rows, audio_dist, keep, keep_start): K the segments with a candidate; each
+    list's rows (int32, in rank order: :func:`gesturedb.tables.top_lists`) with only the
     distance it is ranked by; ``keep`` (int32, ascending) the rows that can be the step's
     choice, with their starts. A segment chosen from the lists has a rank sum R below
     ``top`` over all shards, so also over its own shard's rows (a rank there counts fewer
@@ -128,20 +121,18 @@ def _top_lists(s, dp, da, top: int):
     list row where whole table rows were 28, and starts and next poses for a few rows
     instead of every row in both lists.
     """
-    valid = np.flatnonzero(s >= 0)
-    by_pose = _first(_order_keys(dp), valid, top)
-    by_audio = _first(_order_keys(da), valid, top)
-    if valid.size <= top:
-        keep = valid
-    else:
-        rp = np.full(s.shape[0], top, np.int64)
-        rp[by_pose] = np.arange(by_pose.size)
-        ra = np.full(s.shape[0], top, np.int64)
-        ra[by_audio] = np.arange(by_audio.size)
-        keep = np.intersect1d(by_pose, by_audio)
-        keep = keep[rp[keep] + ra[keep] < top]
-    return (valid.size, by_pose.astype(np.int32), dp[by_pose], by_audio.astype(np.int32), da[by_audio],
-            keep.astype(np.int32), s[keep].astype(np.int32))
+    Ks, bps, bas = tables.top_lists(s, dp, da, top)
+    out = []
+    for i in range(s.shape[0]):
+        K = int(Ks[i])
+        bp, ba = bps[i, :min(K, top)], bas[i, :min(K, top)]
+        if K <= top:
+            keep = np.flatnonzero(s[i] >= 0)
+        else:
+            both, ip, ia = np.intersect1d(bp, ba, assume_unique=True, return_indices=True)
+            keep = both[ip + ia < top]  # ip, ia: the rows' local ranks
+        out.append((K, bp, dp[i, bp], ba, da[i, ba], keep.astype(np.int32), s[i, keep].astype(np.int32)))
+    return out
 
 
 def _shard_top_batch(shard, prevs, wins, preselect, allowed_row, exclude, threads, top):
@@ -155,12 +146,8 @@ def _shard_top_batch(shard, prevs, wins, preselect, allowed_row, exclude, thread
     else:
         allowed = None if allowed_row is None else _decode_row(allowed_row)
         s, dp, da = shard.batch(preselect).tables(prevs, wins, allowed=allowed, exclude=exclude, threads=threads)
-    out = []
-    for i in range(prevs.shape[0]):
-        lists = _top_lists(s[i], dp[i], da[i], top)
-        keep = lists[5]
-        out.append(lists + (shard.pose[shard.seg_start[keep] + s[i, keep] + wins.shape[1] - 1],))
-    return out
+    return [lists + (shard.pose[shard.seg_start[lists[5]] + lists[6] + wins.shape[1] - 1],)
+            for lists in _top_lists(s, dp, da, top)]
 
 
 def top_rows(n_segments: int, k: int = 1) -> int:
