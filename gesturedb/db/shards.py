@@ -122,16 +122,18 @@ def _top_lists(s, dp, da, top: int) -> list:
     instead of every row in both lists.
     """
     Ks, bps, bas = tables.top_lists(s, dp, da, top)
+    rank = np.full(s.shape[1], top, np.int64)  # a row's local pose rank; `top` outside the pose list
     out = []
     for i in range(s.shape[0]):
         K = int(Ks[i])
         bp, ba = bps[i, :min(K, top)], bas[i, :min(K, top)]
         if K <= top:
-            keep = np.flatnonzero(s[i] >= 0)
+            keep = np.flatnonzero(s[i] >= 0).astype(np.int32)
         else:
-            both, ip, ia = np.intersect1d(bp, ba, assume_unique=True, return_indices=True)
-            keep = both[ip + ia < top]  # ip, ia: the rows' local ranks
-        out.append((K, bp, dp[i, bp], ba, da[i, ba], keep.astype(np.int32), s[i, keep].astype(np.int32)))
+            rank[bp] = np.arange(bp.size)
+            keep = np.sort(ba[rank[ba] + np.arange(ba.size) < top])  # in both lists, R below `top`
+            rank[bp] = top
+        out.append((K, bp, dp[i, bp], ba, da[i, ba], keep, s[i, keep].astype(np.int32)))
     return out
 
 
