@@ -119,11 +119,10 @@ def _counters(dev: str) -> np.ndarray:
     return np.array([int((base / n).read_text()) for n in ("rx_bytes", "tx_bytes")])
 
 
-def _tc(dev: str, ns: str, rate: str | None) -> None:
+def _tc(veth_a: str, veth_b: str, ns: str, rate: str | None) -> None:
     """A token bucket of ``rate`` on both ends of the veth pair (None: none). Its burst is about 10
     Ethernet frames: with a larger one a step's reply (tens of kB) passes whole at the veth's speed."""
-    for pre in ([], ["ip", "netns", "exec", ns]):
-        d = dev if not pre else dev[:-1] + "b"
+    for pre, d in (([], veth_a), (["ip", "netns", "exec", ns], veth_b)):
         if rate is None:
             subprocess.run([*pre, "tc", "qdisc", "del", "dev", d, "root"], capture_output=True)
         else:
@@ -216,7 +215,7 @@ def main(argv=None):
             sh = shs[name]
 
             def setup():
-                _tc(veth_a, ns, rate)
+                _tc(veth_a, veth_b, ns, rate)
                 delay.value = rtt / 2
             return setup, lambda: sh.search(q, prev, step=N)
 
@@ -238,7 +237,7 @@ def main(argv=None):
                 r = step()
                 times[k].append(time.perf_counter() - t)
                 same &= (int(r.segments[0]), int(r.starts[0])) == (ref.segment, ref.start)
-        _tc(veth_a, ns, None)
+        _tc(veth_a, veth_b, ns, None)
         delay.value = 0.0
         base = float(np.median(times["both shards on host A"]))
         print(f"\none pose step, median (min) over {args.reps} interleaved repetitions:")
@@ -266,14 +265,14 @@ def main(argv=None):
         # excluded): every query's lists cross the link at every step
         B = args.batch
         idx = np.linspace(0, M - 1, B).astype(int)
-        queries = [audio[st[i]:st[i] + 64] for i in idx]
+        queries = [audio[st[i]:st[i] + ln[i]] for i in idx]
         init = pose[rng.integers(0, pose.shape[0], B)]
         ex = np.zeros((B, M), bool)
         ex[np.arange(B), idx] = True
         local = search.rank_sum_search_batch(pose, audio, st, ln, queries, init, step=N, exclude=ex, pose_proj=proj)
         print(f"\na batch of {B} queries x 8 steps:")
         for name, rate in (("one host", None), ("two hosts", None), ("two hosts", "1gbit"), ("two hosts", "100mbit")):
-            _tc(veth_a, ns, rate)
+            _tc(veth_a, veth_b, ns, rate)
             c0, t = _counters(veth_a), time.perf_counter()
             got = shs[name].search_batch(queries, init, step=N, exclude=ex)
             dt, moved = time.perf_counter() - t, _counters(veth_a) - c0
@@ -281,7 +280,7 @@ def main(argv=None):
             link = "" if name == "one host" else (f"; over the link {moved[1] / 1e6:.2f} MB to B, {moved[0] / 1e6:.2f} MB "
                                                   f"from B ({moved[0] / (8 * B) / 1e3:.1f} kB per query and step)")
             print(f"  {name + (f', {rate}' if rate else ''):<22s} {dt:6.2f} s{link}; same as one process: {same}")
-        _tc(veth_a, ns, None)
+        _tc(veth_a, veth_b, ns, None)
         for sh in shs.values():
             sh.close()
     finally:
