@@ -19,7 +19,11 @@ Prints, in one run:
     a check that it picks the same window;
 (c) the floors: the time to read the 96-wide pose matrix once at the memory
     bandwidth measured now (a streaming sum in C++ on 1 and 2 threads, and
-    numpy's sum), and the 24-wide projection once (C++, 2 threads);
+    numpy's sum), and the 24-wide projection once (C++, 2 threads); and the
+    floor of an exact step of this design, even one whose filter named every
+    segment's candidate outright: the binary16 stream, one float32 audio
+    window per segment read with the step's prefetching (and one pose row),
+    and the ranker on a table of independent distances;
 (d) the real-time factor of a 24 s synthesis at 15 fps (360 frames, 45 steps);
 (e) the batched search with every segment's audio as a query (64 frames =
     8 steps each), against a loop of single searches timed on a subset and
@@ -179,6 +183,11 @@ def main(argv=None):
         return lambda: search.rank_sum_step(pose, audio, st, ln, prev, q, preselect=pre, threads=th,
                                             pose_f16=f16, pose_proj=pj)
 
+    # one window start per segment, as a step's pre-selection picks (s = 1 .. L - N), and a
+    # pre-selection table of independent distances for the ranker
+    win_starts = st + rng.integers(1, L - N + 1, M)
+    table_dp = rng.random(M, dtype=np.float32)
+    table_da = rng.random(M)
     flat24 = proj.blocks.reshape(-1)
     flat24h = proj16.blocks.view(np.float32).reshape(-1)  # the same bytes: only the read is timed
     fns = {
@@ -195,6 +204,11 @@ def main(argv=None):
         "step pose Proj f16": step("pose", pj=proj16),
         "step pose Proj f16 1t": step("pose", 1, pj=proj16),
         "step audio": step("audio"),
+        # what every exact step must read besides the stream, once a filter has named each
+        # segment's pre-selected candidate: its audio window (and, to rank by pose, its row)
+        "floor 1 window/seg": lambda: _core.gather_sum_f32(audio, win_starts, N, 2),
+        "floor 1 pose row/seg": lambda: _core.gather_sum_f32(pose, win_starts - 1, 1, 2),
+        "rank a table": lambda: _core.rank_table(st, table_dp, table_da, 1),
     }
     res = interleaved(fns, args.reps)
     print("\n(a)+(c) one step; median (min) over %d interleaved repetitions:" % args.reps)
@@ -226,6 +240,14 @@ def main(argv=None):
           f"{step_pose / step16:.2f} (1 thread: / {res['step pose 1 thread'][0] / res['step pose Proj f16 1t'][0]:.2f}),"
           f" float32 projection step / {step_proj / step16:.2f}; step / its floor {step16 / floor16:.2f}")
     print(f"  binary16 PoseProjection step returns the same StepResult: {same_as_exact(pose_proj=proj16)}")
+    window, row, rank = (res[k][0] for k in ("floor 1 window/seg", "floor 1 pose row/seg", "rank a table"))
+    least = floor16 + window + rank
+    print(f"  floor of an exact step of this design (each segment's candidate from the binary16 stream, its "
+          f"float32 audio window, the ranker): stream {1e3 * floor16:.2f} + one audio window "
+          f"per segment {1e3 * window:.2f} + rank {1e3 * rank:.2f} = {1e3 * least:.2f} ms; with one pose row "
+          f"per segment ({1e3 * row:.2f}) {1e3 * (least + row):.2f} ms. The step is {step16 / least:.2f}x "
+          f"the first; {-(-FPS * SECONDS // N)} steps at it would be {SECONDS / (-(-FPS * SECONDS // N) * least):.0f}x "
+          f"real time (the goals: 1.5 ms, 500x)")
     print("  (a pose step reads the entry frames of every candidate, 56 of every 64 rows of the\n"
           "   pose matrix, and one audio window per segment; an audio step reads the audio matrix\n"
           "   and one pose row per segment)")

@@ -239,6 +239,44 @@ double stream_sum_f32(const float* data, int64_t n, int threads) {
     return s;
 }
 
+double gather_sum_f32(const float* data, int64_t rows, int64_t cols, const int64_t* starts, int64_t n,
+                      int64_t rows_each, int threads) {
+    if (threads <= 0) threads = default_threads();
+    for (int64_t i = 0; i < n; ++i)
+        if (starts[i] < 0 || starts[i] + rows_each > rows)
+            throw std::invalid_argument("starts: row " + std::to_string(starts[i]) + " + " +
+                                        std::to_string(rows_each) + " reaches outside the " +
+                                        std::to_string(rows) + " rows");
+    // chunks of starts handed out dynamically, each read with the step's
+    // prefetch distance (6 items ahead), as its scattered passes do
+    constexpr int64_t chunk = 512, ahead = 6;
+    const int64_t n_chunks = (n + chunk - 1) / chunk, len = rows_each * cols;
+    std::vector<double> partial(n_chunks, 0.0);
+    parallel_for(n_chunks, threads, [&](int64_t c, int) {
+        const int64_t i0 = c * chunk, i1 = std::min(n, i0 + chunk);
+        auto prefetch = [&](int64_t i) {
+            const char* p = reinterpret_cast<const char*>(data + starts[i] * cols);
+            for (int64_t b = 0; b < len * int64_t(sizeof(float)); b += 64) __builtin_prefetch(p + b);
+        };
+        for (int64_t i = i0; i < std::min(i1, i0 + ahead); ++i) prefetch(i);
+        float acc[16] = {0};
+        double s = 0.0;
+        for (int64_t i = i0; i < i1; ++i) {
+            if (i + ahead < i1) prefetch(i + ahead);
+            const float* p = data + starts[i] * cols;
+            int64_t j = 0;
+            for (; j + 16 <= len; j += 16)
+                for (int k = 0; k < 16; ++k) acc[k] += p[j + k];
+            for (; j < len; ++j) s += p[j];
+        }
+        for (int k = 0; k < 16; ++k) s += acc[k];
+        partial[c] = s;
+    });
+    double s = 0.0;
+    for (double x : partial) s += x;
+    return s;
+}
+
 float Database::proj_value(int64_t f, int64_t j) const {
     const int64_t i = kFrameBlock * j + f % kFrameBlock;
     return proj.data != nullptr ? proj(f / kFrameBlock, i) : half_to_float(proj_f16(f / kFrameBlock, i));

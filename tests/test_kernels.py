@@ -157,6 +157,18 @@ def test_stream_sum_matches_numpy():
     np.testing.assert_allclose(_core.stream_sum_f32(a, 2), a.astype(np.float64).sum(), rtol=1e-5, atol=1e-2)
 
 
+def test_gather_sum_matches_numpy_and_refuses_rows_outside():
+    rng = np.random.default_rng(9)
+    a = rng.standard_normal((3000, 14)).astype(np.float32)
+    starts = rng.integers(0, 3000 - 8, 1500).astype(np.int64)  # several chunks of 512, repeats
+    want = sum(a[s:s + 8].astype(np.float64).sum() for s in starts)
+    for threads in (1, 2):
+        np.testing.assert_allclose(_core.gather_sum_f32(a, starts, 8, threads), want, rtol=1e-5, atol=1e-2)
+    assert _core.gather_sum_f32(a, starts[:0], 8) == 0.0
+    with pytest.raises(ValueError, match="2993 \\+ 8 reaches outside the 3000 rows"):
+        _core.gather_sum_f32(a, np.array([5, 2993], np.int64), 8)
+
+
 @pytest.mark.parametrize("isa", ISAS)
 def test_env_override_selects_isa(isa):
     import os
