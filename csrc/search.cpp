@@ -207,6 +207,15 @@ void radix_order(const Key* key, int32_t K, std::vector<int32_t>& ord, std::vect
 // Below this many values per step the thread start-up costs more than it saves.
 constexpr int64_t kMinParallelWork = int64_t(1) << 17;
 
+inline void prefetch_bytes(const void* p, int64_t bytes) {
+    const char* c = static_cast<const char*>(p);
+    for (int64_t off = 0; off < bytes; off += 64) __builtin_prefetch(c + off);
+}
+
+// How many segments ahead a step's scattered passes prefetch (12 measured no
+// faster, docs/scaling.md); gather_sum_f32, their floor, uses the same.
+constexpr int64_t kScatterAhead = 6;
+
 }  // namespace
 
 // ---------------------------------------------------------------------------
@@ -248,21 +257,18 @@ double gather_sum_f32(const float* data, int64_t rows, int64_t cols, const int64
                                         std::to_string(rows_each) + " reaches outside the " +
                                         std::to_string(rows) + " rows");
     // chunks of starts handed out dynamically, each read with the step's
-    // prefetch distance (6 items ahead), as its scattered passes do
-    constexpr int64_t chunk = 512, ahead = 6;
+    // prefetch distance, as its scattered passes do
+    constexpr int64_t chunk = 512;
     const int64_t n_chunks = (n + chunk - 1) / chunk, len = rows_each * cols;
     std::vector<double> partial(n_chunks, 0.0);
     parallel_for(n_chunks, threads, [&](int64_t c, int) {
         const int64_t i0 = c * chunk, i1 = std::min(n, i0 + chunk);
-        auto prefetch = [&](int64_t i) {
-            const char* p = reinterpret_cast<const char*>(data + starts[i] * cols);
-            for (int64_t b = 0; b < len * int64_t(sizeof(float)); b += 64) __builtin_prefetch(p + b);
-        };
-        for (int64_t i = i0; i < std::min(i1, i0 + ahead); ++i) prefetch(i);
+        auto prefetch = [&](int64_t i) { prefetch_bytes(data + starts[i] * cols, len * int64_t(sizeof(float))); };
+        for (int64_t i = i0; i < std::min(i1, i0 + kScatterAhead); ++i) prefetch(i);
         float acc[16] = {0};
         double s = 0.0;
         for (int64_t i = i0; i < i1; ++i) {
-            if (i + ahead < i1) prefetch(i + ahead);
+            if (i + kScatterAhead < i1) prefetch(i + kScatterAhead);
             const float* p = data + starts[i] * cols;
             int64_t j = 0;
             for (; j + 16 <= len; j += 16)
@@ -546,11 +552,6 @@ inline void complete_other(const Kernels& kern, const Database& db, int64_t m, c
     } else {
         kern.l2sq_rows_f32(db.pose.row(g - 1), 1, db.pose.cols, qs.prev, &sel.dp[m]);
     }
-}
-
-inline void prefetch_bytes(const void* p, int64_t bytes) {
-    const char* c = static_cast<const char*>(p);
-    for (int64_t off = 0; off < bytes; off += 64) __builtin_prefetch(c + off);
 }
 
 // The rows complete_other will read for segment m: fetched ahead because the
@@ -868,24 +869,23 @@ struct StepEngine::Impl {
                 sel.s[m] = i < 0 ? -1 : i + 1;
             }
             off[m1 - m0] = int64_t(kept.size());
-            constexpr int64_t kAhead = 6;
             if (filtered) {
                 auto prefetch_kept = [&](int64_t m) {
                     for (int64_t j = off[m - m0]; j < off[m - m0 + 1]; ++j)
                         prefetch_bytes(db.pose.row(db.seg_start[m] + kept[j]), db.pose.cols * int64_t(sizeof(float)));
                 };
-                for (int64_t m = m0; m < std::min(m1, m0 + kAhead); ++m) prefetch_kept(m);
+                for (int64_t m = m0; m < std::min(m1, m0 + kScatterAhead); ++m) prefetch_kept(m);
                 for (int64_t m = m0; m < m1; ++m) {
-                    if (m + kAhead < m1) prefetch_kept(m + kAhead);
+                    if (m + kScatterAhead < m1) prefetch_kept(m + kScatterAhead);
                     if (off[m - m0] == off[m - m0 + 1]) continue;  // scanned exactly or no candidate
                     const int64_t i = argmin_kept(kern, db, m, qs, kept.data() + off[m - m0],
                                                   kept.data() + off[m - m0 + 1], sel);
                     sel.s[m] = i < 0 ? -1 : i + 1;
                 }
             }
-            for (int64_t m = m0; m < std::min(m1, m0 + kAhead); ++m) prefetch_other(db, m, qs, opt.preselect, sel);
+            for (int64_t m = m0; m < std::min(m1, m0 + kScatterAhead); ++m) prefetch_other(db, m, qs, opt.preselect, sel);
             for (int64_t m = m0; m < m1; ++m) {
-                if (m + kAhead < m1) prefetch_other(db, m + kAhead, qs, opt.preselect, sel);
+                if (m + kScatterAhead < m1) prefetch_other(db, m + kScatterAhead, qs, opt.preselect, sel);
                 if (sel.s[m] >= 0) complete_other(kern, db, m, qs, opt.preselect, sel);
             }
         });
