@@ -212,6 +212,16 @@ inline void prefetch_bytes(const void* p, int64_t bytes) {
     for (int64_t off = 0; off < bytes; off += 64) __builtin_prefetch(c + off);
 }
 
+// Adds p[0..len) to 16 independent float partial sums (so the adds stay off
+// the critical path and a loop is bound by memory) and the last len % 16 to
+// tail: the read of the benchmark's floors.
+inline void accumulate16(const float* p, int64_t len, float (&acc)[16], double& tail) {
+    int64_t i = 0;
+    for (; i + 16 <= len; i += 16)
+        for (int j = 0; j < 16; ++j) acc[j] += p[i + j];
+    for (; i < len; ++i) tail += p[i];
+}
+
 // How many segments ahead a step's scattered passes prefetch (12 measured no
 // faster, docs/scaling.md); gather_sum_f32, their floor, uses the same.
 constexpr int64_t kScatterAhead = 6;
@@ -226,8 +236,7 @@ int default_threads() {
 
 double stream_sum_f32(const float* data, int64_t n, int threads) {
     if (threads <= 0) threads = default_threads();
-    // blocks of 1 MiB handed out dynamically; 16 independent partial sums per
-    // block keep the adds off the critical path so the loop is bound by memory
+    // blocks of 1 MiB handed out dynamically, each summed by accumulate16
     constexpr int64_t block = int64_t(1) << 18;
     const int64_t n_blocks = (n + block - 1) / block;
     std::vector<double> partial(n_blocks, 0.0);
@@ -235,11 +244,8 @@ double stream_sum_f32(const float* data, int64_t n, int threads) {
         const float* p = data + b * block;
         const int64_t len = std::min(block, n - b * block);
         float acc[16] = {0};
-        int64_t i = 0;
-        for (; i + 16 <= len; i += 16)
-            for (int j = 0; j < 16; ++j) acc[j] += p[i + j];
         double s = 0.0;
-        for (; i < len; ++i) s += p[i];
+        accumulate16(p, len, acc, s);
         for (int j = 0; j < 16; ++j) s += acc[j];
         partial[b] = s;
     });
@@ -269,11 +275,7 @@ double gather_sum_f32(const float* data, int64_t rows, int64_t cols, const int64
         double s = 0.0;
         for (int64_t i = i0; i < i1; ++i) {
             if (i + kScatterAhead < i1) prefetch(i + kScatterAhead);
-            const float* p = data + starts[i] * cols;
-            int64_t j = 0;
-            for (; j + 16 <= len; j += 16)
-                for (int k = 0; k < 16; ++k) acc[k] += p[j + k];
-            for (; j < len; ++j) s += p[j];
+            accumulate16(data + starts[i] * cols, len, acc, s);
         }
         for (int k = 0; k < 16; ++k) s += acc[k];
         partial[c] = s;
