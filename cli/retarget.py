@@ -27,13 +27,25 @@ def parse_map(items) -> dict:
     return mapping
 
 
+def load_target(args):
+    """Read ``args.target_skeleton`` once (None if unset): commands call it before their long work, so a
+    broken rig fails at once rather than after a synthesis."""
+    if not getattr(args, "target_skeleton", None):
+        return None
+    if getattr(args, "_target_rig", None) is None:
+        from gesturedb.retarget import load_rig
+
+        args._target_rig = load_rig(args.target_skeleton)
+    return args._target_rig
+
+
 def apply_target(args, motion):
     """Retarget ``motion`` if ``args.target_skeleton`` is set; the report goes to stderr."""
     if not args.target_skeleton:
         return motion
-    from gesturedb.retarget import load_rig, retarget
+    from gesturedb.retarget import retarget
 
-    res = retarget(motion, load_rig(args.target_skeleton), mapping=parse_map(args.map))
+    res = retarget(motion, load_target(args), mapping=parse_map(args.map))
     print(res.report(), file=sys.stderr)
     return res.motion
 

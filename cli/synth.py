@@ -63,7 +63,7 @@ def run(args) -> int:
     import numpy as np
 
     import gesturedb
-    from gesturedb.cli.retarget import apply_target
+    from gesturedb.cli.retarget import apply_target, load_target
     from gesturedb.io import check_motion_output, write_motion
     from gesturedb.synth import Searcher
 
@@ -75,6 +75,7 @@ def run(args) -> int:
     check_outputs({"-o": args.output, "--provenance": prov, "--npz": args.npz, "--render": args.render,
                    "speech beside the .glb": speech},
                   [args.db, args.audio, args.transcript, getattr(args, "target_skeleton", None)])
+    load_target(args)  # a broken rig fails now, not after the synthesis
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
     from gesturedb.db.cluster import optional_client

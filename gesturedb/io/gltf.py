@@ -18,19 +18,35 @@ Reading (`read_gltf_rig`, `read_gltf`)
     identity local rotations, offsets in metres) from their rest world
     transforms: the project-convention global rotation of a joint is its glTF
     world rotation times the inverse of its rest world rotation.
+
+    The reader parses the container and JSON itself (pygltflib only writes) and
+    checks every field before use: a broken or hostile file gives one
+    `InputFileError` naming the file and the field (``accessors[3].count``).
+    Node cycles are errors; buffers are read only from the GLB chunk, a data:
+    URI or a regular file inside the glTF file's folder, never past byteLength;
+    frames x nodes is capped at `MAX_JOINT_FRAMES`.
 """
 from __future__ import annotations
 
+import base64
+import binascii
+import json
+import math
 import os
+import re
+import stat
+import struct
+import urllib.parse
 
 import numpy as np
 
 from gesturedb import rotations as rot
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.io.atomic import atomic_open
+from gesturedb.io.bvh import MAX_FPS, MIN_FPS
 from gesturedb.motion import Motion, Skeleton
 
-__all__ = ["read_gltf", "read_gltf_rig", "write_glb"]
+__all__ = ["MAX_JOINT_FRAMES", "read_gltf", "read_gltf_rig", "write_glb"]
 
 _FLOAT, _USHORT, _UINT = 5126, 5123, 5125
 # half-thickness of the boxes drawn along the bones, as a fraction of the bone length (and at most this many metres)
@@ -174,50 +190,312 @@ def write_glb(path, motion: Motion, *, mesh: bool = True) -> None:
 
 
 # --- reading -------------------------------------------------------------------------------------
+#
+# The reader parses the container and the JSON itself and checks every field it uses before it
+# uses it, so a hostile or broken file gives one InputFileError naming the file and the field
+# (``accessors[3].count: ...``), never an IndexError, a hang or unbounded memory:
+# - the node hierarchy must be a forest (one parent per node, no cycles); walks are iterative;
+# - a buffer is the GLB BIN chunk, a base64 data: URI, or a regular file inside the glTF file's own
+#   folder whose size is the buffer's byteLength; no more than byteLength bytes are read;
+# - every accessor's bytes must lie inside its bufferView and every bufferView inside its buffer;
+# - frames x joints of the motion is capped (MAX_JOINT_FRAMES) and forward kinematics runs in
+#   blocks of frames, so memory stays proportional to the motion returned.
 
-_COMP = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+_COMP = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
+_COMP_NAME = {5120: "BYTE", 5121: "UNSIGNED_BYTE", 5122: "SHORT", 5123: "UNSIGNED_SHORT", 5125: "UNSIGNED_INT",
+              5126: "FLOAT"}
 _NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+_GLB_MAGIC, _CHUNK_JSON, _CHUNK_BIN = b"glTF", 0x4E4F534A, 0x004E4942
+_URI_SCHEME = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*:")
+#: Frames x joints a read may produce: the rotations alone are 32 bytes each (1 GiB at this cap).
+MAX_JOINT_FRAMES = 1 << 25
+# (frame, node) transforms held at once while composing world matrices (128 bytes each)
+_FK_BLOCK = 1 << 20
+_TRS = {"translation": 3, "rotation": 4, "scale": 3}
+_MISSING = object()
 
 
-def _load(path):
-    g = _pygltflib()
+def _shown(v) -> str:
+    """A JSON value as a short one-line repr for messages."""
+    s = repr(v)
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+class _Doc:
+    """A glTF file's JSON with checked access: each getter names the field in its error."""
+
+    def __init__(self, path, root: dict, bin_chunk):
+        self.path, self.root, self.bin_chunk = path, root, bin_chunk
+        self._buffers = {}
+
+    def fail(self, where: str, problem: str):
+        raise InputFileError(self.path, f"{where}: {problem}")
+
+    def items(self, key: str) -> list:
+        """A top-level array (``nodes``, ``accessors``...); absent is empty."""
+        v = self.root.get(key, [])
+        if not isinstance(v, list):
+            self.fail(key, f"expected an array; got {_shown(v)}")
+        return v
+
+    def item(self, key: str, i: int) -> dict:
+        v = self.items(key)[i]
+        if not isinstance(v, dict):
+            self.fail(f"{key}[{i}]", f"expected an object; got {_shown(v)}")
+        return v
+
+    def integer(self, obj: dict, key: str, where: str, *, lo: int = 0, hi: int | None = None, default=_MISSING):
+        v = obj.get(key, _MISSING)
+        if v is _MISSING or v is None:
+            if default is _MISSING:
+                self.fail(f"{where}.{key}", "missing (required)")
+            return default
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo or (hi is not None and v > hi):
+            rng = f"from {lo} to {hi}" if hi is not None else f">= {lo}"
+            self.fail(f"{where}.{key}", f"expected an integer {rng}; got {_shown(v)}")
+        return v
+
+    def index(self, obj: dict, key: str, where: str, into: str, *, default=_MISSING):
+        """An index into the top-level array ``into``."""
+        n = len(self.items(into))
+        v = obj.get(key, _MISSING)
+        if (v is _MISSING or v is None) and default is not _MISSING:
+            return default
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < n:
+            want = f"an index into {into} (0 to {n - 1})" if n else f"nothing: the file has no {into}"
+            self.fail(f"{where}.{key}", f"expected {want}; got {'nothing' if v is _MISSING else _shown(v)}")
+        return v
+
+    def text(self, obj: dict, key: str, where: str, *, choices=None, default=_MISSING):
+        v = obj.get(key, _MISSING)
+        if v is _MISSING or v is None:
+            if default is _MISSING:
+                self.fail(f"{where}.{key}", "missing (required)")
+            return default
+        if not isinstance(v, str) or (choices is not None and v not in choices):
+            want = f"one of {', '.join(choices)}" if choices is not None else "a string"
+            self.fail(f"{where}.{key}", f"expected {want}; got {_shown(v)}")
+        return v
+
+    def numbers(self, obj: dict, key: str, where: str, n: int, default):
+        v = obj.get(key)
+        if v is None:
+            return np.asarray(default, float)
+        if (not isinstance(v, list) or len(v) != n
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+            self.fail(f"{where}.{key}", f"expected {n} finite numbers; got {_shown(v)}")
+        return np.asarray(v, float)
+
+    # --- buffers and accessors
+
+    def buffer(self, i: int) -> bytes:
+        """``buffers[i]``'s bytes (exactly byteLength of them), loaded once."""
+        if i not in self._buffers:
+            self._buffers[i] = self._load_buffer(i)
+        return self._buffers[i]
+
+    def _load_buffer(self, i: int) -> bytes:
+        where = f"buffers[{i}]"
+        b = self.item("buffers", i)
+        n = self.integer(b, "byteLength", where, lo=1)
+        uri = self.text(b, "uri", where, default=None)
+        if uri is None:
+            if i != 0 or self.bin_chunk is None:
+                self.fail(f"{where}.uri", "missing: only buffers[0] of a .glb with a BIN chunk may go without one")
+            if len(self.bin_chunk) < n:
+                self.fail(f"{where}.byteLength", f"expected at most the {len(self.bin_chunk)} bytes of the GLB "
+                                                 f"BIN chunk; got {n}")
+            return bytes(self.bin_chunk[:n])
+        if uri.startswith("data:"):
+            head, sep, payload = uri.partition(",")
+            if not sep or not head.endswith(";base64"):
+                self.fail(f"{where}.uri", f"expected a base64 data: URI (data:application/octet-stream;base64,...); "
+                                          f"got {_shown(uri)}")
+            try:
+                data = base64.b64decode(payload, validate=True)
+            except (binascii.Error, ValueError) as exc:
+                self.fail(f"{where}.uri", f"bad base64 in the data: URI ({exc})")
+            if len(data) != n:
+                self.fail(f"{where}.byteLength", f"expected the {len(data)} bytes the data: URI holds; got {n}")
+            return data
+        return self._external(where, uri, n)
+
+    def _external(self, where: str, uri: str, n: int) -> bytes:
+        """A buffer file beside the glTF: relative, inside its folder, regular, byteLength bytes long."""
+        if _URI_SCHEME.match(uri):
+            self.fail(f"{where}.uri", f"expected a data: URI or a path relative to the glTF file; got {_shown(uri)}")
+        rel = urllib.parse.unquote(uri)
+        if "\0" in rel or os.path.isabs(rel) or rel.startswith(("/", "\\")):
+            self.fail(f"{where}.uri", f"expected a path relative to the glTF file's folder; got {_shown(uri)}")
+        base = os.path.realpath(os.path.dirname(os.path.abspath(os.fspath(self.path))))
+        target = os.path.realpath(os.path.join(base, rel))
+        if os.path.commonpath([base, target]) != base:
+            self.fail(f"{where}.uri", f"{_shown(uri)} leads outside the glTF file's folder {base}")
+        with _open_regular(target, lambda problem: self.fail(f"{where}.uri", f"{_shown(uri)}: {problem}")) as (f, size):
+            if size != n:
+                self.fail(f"{where}.byteLength", f"expected the {size} bytes of {_shown(uri)}; got {n}")
+            data = f.read(n)
+        if len(data) != n:
+            self.fail(f"{where}.uri", f"{_shown(uri)} ended after {len(data)} of {n} bytes while being read")
+        return data
+
+    def accessor(self, i: int, used_as: str, *, types, comps, normalized_ints: bool = False) -> np.ndarray:
+        """``accessors[i]`` as float64 (count, n), checked against its bufferView and buffer.
+
+        ``used_as`` names the field that points at it (``animations[0].samplers[2].output``);
+        ``types``/``comps`` are what that use allows; ``normalized_ints``: integer components are
+        allowed when normalized (mapped to [0, 1] or [-1, 1] as glTF says).
+        """
+        where = f"accessors[{i}]"
+        acc = self.item("accessors", i)
+        comp = self.integer(acc, "componentType", where)
+        typ = self.text(acc, "type", where, choices=tuple(_NCOMP))
+        if comp not in _COMP:
+            self.fail(f"{where}.componentType", f"expected one of {', '.join(map(str, _COMP))}; got {comp}")
+        normalized = acc.get("normalized", False)
+        if not isinstance(normalized, bool):
+            self.fail(f"{where}.normalized", f"expected true or false; got {_shown(normalized)}")
+        ok_comp = comp in comps or (normalized_ints and normalized and comp != 5126 and comp != 5125)
+        if typ not in types or not ok_comp:
+            want = " or ".join(types) + " of " + " or ".join(_COMP_NAME[c] for c in comps)
+            if normalized_ints:
+                want += " (or normalized integers)"
+            self.fail(f"{used_as}", f"expected an accessor of {want}; accessors[{i}] is {typ} of "
+                                    f"{_COMP_NAME[comp]}{' normalized' if normalized else ''}")
+        count = self.integer(acc, "count", where, lo=1)
+        if acc.get("sparse") is not None:
+            self.fail(f"{where}.sparse", "sparse accessors are not supported")
+        if acc.get("bufferView") is None:
+            self.fail(f"{where}.bufferView", "missing (accessors without data, all zeros, are not supported)")
+        bvi = self.index(acc, "bufferView", where, "bufferViews")
+        off = self.integer(acc, "byteOffset", where, default=0)
+        bwhere = f"bufferViews[{bvi}]"
+        bv = self.item("bufferViews", bvi)
+        bi = self.index(bv, "buffer", bwhere, "buffers")
+        bv_off = self.integer(bv, "byteOffset", bwhere, default=0)
+        bv_len = self.integer(bv, "byteLength", bwhere, lo=1)
+        stride = self.integer(bv, "byteStride", bwhere, lo=4, hi=252, default=None)
+        dt = np.dtype(_COMP[comp])
+        n = _NCOMP[typ]
+        elem = n * dt.itemsize
+        if stride is not None and stride < elem:
+            self.fail(f"{bwhere}.byteStride", f"expected at least the {elem} bytes of one element of "
+                                              f"accessors[{i}] ({typ} of {_COMP_NAME[comp]}); got {stride}")
+        stride = stride or elem
+        need = off + stride * (count - 1) + elem
+        if need > bv_len:
+            self.fail(f"{where}.count", f"{count} elements of {elem} bytes (stride {stride}) from byteOffset {off} "
+                                        f"need {need} bytes; {bwhere}.byteLength is {bv_len}")
+        buf = self.buffer(bi)
+        if bv_off + bv_len > len(buf):
+            self.fail(f"{bwhere}.byteOffset", f"bytes {bv_off} to {bv_off + bv_len} lie past the end of "
+                                              f"buffers[{bi}] ({len(buf)} bytes)")
+        out = np.ndarray((count, n), dt, buffer=buf, offset=bv_off + off, strides=(stride, dt.itemsize))
+        out = out.astype(np.float64)
+        if normalized and dt.kind in "iu":
+            out = np.maximum(out / np.iinfo(dt).max, -1.0)
+        if not np.all(np.isfinite(out)):
+            bad = int(np.argwhere(~np.isfinite(out))[0, 0])
+            self.fail(used_as, f"accessors[{i}] element {bad} is not finite: {out[bad].tolist()}")
+        return out
+
+
+class _open_regular:
+    """Open ``path`` for reading without blocking (a FIFO must not hang) and only if it is a regular file.
+
+    ``fail(problem)`` raises the caller's error. Gives ``(file, size)``.
+    """
+
+    def __init__(self, path, fail):
+        self.path, self.fail = path, fail
+
+    def __enter__(self):
+        flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+        try:
+            fd = os.open(self.path, flags)
+        except FileNotFoundError:
+            self.fail("no such file")
+        except OSError as exc:
+            self.fail(f"cannot open it ({exc.strerror})")
+        self.f = os.fdopen(fd, "rb")
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            self.f.close()
+            kind = "a folder" if stat.S_ISDIR(st.st_mode) else "a device, pipe or socket"
+            self.fail(f"expected a regular file; got {kind}")
+        return self.f, st.st_size
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+
+def _load(path) -> _Doc:
+    """Parse a .glb (by its magic bytes) or a .gltf (JSON) into a checked document."""
+    if isinstance(path, bool) or not isinstance(path, (str, bytes, os.PathLike)):
+        raise ParameterError(f"path: expected a file path; got {type(path).__name__}")
+
+    def fail(problem):
+        raise InputFileError(path, problem)
+
+    with _open_regular(path, fail) as (f, size):
+        data = f.read(size)
+    bin_chunk = None
+    if data[:4] == _GLB_MAGIC:
+        if len(data) < 12:
+            fail(f"GLB header: expected 12 bytes; the file has {len(data)}")
+        version, length = struct.unpack_from("<II", data, 4)
+        if version != 2:
+            fail(f"GLB header version: expected 2; got {version}")
+        if length != len(data):
+            fail(f"GLB header length: says {length} bytes; the file has {len(data)}"
+                 + (" (truncated)" if length > len(data) else ""))
+        pos, k, raw = 12, 0, None
+        while pos < length:
+            if pos + 8 > length:
+                fail(f"GLB chunk {k}: its 8-byte header at byte {pos} runs past the end of the file ({length} bytes)")
+            clen, ctype = struct.unpack_from("<II", data, pos)
+            pos += 8
+            if pos + clen > length:
+                fail(f"GLB chunk {k} length: {clen} bytes from byte {pos} run past the end of the file "
+                     f"({length} bytes; truncated)")
+            if k == 0 and ctype != _CHUNK_JSON:
+                fail(f"GLB chunk 0 type: expected JSON (0x{_CHUNK_JSON:08X}); got 0x{ctype:08X}")
+            if k == 0:
+                raw = data[pos:pos + clen]
+            elif ctype == _CHUNK_BIN:
+                if k != 1:
+                    fail(f"GLB chunk {k}: a BIN chunk must be the second chunk")
+                bin_chunk = memoryview(data)[pos:pos + clen]
+            elif ctype == _CHUNK_JSON:
+                fail(f"GLB chunk {k}: a second JSON chunk")
+            pos += clen
+            k += 1
+        if raw is None:
+            fail("GLB: no JSON chunk")
+    elif os.fspath(path)[-4:].lower() in (".glb", b".glb"):
+        fail(f"GLB header: expected the magic bytes b'glTF'; got {bytes(data[:4])!r}")
+    else:
+        raw = data
     try:
-        gl = g.GLTF2().load(os.fspath(path))
-    except Exception as exc:  # pygltflib raises assorted errors on a broken file
-        raise InputFileError(path, f"not a readable glTF 2.0 file: {exc}") from None
-    if gl is None:
-        raise InputFileError(path, "not a readable glTF 2.0 file")
-    blob = gl.binary_blob()
-    buffers = []
-    for i, b in enumerate(gl.buffers):
-        if b.uri is None:
-            if blob is None:
-                raise InputFileError(path, f"buffers[{i}]: no uri and no binary chunk")
-            buffers.append(blob)
-        elif b.uri.startswith("data:"):
-            buffers.append(gl.decode_data_uri(b.uri))
-        else:
-            with open(os.path.join(os.path.dirname(os.fspath(path)), b.uri), "rb") as f:
-                buffers.append(f.read())
-    return gl, buffers
-
-
-def _accessor(gl, buffers, i) -> np.ndarray:
-    acc = gl.accessors[i]
-    n = _NCOMP[acc.type]
-    dt = np.dtype(_COMP[acc.componentType])
-    out = np.zeros((acc.count, n), dt)
-    if acc.bufferView is not None:
-        bv = gl.bufferViews[acc.bufferView]
-        start = (bv.byteOffset or 0) + (acc.byteOffset or 0)
-        stride = bv.byteStride or n * dt.itemsize
-        raw = np.frombuffer(buffers[bv.buffer], np.uint8, count=stride * (acc.count - 1) + n * dt.itemsize,
-                            offset=start)
-        idx = np.arange(acc.count)[:, None] * stride + np.arange(n * dt.itemsize)[None, :]
-        out = raw[idx].copy().view(dt).reshape(acc.count, n)
-    if acc.normalized and dt.kind in "iu":
-        out = out.astype(np.float64) / np.iinfo(dt).max
-    return out.astype(np.float64) if dt == np.float32 or acc.normalized else out
+        root = json.loads(bytes(raw).decode("utf-8-sig"))
+    except UnicodeDecodeError as exc:
+        fail(f"JSON: not UTF-8 text ({exc.reason} at byte {exc.start})")
+    except json.JSONDecodeError as exc:
+        fail(f"JSON: {exc.msg} at line {exc.lineno} column {exc.colno}")
+    except ValueError as exc:  # e.g. an integer longer than Python converts
+        fail(f"JSON: {str(exc).splitlines()[0]}")
+    except RecursionError:
+        fail("JSON: nested too deeply")
+    if not isinstance(root, dict):
+        fail(f"JSON: expected an object at the top; got {type(root).__name__}")
+    doc = _Doc(path, root, bin_chunk)
+    asset = root.get("asset")
+    if not isinstance(asset, dict):
+        doc.fail("asset", f"expected an object with version '2.0' (glTF 2.0); got {_shown(asset)}")
+    version = asset.get("version")
+    if not (isinstance(version, str) and re.fullmatch(r"2\.\d+", version)):
+        doc.fail("asset.version", f"expected '2.0' (glTF 2.0); got {_shown(version)}")
+    return doc
 
 
 def _trs_matrix(t, q_xyzw, s) -> np.ndarray:
@@ -231,63 +509,151 @@ def _trs_matrix(t, q_xyzw, s) -> np.ndarray:
     return m
 
 
-def _rest_local(node) -> np.ndarray:
-    if node.matrix is not None and len(node.matrix) == 16:
-        return np.asarray(node.matrix, float).reshape(4, 4).T  # column-major
-    return _trs_matrix(node.translation or [0, 0, 0], node.rotation or [0, 0, 0, 1], node.scale or [1, 1, 1])
+class _Rig:
+    """The node forest and the first skin, checked: joints parents-first and rest world matrices.
 
+    Attributes
+    ----------
+    order : list of int
+        Skin joints (node indices), parents first.
+    joint_parent : dict
+        Node index -> nearest ancestor that is a joint (None for the root joint).
+    parent : list of int
+        Parent node of every node (-1 for roots).
+    needed : list of int
+        The joints and every node above them, parents first: what forward kinematics walks.
+    rest_world : dict
+        Node index (of ``needed``) -> rest world matrix (4, 4).
+    """
 
-def _rig(path, gl):
-    """Skin joints parents-first, their parents, the node chain above each, and rest world matrices."""
-    if not gl.skins:
-        raise InputFileError(path, "skins: expected a skin (the rig's joints); the file has none")
-    joints = list(gl.skins[0].joints)
-    parent_node = {}
-    for i, node in enumerate(gl.nodes):
-        for c in node.children or []:
-            parent_node[c] = i
-    # rest world matrix of every node (through non-joint ancestors too: an Armature node's scale or turn)
-    world = {}
+    def __init__(self, doc: _Doc):
+        self.doc = doc
+        nodes = doc.items("nodes")
+        n = len(nodes)
+        parent = [-1] * n
+        children = []
+        for i in range(n):
+            where = f"nodes[{i}]"
+            kids = doc.item("nodes", i).get("children", [])
+            if not isinstance(kids, list):
+                doc.fail(f"{where}.children", f"expected an array of node indices; got {_shown(kids)}")
+            for k, c in enumerate(kids):
+                if isinstance(c, bool) or not isinstance(c, int) or not 0 <= c < n:
+                    doc.fail(f"{where}.children[{k}]", f"expected an index into nodes (0 to {n - 1}); got {_shown(c)}")
+                if c == i:
+                    doc.fail(f"{where}.children", f"node {i} is its own child (a cycle)")
+                if parent[c] != -1:
+                    doc.fail(f"{where}.children", f"node {c} is already a child of node {parent[c]} (a node has "
+                                                  "at most one parent)")
+                parent[c] = i
+            children.append(kids)
+        # parents-first order of the whole forest (iterative: a deep chain must not hit the recursion limit)
+        forest, seen = [], [False] * n
+        stack = [i for i in reversed(range(n)) if parent[i] == -1]
+        while stack:
+            i = stack.pop()
+            seen[i] = True
+            forest.append(i)
+            stack += reversed(children[i])
+        if len(forest) != n:
+            # one parent per node: what no root reaches lies on a cycle (or under one); show it
+            i = seen.index(False)
+            chain, on = [], set()
+            while i not in on:
+                on.add(i)
+                chain.append(i)
+                i = parent[i]
+            loop = chain[chain.index(i):][::-1]  # parent to child
+            loop.append(loop[0])
+            doc.fail(f"nodes[{loop[0]}].children", "the node hierarchy has a cycle: nodes "
+                                                     + " -> ".join(map(str, loop[:12])) + (" ..." if len(loop) > 12 else ""))
+        self.parent = parent
 
-    def world_of(i):
-        if i not in world:
-            p = parent_node.get(i)
-            loc = _rest_local(gl.nodes[i])
-            world[i] = loc if p is None else world_of(p) @ loc
-        return world[i]
+        skins = doc.items("skins")
+        if not skins:
+            doc.fail("skins", "expected a skin (the rig's joints); the file has none")
+        skin = doc.item("skins", 0)
+        joints = skin.get("joints")
+        if not isinstance(joints, list) or not joints:
+            doc.fail("skins[0].joints", f"expected a non-empty array of node indices; got {_shown(joints)}")
+        for k, j in enumerate(joints):
+            if isinstance(j, bool) or not isinstance(j, int) or not 0 <= j < n:
+                doc.fail(f"skins[0].joints[{k}]", f"expected an index into nodes (0 to {n - 1}); got {_shown(j)}")
+        jset = set(joints)
+        if len(jset) != len(joints):
+            doc.fail("skins[0].joints", "expected each node once; some repeat")
+        jp = {}
+        for i in forest:  # parents first: the nearest joint above i is known before i
+            p = parent[i]
+            jp[i] = None if p == -1 else (p if p in jset else jp[p])
+        self.joint_parent = jp
+        roots = [i for i in joints if jp[i] is None]
+        if len(roots) != 1:
+            names = ", ".join(self.name(i) for i in roots[:8]) + (", ..." if len(roots) > 8 else "")
+            doc.fail("skins[0]", f"expected one root joint; got {len(roots)} ({names})")
+        # a single root joint: every other joint's chain of joint parents ends there, so one hierarchy
+        pos_in_skin = {j: k for k, j in enumerate(joints)}
+        if joints[0] == roots[0] and all(pos_in_skin[jp[i]] < pos_in_skin[i] for i in joints[1:]):
+            self.order = list(joints)  # already parents-first (our own files): keep the skin's joint order
+        else:
+            self.order = [i for i in forest if i in jset]  # depth-first from the root, children in file order
+        mark = [False] * n
+        for j in joints:
+            while j != -1 and not mark[j]:
+                mark[j] = True
+                j = parent[j]
+        self.needed = [i for i in forest if mark[i]]
+        names = [self.name(i) for i in self.order]
+        if len(set(names)) != len(names):
+            dup = sorted({x for x in names if names.count(x) > 1})
+            doc.fail("skins[0].joints", f"expected joints with unique names (nodes[i].name); repeated: "
+                                        f"{_shown(', '.join(dup))}")
+        self.rest_world = {}
+        for i in self.needed:
+            loc = self.rest_local(i)
+            p = parent[i]
+            w = loc if p == -1 else self.rest_world[p] @ loc
+            if not np.all(np.isfinite(w)):
+                doc.fail(f"nodes[{i}]", "its rest transform, composed with the nodes above it, is not finite")
+            self.rest_world[i] = w
 
-    jset = set(joints)
+    def name(self, i: int) -> str:
+        v = self.doc.item("nodes", i).get("name")
+        if v is not None and not isinstance(v, str):
+            self.doc.fail(f"nodes[{i}].name", f"expected a string; got {_shown(v)}")
+        return v or f"joint{i}"
 
-    def joint_parent(i):
-        p = parent_node.get(i)
-        while p is not None and p not in jset:
-            p = parent_node.get(p)
-        return p
+    def trs(self, i: int):
+        """Node ``i``'s rest (translation, rotation x,y,z,w, scale), or its (4, 4) matrix if it has one."""
+        doc, where = self.doc, f"nodes[{i}]"
+        node = doc.item("nodes", i)
+        if node.get("matrix") is not None:
+            return doc.numbers(node, "matrix", where, 16, None).reshape(4, 4).T  # column-major
+        t = doc.numbers(node, "translation", where, 3, [0.0, 0.0, 0.0])
+        q = doc.numbers(node, "rotation", where, 4, [0.0, 0.0, 0.0, 1.0])
+        s = doc.numbers(node, "scale", where, 3, [1.0, 1.0, 1.0])
+        if not np.linalg.norm(q) > 1e-6:
+            doc.fail(f"{where}.rotation", f"expected a unit quaternion; got {_shown(q.tolist())}")
+        return t, q, s
 
-    def depth(i):
-        d, p = 0, parent_node.get(i)
-        while p is not None:
-            d, p = d + 1, parent_node.get(p)
-        return d
+    def rest_local(self, i: int) -> np.ndarray:
+        trs = self.trs(i)
+        return trs if isinstance(trs, np.ndarray) else _trs_matrix(*trs)
 
-    roots = [i for i in joints if joint_parent(i) is None]
-    if len(roots) != 1:
-        raise InputFileError(path, f"skins[0]: expected one root joint; got {len(roots)} "
-                                   f"({', '.join(gl.nodes[i].name or str(i) for i in roots)})")
-    # parents first: depth-first order from the root, children in file order
-    order, stack = [], [roots[0]]
-    while stack:
-        i = stack.pop()
-        order.append(i)
-        stack += [c for c in reversed(gl.nodes[i].children or []) if c in jset]
-    if len(order) != len(joints):
-        raise InputFileError(path, "skins[0]: its joints are not one connected hierarchy")
-    pos_in_skin = {n: k for k, n in enumerate(joints)}
-    if joints[0] == roots[0] and all(pos_in_skin[joint_parent(i)] < pos_in_skin[i] for i in joints[1:]):
-        order = joints  # already parents-first (our own files): keep the skin's joint order
-    for i in order:
-        world_of(i)
-    return order, joint_parent, world, parent_node
+    def skeleton(self):
+        """The rig as a `Skeleton` (offsets from rest world positions) and the joints' rest world rotations."""
+        order = self.order
+        pos = np.array([self.rest_world[i][:3, 3] for i in order])
+        idx = {n: k for k, n in enumerate(order)}
+        parents = np.array([-1] + [idx[self.joint_parent[i]] for i in order[1:]], dtype=np.int64)
+        offsets = pos.copy()
+        offsets[1:] = pos[1:] - pos[parents[1:]]
+        try:
+            skel = Skeleton([self.name(i) for i in order], parents, offsets, ["ZXY"] * len(order))
+        except ParameterError as exc:
+            self.doc.fail("skins[0]", str(exc))
+        rest_rot = _polar(np.array([self.rest_world[i][:3, :3] for i in order]))
+        return skel, rest_rot
 
 
 def _polar(m3: np.ndarray) -> np.ndarray:
@@ -307,7 +673,7 @@ def read_gltf_rig(path) -> Skeleton:
     Parameters
     ----------
     path : str or os.PathLike
-        ``.glb`` or ``.gltf`` with at least one skin.
+        ``.glb`` or ``.gltf`` with at least one skin. Its buffers are not read.
 
     Returns
     -------
@@ -319,23 +685,10 @@ def read_gltf_rig(path) -> Skeleton:
     Raises
     ------
     InputFileError
-        No skin, several root joints, or an unreadable file.
+        No skin, several root joints, a node cycle, or any field out of range
+        or of the wrong kind (the message names it, as ``nodes[4].children``).
     """
-    gl, _ = _load(path)
-    return _rig_skeleton(path, gl)[0]
-
-
-def _rig_skeleton(path, gl):
-    order, joint_parent, world, _ = _rig(path, gl)
-    pos = np.array([world[i][:3, 3] for i in order])
-    idx = {n: k for k, n in enumerate(order)}
-    parents = np.array([-1] + [idx[joint_parent(i)] for i in order[1:]], dtype=np.int64)
-    offsets = pos.copy()
-    offsets[1:] = pos[1:] - pos[parents[1:]]
-    names = [gl.nodes[i].name or f"joint{i}" for i in order]
-    skel = Skeleton(names, parents, offsets, ["ZXY"] * len(order))
-    rest_rot = _polar(np.array([world[i][:3, :3] for i in order]))
-    return skel, order, rest_rot
+    return _Rig(_load(path)).skeleton()[0]
 
 
 def read_gltf(path, *, animation: int = 0) -> Motion:
@@ -350,72 +703,148 @@ def read_gltf(path, *, animation: int = 0) -> Motion:
     Returns
     -------
     Motion
-        On `read_gltf_rig`'s skeleton, at the frame rate of the first channel's
-        key times (which must be evenly spaced); other channels are
-        interpolated at those times (linear; quaternions normalised).
+        On `read_gltf_rig`'s skeleton, at the frame rate of the key times of
+        the first channel that moves the rig (which must be evenly spaced);
+        other channels are resampled at those times (LINEAR and CUBICSPLINE
+        linearly through their values, STEP held; quaternions normalised).
 
     Raises
     ------
     InputFileError
-        No skin, no such animation, uneven key times.
+        No skin, no such animation, uneven or non-finite key times, an accessor
+        or buffer out of range, a buffer uri outside the file's folder, or more
+        than `MAX_JOINT_FRAMES` frames x joints. The message names the field.
+    ParameterError
+        ``animation`` not an integer.
     """
-    gl, buffers = _load(path)
-    skel, order, rest_rot = _rig_skeleton(path, gl)
-    if not (0 <= animation < len(gl.animations)):
-        raise InputFileError(path, f"animations: expected animation {animation}; the file has {len(gl.animations)}")
-    anim = gl.animations[animation]
-    if not anim.channels:
-        raise InputFileError(path, f"animations[{animation}]: no channels")
-    times = _accessor(gl, buffers, anim.samplers[anim.channels[0].sampler].input)[:, 0]
-    if times.size < 1:
-        raise InputFileError(path, f"animations[{animation}]: no key times")
+    if isinstance(animation, bool) or not isinstance(animation, (int, np.integer)):
+        raise ParameterError(f"animation: expected an integer index; got {_shown(animation)}")
+    doc = _load(path)
+    rig = _Rig(doc)
+    skel, rest_rot = rig.skeleton()
+    n_anim = len(doc.items("animations"))
+    if not 0 <= animation < n_anim:
+        doc.fail("animations", f"expected animation {animation}; the file has {n_anim}")
+    aw = f"animations[{animation}]"
+    anim = doc.item("animations", animation)
+    channels, samplers = anim.get("channels"), anim.get("samplers")
+    if not isinstance(channels, list) or not channels:
+        doc.fail(f"{aw}.channels", f"expected a non-empty array; got {_shown(channels)}")
+    if not isinstance(samplers, list) or not samplers:
+        doc.fail(f"{aw}.samplers", f"expected a non-empty array; got {_shown(samplers)}")
+    needed = set(rig.needed)
+    used = []  # (channel where, node, path, sampler index) of the channels that move the rig
+    for c, ch in enumerate(channels):
+        cw = f"{aw}.channels[{c}]"
+        if not isinstance(ch, dict):
+            doc.fail(cw, f"expected an object; got {_shown(ch)}")
+        target = ch.get("target")
+        if not isinstance(target, dict):
+            doc.fail(f"{cw}.target", f"expected an object; got {_shown(target)}")
+        s = ch.get("sampler")
+        if isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < len(samplers):
+            doc.fail(f"{cw}.sampler", f"expected an index into {aw}.samplers (0 to {len(samplers) - 1}); "
+                                      f"got {_shown(s)}")
+        tpath = doc.text(target, "path", f"{cw}.target")
+        node = doc.index(target, "node", f"{cw}.target", "nodes", default=None)
+        if node is not None and node in needed and tpath in _TRS:  # weights, extensions' paths: not ours
+            used.append((cw, node, tpath, s))
+    if not used:
+        doc.fail(f"{aw}.channels", "no channel moves the skin's joints or the nodes above them")
+
+    def keys(s):
+        sw = f"{aw}.samplers[{s}]"
+        smp = samplers[s]
+        if not isinstance(smp, dict):
+            doc.fail(sw, f"expected an object; got {_shown(smp)}")
+        i = doc.index(smp, "input", sw, "accessors")
+        t = doc.accessor(i, f"{sw}.input", types=("SCALAR",), comps=(5126,))[:, 0]
+        if t.size > 1 and not np.all(np.diff(t) > 0):
+            k = int(np.flatnonzero(~(np.diff(t) > 0))[0])
+            doc.fail(f"{sw}.input", f"expected increasing key times; accessors[{i}] goes from {t[k]:.9g} to "
+                                    f"{t[k + 1]:.9g} s at key {k + 1}")
+        return sw, smp, t
+
+    _, _, times = keys(used[0][3])
     if times.size > 1:
         dt = np.diff(times)
-        if dt.min() <= 0 or (dt.max() - dt.min()) > 1e-3 * dt.mean():
-            raise InputFileError(path, f"animations[{animation}] key times: expected evenly spaced frames; got "
-                                       f"steps from {dt.min():.6g} to {dt.max():.6g} s")
+        if (dt.max() - dt.min()) > 1e-3 * dt.mean():
+            doc.fail(f"{aw} key times", f"expected evenly spaced frames; got steps from {dt.min():.6g} to "
+                                        f"{dt.max():.6g} s")
         fps = 1.0 / float(dt.mean())
         if abs(fps - round(fps)) < 1e-4 * fps:  # float32 key times: 30.0000013 is 30
             fps = float(round(fps))
+        if not MIN_FPS <= fps <= MAX_FPS:
+            doc.fail(f"{aw} key times", f"expected {MIN_FPS:g} to {MAX_FPS:g} frames per second; got {fps:.6g}")
     else:
         fps = 30.0
     n_f = times.size
+    if n_f * len(rig.needed) > MAX_JOINT_FRAMES:
+        doc.fail(f"{aw} key times", f"{n_f} frames x {len(rig.needed)} nodes is more than this reader's limit of "
+                                    f"{MAX_JOINT_FRAMES} frame-joints")
     anim_of = {}
-    for ch in anim.channels:
-        s = anim.samplers[ch.sampler]
-        tin = _accessor(gl, buffers, s.input)[:, 0]
-        val = _accessor(gl, buffers, s.output)
-        if s.interpolation == "CUBICSPLINE":
-            val = val.reshape(len(tin), 3, -1)[:, 1]
+    for cw, node, tpath, s in used:
+        sw, smp, tin = keys(s)
+        interp = doc.text(smp, "interpolation", sw, choices=("LINEAR", "STEP", "CUBICSPLINE"), default="LINEAR")
+        o = doc.index(smp, "output", sw, "accessors")
+        rotation = tpath == "rotation"
+        val = doc.accessor(o, f"{sw}.output", types=("VEC4",) if rotation else ("VEC3",), comps=(5126,),
+                           normalized_ints=rotation)
+        per_key = 3 if interp == "CUBICSPLINE" else 1
+        if len(val) != per_key * len(tin):
+            doc.fail(f"{sw}.output", f"expected {per_key * len(tin)} values ({interp}, {len(tin)} key times); "
+                                     f"accessors[{o}].count is {len(val)}")
+        if interp == "CUBICSPLINE":
+            val = val[1::3]  # (in-tangent, value, out-tangent) per key: the values
+        if rotation and not np.all(np.linalg.norm(val, axis=1) > 1e-6):
+            doc.fail(f"{sw}.output", f"accessors[{o}] holds a zero-length rotation quaternion")
         if tin.size != n_f or not np.allclose(tin, times):
-            val = np.stack([np.interp(times, tin, val[:, k]) for k in range(val.shape[1])], axis=1)
-        if ch.target.path == "rotation":
-            val = val / np.linalg.norm(val, axis=1, keepdims=True)
-        anim_of[(ch.target.node, ch.target.path)] = val
-
-    _, _, _, parent_node = _rig(path, gl)
-    worlds = {}
-
-    def world_of(i):
-        if i not in worlds:
-            node = gl.nodes[i]
-            if (node.matrix is not None and len(node.matrix) == 16
-                    and not any((i, p) in anim_of for p in ("translation", "rotation", "scale"))):
-                loc = np.broadcast_to(_rest_local(node), (n_f, 4, 4))
+            if interp == "STEP":
+                val = val[np.clip(np.searchsorted(tin, times, side="right") - 1, 0, len(tin) - 1)]
             else:
-                t = anim_of.get((i, "translation"), np.asarray(node.translation or [0, 0, 0], float))
-                q = anim_of.get((i, "rotation"), np.asarray(node.rotation or [0, 0, 0, 1], float))
-                s = anim_of.get((i, "scale"), np.asarray(node.scale or [1, 1, 1], float))
-                loc = _trs_matrix(np.broadcast_to(t, (n_f, 3)), np.broadcast_to(q, (n_f, 4)),
-                                  np.broadcast_to(s, (n_f, 3)))
-            p = parent_node.get(i)
-            worlds[i] = loc if p is None else world_of(p) @ loc
-        return worlds[i]
+                val = np.stack([np.interp(times, tin, val[:, k]) for k in range(val.shape[1])], axis=1)
+        if rotation:
+            norm = np.linalg.norm(val, axis=1, keepdims=True)
+            if not np.all(norm > 1e-6):  # neighbouring keys q and -q interpolate through zero
+                doc.fail(f"{sw}.output", f"accessors[{o}]: resampled rotations pass through zero (neighbouring "
+                                         "keys are opposite quaternions)")
+            val = val / norm
+        anim_of[(node, tpath)] = val
 
-    w = np.stack([world_of(i) for i in order], axis=1)  # (F, J, 4, 4)
-    g_rot = _polar(w[..., :3, :3]) @ np.swapaxes(rest_rot, -1, -2)[None]  # ours: world rot @ rest^-1
-    glob = rot.from_matrix(g_rot)
-    local = np.empty_like(glob)
-    local[:, 0] = glob[:, 0]
-    local[:, 1:] = rot.multiply(rot.inverse(glob[:, skel.parents[1:]]), glob[:, 1:])
-    return Motion(skel, fps, rot.normalize(local), w[:, 0, :3, 3])
+    # forward kinematics through every node above the joints, in blocks of frames
+    rest = {}  # node -> its rest TRS, or its fixed (4, 4) matrix
+    for i in rig.needed:
+        rest[i] = rig.trs(i)
+        if isinstance(rest[i], np.ndarray) and any((i, p) in anim_of for p in _TRS):
+            doc.fail(f"nodes[{i}].matrix", "an animated node must have translation/rotation/scale, not a matrix")
+    rotations = np.empty((n_f, len(rig.order), 4))
+    root_pos = np.empty((n_f, 3))
+    block = max(1, _FK_BLOCK // len(rig.needed))
+    inv_rest = np.swapaxes(rest_rot, -1, -2)[None]
+    for a in range(0, n_f, block):
+        b = min(n_f, a + block)
+        worlds = {}
+        for i in rig.needed:
+            if isinstance(rest[i], np.ndarray):
+                loc = rest[i]
+            else:
+                t, q, s = (anim_of[(i, p)][a:b] if (i, p) in anim_of else v[None]
+                           for p, v in zip(_TRS, rest[i]))
+                loc = _trs_matrix(t, q, s)
+            p = rig.parent[i]
+            worlds[i] = loc if p == -1 else worlds[p] @ loc
+        w = np.stack([np.broadcast_to(worlds[i], (b - a, 4, 4)) for i in rig.order], axis=1)  # (B, J, 4, 4)
+        if not np.all(np.isfinite(w)):
+            f, j = (int(x) for x in np.argwhere(~np.isfinite(w))[0, :2])
+            doc.fail(aw, f"the world transform of nodes[{rig.order[j]}] at frame {a + f} is not finite")
+        g_rot = _polar(w[..., :3, :3]) @ inv_rest  # ours: world rot @ rest^-1
+        glob = rot.from_matrix(g_rot)
+        local = np.empty_like(glob)
+        local[:, 0] = glob[:, 0]
+        local[:, 1:] = rot.multiply(rot.inverse(glob[:, skel.parents[1:]]), glob[:, 1:])
+        rotations[a:b] = rot.normalize(local)
+        root_pos[a:b] = w[:, 0, :3, 3]
+    try:
+        return Motion(skel, fps, rotations, root_pos)
+    except ParameterError as exc:
+        doc.fail(aw, str(exc))
