@@ -57,6 +57,9 @@ setup(
         "soundfile>=0.12",   # any WAV incl. 32-bit float (format tag 3)
         "soxr>=0.3",         # high-quality resampling of speech to the analysis rate
         "librosa>=0.10",     # MFCC and onset strength
+        # librosa's onset peak picking is a numba gufunc; numba 0.68.1 (llvmlite 0.50) compiles it into code
+        # that segfaults on this AVX-512 host (onset_detect on 3 s of noise, exit 139); 0.67 runs it
+        "numba>=0.59,<0.68",
         "praatio>=6.0",      # Praat TextGrid reader
         "tqdm>=4.60",        # progress bars on long builds
         "threadpoolctl>=3",  # one BLAS thread per build worker process
