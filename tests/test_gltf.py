@@ -168,7 +168,9 @@ import struct  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 
-from gesturedb.errors import GestureDBError  # noqa: E402
+import re  # noqa: E402
+
+from gesturedb.errors import ParameterError  # noqa: E402
 from gesturedb.motion import Motion, Skeleton  # noqa: E402
 
 
@@ -324,3 +326,238 @@ def test_synth_reads_the_target_rig_before_the_database(tiny, tmp_path, scott_di
     _, err = capsys.readouterr()
     assert code == 2 and err.count("\n") == 1, err
     assert f"{bad}: nodes[1].children: node 1 is its own child" in err and not out.exists()
+
+
+# case 10: a buffer uri names a data: URI or a regular file inside the glTF file's folder, byteLength long
+
+def _gltf_with_uri(tiny, folder, uri, name="x.gltf", byte_length=None):
+    doc, blob, _ = tiny
+    d = json.loads(json.dumps(doc))
+    d["buffers"][0]["uri"] = uri
+    if byte_length is not None:
+        d["buffers"][0]["byteLength"] = byte_length
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / name).write_text(json.dumps(d))
+    return folder / name
+
+
+@pytest.mark.parametrize("uri, error", [
+    ("/dev/zero", r"buffers\[0\]\.uri: expected a path relative to the glTF file's folder; got '/dev/zero'"),
+    ("../../etc/passwd", r"buffers\[0\]\.uri: '\.\./\.\./etc/passwd' leads outside the glTF file's folder"),
+    ("..%2F..%2Fetc%2Fpasswd", r"buffers\[0\]\.uri: '\.\.%2F\.\.%2Fetc%2Fpasswd' leads outside"),
+    ("file:///etc/passwd", r"buffers\[0\]\.uri: expected a data: URI or a path relative to the glTF file; "
+                           r"got 'file:///etc/passwd'"),
+    ("https://example.com/a.bin", r"buffers\[0\]\.uri: expected a data: URI or a path relative"),
+    ("missing.bin", r"buffers\[0\]\.uri: 'missing\.bin': no such file"),
+    ("", r"buffers\[0\]\.uri: '': expected a regular file; got a folder"),
+    ("sub", r"buffers\[0\]\.uri: 'sub': expected a regular file; got a folder"),
+    ("data:application/octet-stream;base64,@@@@", r"buffers\[0\]\.uri: bad base64 in the data: URI"),
+    ("data:application/octet-stream,AAAA", r"buffers\[0\]\.uri: expected a base64 data: URI"),
+    ("data:application/octet-stream;base64,AAAA", r"buffers\[0\]\.byteLength: expected the 3 bytes the data: "
+                                                  r"URI holds; got \d+"),
+])
+def test_buffer_uris_outside_the_folder_or_not_files_are_refused(tiny, tmp_path, uri, error):
+    folder = tmp_path / "a" / "b"
+    (folder / "sub").mkdir(parents=True)
+    path = _gltf_with_uri(tiny, folder, uri)
+    with pytest.raises(InputFileError, match=error) as e:
+        read_gltf(path)
+    _one_line(e, path)
+
+
+def test_buffer_files_must_be_regular_and_byte_length_long(tiny, tmp_path):
+    doc, blob, _ = tiny
+    # a link inside the folder to a device or to a file outside it: refused where it leads
+    os.symlink("/dev/zero", tmp_path / "zero.bin")
+    with pytest.raises(InputFileError, match=r"buffers\[0\]\.uri: 'zero\.bin' leads outside the glTF file's folder"):
+        read_gltf(_gltf_with_uri(tiny, tmp_path, "zero.bin"))
+    # a pipe inside the folder: refused without waiting for a writer
+    os.mkfifo(tmp_path / "pipe.bin")
+    with pytest.raises(InputFileError, match=r"buffers\[0\]\.uri: 'pipe\.bin': expected a regular file; got a "
+                                             r"device, pipe or socket"):
+        read_gltf(_gltf_with_uri(tiny, tmp_path, "pipe.bin"))
+    # a file longer or shorter than byteLength: refused, nothing read past byteLength
+    (tmp_path / "long.bin").write_bytes(bytes(blob) + b"\0" * 100)
+    with pytest.raises(InputFileError, match=rf"buffers\[0\]\.byteLength: expected the {len(blob) + 100} bytes of "
+                                             rf"'long\.bin'; got {len(blob)}"):
+        read_gltf(_gltf_with_uri(tiny, tmp_path, "long.bin"))
+    (tmp_path / "short.bin").write_bytes(bytes(blob[:-8]))
+    with pytest.raises(InputFileError, match=r"buffers\[0\]\.byteLength: expected the \d+ bytes of 'short\.bin'"):
+        read_gltf(_gltf_with_uri(tiny, tmp_path, "short.bin"))
+    # a subfolder is inside the folder: allowed
+    (tmp_path / "bins").mkdir()
+    (tmp_path / "bins" / "ok.bin").write_bytes(bytes(blob))
+    assert read_gltf(_gltf_with_uri(tiny, tmp_path, "bins/ok.bin")).n_frames == 4
+    # the rig needs no buffers: a missing .bin does not stop read_gltf_rig (load_rig, --to)
+    assert read_gltf_rig(_gltf_with_uri(tiny, tmp_path, "gone.bin")).n_joints == 3
+    # the input itself must be a regular file
+    with pytest.raises(InputFileError, match=r"pipe\.bin: expected a regular file"):
+        read_gltf(tmp_path / "pipe.bin")
+
+
+# case 12: hostile files: truncated, out-of-range indices, bad types and sizes, NaN key times
+
+def _edit_acc(doc, k, **kw):
+    doc["accessors"][k].update(kw)
+
+
+def _nan_times(doc, blob):
+    acc = doc["accessors"][_times_accessor(doc)]
+    start = doc["bufferViews"][acc["bufferView"]]["byteOffset"] + acc.get("byteOffset", 0)
+    blob[start + 4:start + 8] = struct.pack("<f", float("nan"))
+
+
+def _view_of(doc, k):
+    return doc["bufferViews"][doc["accessors"][k]["bufferView"]]
+
+
+HOSTILE = {
+    # name: (edit of (doc, blob) -> None, regex naming the field)
+    "bad_byte_offset": (lambda d, b: _view_of(d, _times_accessor(d)).update(byteOffset=10 ** 6),
+                        r"bufferViews\[\d+\]\.byteOffset: bytes 1000000 to \d+ lie past the end of buffers\[0\]"),
+    "negative_byte_offset": (lambda d, b: _edit_acc(d, _times_accessor(d), byteOffset=-4),
+                             r"accessors\[\d+\]\.byteOffset: expected an integer >= 0; got -4"),
+    "buffer_view_range": (lambda d, b: _edit_acc(d, _times_accessor(d), bufferView=99),
+                          r"accessors\[\d+\]\.bufferView: expected an index into bufferViews \(0 to \d+\); got 99"),
+    "buffer_range": (lambda d, b: _view_of(d, _times_accessor(d)).update(buffer=3),
+                     r"bufferViews\[\d+\]\.buffer: expected an index into buffers \(0 to 0\); got 3"),
+    "sampler_range": (lambda d, b: d["animations"][0]["channels"][0].update(sampler=500),
+                      r"animations\[0\]\.channels\[0\]\.sampler: expected an index into animations\[0\]\.samplers"),
+    "accessor_range": (lambda d, b: d["animations"][0]["samplers"][0].update(input=77),
+                       r"animations\[0\]\.samplers\[0\]\.input: expected an index into accessors"),
+    "joint_range": (lambda d, b: d["skins"][0]["joints"].__setitem__(1, 40),
+                    r"skins\[0\]\.joints\[1\]: expected an index into nodes \(0 to 2\); got 40"),
+    "node_range": (lambda d, b: d["animations"][0]["channels"][1]["target"].update(node=-1),
+                   r"animations\[0\]\.channels\[1\]\.target\.node: expected an index into nodes"),
+    "child_range": (lambda d, b: d["nodes"][0].update(children=[1, 9]),
+                    r"nodes\[0\]\.children\[1\]: expected an index into nodes \(0 to 2\); got 9"),
+    "component_type": (lambda d, b: _edit_acc(d, _times_accessor(d), componentType=5130),
+                       r"accessors\[\d+\]\.componentType: expected one of 5120, 5121, 5122, 5123, 5125, 5126; "
+                       r"got 5130"),
+    "wrong_type_for_times": (lambda d, b: _edit_acc(d, _times_accessor(d), type="VEC3"),
+                             r"animations\[0\]\.samplers\[0\]\.input: expected an accessor of SCALAR of FLOAT; "
+                             r"accessors\[\d+\] is VEC3 of FLOAT"),
+    "stride_past_buffer": (lambda d, b: _view_of(d, _times_accessor(d)).update(byteStride=252),
+                           r"accessors\[\d+\]\.count: 4 elements of 4 bytes \(stride 252\) from byteOffset 0 need "
+                           r"760 bytes; bufferViews\[\d+\]\.byteLength is 16"),
+    "stride_too_small": (lambda d, b: _view_of(d, d["animations"][0]["samplers"][0]["output"]).update(byteStride=8),
+                         r"bufferViews\[\d+\]\.byteStride: expected at least the 16 bytes of one element"),
+    "count_past_buffer": (lambda d, b: _edit_acc(d, _times_accessor(d), count=10 ** 12),
+                          r"accessors\[\d+\]\.count: 1000000000000 elements of 4 bytes .* need \d+ bytes"),
+    "negative_count": (lambda d, b: _edit_acc(d, _times_accessor(d), count=-3),
+                       r"accessors\[\d+\]\.count: expected an integer >= 1; got -3"),
+    "count_not_integer": (lambda d, b: _edit_acc(d, _times_accessor(d), count="4"),
+                          r"accessors\[\d+\]\.count: expected an integer >= 1; got '4'"),
+    "nan_key_times": (_nan_times, r"animations\[0\]\.samplers\[0\]\.input: accessors\[\d+\] element 1 is not "
+                                  r"finite: \[nan\]"),
+    "cubicspline_size": (lambda d, b: d["animations"][0]["samplers"][0].update(interpolation="CUBICSPLINE"),
+                         r"animations\[0\]\.samplers\[0\]\.output: expected 12 values \(CUBICSPLINE, 4 key times\); "
+                         r"accessors\[\d+\]\.count is 4"),
+    "interpolation": (lambda d, b: d["animations"][0]["samplers"][0].update(interpolation="SMOOTH"),
+                      r"animations\[0\]\.samplers\[0\]\.interpolation: expected one of LINEAR, STEP, CUBICSPLINE; "
+                      r"got 'SMOOTH'"),
+    "sparse": (lambda d, b: _edit_acc(d, _times_accessor(d), sparse={"count": 1}),
+               r"accessors\[\d+\]\.sparse: sparse accessors are not supported"),
+    "zero_rotation": (lambda d, b: d["nodes"][1].update(rotation=[0, 0, 0, 0]),
+                      r"nodes\[1\]\.rotation: expected a unit quaternion; got \[0\.0, 0\.0, 0\.0, 0\.0\]"),
+    "nan_translation": (lambda d, b: d["nodes"][2].update(translation=[0, float("nan"), 0]),
+                        r"nodes\[2\]\.translation: expected 3 finite numbers"),
+    "duplicate_names": (lambda d, b: d["nodes"][2].update(name="Spine"),
+                        r"skins\[0\]\.joints: expected joints with unique names \(nodes\[i\]\.name\); repeated: "
+                        r"'Spine'"),
+    "two_roots": (lambda d, b: d["nodes"][1].update(children=[]),
+                  r"skins\[0\]: expected one root joint; got 2 \(Hips, Head\)"),
+    "buffer_byte_length": (lambda d, b: d["buffers"][0].update(byteLength=10 ** 9),
+                           r"buffers\[0\]\.byteLength: expected at most the \d+ bytes of the GLB BIN chunk; "
+                           r"got 1000000000"),
+    "no_animation": (lambda d, b: d.pop("animations"), r"animations: expected animation 0; the file has 0"),
+    "asset_version": (lambda d, b: d["asset"].update(version="1.0"), r"asset\.version: expected '2\.0'"),
+    "nodes_not_array": (lambda d, b: d.update(nodes={"0": {}}), r"nodes: expected an array; got \{'0': \{\}\}"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(HOSTILE))
+def test_hostile_glb_gives_one_line_naming_the_field(tiny, tmp_path, name):
+    doc, blob, _ = tiny
+    edit, error = HOSTILE[name]
+    edit(doc, blob)
+    path = tmp_path / f"{name}.glb"
+    path.write_bytes(make_glb(doc, blob))
+    with pytest.raises(InputFileError, match=error) as e:
+        read_gltf(path)
+    _one_line(e, path)
+
+
+def test_truncated_and_malformed_containers(tiny, tmp_path):
+    doc, blob, _ = tiny
+    good = make_glb(doc, blob)
+    cases = {
+        "cut.glb": (good[:len(good) // 2], r"GLB header length: says \d+ bytes; the file has \d+ \(truncated\)"),
+        "cut_header.glb": (good[:9], r"GLB header: expected 12 bytes; the file has 9"),
+        "v1.glb": (good[:4] + struct.pack("<I", 1) + good[8:], r"GLB header version: expected 2; got 1"),
+        # the header's length fixed up to the cut: the chunk itself runs past the end
+        "cut_chunk.glb": (good[:4] + struct.pack("<II", 2, 40) + good[12:40],
+                          r"GLB chunk 0 length: \d+ bytes from byte 20 run past the end of the file \(40 bytes"),
+        "bin_first.glb": (good[:16] + b"BIN\0" + good[20:], r"GLB chunk 0 type: expected JSON"),
+        "not_json.glb": (good[:20] + b"X" + good[21:], r"JSON: Expecting value at line 1 column 1"),
+        "junk.gltf": (b"\xff\xfe not text", r"JSON: not UTF-8 text"),
+        "deep.gltf": (b"[" * 100_000 + b"]" * 100_000, r"JSON: nested too deeply"),
+        "list.gltf": (b"[1, 2]", r"JSON: expected an object at the top; got list"),
+        "bigint.gltf": (b'{"asset": {"version": "2.0"}, "nodes": ' + b"9" * 5000 + b"}", r"JSON: "),
+    }
+    for name, (data, error) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputFileError, match=error) as e:
+            read_gltf(tmp_path / name)
+        _one_line(e, tmp_path / name)
+
+
+def test_rotations_stored_as_normalized_shorts_and_step_keys_read(tiny, tmp_path):
+    """What the checks allow still reads: normalized SHORT rotations (as glTF permits) and STEP samplers."""
+    doc, blob, m = tiny
+    s = doc["animations"][0]["samplers"][1]
+    acc = doc["accessors"][s["output"]]
+    view = doc["bufferViews"][acc["bufferView"]]
+    q = np.frombuffer(bytes(blob), np.float32, 16, view["byteOffset"]).reshape(4, 4)
+    shorts = np.round(q * 32767).astype("<i2").tobytes()
+    start = len(blob) + (-len(blob) % 4)
+    blob += b"\0" * (start - len(blob)) + shorts
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": start, "byteLength": len(shorts)})
+    doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1, "componentType": 5122, "normalized": True,
+                             "count": 4, "type": "VEC4"})
+    s["output"] = len(doc["accessors"]) - 1
+    doc["buffers"][0]["byteLength"] = len(blob)
+    (tmp_path / "shorts.glb").write_bytes(make_glb(doc, blob))
+    np.testing.assert_allclose(read_gltf(tmp_path / "shorts.glb").positions, m.positions, atol=1e-4)
+    # without normalized: refused, naming what came
+    doc["accessors"][-1]["normalized"] = False
+    (tmp_path / "raw_shorts.glb").write_bytes(make_glb(doc, blob))
+    with pytest.raises(InputFileError, match=r"samplers\[1\]\.output: expected an accessor of VEC4 of FLOAT \(or "
+                                             r"normalized integers\); accessors\[\d+\] is VEC4 of SHORT"):
+        read_gltf(tmp_path / "raw_shorts.glb")
+
+
+def test_read_gltf_animation_argument(tiny, tmp_path):
+    doc, blob, _ = tiny
+    (tmp_path / "t.glb").write_bytes(make_glb(doc, blob))
+    with pytest.raises(ParameterError, match=r"animation: expected an integer index; got '0'"):
+        read_gltf(tmp_path / "t.glb", animation="0")
+    with pytest.raises(InputFileError, match=r"t\.glb: animations: expected animation 3; the file has 1"):
+        read_gltf(tmp_path / "t.glb", animation=3)
+
+
+def test_cli_retarget_with_hostile_glb_exits_2_with_one_line(tiny, tmp_path, capsys):
+    from gesturedb.cli.main import main
+
+    doc, blob, _ = tiny
+    _edit_acc(doc, _times_accessor(doc), count=-3)
+    bad = tmp_path / "neg.glb"
+    bad.write_bytes(make_glb(doc, blob))
+    rig = tmp_path / "mixamo.bvh"
+    rig.write_text(rigs.mixamo_rig())
+    out = tmp_path / "o.glb"
+    assert main(["retarget", str(bad), "--to", str(rig), "-o", str(out)]) == 2
+    _, err = capsys.readouterr()
+    assert err.count("\n") == 1 and not out.exists(), err
+    assert re.match(rf"gesturedb retarget: error: {re.escape(str(bad))}: accessors\[\d+\]\.count: expected an "
+                    r"integer >= 1; got -3$", err.strip()), err

@@ -417,12 +417,12 @@ class _open_regular:
             self.fail("no such file")
         except OSError as exc:
             self.fail(f"cannot open it ({exc.strerror})")
-        self.f = os.fdopen(fd, "rb")
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            self.f.close()
+            os.close(fd)
             kind = "a folder" if stat.S_ISDIR(st.st_mode) else "a device, pipe or socket"
             self.fail(f"expected a regular file; got {kind}")
+        self.f = os.fdopen(fd, "rb")
         return self.f, st.st_size
 
     def __exit__(self, *exc):
