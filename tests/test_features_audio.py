@@ -239,3 +239,159 @@ def test_own_logarithm_is_accurate_over_the_whole_range():
     ulps = np.abs(got - want) / np.spacing(np.abs(want))
     assert ulps.max() <= 2.0, (x[np.argmax(ulps)], ulps.max())
     assert _log(np.array([1.0]))[0] == 0.0 and np.isfinite(got).all()
+
+
+# --- block-wise computation (AudioFeatureStream): the same bits as one pass over the file, bounded memory --
+
+def _one_pass(y, sr, fps, n_frames, n_mfcc=13):
+    """audio_features as it was before it went block-wise: one STFT, one cumulative sum and one
+    averaging over the whole file. The oracle the block-wise path must match bit for bit."""
+    import math
+
+    import librosa
+
+    from gesturedb.features.audio import _FLOOR, _log
+
+    hop, win = round(0.010 * sr), round(0.025 * sr)
+    n_fft = 1 << (win - 1).bit_length()
+    n_fine = max(int(math.ceil(n_frames / fps * sr / hop - 1e-9)), 1)
+    total = (n_fine - 1) * hop + 1 + n_fft // 2
+    y = np.asarray(y).astype(np.float32)
+    y = y[:total] if len(y) >= total else np.concatenate([y, np.zeros(total - len(y), np.float32)])
+    fmax = min(8000.0, sr / 2.0)
+    spec = librosa.stft(y, n_fft=n_fft, hop_length=hop, win_length=win, window="hann", center=True,
+                        pad_mode="constant")
+    power = spec.real * spec.real + spec.imag * spec.imag
+    basis = librosa.filters.mel(sr=sr, n_fft=n_fft, n_mels=40, fmin=min(20.0, fmax / 2), fmax=fmax)
+    mel = np.einsum("mf,ft->mt", basis, power, optimize=False)
+    log_mel = (_log(np.maximum(mel, _FLOOR)) * (10.0 / math.log(10.0))).astype(np.float32)
+    mfcc = librosa.feature.mfcc(S=log_mel, n_mfcc=n_mfcc, dct_type=2, norm="ortho")
+    padded = np.pad(y.astype(np.float64), (n_fft // 2, n_fft // 2))
+    starts = np.arange(mfcc.shape[1], dtype=np.int64) * hop + (n_fft - win) // 2
+    csum = np.concatenate([[0.0], np.cumsum(padded * padded)])
+    log_energy = _log(np.maximum((csum[starts + win] - csum[starts]) / win, _FLOOR))
+    every = np.concatenate([mfcc.T.astype(np.float64), log_energy[:, None]], axis=1)
+    fine = every[:n_fine]
+    owner = np.floor(np.arange(len(fine), dtype=np.float64) * hop / sr * fps + 1e-9).astype(np.int64)
+    keep = owner < n_frames
+    fine, owner = fine[keep], owner[keep]
+    counts = np.bincount(owner, minlength=n_frames).astype(np.float64)
+    sums = np.stack([np.bincount(owner, weights=fine[:, c], minlength=n_frames) for c in range(n_mfcc + 1)], 1)
+    out = np.empty((n_frames, n_mfcc + 1))
+    has = counts > 0
+    out[has] = sums[has] / counts[has, None]
+    empty = np.flatnonzero(~has)
+    if len(empty):
+        nearest = np.clip(np.rint((empty + 0.5) / fps * sr / hop).astype(np.int64), 0, n_fine - 1)
+        out[empty] = every[nearest]
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def _streamed(y, sr, fps, *, chunk, block_frames, n_frames=None, known=True):
+    from gesturedb.features.audio import AudioFeatureStream
+
+    st = AudioFeatureStream(sr, fps=fps, n_frames=n_frames if known else None, block_frames=block_frames)
+    parts = [st.push(y[k:k + chunk]) for k in range(0, len(y), chunk)]
+    parts.append(st.finish(n_frames))
+    assert all(p.dtype == np.float32 and p.ndim == 2 for p in parts)
+    return np.concatenate(parts)
+
+
+def _real_wavs(scott_dir):
+    return [scott_dir / "2_scott_0_1_1.wav"] + sorted((scott_dir / "inputs").glob("*.wav"))
+
+
+def test_block_wise_equals_whole_file_on_the_real_speech(scott_dir):
+    """Every real WAV (63 s + 274 s): audio_features, computed in blocks, equals the one-pass
+    computation bit for bit, and so do streams fed in odd pieces with odd block sizes, live
+    (frame count decided at the end) or told the frame count up front."""
+    from gesturedb.io.audio import read_audio
+
+    wavs = _real_wavs(scott_dir)
+    assert len(wavs) == 5
+    for path in wavs:
+        y, sr = read_audio(path)
+        for fps in (30.0, 29.97):
+            n = n_frames_for_duration(len(y) / sr, fps)
+            whole = _one_pass(y, sr, fps, n)
+            assert audio_features(y, sr, fps=fps, n_frames=n).tobytes() == whole.tobytes(), (path.name, fps)
+        n = n_frames_for_duration(len(y) / sr, 30.0)
+        whole = _one_pass(y, sr, 30.0, n)
+        live = _streamed(y, sr, 30.0, chunk=48_017, block_frames=333, known=False)
+        assert live.tobytes() == whole.tobytes(), path.name
+    # tiny blocks and pieces (a block boundary inside nearly every motion frame), on a slice
+    y, sr = read_audio(wavs[0])
+    y = y[: 12 * sr]
+    for fps, chunk, block in ((30.0, 1, 1), (30.0, 161, 7), (250.0, 997, 3), (7.0, 4000, 2)):
+        n = n_frames_for_duration(len(y) / sr, fps)
+        got = _streamed(y, sr, fps, chunk=chunk, block_frames=block, n_frames=n) if chunk > 1 else \
+            _streamed(y[: 2 * sr], sr, fps, chunk=1, block_frames=block, n_frames=60)
+        want = _one_pass(y, sr, fps, n) if chunk > 1 else _one_pass(y[: 2 * sr], sr, fps, 60)
+        assert got.tobytes() == want.tobytes(), (fps, chunk, block)
+
+
+def test_block_wise_equals_whole_file_at_other_rates_and_lengths():
+    """Other sample rates (other hop and FFT sizes), float64 input, audio shorter than the frames
+    (silence padding) and longer (ignored), few MFCCs or all 40."""
+    y16 = _speechlike(3.3, seed=11)
+    soxr = pytest.importorskip("soxr")
+    for sr in (8000, 22050, 44100):
+        y = soxr.resample(y16, SR, sr).astype(np.float32)
+        for fps, n in ((30.0, 99), (30.0, 110), (120.0, 200), (333.3, 1100)):
+            want = _one_pass(y, sr, fps, n)
+            assert audio_features(y, sr, fps=fps, n_frames=n).tobytes() == want.tobytes(), (sr, fps, n)
+            assert _streamed(y, sr, fps, chunk=777, block_frames=5, n_frames=n).tobytes() == want.tobytes()
+    for n_mfcc in (1, 40):
+        want = _one_pass(y16.astype(np.float64), SR, 30.0, 99, n_mfcc)
+        assert audio_features(y16.astype(np.float64), SR, fps=30.0, n_frames=99, n_mfcc=n_mfcc).tobytes() \
+            == want.tobytes()
+
+
+def test_feature_memory_does_not_grow_with_the_speech():
+    """Ten minutes of speech: the features' own allocations stay near one block (about 30 MB), where
+    the one-pass computation took 10 times the samples (the STFT alone is 8 bytes x 257 bins x 100
+    frames a second: 1.2 GB for 10 min). tracemalloc sees numpy's allocations."""
+    import tracemalloc
+
+    y = np.tile(_speechlike(60.0, seed=12), 10)  # 38 MB of float32
+    n = n_frames_for_duration(len(y) / SR, 30.0)
+    audio_features(y[:SR], SR, fps=30.0, n_frames=30)  # imports and caches outside the measurement
+    tracemalloc.start()
+    try:
+        feat = audio_features(y, SR, fps=30.0, n_frames=n)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert feat.shape == (n, 14) and np.isfinite(feat).all()
+    assert peak < 60e6, f"audio_features of 10 min allocated up to {peak / 1e6:.0f} MB"
+
+
+def test_a_stream_says_what_is_wrong():
+    from gesturedb.features.audio import AudioFeatureStream
+
+    y = _speechlike(2.0, seed=13)
+    st = AudioFeatureStream(SR, fps=30.0)
+    first = st.push(y[: SR])
+    assert st.n_returned == len(first) and 28 <= len(first) <= 30
+    bad = y[SR:].copy()
+    bad[5] = np.inf
+    with pytest.raises(ParameterError, match=r"samples: expected finite values; got NaN/inf at sample 16005$"):
+        st.push(bad)
+    with pytest.raises(ParameterError, match=r"samples: expected mono audio of shape \(n_samples,\); got shape"):
+        st.push(np.zeros((10, 2), dtype=np.float32))
+    with pytest.raises(ParameterError, match=r"n_frames: expected at least the \d+ frames already returned; got 3"):
+        st.finish(3)
+    with pytest.raises(ParameterError, match=r"samples: audio lasts 1.000 s but n_frames=90 at 30 fps needs 3.000 s"):
+        st.finish(90)
+    rest = st.finish()  # n_frames_for_duration(1 s, 30) = 30
+    assert st.n_returned == 30 and len(first) + len(rest) == 30
+    with pytest.raises(ParameterError, match="AudioFeatureStream.push: the stream is finished"):
+        st.push(y)
+    with pytest.raises(ParameterError, match="AudioFeatureStream.finish: the stream is already finished"):
+        st.finish()
+    with pytest.raises(ParameterError, match=r"n_frames: expected 10 \(as the stream was made\); got 12"):
+        AudioFeatureStream(SR, fps=30.0, n_frames=10).finish(12)
+    with pytest.raises(ParameterError, match=r"block_frames: expected an int >= 1; got 0"):
+        AudioFeatureStream(SR, fps=30.0, block_frames=0)
+    with pytest.raises(ParameterError, match=r"sr: expected a positive int sample rate in Hz; got 16000.0"):
+        AudioFeatureStream(16000.0, fps=30.0)

@@ -19,6 +19,8 @@ from gesturedb.features.body import check_fps
 
 __all__ = [
     "AUDIO_HOP_S",
+    "AudioFeatureStream",
+    "FEATURE_BLOCK_FRAMES",
     "AUDIO_WINDOW_S",
     "N_MELS",
     "MAX_PAD_S",
@@ -115,6 +117,336 @@ def n_frames_for_duration(duration_s: float, fps: float) -> int:
     return int(math.floor(d * fps + 0.5 + 1e-9))
 
 
+def _check_int(name, value, lo, hi=None, what=None):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < lo \
+            or (hi is not None and value > hi):
+        raise ParameterError(f"{name}: expected {what}; got {value!r}")
+    return int(value)
+
+
+def _check_samples(y, first: int = 0) -> np.ndarray:
+    """Mono float samples, finite; ``first`` is the index of ``y[0]`` in the whole speech (for messages)."""
+    y = np.asarray(y)
+    if y.ndim != 1:
+        raise ParameterError(
+            f"samples: expected mono audio of shape (n_samples,); got shape {y.shape} "
+            "(mix down with gesturedb.io.audio)"
+        )
+    if not np.issubdtype(y.dtype, np.floating):
+        raise ParameterError(f"samples: expected float amplitudes in [-1, 1]; got dtype {y.dtype}")
+    # in slices: a whole-file isfinite mask is a byte per sample (115 MB for 2 h at 16 kHz)
+    for a in range(0, len(y), _CHECK_SLICE):
+        part = y[a:a + _CHECK_SLICE]
+        if not np.isfinite(part).all():
+            bad = a + int(np.flatnonzero(~np.isfinite(part))[0])
+            raise ParameterError(f"samples: expected finite values; got NaN/inf at sample {first + bad}")
+    return y
+
+
+_CHECK_SLICE = 1 << 20
+#: Analysis frames (10 ms each) computed per block: the STFT and mel temporaries of one block
+#: take about 30 MB, whatever the length of the speech.
+FEATURE_BLOCK_FRAMES: int = 2048
+
+
+class AudioFeatureStream:
+    """:func:`audio_features` computed block by block, as samples arrive.
+
+    Memory is bounded by the block (:data:`FEATURE_BLOCK_FRAMES` analysis frames, about
+    20 s of speech) instead of growing with the speech; the features are the same bits as
+    :func:`audio_features` gives for the whole speech (which uses this class): every
+    analysis frame depends only on the audio within 12.5 ms of its centre, and the only
+    quantity carried from block to block, the running sum of squares behind the energy
+    column, is carried exactly as the one-pass sum adds it.
+
+    Parameters
+    ----------
+    sr : int > 0
+        Sample rate of the samples pushed, Hz.
+    fps : float > 0, keyword-only
+        Motion frame rate, frames per second.
+    n_mfcc : int in [1, 40], keyword-only
+    n_frames : int >= 0 or None, keyword-only
+        Motion frames wanted, when known in advance: samples beyond ``n_frames / fps``
+        seconds are then ignored and the result equals ``audio_features(all samples,
+        n_frames=n_frames)`` exactly. ``None`` (live speech): frames are returned as soon
+        as their audio has arrived and :meth:`finish` decides the count.
+    block_frames : int >= 1, keyword-only
+        Analysis frames per block (tests use small ones; the results do not depend on it).
+
+    Examples
+    --------
+    >>> stream = AudioFeatureStream(16000, fps=30)
+    >>> rows = [stream.push(chunk) for chunk in chunks]   # (k, 14) float32 each, k >= 0
+    >>> rows.append(stream.finish())                      # the last frames, silence-padded
+    >>> features = np.concatenate(rows)
+    """
+
+    def __init__(self, sr: int, *, fps: float, n_mfcc: int = 13, n_frames: int | None = None,
+                 block_frames: int = FEATURE_BLOCK_FRAMES):
+        import librosa  # heavy import, only needed here
+
+        self.sr = _check_int("sr", sr, 1, what="a positive int sample rate in Hz")
+        self.fps = check_fps(fps)
+        self.n_mfcc = _check_int("n_mfcc", n_mfcc, 1, N_MELS, what=f"an int in [1, {N_MELS}]")
+        self.n_frames = None if n_frames is None else \
+            _check_int("n_frames", n_frames, 0, what="an int >= 0 or None")
+        self._block = _check_int("block_frames", block_frames, 1, what="an int >= 1")
+        sr = self.sr
+        self._hop = max(1, int(round(AUDIO_HOP_S * sr)))
+        self._win = max(1, int(round(AUDIO_WINDOW_S * sr)))
+        self._n_fft = 1 << (self._win - 1).bit_length()
+        self._half = self._n_fft // 2
+        fmax = min(FMAX_HZ, sr / 2.0)
+        fmin = min(FMIN_HZ, fmax / 2.0)
+        self._basis = librosa.filters.mel(sr=sr, n_fft=self._n_fft, n_mels=N_MELS, fmin=fmin, fmax=fmax)
+        # analysis frames kept: those whose centre lies before n_frames / fps
+        self._n_fine = None if self.n_frames is None else self._fine_count(self.n_frames)
+        # samples from absolute index _buf_at (negative: the zero padding before the speech, as
+        # librosa's center=True puts it), and the sum of squares of all samples before them
+        self._buf = np.zeros(self._half, dtype=np.float32)
+        self._buf_at = -self._half
+        self._csum = 0.0
+        self._j = 0  # next analysis frame to compute
+        self._rows = np.zeros((0, self.n_mfcc + 1))  # computed analysis frames from _rows_at on
+        self._own = np.zeros(0, dtype=np.int64)  # the motion frame each of them belongs to
+        self._rows_at = 0
+        self._i = 0  # next motion frame to return
+        self._pushed = 0
+        self._finished = False
+
+    # -- the analysis-frame <-> motion-frame map, the same float operations as one pass over the file
+    def _fine_count(self, n_frames: int) -> int:
+        need_s = n_frames / self.fps
+        return max(int(math.ceil(need_s * self.sr / self._hop - 1e-9)), 1)
+
+    def _owners(self, j0: int, j1: int) -> np.ndarray:
+        centres_s = np.arange(j0, j1, dtype=np.float64) * self._hop / self.sr
+        return np.floor(centres_s * self.fps + 1e-9).astype(np.int64)
+
+    def _nearest(self, i0: int, i1: int) -> np.ndarray:
+        """The analysis frame each of motion frames ``i0 .. i1 - 1`` takes if it has none of its own
+        (fps above 100): the one nearest its middle."""
+        mid_s = (np.arange(i0, i1, dtype=np.int64) + 0.5) / self.fps
+        j = np.rint(mid_s * self.sr / self._hop).astype(np.int64)
+        return np.clip(j, 0, None if self._n_fine is None else self._n_fine - 1)
+
+    # -- analysis frames
+    def _compute(self, j1: int) -> None:
+        """Analysis frames ``_j .. j1 - 1`` from the buffer, in blocks."""
+        import librosa
+
+        hop, half, win = self._hop, self._half, self._win
+        while self._j < j1:
+            j0 = self._j
+            jb = min(j1, j0 + self._block)
+            # the buffer starts at the first sample of frame j0's window (see the end of the loop)
+            seg = self._buf[:(jb - 1 - j0) * hop + self._n_fft]
+            spec = librosa.stft(seg, n_fft=self._n_fft, hop_length=hop, win_length=win, window="hann",
+                                center=False)
+            # |z|^2 as re^2 + im^2: numpy's abs of a complex number (a hypot) rounds differently with
+            # and without AVX2, elementwise products and sums do not
+            power = spec.real * spec.real + spec.imag * spec.imag
+            # librosa.feature.melspectrogram, but the projection without BLAS (optimize=False: numpy's
+            # own loop): OpenBLAS rounds it differently with other thread counts, and BLAS thread limits
+            # are per process while builds run recordings in threads (Dask) or processes; a database
+            # must not depend on how it was built (a 1-worker and a 2-worker build differed by 3e-5)
+            mel = np.einsum("mf,ft->mt", self._basis, power, optimize=False)
+            # librosa.power_to_db(mel, ref=1.0, amin=_FLOOR, top_db=None), with a logarithm that does
+            # not depend on the CPU (see _log), rounded to float32 once
+            log_mel = (_log(np.maximum(mel, _FLOOR)) * (10.0 / math.log(10.0))).astype(np.float32)
+            mfcc = librosa.feature.mfcc(S=log_mel, n_mfcc=self.n_mfcc, dct_type=2, norm="ortho")
+
+            # Rectangular 25 ms energy centred at each analysis frame, from a running sum of squares
+            # carried across blocks exactly as one cumulative sum over the file adds it
+            seg64 = seg.astype(np.float64)
+            csum = np.cumsum(np.concatenate([[self._csum], seg64 * seg64]))
+            starts = np.arange(jb - j0, dtype=np.int64) * hop + (self._n_fft - win) // 2
+            energy = (csum[starts + win] - csum[starts]) / win
+            log_energy = _log(np.maximum(energy, _FLOOR))
+
+            rows = np.concatenate([mfcc.T.astype(np.float64), log_energy[:, None]], axis=1)
+            self._rows = np.concatenate([self._rows, rows])
+            self._own = np.concatenate([self._own, self._owners(j0, jb)])
+            # the next block's first window starts (jb - j0) hops later: drop the samples before it
+            shift = (jb - j0) * hop
+            self._csum = float(csum[shift])
+            self._buf = self._buf[shift:]
+            self._buf_at += shift
+            self._j = jb
+
+    def _available(self) -> int:
+        """Analysis frames the buffer holds all the samples of (capped at the frames kept)."""
+        end = self._buf_at + len(self._buf)  # absolute index after the last sample
+        n = (end - (self._n_fft - self._half)) // self._hop + 1
+        n = max(n, self._j)
+        return n if self._n_fine is None else min(n, self._n_fine)
+
+    # -- motion frames
+    def _emit(self) -> np.ndarray:
+        """The motion frames whose analysis frames are all computed, in order."""
+        n_out = self.n_mfcc + 1
+        lo, i0 = self._rows_at, self._i
+        done = self._n_fine is not None and self._j >= self._n_fine
+        # frames before the owner of the next analysis frame have all theirs (owners never decrease)
+        i1 = self.n_frames if done else int(self._owners(self._j, self._j + 1)[0])
+        if self.n_frames is not None:
+            i1 = min(i1, self.n_frames)
+        if i1 <= i0:
+            return np.zeros((0, n_out), dtype=np.float32)
+        n = i1 - i0
+        take = np.flatnonzero((self._own >= i0) & (self._own < i1))
+        if self._n_fine is not None:
+            take = take[take < self._n_fine - lo]  # live speech: frames past the end finish() set
+        owner = self._own[take] - i0
+        counts = np.bincount(owner, minlength=n).astype(np.float64)
+        has = counts > 0
+        if not has.all():
+            # a frame without analysis frames of its own waits for the one nearest its middle
+            empty = np.flatnonzero(~has)
+            late = empty[self._nearest(i0 + empty[0], i0 + empty[-1] + 1)[empty - empty[0]] >= self._j]
+            if len(late):
+                n = int(late[0])
+                if n == 0:
+                    return np.zeros((0, n_out), dtype=np.float32)
+                i1 = i0 + n
+                keep = owner < n
+                take, owner, counts, has = take[keep], owner[keep], counts[:n], has[:n]
+        sums = np.zeros((n, n_out))
+        for c in range(n_out):
+            sums[:, c] = np.bincount(owner, weights=self._rows[take, c], minlength=n)
+        out = np.empty((n, n_out))
+        out[has] = sums[has] / counts[has, None]
+        if not has.all():
+            empty = np.flatnonzero(~has)
+            out[empty] = self._rows[self._nearest(i0, i1)[empty] - lo]
+        self._i = i1
+        # keep the rows later motion frames may still need: their own, or the one nearest them
+        later = np.flatnonzero(self._own >= i1)
+        keep = min(lo + int(later[0]) if len(later) else self._j, int(self._nearest(i1, i1 + 1)[0]))
+        if keep > lo:
+            self._rows, self._own = self._rows[keep - lo:], self._own[keep - lo:]
+            self._rows_at = keep
+        return np.ascontiguousarray(out, dtype=np.float32)
+
+    def push(self, samples) -> np.ndarray:
+        """Add the next samples; returns the motion frames they complete.
+
+        Parameters
+        ----------
+        samples : ndarray [shape=(n,)], float, amplitude in [-1, 1]
+
+        Returns
+        -------
+        ndarray [shape=(k, n_mfcc + 1)], float32
+            Motion frames ``self.n_returned - k .. self.n_returned - 1``; ``k`` may be 0.
+
+        Raises
+        ------
+        ParameterError
+            Samples that are not mono floats or not finite (the message gives the sample's
+            index in the whole speech), or a push after :meth:`finish`.
+        """
+        if self._finished:
+            raise ParameterError("AudioFeatureStream.push: the stream is finished; start a new one")
+        y = _check_samples(samples, self._pushed)
+        self._pushed += len(y)
+        if self._n_fine is not None:
+            # samples past the last kept analysis frame's window are never read
+            end = (self._n_fine - 1) * self._hop + self._n_fft - self._half
+            y = y[:max(0, end - (self._buf_at + len(self._buf)))]
+        # a block's worth of samples at a time, so a long push costs no more memory than a short one
+        step = self._block * self._hop
+        out = []
+        for a in range(0, len(y), step):
+            self._buf = np.concatenate([self._buf, y[a:a + step].astype(np.float32, copy=False)])
+            out.append(self._advance())
+        if not out:
+            out.append(self._advance())
+        return out[0] if len(out) == 1 else np.concatenate(out)
+
+    def _advance(self) -> np.ndarray:
+        """Compute the analysis frames the buffer allows, block by block; return the motion frames done."""
+        out = []
+        n = self._available()
+        while self._j < n:
+            self._compute(min(n, self._j + self._block))
+            out.append(self._emit())
+        if not out:
+            out.append(self._emit())
+        return out[0] if len(out) == 1 else np.concatenate(out)
+
+    def finish(self, n_frames: int | None = None, *, max_pad_s: float = MAX_PAD_S) -> np.ndarray:
+        """The remaining motion frames, the audio padded with silence as :func:`audio_features` pads it.
+
+        Parameters
+        ----------
+        n_frames : int >= 0 or None
+            Total motion frames; ``None``: the ``n_frames`` given to the constructor, else
+            ``n_frames_for_duration(samples pushed / sr, fps)``. Frames already returned
+            count.
+        max_pad_s : float >= 0, keyword-only
+            As in :func:`audio_features`.
+
+        Returns
+        -------
+        ndarray [shape=(n_frames - n_returned, n_mfcc + 1)], float32
+
+        Raises
+        ------
+        ParameterError
+            Fewer ``n_frames`` than already returned, a frame count other than the
+            constructor's, or audio short of ``n_frames / fps`` by ``max_pad_s`` or more.
+        """
+        if self._finished:
+            raise ParameterError("AudioFeatureStream.finish: the stream is already finished")
+        if n_frames is None:
+            n_frames = self.n_frames if self.n_frames is not None else \
+                n_frames_for_duration(self._pushed / self.sr, self.fps)
+        n_frames = _check_int("n_frames", n_frames, 0, what="an int >= 0")
+        if self.n_frames is not None and n_frames != self.n_frames:
+            raise ParameterError(f"n_frames: expected {self.n_frames} (as the stream was made); got {n_frames}")
+        if n_frames < self._i:
+            raise ParameterError(f"n_frames: expected at least the {self._i} frames already returned; "
+                                 f"got {n_frames}")
+        max_pad_s = _check_pad(max_pad_s)
+        _check_shortfall(self._pushed / self.sr, n_frames, self.fps, max_pad_s)
+        self._finished = True
+        if n_frames == self._i:
+            return np.zeros((0, self.n_mfcc + 1), dtype=np.float32)
+        self.n_frames = n_frames
+        self._n_fine = self._fine_count(n_frames)
+        end = (self._n_fine - 1) * self._hop + self._n_fft - self._half
+        short = end - (self._buf_at + len(self._buf))
+        if short > 0:
+            self._buf = np.concatenate([self._buf, np.zeros(short, dtype=np.float32)])
+        return self._advance()
+
+    @property
+    def n_returned(self) -> int:
+        """Motion frames returned so far."""
+        return self._i
+
+
+def _check_pad(max_pad_s) -> float:
+    try:
+        max_pad_s = float(max_pad_s)
+    except (TypeError, ValueError):
+        raise ParameterError(f"max_pad_s: expected seconds >= 0; got {max_pad_s!r}") from None
+    if not (math.isfinite(max_pad_s) and max_pad_s >= 0):
+        raise ParameterError(f"max_pad_s: expected seconds >= 0; got {max_pad_s!r}")
+    return max_pad_s
+
+
+def _check_shortfall(have_s: float, n_frames: int, fps: float, max_pad_s: float) -> None:
+    need_s = n_frames / fps
+    if n_frames and need_s - have_s >= max_pad_s:
+        raise ParameterError(
+            f"samples: audio lasts {have_s:.3f} s but n_frames={n_frames} at {fps:g} fps needs "
+            f"{need_s:.3f} s; only shortfalls under max_pad_s={max_pad_s:g} s are padded with silence"
+        )
+
+
 def audio_features(
     samples: np.ndarray,
     sr: int,
@@ -166,109 +498,38 @@ def audio_features(
     The log mel power has no ``top_db`` clipping: clipping relative to the loudest
     frame would make every feature depend on the whole file, so a query and the
     database recording of the same speech would differ. Every feature here
-    depends only on audio within 12.5 ms of its analysis frames.
+    depends only on audio within 12.5 ms of its analysis frames, which is what lets
+    :class:`AudioFeatureStream` compute them in blocks of bounded memory: this function
+    is one stream over the whole speech (peak memory about 30 MB beyond the samples,
+    for any duration).
     """
-    import librosa  # heavy import, only needed here
-
-    y = np.asarray(samples)
-    if y.ndim != 1:
-        raise ParameterError(
-            f"samples: expected mono audio of shape (n_samples,); got shape {y.shape} "
-            "(mix down with gesturedb.io.audio)"
-        )
-    if not np.issubdtype(y.dtype, np.floating):
-        raise ParameterError(f"samples: expected float amplitudes in [-1, 1]; got dtype {y.dtype}")
+    y = _check_samples(samples)
     if isinstance(sr, (bool, np.bool_)) or not isinstance(sr, (int, np.integer)) or sr <= 0:
         raise ParameterError(f"sr: expected a positive int sample rate in Hz; got {sr!r}")
-    sr = int(sr)
     fps = check_fps(fps)
-    if isinstance(n_frames, (bool, np.bool_)) or not isinstance(n_frames, (int, np.integer)) or n_frames < 0:
-        raise ParameterError(f"n_frames: expected an int >= 0; got {n_frames!r}")
-    n_frames = int(n_frames)
-    if isinstance(n_mfcc, (bool, np.bool_)) or not isinstance(n_mfcc, (int, np.integer)) or not 1 <= n_mfcc <= N_MELS:
-        raise ParameterError(f"n_mfcc: expected an int in [1, {N_MELS}]; got {n_mfcc!r}")
-    n_mfcc = int(n_mfcc)
-    try:
-        max_pad_s = float(max_pad_s)
-    except (TypeError, ValueError):
-        raise ParameterError(f"max_pad_s: expected seconds >= 0; got {max_pad_s!r}") from None
-    if not (math.isfinite(max_pad_s) and max_pad_s >= 0):
-        raise ParameterError(f"max_pad_s: expected seconds >= 0; got {max_pad_s!r}")
-    if not np.isfinite(y).all():
-        raise ParameterError(f"samples: expected finite values; got NaN/inf at sample {int(np.flatnonzero(~np.isfinite(y))[0])}")
-
-    n_out = n_mfcc + 1
+    n_frames = _check_int("n_frames", n_frames, 0, what="an int >= 0")
+    n_mfcc = _check_int("n_mfcc", n_mfcc, 1, N_MELS, what=f"an int in [1, {N_MELS}]")
+    max_pad_s = _check_pad(max_pad_s)
     if n_frames == 0:
-        return np.zeros((0, n_out), dtype=np.float32)
+        return np.zeros((0, n_mfcc + 1), dtype=np.float32)
+    _check_shortfall(len(y) / int(sr), n_frames, fps, max_pad_s)
 
-    need_s = n_frames / fps
-    have_s = len(y) / sr
-    if need_s - have_s >= max_pad_s:
-        raise ParameterError(
-            f"samples: audio lasts {have_s:.3f} s but n_frames={n_frames} at {fps:g} fps needs "
-            f"{need_s:.3f} s; only shortfalls under max_pad_s={max_pad_s:g} s are padded with silence"
-        )
-
-    hop = max(1, int(round(AUDIO_HOP_S * sr)))
-    win = max(1, int(round(AUDIO_WINDOW_S * sr)))
-    n_fft = 1 << (win - 1).bit_length()
-    # Analysis frames whose centre lies before need_s; keep real audio (or
-    # silence padding) under the last window's right half as well.
-    n_fine = int(math.ceil(need_s * sr / hop - 1e-9))
-    n_fine = max(n_fine, 1)
-    n_samples = (n_fine - 1) * hop + 1
-    total = n_samples + n_fft // 2
-    y = y.astype(np.float32, copy=False)
-    if len(y) >= total:
-        y = y[:total]
-    else:
-        y = np.concatenate([y, np.zeros(total - len(y), dtype=np.float32)])
-
-    fmax = min(FMAX_HZ, sr / 2.0)
-    fmin = min(FMIN_HZ, fmax / 2.0)
-    spec = librosa.stft(y, n_fft=n_fft, hop_length=hop, win_length=win, window="hann", center=True,
-                        pad_mode="constant")
-    # |z|^2 as re^2 + im^2: numpy's abs of a complex number (a hypot) rounds differently with
-    # and without AVX2, elementwise products and sums do not
-    power = spec.real * spec.real + spec.imag * spec.imag
-    basis = librosa.filters.mel(sr=sr, n_fft=n_fft, n_mels=N_MELS, fmin=fmin, fmax=fmax)
-    # librosa.feature.melspectrogram, but the projection without BLAS (optimize=False: numpy's own
-    # loop): OpenBLAS rounds it differently with other thread counts, and BLAS thread limits are
-    # per process while builds run recordings in threads (Dask) or processes; a database must not
-    # depend on how it was built (a 1-worker and a 2-worker build differed by 3e-5 here)
-    mel = np.einsum("mf,ft->mt", basis, power, optimize=False)
-    # librosa.power_to_db(mel, ref=1.0, amin=_FLOOR, top_db=None), with a logarithm that does not
-    # depend on the CPU (see _log), rounded to float32 once
-    log_mel = (_log(np.maximum(mel, _FLOOR)) * (10.0 / math.log(10.0))).astype(np.float32)
-    mfcc = librosa.feature.mfcc(S=log_mel, n_mfcc=n_mfcc, dct_type=2, norm="ortho")  # (n_mfcc, n_fine')
-
-    # Rectangular 25 ms energy centred at each analysis frame, on the same
-    # zero padding librosa applies with center=True.
-    padded = np.pad(y.astype(np.float64), (n_fft // 2, n_fft // 2))
-    starts = np.arange(mfcc.shape[1], dtype=np.int64) * hop + (n_fft - win) // 2
-    csum = np.concatenate([[0.0], np.cumsum(padded * padded)])
-    energy = (csum[starts + win] - csum[starts]) / win
-    log_energy = _log(np.maximum(energy, _FLOOR))
-
-    fine = np.concatenate([mfcc.T.astype(np.float64), log_energy[:, None]], axis=1)[:n_fine]
-    centres_s = np.arange(len(fine), dtype=np.float64) * hop / sr
-    owner = np.floor(centres_s * fps + 1e-9).astype(np.int64)
-    keep = owner < n_frames
-    fine, owner = fine[keep], owner[keep]
-
-    counts = np.bincount(owner, minlength=n_frames).astype(np.float64)
-    sums = np.zeros((n_frames, n_out))
-    for c in range(n_out):
-        sums[:, c] = np.bincount(owner, weights=fine[:, c], minlength=n_frames)
-    out = np.empty((n_frames, n_out))
-    has = counts > 0
-    out[has] = sums[has] / counts[has, None]
-    if not has.all():
-        empty = np.flatnonzero(~has)
-        mid_s = (empty + 0.5) / fps
-        nearest = np.clip(np.rint(mid_s * sr / hop).astype(np.int64), 0, len(centres_s) - 1)
-        out[empty] = np.concatenate([mfcc.T, log_energy[:, None]], axis=1)[nearest]
-    return np.ascontiguousarray(out, dtype=np.float32)
+    stream = AudioFeatureStream(int(sr), fps=fps, n_mfcc=n_mfcc, n_frames=n_frames)
+    step = FEATURE_BLOCK_FRAMES * stream._hop
+    out = np.empty((n_frames, n_mfcc + 1), dtype=np.float32)
+    k = 0
+    for a in range(0, len(y), step):
+        rows = stream.push(y[a:a + step])
+        out[k:k + len(rows)] = rows
+        k += len(rows)
+        if k == n_frames:
+            break
+    rows = stream.finish(max_pad_s=max_pad_s)
+    out[k:k + len(rows)] = rows
+    k += len(rows)
+    if k != n_frames:  # the stream's own invariant, not user input
+        raise RuntimeError(f"audio_features: {k} of {n_frames} frames computed")
+    return out
 
 
 def audio_deltas(features: np.ndarray) -> np.ndarray:
