@@ -5,7 +5,9 @@ can print them as one line and exit non-zero without a traceback.
 """
 from __future__ import annotations
 
+import itertools
 import os
+import reprlib
 
 
 class GestureDBError(Exception):
@@ -47,3 +49,53 @@ class SearchError(GestureDBError):
 
 class GestureDBWarning(UserWarning):
     """Something works but is probably not what was meant (the CLI prints it as one line)."""
+
+
+#: characters of a user value that a message quotes; a longer one is cut and its length said
+MAX_ECHO_CHARS = 80
+#: items of a user list (keys, names) that a message names; the rest are counted
+MAX_ECHO_ITEMS = 12
+
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = MAX_ECHO_CHARS
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxset = _REPR.maxfrozenset = _REPR.maxdict = MAX_ECHO_ITEMS
+
+
+def echo(value, limit: int = MAX_ECHO_CHARS) -> str:
+    """``repr(value)`` for a message, cut to about ``limit`` characters.
+
+    Every message that quotes a user value goes through this (or `echo_list`), so a
+    100 MB token, a 125k-character expression or a 2M-key mapping costs a short line,
+    never the value itself: ``'abc...' (125000 characters)``.
+    """
+    if isinstance(value, (str, bytes, bytearray)):
+        if len(value) <= limit:
+            return repr(value)
+        unit = "characters" if isinstance(value, str) else "bytes"
+        return f"{value[:limit]!r}... ({len(value)} {unit})"
+    text = " ".join(_REPR.repr(value).split())  # one line: numpy's reprs span several
+    return text if len(text) <= limit + 3 else text[:limit] + "..."
+
+
+def echo_list(items, limit: int = MAX_ECHO_ITEMS, *, quote: bool = False) -> str:
+    """The first ``limit`` items of a user collection, comma-separated, and how many there are in all.
+
+    Items are `echo`-ed when ``quote``, else printed as text cut to `MAX_ECHO_CHARS`:
+    ``a, b, c, ... (2000000 in all)``. Only the shown items are read from an iterator.
+    """
+    try:
+        total = len(items)
+    except TypeError:
+        total = None
+    shown = list(itertools.islice(iter(items), limit + 1))
+    more = len(shown) > limit
+    shown = shown[:limit]
+    if quote:
+        parts = [echo(x) for x in shown]
+    else:
+        parts = [str(x) for x in shown]
+        parts = [t if len(t) <= MAX_ECHO_CHARS else f"{t[:MAX_ECHO_CHARS]}... ({len(t)} characters)" for t in parts]
+    text = ", ".join(parts)
+    if more:
+        text += f", ... ({total} in all)" if total is not None else ", ..."
+    return text
