@@ -20,8 +20,10 @@ def add_parser(sub) -> None:
     a = acts.add_parser("list", help="the sub-databases and the most frequent words of the database")
     a.add_argument("--top", type=int, default=20, help="how many frequent words to show (default: %(default)s)")
 
-    a = acts.add_parser("add", help="create the sub-database of a word from all its occurrences")
-    a.add_argument("word", metavar="WORD")
+    a = acts.add_parser("add", help="create the sub-databases of words from all their occurrences (one edit)")
+    a.add_argument("words", metavar="WORD", nargs="*", help="one or more keywords, added in one edit of the file")
+    a.add_argument("--from", dest="from_file", metavar="FILE", default=None,
+                   help="also add the words of FILE (one per line, '#' comments), in the same edit")
     a.add_argument("--before", type=float, default=0.5, dest="before_s",
                    help="seconds kept before the word (default: %(default)s)")
     a.add_argument("--after", type=float, default=1.0, dest="after_s",
@@ -32,9 +34,10 @@ def add_parser(sub) -> None:
     a.add_argument("word", metavar="WORD")
     a.add_argument("--context", type=int, default=3, help="words shown on each side (default: %(default)s)")
 
-    a = acts.add_parser("remove", help="take one occurrence (numbered as by `show`) out of a sub-database")
+    a = acts.add_parser("remove", help="take occurrences (numbered as by `show`) out of a sub-database")
     a.add_argument("word", metavar="WORD")
-    a.add_argument("index", type=int, metavar="INDEX")
+    a.add_argument("index", type=int, metavar="INDEX", nargs="+",
+                   help="one or more occurrences, all numbered as `show` lists them before this edit")
 
     a = acts.add_parser("drop", help="delete a whole sub-database")
     a.add_argument("word", metavar="WORD")
@@ -106,14 +109,20 @@ def run(args) -> int:
     if args.action == "show":
         return _show(args)
     if args.action == "add":
-        sub = kw.add_keyword(args.db, args.word, before_s=args.before_s, after_s=args.after_s, replace=args.replace)
-        skipped = sub.definition.get("skipped", 0)
-        print(f"added to {args.db}: {sub.word!r}, {len(sub)} occurrence(s), {sub.n_frames} frames"
-              + (f" ({skipped} skipped: after the end of the motion)" if skipped else ""))
+        from gesturedb.errors import ParameterError
+
+        words = list(args.words) + (kw.read_word_list(args.from_file) if args.from_file else [])
+        if not words:
+            raise ParameterError("add: expected at least one WORD or --from FILE, got neither")
+        added = kw.add_keywords(args.db, words, before_s=args.before_s, after_s=args.after_s, replace=args.replace)
+        for a in added:
+            print(f"added to {args.db}: {a.word!r}, {a.occurrences} occurrence(s), {a.n_frames} frames"
+                  + (f" ({a.skipped} skipped: outside the motion)" if a.skipped else ""))
         return 0
     if args.action == "remove":
         sub = kw.remove_occurrence(args.db, args.word, args.index)
-        print(f"removed occurrence {args.index} of {sub.word!r} from {args.db}; {len(sub)} left")
+        which = ", ".join(map(str, sorted(set(args.index))))
+        print(f"removed occurrence {which} of {sub.word!r} from {args.db}; {len(sub)} left")
         return 0
     if args.action == "drop":
         sub = kw.drop_keyword(args.db, args.word)

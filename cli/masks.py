@@ -1,4 +1,4 @@
-"""`gesturedb masks DB.h5 list|add NAME EXPR|remove NAME|controls`: saved control masks."""
+"""`gesturedb masks DB.h5 list|add NAME EXPR [NAME EXPR ...]|remove NAME|controls`: saved control masks."""
 from __future__ import annotations
 
 
@@ -10,9 +10,11 @@ def add_parser(sub) -> None:
     p.add_argument("db", metavar="DB.h5")
     ops = p.add_subparsers(dest="op", metavar="OP", required=True)
     ops.add_parser("list", help="control features, built-in mask names and saved masks with their definitions")
-    a = ops.add_parser("add", help="save a mask expression under a name")
-    a.add_argument("name")
-    a.add_argument("expr")
+    a = ops.add_parser("add", help="save mask expressions under names (several in one edit)")
+    a.add_argument("pairs", nargs="*", metavar="NAME EXPR",
+                   help="a name and its expression, repeated for more masks (each expression in quotes)")
+    a.add_argument("--from", dest="from_file", metavar="FILE", default=None,
+                   help="also save the masks of FILE (one 'NAME = EXPR' per line, '#' comments), in the same edit")
     a.add_argument("--replace", action="store_true")
     r = ops.add_parser("remove", help="delete a saved mask")
     r.add_argument("name")
@@ -29,8 +31,17 @@ def run(args) -> int:
     from gesturedb.errors import GestureDBError
 
     if args.op == "add":
-        res = dbedit.save_mask(args.db, args.name, args.expr, replace=args.replace)
-        print(f"saved {args.name}: {res.describe()}")
+        from gesturedb.errors import ParameterError
+
+        if len(args.pairs) % 2:
+            raise ParameterError(f"add: expected NAME EXPR pairs, got {len(args.pairs)} argument(s): "
+                                 f"{' '.join(map(repr, args.pairs))[:80]} (quote each expression)")
+        items = list(zip(args.pairs[::2], args.pairs[1::2]))
+        items += dbedit.read_mask_file(args.from_file) if args.from_file else []
+        if not items:
+            raise ParameterError("add: expected NAME EXPR or --from FILE, got neither")
+        for name, res in dbedit.save_masks(args.db, items, replace=args.replace).items():
+            print(f"saved {name}: {res.describe()}")
     elif args.op == "remove":
         dbedit.remove_mask(args.db, args.name)
         print(f"removed {args.name}")

@@ -351,7 +351,7 @@ def test_disk_full_during_an_edit_names_the_file_and_keeps_it(db_copy, monkeypat
     def full(src, dst, *a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", str(dst))
 
-    monkeypatch.setattr(storage.shutil, "copyfile", full)
+    monkeypatch.setattr(storage, "compact_copy", full)  # the edit's copy of the database
     with pytest.raises(InputFileError, match=f"{db_copy.name}: no space left on device"):
         dbedit.save_mask(db_copy, "calm2", "left_wrist_height < p50")
     assert digest(db_copy) == before and _tmp_files(db_copy.parent) == []

@@ -1,13 +1,18 @@
 """Edits of an existing database: saved masks and control features.
 
-Every edit goes through :func:`gesturedb.db.storage.edit` (copy, edit, rename).
+Every edit goes through :func:`gesturedb.db.storage.edit` (compact copy, edit,
+rename), and reads what it decides from while holding the database's write lock
+(:func:`gesturedb.db.storage.locked`): two concurrent ``masks add`` of one name
+act as if run one after the other, so the second is refused. Many masks go in
+one edit (:func:`save_masks`, ``gesturedb masks DB add N1 E1 N2 E2`` or ``--from FILE``).
 """
 from __future__ import annotations
 
 import os
+import re
 
 from gesturedb.db import schema
-from gesturedb.db.storage import edit
+from gesturedb.db.storage import edit, locked
 
 
 def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> list[str]:
@@ -24,18 +29,26 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
     """
     import numpy as np
 
-    from gesturedb.db.build import write_default_masks
     from gesturedb.db.database import Database
-    from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS, control_features
+    from gesturedb.features.controls import control_features
     from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
 
-    with Database(path) as db:
-        names = db.joint_names
-        joints = find_joints(names, FEATURE_ROLES + BODY_ROLES,
-                             mapping={r: n for r, n in db.feature_joints.items()}, source=db.path)
-        parts = [control_features(np.asarray(db.joint_positions[r.start_frame:r.stop_frame], dtype=np.float64),
-                                  joints=joints, fps=db.fps) for r in db.recordings]
-    controls = {k: np.concatenate([p[k] for p in parts]).astype(np.float32) for k in sorted(parts[0])}
+    with locked(path):
+        with Database(path) as db:
+            names = db.joint_names
+            joints = find_joints(names, FEATURE_ROLES + BODY_ROLES,
+                                 mapping={r: n for r, n in db.feature_joints.items()}, source=db.path)
+            parts = [control_features(np.asarray(db.joint_positions[r.start_frame:r.stop_frame], dtype=np.float64),
+                                      joints=joints, fps=db.fps) for r in db.recordings]
+        controls = {k: np.concatenate([p[k] for p in parts]).astype(np.float32) for k in sorted(parts[0])}
+        _write_controls(path, controls, replace)
+    return sorted(controls)
+
+
+def _write_controls(path, controls: dict, replace: bool) -> None:
+    from gesturedb.db.build import write_default_masks
+    from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
+
     with edit(path) as h5:
         g = h5.require_group(schema.CONTROLS_GROUP)
         for k, v in controls.items():
@@ -50,7 +63,6 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
         for k in [k for k in masks if k.endswith(("_high", "_low")) and k.rsplit("_", 1)[0] in controls]:
             del masks[k]
         write_default_masks(h5, {k: g[k] for k in sorted(g)})
-    return sorted(controls)
 
 
 def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = False):
@@ -58,28 +70,117 @@ def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = 
 
     Returns the :class:`gesturedb.control.MaskResult` (frames allowed, resolved thresholds).
     """
+    return save_masks(path, [(name, expr)], replace=replace)[name]
+
+
+def _mask_items(masks) -> list[tuple[str, str]]:
+    from gesturedb.errors import ParameterError
+
+    items = list(masks.items()) if isinstance(masks, dict) else list(masks)
+    if not items:
+        raise ParameterError("masks: expected at least one (name, expression), got none")
+    seen = set()
+    for item in items:
+        if not (isinstance(item, tuple) and len(item) == 2 and isinstance(item[1], str)):
+            raise ParameterError(f"masks: expected (name, expression) pairs of strings, got {item!r:.80}")
+        schema.check_name("mask name", item[0], schema.MASK_NAME_PATTERN)
+        if item[0] in seen:
+            raise ParameterError(f"mask {item[0]!r}: given twice in one edit; expected each name once")
+        seen.add(item[0])
+    return items
+
+
+def save_masks(path: str | os.PathLike, masks, *, replace: bool = False) -> dict:
+    """Compile several mask expressions and save them in one atomic edit (one copy of the file).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    masks : dict of str to str, or list of (name, expression)
+        In order: an expression may name the masks saved before it in the same call.
+    replace : bool
+        Overwrite saved masks of the same names.
+
+    Returns
+    -------
+    dict of str to gesturedb.control.MaskResult
+
+    Raises
+    ------
+    ParameterError
+        A bad name or expression, a name already saved (without ``replace``), or a
+        mask that allows no frame: the whole edit is refused and the file unchanged.
+    """
     from gesturedb import control
     from gesturedb.db.database import Database
     from gesturedb.errors import ParameterError
 
-    schema.check_name("mask name", name, schema.MASK_NAME_PATTERN)
-    with Database(path) as db:
-        if name in db.masks and not replace:
-            raise ParameterError(f"mask {name!r} already exists in {db.path} "
-                                 f"(definition {db.mask_definitions[name]!r}); pass replace=True to overwrite")
-        # the named mask is stored as its own definition's result; other saved masks may be referenced
-        others = {k: v for k, v in db.masks.items() if k != name}
-        res = control.compile_mask(expr, controls=db.controls, named=others, n_frames=db.n_frames)
-    if res.n_set == 0:
-        raise ParameterError(f"mask {name!r} = {expr!r} allows no frame of {path}: {res.describe()}")
-    with edit(path) as h5:
-        g = h5.require_group(schema.MASKS_GROUP)
-        if name in g:
-            del g[name]
-        ds = g.create_dataset(name, data=res.words)
-        ds.attrs["definition"] = expr
-        schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
-    return res
+    items = _mask_items(masks)
+    results = {}
+    with locked(path):  # the names taken are read under the lock: a concurrent add of one name is refused
+        with Database(path) as db:
+            saved = db.masks
+            for name, expr in items:
+                if name in saved and not replace:
+                    raise ParameterError(f"mask {name!r} already exists in {db.path} "
+                                         f"(definition {db.mask_definitions[name]!r}); pass replace=True to "
+                                         "overwrite")
+            new_names = {name for name, _ in items}
+            for name, expr in items:
+                # a mask is stored as its own definition's result; the other saved masks and those of
+                # this call defined before it may be referenced
+                others = {k: v for k, v in saved.items() if k not in new_names}
+                others.update({k: r.words for k, r in results.items()})
+                res = control.compile_mask(expr, controls=db.controls, named=others, n_frames=db.n_frames)
+                if res.n_set == 0:
+                    raise ParameterError(f"mask {name!r} = {expr!r} allows no frame of {path}: {res.describe()}")
+                results[name] = res
+        with edit(path) as h5:
+            g = h5.require_group(schema.MASKS_GROUP)
+            for name, res in results.items():
+                if name in g:
+                    del g[name]
+                ds = g.create_dataset(name, data=res.words)
+                ds.attrs["definition"] = dict(items)[name]
+                schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
+    return results
+
+
+_MASK_LINE = re.compile(r"\s*([^\s=#]+)\s*=\s*(.*?)\s*")
+
+
+def read_mask_file(path) -> list[tuple[str, str]]:
+    """Masks from a text file, one ``NAME = EXPRESSION`` per line; blank lines and ``#`` comments skipped.
+
+    Raises
+    ------
+    InputFileError
+        The file cannot be read, or a line is not ``NAME = EXPRESSION`` with a valid
+        name (the message names the line).
+    """
+    from gesturedb.errors import InputFileError, ParameterError
+
+    try:
+        with open(path, "r", encoding="utf-8-sig") as f:
+            lines = f.read().splitlines()
+    except (OSError, UnicodeError) as exc:
+        raise InputFileError(path, f"cannot read as text: {exc}") from None
+    items = []
+    for k, line in enumerate(lines, start=1):
+        text = line.split("#", 1)[0]
+        if not text.strip():
+            continue
+        m = _MASK_LINE.fullmatch(text)
+        if m is None or not m.group(2):
+            raise InputFileError(path, f"line {k}: expected NAME = EXPRESSION, got {text.strip()[:60]!r}")
+        try:
+            schema.check_name("mask name", m.group(1), schema.MASK_NAME_PATTERN)
+        except ParameterError as exc:
+            raise InputFileError(path, f"line {k}: {exc}") from None
+        items.append((m.group(1), m.group(2)))
+    if not items:
+        raise InputFileError(path, "expected lines NAME = EXPRESSION, got none")
+    return items
 
 
 def remove_mask(path: str | os.PathLike, name: str) -> None:

@@ -40,8 +40,14 @@ passing through the few frames between them. With the default context (0.5 s
 before, 1 s after) such neighbours are one stretch of speech about the keyword
 anyway.
 
-Edits (:func:`add_keyword`, :func:`remove_occurrence`, :func:`drop_keyword`) go
-through :func:`gesturedb.db.edit.edit`: a failed edit leaves the file as it was.
+Edits (:func:`add_keyword`, :func:`add_keywords`, :func:`remove_occurrence`,
+:func:`drop_keyword`) go through :func:`gesturedb.db.storage.edit`: a failed edit
+leaves the file as it was. Each reads what it decides from (the words table, the
+sub-databases there are) while holding the database's write lock, so two
+concurrent edits act as if run one after the other (the second is refused if it
+would be refused then). Many keywords go in one edit (:func:`add_keywords`, or
+``gesturedb keywords DB add W1 W2 ...`` / ``--from FILE``): the file is copied
+once, not once per word.
 :func:`gesturedb.db.export.export_keyword` writes a sub-database as a complete database of its own.
 """
 from __future__ import annotations
@@ -66,6 +72,9 @@ __all__ = [
     "get_subdatabase",
     "find_occurrences",
     "add_keyword",
+    "add_keywords",
+    "KeywordAdded",
+    "read_word_list",
     "remove_occurrence",
     "drop_keyword",
     "list_words",
@@ -365,8 +374,21 @@ def find_occurrences(db, word: str, *, before_s: float = 0.5, after_s: float = 1
                         _check_seconds("after_s", after_s))
 
 
-def _occurrences(t: _Tables, w: str, before_s: float, after_s: float) -> SubDatabase:
-    idx = np.array([i for i, x in enumerate(t.w_text) if w in _tokens(x)], dtype=np.int64)
+def _token_index(t: _Tables) -> dict[str, list[int]]:
+    """Whole word -> indices of the words-table entries holding it (one pass for any number of keywords)."""
+    index: dict[str, list[int]] = {}
+    for i, x in enumerate(t.w_text):
+        for tok in dict.fromkeys(_tokens(x)):
+            index.setdefault(tok, []).append(i)
+    return index
+
+
+def _occurrences(t: _Tables, w: str, before_s: float, after_s: float, *, index: dict | None = None,
+                 with_mask: bool = True) -> SubDatabase:
+    if index is None:
+        idx = np.array([i for i, x in enumerate(t.w_text) if w in _tokens(x)], dtype=np.int64)
+    else:
+        idx = np.asarray(index.get(w, []), dtype=np.int64)
     if idx.size == 0:
         raise ParameterError(_unknown_word_message(w, t))
     rec = t.w_rec[idx].astype(np.int64)
@@ -376,7 +398,10 @@ def _occurrences(t: _Tables, w: str, before_s: float, after_s: float) -> SubData
     # the word's own frames are always inside its stretch, whatever the rounding
     first = np.clip(np.minimum(ctx_first, word_first), 0, None)
     stop = np.minimum(np.maximum(ctx_stop, word_stop), t.rec_n[rec])
-    keep = word_first < t.rec_n[rec]
+    # a word must overlap its recording's motion: one starting after its end (a transcript longer
+    # than the motion) or ending before frame 0 (negative times, which readers now refuse but an
+    # older database may hold) has no gesture, and would give a stretch of negative length
+    keep = (word_first < t.rec_n[rec]) & (word_stop > 0)
     start = (t.rec_start[rec] + first)[keep].astype(np.int64)
     length = (stop - first)[keep].astype(np.int64)
     definition = {
@@ -390,12 +415,12 @@ def _occurrences(t: _Tables, w: str, before_s: float, after_s: float) -> SubData
     }
     if not keep.any():
         raise ParameterError(
-            f"keyword {w!r}: all {idx.size} occurrence(s) in {t.path} start after the end of the motion of their "
-            "recording, so there is no gesture to keep"
+            f"keyword {w!r}: all {idx.size} occurrence(s) in {t.path} lie outside the motion of their "
+            "recording (after its end, or before its start), so there is no gesture to keep"
         )
     return SubDatabase(
         word=w, start=start, length=length, recording=rec[keep].astype(np.int32), word_index=idx[keep],
-        mask=_mask_of(start, length, t.n_frames), definition=definition,
+        mask=_mask_of(start, length, t.n_frames) if with_mask else None, definition=definition,
     )
 
 
@@ -431,10 +456,99 @@ def _open(db_path):
     return Database(db_path)
 
 
-def _check_unchanged(h5, t: _Tables) -> None:
-    # the tables were read from the file before it was copied for the edit
-    if int(h5.attrs["n_frames"]) != t.n_frames or h5["words/text"].shape[0] != len(t.w_text):
-        raise SchemaError(t.path, "the database changed while it was being edited; try again")
+class KeywordAdded(NamedTuple):
+    """One row of :func:`add_keywords`: what was written for a keyword (its mask is not kept in memory)."""
+
+    word: str
+    occurrences: int
+    n_frames: int  # frames in the stretches, counting overlaps twice (as SubDatabase.n_frames)
+    skipped: int  # occurrences outside the motion
+
+
+def _keyword_names(words) -> list[str]:
+    """Validated sub-database names of ``words`` in order, each once."""
+    if isinstance(words, (str, bytes)) or not hasattr(words, "__iter__"):
+        raise ParameterError(f"words: expected a list of words, got {type(words).__name__} {words!r:.60}")
+    names = list(dict.fromkeys(_keyword_name(w) for w in words))
+    if not names:
+        raise ParameterError("words: expected at least one word, got none")
+    return names
+
+
+def read_word_list(path) -> list[str]:
+    """Keywords from a text file: one word per line; blank lines and ``#`` comments are skipped.
+
+    Raises
+    ------
+    InputFileError
+        The file cannot be read, or a line is not one word (the message names the line).
+    """
+    from gesturedb.errors import InputFileError
+
+    try:
+        with open(path, "r", encoding="utf-8-sig") as f:
+            lines = f.read().splitlines()
+    except (OSError, UnicodeError) as exc:
+        raise InputFileError(path, f"cannot read as text: {exc}") from None
+    words = []
+    for k, line in enumerate(lines, start=1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        try:
+            _keyword_name(text)
+        except ParameterError as exc:
+            raise InputFileError(path, f"line {k}: {exc}") from None
+        words.append(text)
+    if not words:
+        raise InputFileError(path, "expected one keyword per line, got no word")
+    return words
+
+
+def _add(db_path, names: list[str], before_s: float, after_s: float, replace: bool, keep: bool):
+    """Add the sub-databases of ``names`` in one locked edit; the written SubDatabases if ``keep``."""
+    from gesturedb.db import storage
+
+    with storage.locked(db_path):
+        # every check reads the file under the lock (nothing can change it before the write) and runs
+        # before the copy, so a refused edit never copies the file
+        with _open(db_path) as db:
+            t = _tables(db)
+            g = db.h5.get(schema.SUBDB_GROUP)
+            existing = {} if g is None else {w: _read_subdb(g[w], w, t.n_frames, t.path) for w in names if w in g}
+        if existing and not replace:
+            if len(existing) == 1:
+                (w, sub), = existing.items()
+                raise ParameterError(
+                    f"keyword {w!r}: {t.path} already has its sub-database ({len(sub)} occurrences, "
+                    f"{sub.before_s:g} s before, {sub.after_s:g} s after); pass replace=True "
+                    "(--replace) to rebuild it, or drop it first"
+                )
+            raise ParameterError(
+                f"keywords {', '.join(map(repr, existing))}: {t.path} already has their sub-databases; pass "
+                "replace=True (--replace) to rebuild them, or drop them first (nothing was added)"
+            )
+        index = _token_index(t) if len(names) > 1 else None
+        if index is not None:
+            unknown = [w for w in names if w not in index]
+            if len(unknown) > 1:
+                raise ParameterError(
+                    f"keywords: {len(unknown)} of the {len(names)} words are not among the {len(t.w_text)} words of "
+                    f"{t.path}: {', '.join(map(repr, unknown[:10]))}{' ...' if len(unknown) > 10 else ''} "
+                    "(nothing was added)"
+                )
+        # stretches only (no masks) for all words first: every refusal comes before the copy
+        plans = [_occurrences(t, w, before_s, after_s, index=index, with_mask=False) for w in names]
+        written = []
+        with storage.edit(db_path) as h5:
+            for sub in plans:
+                full = SubDatabase(word=sub.word, start=sub.start, length=sub.length, recording=sub.recording,
+                                   word_index=sub.word_index, mask=_mask_of(sub.start, sub.length, t.n_frames),
+                                   definition=sub.definition)
+                _write_subdb(h5, full)
+                written.append(full if keep else KeywordAdded(sub.word, len(sub), sub.n_frames,
+                                                              int(sub.definition["skipped"])))
+    return written
 
 
 def add_keyword(db_path, word: str, *, before_s: float = 0.5, after_s: float = 1.0,
@@ -467,84 +581,115 @@ def add_keyword(db_path, word: str, *, before_s: float = 0.5, after_s: float = 1
         The word never occurs (with close words as suggestions), or its
         sub-database exists and ``replace`` is false.
     """
-    from gesturedb.db.storage import edit
-
     w = _keyword_name(word)
     before_s = _check_seconds("before_s", before_s)
     after_s = _check_seconds("after_s", after_s)
-    # every check runs on a read-only view first, so a refused edit never copies the file
-    with _open(db_path) as db:
-        t = _tables(db)
-        existing = subdatabases(db)
-    if w in existing and not replace:
-        raise ParameterError(
-            f"keyword {w!r}: {t.path} already has its sub-database ({len(existing[w])} occurrences, "
-            f"{existing[w].before_s:g} s before, {existing[w].after_s:g} s after); pass replace=True "
-            "(--replace) to rebuild it, or drop it first"
-        )
-    sub = _occurrences(t, w, before_s, after_s)
-    with edit(db_path) as h5:
-        _check_unchanged(h5, t)
-        _write_subdb(h5, sub)
-    return sub
+    return _add(db_path, [w], before_s, after_s, replace, keep=True)[0]
 
 
-def remove_occurrence(db_path, word: str, index: int) -> SubDatabase:
-    """Take one occurrence (an index as listed by :func:`show`) out of a sub-database (atomic edit).
+def add_keywords(db_path, words, *, before_s: float = 0.5, after_s: float = 1.0,
+                 replace: bool = False) -> list[KeywordAdded]:
+    """Create the sub-databases of several keywords in one atomic edit (one copy of the file).
 
-    The mask is recomputed from the remaining stretches and the occurrence's word
-    index is recorded in ``definition["removed"]``. Removing the last occurrence
-    is refused: drop the sub-database instead (an empty one would make every
-    keyword step fail).
+    Parameters
+    ----------
+    db_path : path
+    words : iterable of str
+        Keywords (repeats count once), e.g. :func:`read_word_list` of a file.
+    before_s, after_s, replace
+        As for :func:`add_keyword`, for every word.
+
+    Returns
+    -------
+    list of KeywordAdded
+        ``(word, occurrences, n_frames, skipped)`` per keyword, in order. The
+        masks are written one keyword at a time and not kept, so memory does not
+        grow with the number of words.
+
+    Raises
+    ------
+    ParameterError
+        A word never occurs, or (without ``replace``) already has a
+        sub-database: the whole edit is refused and the file is unchanged.
+    """
+    names = _keyword_names(words)
+    before_s = _check_seconds("before_s", before_s)
+    after_s = _check_seconds("after_s", after_s)
+    return _add(db_path, names, before_s, after_s, replace, keep=False)
+
+
+def _indices(value, n: int, word: str, path: str) -> list[int]:
+    items = [value] if isinstance(value, (int, np.integer, bool, np.bool_)) or not hasattr(value, "__iter__") else list(value)
+    if not items:
+        raise ParameterError(f"index: expected at least one occurrence of {word!r}, got none")
+    for i in items:
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) or not 0 <= i < n:
+            raise ParameterError(
+                f"index: expected an occurrence of {word!r} in [0, {n}) (see `gesturedb keywords {path} show "
+                f"{word}`), got {i!r}"
+            )
+    return sorted({int(i) for i in items})
+
+
+def remove_occurrence(db_path, word: str, index) -> SubDatabase:
+    """Take occurrences (indices as listed by :func:`show`) out of a sub-database (atomic edit).
+
+    ``index`` is one index or several, all numbered as before this edit (removing
+    0 and 3 removes the occurrences :func:`show` lists as 0 and 3). The mask is
+    recomputed from the remaining stretches and the occurrences' word indices are
+    recorded in ``definition["removed"]``. Removing every occurrence is refused:
+    drop the sub-database instead (an empty one would make every keyword step fail).
+
+    The indices are read and checked under the database's write lock: two
+    concurrent removals act as if run one after the other (the numbering of the
+    second is that of the file the first left).
 
     Returns
     -------
     SubDatabase
         The sub-database after the removal.
     """
-    from gesturedb.db.storage import edit
+    from gesturedb.db import storage
 
-    with _open(db_path) as db:
-        sub = get_subdatabase(db, word)
-        n_frames = db.n_frames
-        path = db.path
-    n = len(sub)
-    if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
-        raise ParameterError(
-            f"index: expected an occurrence of {sub.word!r} in [0, {n}) (see `gesturedb keywords {path} show "
-            f"{sub.word}`), got {index!r}"
+    with storage.locked(db_path):
+        with _open(db_path) as db:
+            sub = get_subdatabase(db, word)
+            n_frames = db.n_frames
+            path = db.path
+        n = len(sub)
+        drop = _indices(index, n, sub.word, path)
+        if len(drop) == n:
+            which = f"occurrence {drop[0]} is the last one" if n == 1 else f"occurrences {drop} are all {n}"
+            raise ParameterError(
+                f"keyword {sub.word!r}: {which} of the sub-database in {path}; "
+                "drop the sub-database instead (`drop WORD`)"
+            )
+        keep = np.ones(n, dtype=bool)
+        keep[drop] = False
+        definition = dict(sub.definition)
+        definition["removed"] = list(definition.get("removed", [])) + [int(sub.word_index[i]) for i in drop]
+        new = SubDatabase(
+            word=sub.word, start=sub.start[keep], length=sub.length[keep], recording=sub.recording[keep],
+            word_index=sub.word_index[keep], mask=_mask_of(sub.start[keep], sub.length[keep], n_frames),
+            definition=definition,
         )
-    if n == 1:
-        raise ParameterError(
-            f"keyword {sub.word!r}: occurrence {index} is the last one of the sub-database in {path}; "
-            "drop the sub-database instead (`drop WORD`)"
-        )
-    keep = np.arange(n) != int(index)
-    definition = dict(sub.definition)
-    definition["removed"] = list(definition.get("removed", [])) + [int(sub.word_index[index])]
-    new = SubDatabase(
-        word=sub.word, start=sub.start[keep], length=sub.length[keep], recording=sub.recording[keep],
-        word_index=sub.word_index[keep], mask=_mask_of(sub.start[keep], sub.length[keep], n_frames),
-        definition=definition,
-    )
-    with edit(db_path) as h5:
-        if int(h5.attrs["n_frames"]) != n_frames:
-            raise SchemaError(path, "the database changed while it was being edited; try again")
-        _write_subdb(h5, new)
+        with storage.edit(db_path) as h5:
+            _write_subdb(h5, new)
     return new
 
 
 def drop_keyword(db_path, word: str) -> SubDatabase:
     """Delete a whole sub-database (atomic edit); returns what was dropped."""
-    from gesturedb.db.storage import edit
+    from gesturedb.db import storage
 
-    with _open(db_path) as db:
-        sub = get_subdatabase(db, word)
-    with edit(db_path) as h5:
-        g = h5[schema.SUBDB_GROUP]
-        del g[sub.word]
-        if len(g) == 0:
-            del h5[schema.SUBDB_GROUP]
+    with storage.locked(db_path):
+        with _open(db_path) as db:
+            sub = get_subdatabase(db, word)
+        with storage.edit(db_path) as h5:
+            g = h5[schema.SUBDB_GROUP]
+            del g[sub.word]
+            if len(g) == 0:
+                del h5[schema.SUBDB_GROUP]
     return sub
 
 

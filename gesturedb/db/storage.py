@@ -8,8 +8,21 @@ SIGTERM, which is turned into the same interruption).
 
 Concurrency: every write (a build to a path, an edit of a database) holds an
 exclusive lock on ``.<name>.lock`` beside the database for its whole
-read-modify-rename, so two concurrent ``masks add`` both survive. Readers take
-no lock: they open either the old or the new file, never a half-written one.
+read-modify-rename, so two concurrent ``masks add`` both survive. An edit that
+decides from the file's contents (is this mask name taken? which occurrences
+does this keyword have?) reads them while holding the same lock
+(:func:`locked` is re-entrant, so ``with locked(p): read...; with edit(p): ...``
+is one transaction): a concurrent edit is then refused, or applied on top of
+the other, exactly as when the two run one after the other. Readers take no
+lock: they open either the old or the new file, never a half-written one.
+
+Links: a database reached through a symbolic link is edited where it lives:
+the lock, the temporary file and the rename are those of the real file, so the
+link stays a link and every name of the file shares one lock.
+
+Space: an edit writes a compact copy (every object copied into a fresh file,
+:func:`compact_copy`), so the space of replaced or deleted objects never piles
+up from edit to edit, at about the cost of the byte copy it replaces.
 
 Kills: temporary files are named ``.<name>.<pid>.<random>.tmp``. A process
 killed with SIGKILL cannot remove its own; the next writer of the same path
@@ -35,18 +48,39 @@ from gesturedb.errors import GestureDBError, InputFileError, ParameterError
 LOCK_TIMEOUT_S = 600.0
 
 
+def real_path(path: str | os.PathLike) -> str:
+    """The file a database path names, symbolic links resolved (edits replace that file, not the link)."""
+    return os.path.realpath(os.fspath(path))
+
+
 def lock_path(path: str | os.PathLike) -> str:
-    """The lock file of a database: ``.<name>.lock`` in the same folder."""
-    path = os.path.abspath(os.fspath(path))
+    """The lock file of a database: ``.<name>.lock`` beside the real file (links resolved)."""
+    path = real_path(path)
     return os.path.join(os.path.dirname(path), "." + os.path.basename(path) + ".lock")
+
+
+#: (lock file, thread) -> how many nested :func:`locked` blocks of this thread hold it
+_held: dict[tuple[str, int], int] = {}
 
 
 @contextlib.contextmanager
 def locked(path: str | os.PathLike, *, timeout_s: float | None = None):
-    """Hold the exclusive write lock of database ``path`` (other writers wait; readers do not)."""
+    """Hold the exclusive write lock of database ``path`` (other writers wait; readers do not).
+
+    Re-entrant within a thread: an edit's checks and its :func:`edit` share one hold,
+    so nothing can change the file between what the checks read and what is written.
+    """
     import filelock
 
     lp = lock_path(path)
+    key = (lp, threading.get_ident())
+    if key in _held:
+        _held[key] += 1
+        try:
+            yield
+        finally:
+            _held[key] -= 1
+        return
     lock = filelock.FileLock(lp, timeout=LOCK_TIMEOUT_S if timeout_s is None else timeout_s)
     try:
         lock.acquire()
@@ -55,9 +89,11 @@ def locked(path: str | os.PathLike, *, timeout_s: float | None = None):
                              f"for more than {lock.timeout:g} s)") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot create the lock file {lp}: {exc.strerror or exc}") from None
+    _held[key] = 1
     try:
         yield
     finally:
+        del _held[key]
         lock.release()
 
 
@@ -228,12 +264,38 @@ def _other_file(exc: OSError, own) -> str | None:
     return None if any(p is not None and os.path.abspath(name) == os.path.abspath(p) for p in own) else name
 
 
+def compact_copy(src_path: str, dst_path: str) -> None:
+    """Copy the HDF5 file ``src_path`` to ``dst_path`` object by object (a fresh, compact file).
+
+    HDF5 does not give back the space of a deleted or replaced object once the file
+    is closed: a byte copy carries every earlier edit's dead space into the next
+    one. Copying each top-level object (``H5Ocopy``: datasets with their layout,
+    filters and attributes, virtual datasets as virtual) and the root attributes
+    into a new file leaves it behind. Creation order of links and attributes is
+    tracked, as in files :func:`write_atomically` makes.
+    """
+    import h5py
+
+    with h5py.File(src_path, "r") as src, h5py.File(dst_path, "w", track_order=True) as dst:
+        for k, v in src.attrs.items():
+            dst.attrs[k] = v
+        for name in src:
+            link = src.get(name, getlink=True)
+            if isinstance(link, (h5py.SoftLink, h5py.ExternalLink)):
+                dst[name] = link  # a link stays a link (H5Ocopy would copy what it points at)
+            else:
+                src.copy(src[name], dst, name)
+
+
 @contextlib.contextmanager
 def edit(path: str | os.PathLike, *, upgrade: bool = False):
-    """Yield a writable :class:`h5py.File` on a copy of ``path``; replace ``path`` on success.
+    """Yield a writable :class:`h5py.File` on a compact copy of ``path``; replace ``path`` on success.
 
     The database's write lock is held from before the copy until after the
-    rename, so concurrent edits serialise instead of losing each other.
+    rename, so concurrent edits serialise instead of losing each other; callers
+    that decide what to write from the file's contents read them inside
+    ``with locked(path):`` around this (see the module notes). A symbolic link
+    is followed: the real file is replaced and the link kept.
     ``upgrade=True`` also opens a file of :data:`schema.UPGRADABLE_VERSIONS` (the caller brings it to the current version).
 
     Examples
@@ -243,20 +305,22 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
     """
     import h5py
 
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise InputFileError(path, "no such file")
+    shown = os.fspath(path)
+    if not os.path.isfile(shown):
+        raise InputFileError(shown, "no such file")
+    path = real_path(shown)
     with sigterm_as_interrupt() as signals, locked(path):
         remove_stale_temporaries(path)
         try:
             tmp = _mkstemp(path)
+            with h5py.File(path, "r") as h5:  # before the copy: a file of another version is refused as it is
+                schema.check_version(h5, shown, upgradable=upgrade)
             try:
-                shutil.copyfile(path, tmp)
+                compact_copy(path, tmp)
                 shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
             except OSError as exc:
-                raise _os_error(path, exc) from None
+                raise _os_error(shown, exc) from None
             with h5py.File(tmp, "r+") as h5:
-                schema.check_version(h5, path, upgradable=upgrade)
                 yield h5
             if signals:
                 raise KeyboardInterrupt("SIGTERM")
@@ -266,5 +330,5 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
             _reraise_interrupt(signals, exc)
             disk = _is_disk_error(exc)
             if disk is not None and not isinstance(exc, GestureDBError):
-                raise _os_error(path, disk) from None
+                raise _os_error(shown, disk) from None
             raise
