@@ -134,6 +134,8 @@ def test_json_layouts(tmp_path):
      r"words\[1\]: word 1 \('b'\): end 1.5 s is before start 2.0 s"),
     ([{"start": 0, "end": None, "word": "a"}], r"words\[0\]: end: expected a number"),
     ([{"start": "nan", "end": 1, "word": "a"}], r"words\[0\]: start: expected a finite number"),
+    ([{"start": 0, "end": 1, "word": "a"}, {"start": -3, "end": -2.5, "word": "b"}],
+     r"words\[1\]: start: expected a time >= 0 s for word 'b', got -3.0"),
 ])
 def test_json_errors(tmp_path, doc, message):
     path = tmp_path / "w.json"
@@ -156,13 +158,62 @@ def test_json_syntax_error(tmp_path):
     ("1.0\t1.5\thello\n0.6\t0.7\tworld\n", r"line 2: word 1 \('world'\): starts at 0.6 s, before word 0"),
     ("0\t0.5\thello\ninf\t1\tworld\n", r"line 2: start: expected a finite number"),
     ("start\tend\tword\n0\t1\thi\n", r"line 1: start: expected a number of seconds, got 'start'"),
+    # issue 41: a negative time became a stretch of -58269 frames in `keywords add`
+    ("0\t0.5\thello\n-1.5\t-1.2\tworld\n", r"line 2: start: expected a time >= 0 s for word 'world', got -1.5"),
+    ("-0.2\t0.5\thello\n", r"line 1: start: expected a time >= 0 s for word 'hello', got -0.2"),
+    ("0\t-0.5\thello\n", r"line 1: end: expected a time >= 0 s for word 'hello', got -0.5"),
+    ("0\t0.5\thello\nnan\t1\tworld\n", r"line 2: start: expected a finite number"),
+    ("-5\t-4\t<sil>\n0\t1\thi\n", None),  # a silence before the start carries no word: skipped as ever
 ])
 def test_tsv_errors_name_the_line(tmp_path, body, message):
     path = tmp_path / "w.tsv"
     path.write_text(body)
+    if message is None:
+        assert read_transcript(path).text == ["hi"]
+        return
     with pytest.raises(InputFileError, match=message) as err:
         read_transcript(path)
     assert str(err.value).startswith(str(path))
+
+
+_TEXTGRID = """File type = "ooTextFile"
+Object class = "TextGrid"
+
+xmin = 0
+xmax = 3
+tiers? <exists>
+size = 1
+item []:
+    item [1]:
+        class = "IntervalTier"
+        name = "words"
+        xmin = 0
+        xmax = 3
+        intervals: size = 2
+        intervals [1]:
+            xmin = {a}
+            xmax = {b}
+            text = "hello"
+        intervals [2]:
+            xmin = {b}
+            xmax = 3
+            text = "world"
+"""
+
+
+@pytest.mark.parametrize("a, b, message", [
+    ("-2", "1", r"line 16: xmin: expected a finite time >= 0 s, got '-2'"),
+    ("0", "nan", r"line 17: xmax: expected a finite time >= 0 s, got 'nan'"),
+    ("2", "1", r"line 17: xmax 1 s is before xmin 2 s \(line 16\)"),
+])
+def test_textgrid_bad_times_name_the_line(tmp_path, a, b, message):
+    path = tmp_path / "w.TextGrid"
+    path.write_text(_TEXTGRID.format(a=a, b=b))
+    with pytest.raises(InputFileError, match=message) as err:
+        read_transcript(path)
+    assert str(err.value).startswith(f"{path}: line ") and "\n" not in str(err.value)
+    path.write_text(_TEXTGRID.format(a="0.5", b="1"))
+    assert read_transcript(path).start_s.tolist() == [0.5, 1.0]
 
 
 def test_unknown_extension(tmp_path):

@@ -195,6 +195,21 @@ def test_add_keyword_handmade_roundtrip_and_errors(small_db):
         kw.add_keyword(small_db, "<sil>")
 
 
+def test_words_before_the_motion_are_skipped_not_negative_stretches(tmp_path):
+    # issue 41: a database built before the readers refused negative times held them, and
+    # `keywords add` reported "4 occurrence(s), -58269 frames"
+    words = [(0, -3.0, -2.5, "wave"), (0, -0.35, 0.15, "wave"), (0, 1.0, 1.2, "wave"), (1, -9.0, -8.0, "only")]
+    path = _write_small_db(tmp_path / "neg.h5", fps=FPS, recordings=RECS, words=words)
+    sub = kw.add_keyword(path, "wave", before_s=0.5, after_s=0.5)
+    np.testing.assert_array_equal(sub.word_index, [1, 2])
+    assert sub.definition["skipped"] == 1 and (sub.length > 0).all() and sub.n_frames > 0
+    np.testing.assert_array_equal(sub.start, [0, 5])
+    np.testing.assert_array_equal(sub.length, [7, 12])  # [0, ceil(0.65 * 10)) and [0.5 s, 1.7 s)
+    with pytest.raises(ParameterError, match=r"keyword 'only': all 1 occurrence\(s\) in .*neg\.h5 lie outside the "
+                                             r"motion of their recording \(after its end, or before its start\)"):
+        kw.add_keyword(path, "only")
+
+
 def test_list_words_counts(small_db):
     with gesturedb.open(small_db) as db:
         rows = kw.list_words(db)

@@ -141,9 +141,19 @@ def _check_times(start, end, text) -> tuple[int, str] | None:
 
 
 def _build(path, rows) -> Words:
-    """rows: (start, end, raw text, where) -> validated Words; ``where`` names the line/entry for errors."""
+    """rows: (start, end, raw text, where) -> validated Words; ``where`` names the line/entry for errors.
+
+    Besides what :class:`Words` checks (finite, end not before start, starts in order), a
+    transcript's times must not be negative: a word before the start of its speech has no
+    frames, and keyword stretches and the graph's word clips computed from one came out of
+    negative length (``-58269 frames``) and failed the synthesis much later.
+    """
     kept = [(s, e, normalize_word(t), w) for s, e, t, w in rows]
     kept = [r for r in kept if r[2]]
+    for s, e, t, where in kept:
+        for field, v in (("start", s), ("end", e)):
+            if not v >= 0:  # also NaN
+                raise InputFileError(path, f"{where}: {field}: expected a time >= 0 s for word {t!r}, got {v!r}")
     start = np.array([r[0] for r in kept], dtype=np.float64)
     end = np.array([r[1] for r in kept], dtype=np.float64)
     text = [r[2] for r in kept]
@@ -182,6 +192,9 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
         tg = textgrid.openTextgrid(os.fspath(path), includeEmptyIntervals=False, reportingMode="silence")
     except (praat_errors.PraatioException, ValueError, IndexError, KeyError, UnicodeError, AttributeError,
             TypeError) as exc:
+        bad = _textgrid_time_problem(path)
+        if bad:  # praatio says "Expected field in Textgrid missing" for a negative time: name the line instead
+            raise InputFileError(path, bad) from None
         raise InputFileError(path, f"cannot parse as a Praat TextGrid: {type(exc).__name__}: "
                                    f"{' '.join(str(exc).split())}")  # praatio's messages span lines: keep one from None
     names = list(tg.tierNames)
@@ -194,6 +207,38 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
         raise InputFileError(path, f"tier {match[0]!r}: expected an interval tier, got a point tier")
     rows = [(e.start, e.end, e.label, f"tier {match[0]!r} interval {k + 1}") for k, e in enumerate(t.entries)]
     return _build(path, rows)
+
+
+_TEXTGRID_TIME = re.compile(r"\s*(xmin|xmax|number)\s*=\s*(\S+)\s*$")
+
+
+def _textgrid_time_problem(path) -> str | None:
+    """The first negative, non-finite or reversed time of a (long-format) TextGrid, naming its line.
+
+    Only called once praatio has refused the file, to say where and why in the words of
+    the other readers.
+    """
+    try:
+        with open(path, "r", encoding="utf-8-sig", errors="replace") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return None
+    xmin = None
+    for k, line in enumerate(lines, start=1):
+        m = _TEXTGRID_TIME.match(line)
+        if m is None:
+            continue
+        field, txt = m.groups()
+        try:
+            v = float(txt)
+        except ValueError:
+            return f"line {k}: {field}: expected a number of seconds, got {txt!r}"
+        if not math.isfinite(v) or v < 0:
+            return f"line {k}: {field}: expected a finite time >= 0 s, got {txt!r}"
+        if field == "xmax" and xmin is not None and v < xmin[1]:
+            return f"line {k}: xmax {v:g} s is before xmin {xmin[1]:g} s (line {xmin[0]})"
+        xmin = (k, v) if field == "xmin" else None
+    return None
 
 
 def _number(path, txt, where, field):
