@@ -305,3 +305,118 @@ def test_writer_leaves_no_partial_file(tmp_path, foreign_path):
     with pytest.raises(ParameterError, match="expected a Motion"):
         write_bvh(tmp_path / "x.bvh", m.rotations)
     assert list(tmp_path.iterdir()) == []
+
+
+# --- issue 41: BOM, bounded messages, joint and channel limits, linear parsing, writable frame rates --------
+
+def test_a_byte_order_mark_is_accepted(tmp_path, small_text):
+    """Some exporters and Windows editors start the file with a UTF-8 BOM: it is not part of HIERARCHY."""
+    plain = read_bvh(_small(tmp_path, small_text, "plain.bvh"))
+    p = tmp_path / "bom.bvh"
+    p.write_bytes(b"\xef\xbb\xbf" + small_text.encode())
+    m = read_bvh(p)
+    assert m.skeleton.names == plain.skeleton.names
+    np.testing.assert_array_equal(m.rotations, plain.rotations)
+
+
+def _one_line(err, path, longest=300):
+    msg = str(err.value)
+    assert msg.startswith(f"{path}: ") and "\n" not in msg and len(msg) < longest + len(str(path)), msg[:400]
+    return msg
+
+
+def test_a_huge_channel_count_is_refused_at_the_count(tmp_path):
+    """A joint declaring 10^7 channels (a 100 MB line) used to take 48 s and 2.2 GB to print a 100 MB
+    message; the count is refused before its names are read, and the message is one short line."""
+    p = tmp_path / "channels.bvh"
+    p.write_text("HIERARCHY\nROOT Hips\n{\nOFFSET 0 0 0\nCHANNELS 10000000 " + "Xrotation " * 200_000
+                 + "\n}\nMOTION\nFrames: 1\nFrame Time: 0.03\n0\n")
+    with pytest.raises(InputFileError, match=r"line 5: Hips CHANNELS: expected 0 to 6 channels, got 10000000$") as err:
+        read_bvh(p)
+    _one_line(err, p)
+    p.write_text("HIERARCHY\nROOT Hips\n{\nOFFSET 0 0 0\nCHANNELS " + "9" * 100_000 + "\n}\nMOTION\n")
+    with pytest.raises(InputFileError, match=r"Hips CHANNELS: expected 0 to 6 channels, got 9{80}\.\.\. "
+                                             r"\(100000 characters\)$") as err:
+        read_bvh(p)
+    _one_line(err, p)
+
+
+@pytest.mark.parametrize("token, message", [
+    # a joint name of 10^6 characters, used twice
+    (lambda t, big: t.replace("JOINT Spine", "JOINT " + big, 1).replace("JOINT Head", "JOINT " + big, 1),
+     r"JOINT x{80}\.\.\. \(1000000 characters\): the name is used twice$"),
+    (lambda t, big: t.replace("OFFSET 0.0000 8.4730 0.0000", "OFFSET 0.0000 " + big + " 0.0000", 1),
+     r"Spine OFFSET: expected a number, got 'x{80}'\.\.\. \(1000000 characters\)$"),
+    (lambda t, big: t.replace("CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 3 Xrotation Yrotation " + big, 1),
+     r"Spine CHANNELS: expected X/Y/Z position/rotation channels, got 'x{80}'\.\.\. \(1000000 characters\)$"),
+    (lambda t, big: t.replace("Frames: 10", "Frames: " + big),
+     r"Frames: expected a positive integer, got 'x{80}'\.\.\. \(1000000 characters\)$"),
+    (lambda t, big: "\n".join(ln if i != 152 else " ".join(ln.split()[:4] + [big] + ln.split()[5:])
+                              for i, ln in enumerate(t.splitlines())),
+     r"value 5 \(Hips Yrotation\): expected a number, got 'x{40}'\.\.\. \(1000000 characters\)$"),
+])
+def test_huge_tokens_are_echoed_short(tmp_path, small_text, token, message):
+    p = _small(tmp_path, token(small_text, "x" * 1_000_000))
+    with pytest.raises(InputFileError) as err:
+        read_bvh(p)
+    assert re.search(message, _one_line(err, p)), str(err.value)[:400]
+
+
+def _wide_bvh(path, n_joints):
+    """A hierarchy of ``n_joints`` joints in chains of 50 under one root (a face or hand rig writ large)."""
+    out = ["HIERARCHY", "ROOT Hips", "{", "OFFSET 0 0 0",
+           "CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation"]
+    k = 1
+    while k < n_joints:
+        depth = min(50, n_joints - k)
+        for d in range(depth):
+            out += [f"JOINT j{k + d}", "{", "OFFSET 0 1 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+        out += ["End Site", "{", "OFFSET 0 1 0", "}"] + ["}"] * depth
+        k += depth
+    frame = " ".join(["0"] * (6 + 3 * (n_joints - 1)))
+    path.write_text("\n".join(out + ["}", "MOTION", "Frames: 2", "Frame Time: 0.033333", frame, frame]) + "\n")
+    return path
+
+
+def test_parsing_is_linear_in_joints_and_joints_are_limited(tmp_path):
+    """10k joints took 1.9-6 s and 100k past 240 s (a scan of all joints per joint); now the time grows
+    with the joints, and more than MAX_BVH_JOINTS are refused at the first joint too many."""
+    import time
+
+    from gesturedb.io.bvh import MAX_BVH_JOINTS
+
+    def best(path):
+        times = []
+        for _ in range(2):
+            t0 = time.perf_counter()
+            m = read_bvh(path)
+            times.append(time.perf_counter() - t0)
+        return m, min(times)
+
+    small, t_small = best(_wide_bvh(tmp_path / "2k.bvh", 2_000))
+    big, t_big = best(_wide_bvh(tmp_path / "10k.bvh", MAX_BVH_JOINTS))
+    assert small.skeleton.n_joints == 2_000 and big.skeleton.n_joints == MAX_BVH_JOINTS
+    # 5x the joints: about 5x the time when linear, 25x when quadratic (the old parser: 13x for 4x)
+    assert t_big < 4.0 and t_big < 10 * max(t_small, 0.02), (t_small, t_big)
+    p = _wide_bvh(tmp_path / "too-many.bvh", MAX_BVH_JOINTS + 1)
+    with pytest.raises(InputFileError, match=rf"line \d+: JOINT: expected at most {MAX_BVH_JOINTS} joints "
+                                             r"\(MAX_BVH_JOINTS\); the hierarchy has more") as err:
+        read_bvh(p)
+    _one_line(err, p)
+
+
+@pytest.mark.parametrize("fps", [1e9, 1e-9, 1000.5, 0.5])
+def test_write_refuses_frame_rates_the_reader_refuses(tmp_path, foreign_path, fps):
+    m = read_bvh(foreign_path)[:4]
+    bad = Motion(m.skeleton, fps, m.rotations, m.root_positions)
+    with pytest.raises(ParameterError, match=rf"motion.fps: expected 1 to 1000 frames per second for BVH "
+                                             rf"\(read_bvh's range\); got {re.escape(f'{fps:g}')}$"):
+        write_bvh(tmp_path / "x.bvh", bad)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("fps", [1.0, 1000.0, 29.97])
+def test_frame_rates_at_the_limits_round_trip(tmp_path, foreign_path, fps):
+    m = read_bvh(foreign_path)[:4]
+    write_bvh(tmp_path / "x.bvh", Motion(m.skeleton, fps, m.rotations, m.root_positions))
+    assert read_bvh(tmp_path / "x.bvh").fps == pytest.approx(fps, rel=1e-9)

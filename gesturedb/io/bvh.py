@@ -38,7 +38,7 @@ import warnings
 import numpy as np
 
 from gesturedb import rotations as rot
-from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
 from gesturedb.io.atomic import atomic_open
 from gesturedb.motion import Motion, Skeleton
 
@@ -65,40 +65,61 @@ class _Joint:
         self.end_site = None
 
 
+# a brace, or a run of anything else that is not white space: braces may be glued to other
+# tokens ("{" ... "}" on one line)
+_TOKEN_RE = re.compile(r"[{}]|[^\s{}]+")
+
+
 def _tokens(lines, start, stop):
-    """Yield (token, line number) over the hierarchy; ROOT/JOINT names may contain spaces."""
+    """Yield (token, line number) over the hierarchy; ROOT/JOINT names may contain spaces.
+
+    A generator, token by token: a line declaring ten million channels is refused at its
+    count, before its names are split into a list.
+    """
     for i in range(start, stop):
-        parts = lines[i].split()
-        if not parts:
+        line = lines[i]
+        head = line.split(None, 1)
+        if not head:
             continue
-        key = parts[0].upper()
+        key = head[0].upper()
         if key in ("ROOT", "JOINT"):
-            rest = lines[i].strip()[len(parts[0]):].strip()
+            rest = head[1].strip() if len(head) > 1 else ""
             brace = rest.endswith("{")
             name = rest[:-1].strip() if brace else rest
-            yield parts[0], i + 1
+            yield head[0], i + 1
             yield ("\0" + name), i + 1  # marked so a joint called "{" cannot confuse the parser
             if brace:
                 yield "{", i + 1
             continue
-        for p in parts:
-            # braces may be glued to other tokens ("{" ... "}" on one line)
-            for piece in re.split(r"([{}])", p):
-                if piece:
-                    yield piece, i + 1
+        for m in _TOKEN_RE.finditer(line):
+            yield m.group(), i + 1
 
 
 #: deepest joint chain accepted (a human skeleton with fingers is ~10-30 deep); a limit, not a RecursionError
 MAX_BVH_DEPTH = 200
 #: largest |OFFSET| component accepted, in file units (1e6 m even for a file in micrometres)
 MAX_BVH_OFFSET = 1e12
-#: frame rates accepted from ``Frame Time`` (1 / Frame Time), Hz
+#: frame rates accepted from ``Frame Time`` (1 / Frame Time), Hz; `write_bvh` writes only these
 MIN_FPS, MAX_FPS = 1.0, 1000.0
+#: most joints accepted in a hierarchy: a body with fingers and a face rig has a few hundred
+MAX_BVH_JOINTS = 10_000
+#: most channels of one joint: three positions and three rotations
+MAX_JOINT_CHANNELS = 6
+
+
+def _tok(tok) -> str:
+    """A token for a message: joint names carry a NUL mark in the token stream (see `_tokens`)."""
+    return echo(tok.lstrip("\0"))
+
+
+def _text(s) -> str:
+    """A user string for a message, unquoted, cut to `gesturedb.errors.MAX_ECHO_CHARS`."""
+    return echo_list([s])
 
 
 def _parse_hierarchy(path, lines, start, stop):
-    toks = list(_tokens(lines, start, stop))
-    pos = 0
+    """The joints of the HIERARCHY, in file order; linear in the number of tokens."""
+    toks = _tokens(lines, start, stop)
 
     def fail(problem, line=None):
         where = f"line {line}: " if line else ""
@@ -106,13 +127,12 @@ def _parse_hierarchy(path, lines, start, stop):
 
     def take(expect=None, what=None):
         """Next token; ``expect`` is a token that must come, ``what`` describes what may come."""
-        nonlocal pos
-        if pos >= len(toks):
+        nxt = next(toks, None)
+        if nxt is None:
             fail(f"HIERARCHY ends early (expected {expect or what or 'more'}; the file may be truncated)", stop)
-        tok, ln = toks[pos]
-        pos += 1
+        tok, ln = nxt
         if expect is not None and tok.upper() != expect.upper():
-            fail(f"expected {expect!r}, got {tok.lstrip(chr(0))!r}", ln)
+            fail(f"expected {expect!r}, got {_tok(tok)}", ln)
         return tok, ln
 
     def number(what):
@@ -120,25 +140,31 @@ def _parse_hierarchy(path, lines, start, stop):
         try:
             v = float(tok)
         except ValueError:
-            fail(f"{what}: expected a number, got {tok.lstrip(chr(0))!r}", ln)
+            fail(f"{what}: expected a number, got {_tok(tok)}", ln)
         if not math.isfinite(v):
-            fail(f"{what}: expected a finite number, got {tok!r}", ln)
+            fail(f"{what}: expected a finite number, got {_tok(tok)}", ln)
         if abs(v) > MAX_BVH_OFFSET:
             # forward kinematics of such bones overflows to inf/NaN far from here; say it where it is
-            fail(f"{what}: expected a length within +-{MAX_BVH_OFFSET:g} file units, got {tok}", ln)
+            fail(f"{what}: expected a length within +-{MAX_BVH_OFFSET:g} file units, got {_tok(tok)}", ln)
         return v
 
     joints: list[_Joint] = []
+    names: set[str] = set()  # a set, not a scan of the joints: parsing stays linear in joints
 
     def parse_joint(parent, kw_line, depth=0):
         if depth >= MAX_BVH_DEPTH:
             fail(f"JOINT: nested more than {MAX_BVH_DEPTH} deep (MAX_BVH_DEPTH); not a body skeleton", kw_line)
+        if len(joints) >= MAX_BVH_JOINTS:
+            fail(f"JOINT: expected at most {MAX_BVH_JOINTS} joints (MAX_BVH_JOINTS); the hierarchy has more. "
+                 "Not a body skeleton", kw_line)
         tok, ln = take()
         if not tok.startswith("\0") or not tok[1:]:
             fail("ROOT/JOINT: expected a joint name", kw_line)
         name = tok[1:]
-        if any(j.name == name for j in joints):
-            fail(f"JOINT {name}: the name is used twice", ln)
+        label = _text(name)  # names are echoed in messages; a 100 MB name must not be
+        if name in names:
+            fail(f"JOINT {label}: the name is used twice", ln)
+        names.add(name)
         me = len(joints)
         jt = _Joint(name, parent, ln)
         joints.append(jt)
@@ -149,23 +175,27 @@ def _parse_hierarchy(path, lines, start, stop):
             if key == "}":
                 break
             if key == "OFFSET":
-                jt.offset = [number(f"{name} OFFSET") for _ in range(3)]
+                jt.offset = [number(f"{label} OFFSET") for _ in range(3)]
             elif key == "CHANNELS":
                 n_tok, n_ln = take()
                 if not n_tok.isdigit():
-                    fail(f"{name} CHANNELS: expected a channel count, got {n_tok!r}", n_ln)
+                    fail(f"{label} CHANNELS: expected a channel count, got {_tok(n_tok)}", n_ln)
+                if len(n_tok) > 3 or int(n_tok) > MAX_JOINT_CHANNELS:
+                    # refused at the count, before reading (or echoing) the names it declares
+                    fail(f"{label} CHANNELS: expected 0 to {MAX_JOINT_CHANNELS} channels, got {_text(n_tok)}",
+                         n_ln)
                 chans = []
                 for _ in range(int(n_tok)):
                     c, c_ln = take()
                     if c.lower() not in _CHANNEL_NAMES:
-                        fail(f"{name} CHANNELS: expected X/Y/Z position/rotation channels, got {c!r}", c_ln)
+                        fail(f"{label} CHANNELS: expected X/Y/Z position/rotation channels, got {_tok(c)}", c_ln)
                     chans.append(c)
                 kinds = [_CHANNEL_NAMES[c.lower()] for c in chans]
                 rots = [a for k, a in kinds if k == "rot"]
                 poss = [a for k, a in kinds if k == "pos"]
                 if len(rots) not in (0, 3) or len(set(rots)) != len(rots) or \
                         len(poss) not in (0, 3) or len(set(poss)) != len(poss):
-                    fail(f"{name} CHANNELS: expected 0 or 3 distinct rotation and 0 or 3 distinct position "
+                    fail(f"{label} CHANNELS: expected 0 or 3 distinct rotation and 0 or 3 distinct position "
                          f"channels, got {' '.join(chans)}", n_ln)
                 jt.channels = chans
             elif key == "JOINT":
@@ -174,24 +204,25 @@ def _parse_hierarchy(path, lines, start, stop):
                 take("Site")
                 take("{")
                 take("OFFSET")
-                off = [number(f"{name} End Site OFFSET") for _ in range(3)]
+                off = [number(f"{label} End Site OFFSET") for _ in range(3)]
                 take("}")
                 if jt.end_site is not None:
-                    fail(f"{name}: a second End Site (one per joint is supported)", ln)
+                    fail(f"{label}: a second End Site (one per joint is supported)", ln)
                 jt.end_site = off
             else:
-                fail(f"{name}: expected OFFSET, CHANNELS, JOINT, End Site or '}}', got {tok.lstrip(chr(0))!r}", ln)
+                fail(f"{label}: expected OFFSET, CHANNELS, JOINT, End Site or '}}', got {_tok(tok)}", ln)
         if jt.offset is None:
-            fail(f"{name}: no OFFSET", jt.line)
+            fail(f"{label}: no OFFSET", jt.line)
         if jt.channels is None:
-            fail(f"{name}: no CHANNELS", jt.line)
+            fail(f"{label}: no CHANNELS", jt.line)
 
     tok, ln = take("HIERARCHY")
     tok, ln = take("ROOT")
     parse_joint(-1, ln)
-    if pos < len(toks):
-        tok, ln = toks[pos]
-        fail(f"expected MOTION after the root joint's closing brace, got {tok.lstrip(chr(0))!r} "
+    extra = next(toks, None)
+    if extra is not None:
+        tok, ln = extra
+        fail(f"expected MOTION after the root joint's closing brace, got {_tok(tok)} "
              "(only one ROOT is supported)", ln)
     return joints
 
@@ -214,12 +245,12 @@ def _motion_header(path, lines, m_line):
             raise InputFileError(path, f"MOTION: no '{label}' line (the file ends after line {len(lines)})")
         m = _HEADER_RE[key].match(lines[i])
         if not m:
-            raise InputFileError(path, f"line {i + 1}: expected '{label} <number>', got {lines[i].strip()[:60]!r}")
+            raise InputFileError(path, f"line {i + 1}: expected '{label} <number>', got {echo(lines[i].strip(), 60)}")
         found[key] = (m.group(1), i + 1)
         i += 1
     txt, ln = found["frames"]
     if not txt.isdigit() or int(txt) < 1:
-        raise InputFileError(path, f"line {ln}: Frames: expected a positive integer, got {txt!r}")
+        raise InputFileError(path, f"line {ln}: Frames: expected a positive integer, got {echo(txt)}")
     n_frames = int(txt)
     txt, ln = found["frame_time"]
     try:
@@ -227,7 +258,7 @@ def _motion_header(path, lines, m_line):
     except ValueError:
         ft = float("nan")
     if not (math.isfinite(ft) and ft > 0):
-        raise InputFileError(path, f"line {ln}: Frame Time: expected a positive number of seconds, got {txt!r}")
+        raise InputFileError(path, f"line {ln}: Frame Time: expected a positive number of seconds, got {echo(txt)}")
     if not MIN_FPS <= 1.0 / ft <= MAX_FPS:
         raise InputFileError(path, f"line {ln}: Frame Time: expected {1 / MAX_FPS:g} to {1 / MIN_FPS:g} s "
                                    f"({MIN_FPS:g}-{MAX_FPS:g} fps), got {txt} s ({1 / ft:.6g} fps)")
@@ -264,8 +295,8 @@ def _diagnose_frames(path, data_lines, first_line, n_values, labels):
             try:
                 float(p)
             except ValueError:
-                raise InputFileError(path, f"line {ln} (frame {frame}), value {c + 1} ({labels[c]}): "
-                                           f"expected a number, got {p[:40]!r}") from None
+                raise InputFileError(path, f"line {ln} (frame {frame}), value {c + 1} ({_text(labels[c])}): "
+                                           f"expected a number, got {echo(p, 40)}") from None
         frame += 1
     raise InputFileError(path, f"line {first_line}: frame data could not be parsed")
 
@@ -302,7 +333,7 @@ def parse_length_unit(text) -> float:
         v = float("nan")
     if not (math.isfinite(v) and v > 0):
         raise ParameterError(f"length unit: expected one of {', '.join(LENGTH_UNITS)}, 'inch' or a positive number "
-                             f"of metres per unit; got {text!r}")
+                             f"of metres per unit; got {echo(text)}")
     return v
 
 
@@ -396,7 +427,8 @@ def read_bvh(path, *, length_unit_m: float | None = None) -> Motion:
     Raises
     ------
     InputFileError
-        Unreadable file, malformed hierarchy, missing ``MOTION`` / ``Frames`` /
+        Unreadable file, malformed hierarchy (more than `MAX_BVH_JOINTS` joints, more
+        than `MAX_JOINT_CHANNELS` channels on a joint), missing ``MOTION`` / ``Frames`` /
         ``Frame Time``, fewer or more frame lines than ``Frames:``, a frame line
         with the wrong number of values, a non-numeric or non-finite value; the
         message names the line, frame and channel.
@@ -408,7 +440,8 @@ def read_bvh(path, *, length_unit_m: float | None = None) -> Motion:
         if not (math.isfinite(length_unit_m) and length_unit_m > 0):
             raise ParameterError(f"length_unit_m: expected a positive number of metres per unit; got {length_unit_m}")
     try:
-        with open(path, "r", encoding="utf-8", errors="replace") as f:
+        # utf-8-sig: a byte-order mark (some exporters, Windows editors) is not part of "HIERARCHY"
+        with open(path, "r", encoding="utf-8-sig", errors="replace") as f:
             text = f.read()
     except OSError as exc:
         raise InputFileError(path, f"cannot read: {exc.strerror or exc}") from None
@@ -443,7 +476,7 @@ def read_bvh(path, *, length_unit_m: float | None = None) -> Motion:
     if bad.any():
         f, c = (int(v) for v in np.argwhere(bad)[0])
         ln = _line_of_frame(data_lines, f) + first + 1
-        raise InputFileError(path, f"line {ln} (frame {f}), value {c + 1} ({labels[c]}): expected a finite number, "
+        raise InputFileError(path, f"line {ln} (frame {f}), value {c + 1} ({_text(labels[c])}): expected a finite number, "
                                    f"got {data[f, c]}")
     return _to_motion(path, joints, data, frame_time, length_unit_m)
 
@@ -497,7 +530,7 @@ def _to_motion(path, joints, data, frame_time, length_unit_m):
             offsets[j] = vals.mean(axis=0)
             spread = float(np.abs(vals - offsets[j]).max())
             if spread > 1e-3 * scale_units:
-                warnings.warn(f"{os.fspath(path)}: joint {joints[j].name} has position channels that move by up to "
+                warnings.warn(f"{os.fspath(path)}: joint {_text(joints[j].name)} has position channels that move by up to "
                               f"{spread:.4g} file units; bone lengths are fixed, so their mean is used",
                               stacklevel=3)
 
@@ -553,7 +586,8 @@ def write_bvh(path, motion: Motion, *, length_unit_m: float | None = None) -> No
     Raises
     ------
     ParameterError
-        Bad ``length_unit_m``, or a rotating joint without rotation channels.
+        Bad ``length_unit_m``, a frame rate outside `MIN_FPS` to `MAX_FPS` (the range
+        `read_bvh` accepts), or a rotating joint without rotation channels.
     InputFileError
         If the file cannot be written.
     """
@@ -564,13 +598,17 @@ def write_bvh(path, motion: Motion, *, length_unit_m: float | None = None) -> No
     if not (math.isfinite(unit) and unit > 0):
         raise ParameterError(f"length_unit_m: expected a positive number of metres per unit; got {length_unit_m}")
     inv = 1.0 / unit
+    if not MIN_FPS <= motion.fps <= MAX_FPS:
+        # read_bvh refuses such a Frame Time: never write a file our own reader cannot read back
+        raise ParameterError(f"motion.fps: expected {MIN_FPS:g} to {MAX_FPS:g} frames per second for BVH "
+                             f"(read_bvh's range); got {motion.fps:g}")
 
     orders = list(sk.channel_orders)
     if not orders[0]:
         orders[0] = "ZXY"  # the root always gets 6 channels so it can turn
     for j, order in enumerate(orders):
         if not order and rot.angle_between(motion.rotations[:, j], rot.identity()).max() > 1e-6:
-            raise ParameterError(f"joint {sk.names[j]} has no rotation channels (channel order '') but rotates; "
+            raise ParameterError(f"joint {_text(sk.names[j])} has no rotation channels (channel order '') but rotates; "
                                  "set skeleton.channel_orders for it")
 
     out = ["HIERARCHY"]
