@@ -561,3 +561,25 @@ def test_cli_retarget_with_hostile_glb_exits_2_with_one_line(tiny, tmp_path, cap
     assert err.count("\n") == 1 and not out.exists(), err
     assert re.match(rf"gesturedb retarget: error: {re.escape(str(bad))}: accessors\[\d+\]\.count: expected an "
                     r"integer >= 1; got -3$", err.strip()), err
+
+
+def test_frame_rate_and_size_limits(tiny, tmp_path, monkeypatch):
+    doc, blob, _ = tiny
+    acc = doc["accessors"][_times_accessor(doc)]
+    start = doc["bufferViews"][acc["bufferView"]]["byteOffset"]
+    slow = bytearray(blob)
+    slow[start:start + 16] = np.array([0, 10, 20, 30], "<f4").tobytes()  # 0.1 fps
+    (tmp_path / "slow.glb").write_bytes(make_glb(doc, slow))
+    with pytest.raises(InputFileError, match=r"slow\.glb: animations\[0\] key times: expected 1 to 1000 frames per "
+                                             r"second; got 0\.1$"):
+        read_gltf(tmp_path / "slow.glb")
+    # frames x nodes is capped before anything the size of the motion is allocated
+    import gesturedb.io.gltf as gltf
+
+    (tmp_path / "t.glb").write_bytes(make_glb(doc, blob))
+    monkeypatch.setattr(gltf, "MAX_JOINT_FRAMES", 11)
+    with pytest.raises(InputFileError, match=r"t\.glb: animations\[0\] key times: 4 frames x 3 nodes is more than "
+                                             r"this reader's limit of 11 frame-joints"):
+        read_gltf(tmp_path / "t.glb")
+    monkeypatch.setattr(gltf, "MAX_JOINT_FRAMES", 12)
+    assert read_gltf(tmp_path / "t.glb").n_frames == 4
