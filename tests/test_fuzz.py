@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 FUZZ = Path(__file__).resolve().parent / "fuzz"
-TARGETS = ["bvh", "transcripts", "expression", "npz"]
+TARGETS = ["bvh", "transcripts", "expression", "npz", "gltf"]
 SECONDS = 3
 
 
@@ -63,7 +63,7 @@ def test_inputs_the_fuzzers_found_give_one_line_errors(crash):
     from gesturedb.errors import InputFileError
     from gesturedb.io import read_motion, read_transcript
 
-    reader = read_motion if crash.suffix in (".npz", ".bvh") else read_transcript
+    reader = read_motion if crash.suffix in (".npz", ".bvh", ".glb", ".gltf") else read_transcript
     with pytest.raises(InputFileError, match=str(crash.name)) as info:
         reader(crash)
     assert "\n" not in str(info.value)
