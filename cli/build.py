@@ -1,7 +1,6 @@
 """`gesturedb build INPUT... -o DB.h5`"""
 from __future__ import annotations
 
-import json
 import os
 import sys
 
@@ -56,17 +55,9 @@ def _gap(text):
 
 
 def _joint_map(text):
-    from gesturedb.errors import ParameterError
+    from gesturedb.io.joints import read_joint_map  # JSON text or file, BOM allowed, messages capped
 
-    if text is None:
-        return None
-    try:
-        if os.path.isfile(text):
-            with open(text) as f:
-                return json.load(f)
-        return json.loads(text)
-    except (ValueError, OSError) as exc:
-        raise ParameterError(f"--joint-map: expected a JSON object or a .json file, got {text!r} ({exc})") from None
+    return read_joint_map(text)
 
 
 def run(args) -> int:

@@ -137,3 +137,62 @@ def test_missing_role_without_source_is_a_parameter_error():
     want = r"no joint found for role\(s\) right_wrist \(found: left_wrist=LeftHand\); the skeleton has 2 joints: Hips"
     with pytest.raises(ParameterError, match=want):
         find_joints(["Hips", "LeftHand"], ("left_wrist", "right_wrist"))
+
+
+# --- issue 41: joint maps with a BOM, messages of bounded length --------------------------------------------
+
+def test_a_map_of_many_unknown_keys_is_refused_fast_in_one_short_line():
+    """Such a map printed 23 MB (and checked each key against a growing list); now the first keys and
+    the count, in well under a second of work."""
+    import time
+
+    names = smplx_skeleton().names
+    mapping = {f"bogus_{i}": "pelvis" for i in range(300_000)}  # the issue had 2M; the old check was quadratic
+    t0 = time.perf_counter()
+    with pytest.raises(ParameterError, match=r"^roles: unknown 'bogus_0', 'bogus_1', .*'bogus_11', \.\.\. "
+                                             r"\(300000 in all\); known roles: left_wrist, ") as err:
+        find_joints(names, mapping=mapping)
+    assert time.perf_counter() - t0 < 10.0
+    assert len(str(err.value)) < 600 and "\n" not in str(err.value)
+
+
+def test_joint_lists_and_names_in_messages_are_capped():
+    names = ["Hips"] + [f"j{i}_" + "x" * 200 for i in range(5_000)]
+    with pytest.raises(InputFileError, match=r"the skeleton has 5001 joints: Hips, j0_x{77}\.\.\. \(203 characters\), "
+                                             r".*\.\.\. \(5001 in all\)\. Pass mapping") as err:
+        find_joints(names, ("left_wrist",), source="rig.bvh")
+    assert len(str(err.value)) < 80 * 110
+    with pytest.raises(ParameterError, match=r"^mapping\['left_wrist'\]: no joint named 'y{80}'\.\.\. "
+                                             r"\(100000 characters\); joints: Hips, ") as err:
+        find_joints(names, ("left_wrist",), mapping={"left_wrist": "y" * 100_000})
+    assert len(str(err.value)) < 80 * 110
+
+
+def test_read_joint_map_takes_text_or_a_file_with_or_without_a_bom(tmp_path):
+    from gesturedb.io.joints import read_joint_map
+
+    want = {"left_index1": "LeftHandThumb1", "root": "Hips"}
+    text = '{"left_index1": "LeftHandThumb1", "root": "Hips"}'
+    assert read_joint_map(text) == want and read_joint_map(None) is None
+    for name, data in (("plain.json", text.encode()), ("bom.json", b"\xef\xbb\xbf" + text.encode()),
+                       ("bom16.json", text.encode("utf-8-sig"))):
+        (tmp_path / name).write_bytes(data)
+        assert read_joint_map(str(tmp_path / name)) == want, name
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"left_wrist": ')
+    with pytest.raises(InputFileError, match=rf"^{bad}: --joint-map: expected a JSON object \{{role: joint name\}} "
+                                             r"or a \.json file holding one; got invalid JSON \(Expecting value"):
+        read_joint_map(str(bad))
+    bad.write_text('["left_wrist"]')
+    with pytest.raises(InputFileError, match=rf"^{bad}: --joint-map: expected a JSON object \{{role: joint name\}}; "
+                                             r"got list$"):
+        read_joint_map(str(bad))
+    with pytest.raises(ParameterError, match=r"^--joint-map: expected a JSON object .* got '\{x{79}'\.\.\. "
+                                             r"\(100002 characters\) \("):
+        read_joint_map("{" + "x" * 100_000 + "}")
+    with pytest.raises(ParameterError, match=r"^--joint-map: \['root'\]: expected a joint name \(a string\); got 3$"):
+        read_joint_map('{"root": 3}')
+    big = tmp_path / "big.json"
+    big.write_text("{" + " " * (1 << 20) + "}")
+    with pytest.raises(InputFileError, match=r"--joint-map: expected a JSON object of at most 1048576 bytes"):
+        read_joint_map(str(big))

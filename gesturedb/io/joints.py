@@ -19,11 +19,18 @@ therefore preferred and ``shoulder`` is the fallback.
 from __future__ import annotations
 
 import functools
+import json
+import os
 import re
 
-from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
 
-__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints", "leg_joints"]
+__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints", "leg_joints", "read_joint_map"]
+
+#: joint names a message lists before it counts the rest (a body with fingers has about 70)
+MESSAGE_JOINTS = 80
+#: largest joint-map file read: a map has at most a dozen roles
+MAX_JOINT_MAP_BYTES = 1 << 20
 
 FEATURE_ROLES = ("left_wrist", "right_wrist", "left_elbow", "right_elbow",
                  "left_index1", "right_index1", "left_pinky1", "right_pinky1")
@@ -100,14 +107,17 @@ def find_joints(names, roles=FEATURE_ROLES + BODY_ROLES, *, mapping=None, source
     names = [str(n) for n in names]
     known = FEATURE_ROLES + BODY_ROLES
     roles = tuple(roles)
-    unknown = [r for r in roles if r not in known]
+    unknown = list(dict.fromkeys(r for r in roles if r not in known))
     mapping = dict(mapping or {})
-    unknown += [r for r in mapping if r not in known and r not in unknown]
+    # a set, not a scan of the list per key: a map of 2M unknown keys is refused in a second
+    seen = set(unknown)
+    unknown += [r for r in mapping if r not in known and r not in seen]
     if unknown:
-        raise ParameterError(f"roles: unknown {', '.join(map(repr, unknown))}; known roles: {', '.join(known)}")
+        raise ParameterError(f"roles: unknown {echo_list(unknown, quote=True)}; known roles: {', '.join(known)}")
     for role, joint in mapping.items():
         if joint not in names:
-            raise ParameterError(f"mapping[{role!r}]: no joint named {joint!r}; joints: {', '.join(names)}")
+            raise ParameterError(f"mapping[{echo(role)}]: no joint named {echo(joint)}; joints: "
+                                 f"{echo_list(names, MESSAGE_JOINTS)}")
 
     parsed = [_parse(n) for n in names]
     found: dict[str, int] = {}
@@ -129,14 +139,71 @@ def find_joints(names, roles=FEATURE_ROLES + BODY_ROLES, *, mapping=None, source
         else:
             found[role] = hit
     if missing:
-        got = ", ".join(f"{r}={names[j]}" for r, j in found.items()) or "none"
+        got = echo_list([f"{r}={names[j]}" for r, j in found.items()], len(found)) or "none"
         msg = (f"no joint found for role(s) {', '.join(missing)} (found: {got}); the skeleton has {len(names)} "
-               f"joints: {', '.join(names)}. Pass mapping={{role: joint_name}} (gesturedb build --joint-map) "
-               "to choose them")
+               f"joints: {echo_list(names, MESSAGE_JOINTS)}. Pass mapping={{role: joint_name}} "
+               "(gesturedb build --joint-map) to choose them")
         if source is not None:
             raise InputFileError(source, msg)
         raise ParameterError(msg)
     return found
+
+
+def read_joint_map(text) -> dict[str, str] | None:
+    """A ``{role: joint name}`` map from JSON text or a ``.json`` file (``gesturedb build --joint-map``).
+
+    Parameters
+    ----------
+    text : str or None
+        The JSON object itself, or the path of a file holding it (UTF-8, a byte-order
+        mark allowed: Windows editors write one). ``None`` gives ``None``.
+
+    Returns
+    -------
+    dict of str to str or None
+        Checked against the roles by `find_joints` when it is used.
+
+    Raises
+    ------
+    InputFileError
+        A file that cannot be read, is larger than `MAX_JOINT_MAP_BYTES`, or does not hold
+        a JSON object of strings.
+    ParameterError
+        The same for JSON given as text.
+    """
+    if text is None:
+        return None
+    text = os.fspath(text)
+    is_file = os.path.isfile(text)
+    if is_file:
+        def fail(problem):
+            raise InputFileError(text, f"--joint-map: {problem}")
+        try:
+            size = os.path.getsize(text)
+            if size > MAX_JOINT_MAP_BYTES:
+                fail(f"expected a JSON object of at most {MAX_JOINT_MAP_BYTES} bytes (MAX_JOINT_MAP_BYTES), got {size}")
+            with open(text, encoding="utf-8-sig") as f:
+                body = f.read()
+        except (OSError, UnicodeError) as exc:
+            fail(f"cannot read: {exc}")
+    else:
+        def fail(problem):
+            raise ParameterError(f"--joint-map: {problem}")
+        body = text
+    try:
+        doc = json.loads(body.lstrip("\ufeff"))
+    except RecursionError:
+        fail("invalid JSON: nested too deeply")
+    except ValueError as exc:  # json.JSONDecodeError, or a number of more than 4300 digits
+        got = "invalid JSON" if is_file else echo(text)
+        fail(f"expected a JSON object {{role: joint name}} or a .json file holding one; got {got} "
+             f"({str(exc).splitlines()[0]})")
+    if not isinstance(doc, dict):
+        fail(f"expected a JSON object {{role: joint name}}; got {type(doc).__name__}")
+    bad = next(((k, v) for k, v in doc.items() if not isinstance(v, str)), None)
+    if bad is not None:
+        fail(f"[{echo(bad[0])}]: expected a joint name (a string); got {echo(bad[1])}")
+    return doc
 
 
 # --- whole-skeleton correspondence (retargeting) ------------------------------------------
