@@ -583,3 +583,20 @@ def test_frame_rate_and_size_limits(tiny, tmp_path, monkeypatch):
         read_gltf(tmp_path / "t.glb")
     monkeypatch.setattr(gltf, "MAX_JOINT_FRAMES", 12)
     assert read_gltf(tmp_path / "t.glb").n_frames == 4
+
+
+def test_a_large_skin_with_repeated_names_fails_fast(tiny, tmp_path):
+    """60,000 joints named alike: an error in about a second, not a quadratic search for the repeats."""
+    import time
+
+    doc, blob, _ = tiny
+    n0, n = len(doc["nodes"]), 60_000
+    doc["nodes"][2]["children"] = list(range(n0, n0 + n))
+    doc["nodes"] += [{"name": "same"} for _ in range(n)]
+    doc["skins"][0]["joints"] += list(range(n0, n0 + n))
+    (tmp_path / "many.glb").write_bytes(make_glb(doc, blob))
+    t0 = time.perf_counter()
+    with pytest.raises(InputFileError, match=r"many\.glb: skins\[0\]\.joints: expected joints with unique names "
+                                             r"\(nodes\[i\]\.name\); repeated: 'same'"):
+        read_gltf_rig(tmp_path / "many.glb")
+    assert time.perf_counter() - t0 < 30

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import collections
 import json
 import math
 import os
@@ -609,7 +610,7 @@ class _Rig:
         self.needed = [i for i in forest if mark[i]]
         names = [self.name(i) for i in self.order]
         if len(set(names)) != len(names):
-            dup = sorted({x for x in names if names.count(x) > 1})
+            dup = sorted(x for x, k in collections.Counter(names).items() if k > 1)  # not names.count: O(J^2)
             doc.fail("skins[0].joints", f"expected joints with unique names (nodes[i].name); repeated: "
                                         f"{_shown(', '.join(dup))}")
         self.rest_world = {}
