@@ -1,6 +1,7 @@
 """Building a database from the real BEAT2 recording, and what a bad input does."""
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
@@ -304,3 +305,120 @@ def test_streamed_build_equals_the_whole_arrays(scott_dir, tmp_path):
         for path, arr in want.items():
             got = h5[path][()]
             assert got.dtype == arr.dtype and got.tobytes() == arr.tobytes(), path
+
+
+# ---------------------------------------------------------------- disk full (issue 41, case 8)
+
+_FAIL_AFTER = """\
+import errno, os, sys
+budget = [int(sys.argv[1])]
+real = os.pwrite
+def pwrite(fd, data, offset):  # the disk takes int(argv[1]) bytes, then is full
+    n = min(len(data), budget[0])
+    if n == 0:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    budget[0] -= n
+    return real(fd, memoryview(data)[:n], offset)
+os.pwrite = pwrite
+from gesturedb.cli.main import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@contextlib.contextmanager
+def _small_filesystem(folder: Path, size_kb: int):
+    """A tmpfs of ``size_kb`` mounted on ``folder`` (needs root; skips with the reason otherwise)."""
+    import subprocess
+
+    folder.mkdir()
+    p = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", str(folder)],
+                       capture_output=True, text=True)
+    if p.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({(p.stderr or p.stdout).strip()}): the disk-full "
+                    "build with injected write failures still runs")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+@pytest.mark.parametrize("free_kb", [200, 2000], ids=["full-in-the-frames", "full-near-the-end"])
+@pytest.mark.parametrize("disk", ["tmpfs", "injected"])
+def test_disk_full_during_a_build_is_one_line_and_keeps_the_database(disk, free_kb, scott_dir, scott_db_path,
+                                                                     tmp_path):
+    """The disk fills up while `gesturedb build` writes over an existing database: one line
+    naming the database and the full disk, exit 2 (no h5py tracebacks, no segfault: HDF5's
+    failed close had freed memory twice, exit 139 after the error), the old database byte for
+    byte, no temporary file. On a real small file system (tmpfs, root only) and with the
+    writes failing from a given byte on (anywhere)."""
+    import subprocess
+    import sys
+
+    old = scott_db_path.read_bytes()
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    if disk == "tmpfs":
+        folder = tmp_path / "small"
+        ctx = _small_filesystem(folder, len(old) // 1024 + free_kb)
+        cmd = [sys.executable, "-m", "gesturedb.cli"]
+    else:
+        folder = tmp_path / "out"
+        folder.mkdir()
+        ctx = contextlib.nullcontext()
+        cmd = [sys.executable, "-c", _FAIL_AFTER, str(free_kb * 1024)]
+    with ctx:
+        target = folder / "db.h5"
+        target.write_bytes(old)
+        p = subprocess.run(cmd + ["build", str(scott_dir), "-o", str(target), "-q", "-j", "1"], env=env,
+                           capture_output=True, text=True, timeout=600)
+        assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+        assert p.stderr.splitlines() == [f"gesturedb build: error: {target}: no space left on device while writing "
+                                         "it; the previous file (if any) is unchanged"], p.stderr[-3000:]
+        assert target.read_bytes() == old
+        _assert_nothing_left(folder, keep=("db.h5",))
+
+
+def test_a_refused_write_is_read_back_from_memory_and_stops_the_writer(tmp_path, monkeypatch):
+    """After the disk refused a write, HDF5 still reads back everything it wrote (held in
+    memory), so it can close every handle; the writer's next checkpoint raises the disk's
+    error, and the old file stays."""
+    import errno
+
+    from gesturedb.db import storage
+
+    out = tmp_path / "out.h5"
+    out.write_bytes(b"previous")
+    real, budget = os.pwrite, [200_000]
+
+    def pwrite(fd, data, offset):
+        n = min(len(data), budget[0])
+        if n == 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        budget[0] -= n
+        return real(fd, memoryview(data)[:n], offset)
+
+    seen = {}
+
+    def fill(h5):
+        rng = np.random.default_rng(0)
+        for i in range(12):  # 12 x 80 kB, chunked and compressed, each closed as it is written
+            x = rng.standard_normal((100, 100))
+            h5.create_dataset(f"d{i}", data=x, chunks=(10, 100), compression="gzip")
+            seen[i] = x
+        h5.flush()
+        for i, x in seen.items():  # read back, from disk and from memory
+            assert np.array_equal(h5[f"d{i}"][()], x), i
+        assert seen and h5.attrs.get("x") is None
+        storage.check_writes(h5)
+        raise AssertionError("the checkpoint did not stop the writer")
+
+    monkeypatch.setattr(os, "pwrite", pwrite)
+    with pytest.raises(InputFileError, match=r"out\.h5: no space left on device while writing it"):
+        storage.write_atomically(out, fill)
+    monkeypatch.undo()
+    assert budget == [0] and len(seen) == 12
+    assert out.read_bytes() == b"previous"
+    _assert_nothing_left(tmp_path, keep=("out.h5",))
+    # the HDF5 library is still sound: the next file is written and read as usual
+    storage.write_atomically(out, lambda h5: h5.create_dataset("x", data=np.arange(5)))
+    with h5py.File(out, "r") as h5:
+        assert h5["x"][()].tolist() == [0, 1, 2, 3, 4]

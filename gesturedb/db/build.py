@@ -24,7 +24,7 @@ import numpy as np
 from gesturedb.db import schema
 from gesturedb._version import __version__
 from gesturedb.db.framewriter import FrameWriter
-from gesturedb.db.storage import write_atomically
+from gesturedb.db.storage import check_writes, write_atomically
 from gesturedb.db.takes import (  # noqa: F401  (re-exported: build is where callers look)
     MIRROR_NOTE_REL, PAIRING_COLUMNS, RecordingSource, infer_speaker, mirrored_copy, read_pairing_file,
 )
@@ -503,10 +503,12 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, fram
     W(h5, "words/end_s", np.concatenate([r.words[1] for r in recs]), dims)
     W(h5, "words/text", [t for r in recs for t in r.words[2]], dims)
 
+    check_writes(h5)
     write_default_masks(h5, h5[schema.CONTROLS_GROUP])
     if cfg.graph:
         from gesturedb.db.graph import write_graph
 
+        check_writes(h5)  # before the graph's edge search, which takes minutes on a large database
         write_graph(h5, progress=bool(progress), scheduler=scheduler)
 
 
@@ -607,6 +609,7 @@ def build(
                 )
             frames.add(r)
             recs.append(r)
+            check_writes(h5)  # a full disk stops the build here, not after every recording
         _write(h5, recs, cfg, progress, frames, scheduler)
 
     from gesturedb.db.cluster import optional_client

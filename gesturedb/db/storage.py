@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import glob
+import io
 import os
 import re
 import shutil
@@ -208,6 +209,157 @@ def _is_disk_error(exc: BaseException) -> OSError | None:
     return None
 
 
+class _GuardedFile(io.RawIOBase):
+    """A temporary HDF5 file as h5py's ``fileobj`` driver sees it: a write the disk refuses
+    (full, quota, I/O error) is recorded, never reported to HDF5.
+
+    HDF5 does not survive a failed write inside a close: with its own driver a full disk
+    failed a dataset's close in a finalizer (``Exception ignored in ObjectID.__dealloc__``),
+    HDF5 freed memory twice, and the build printed its one-line error, h5py tracebacks, then
+    died of a segfault (exit 139). Here, once the disk has refused a write, that write and every
+    later one go to pages held in memory instead, so HDF5 reads back what it wrote and closes
+    every handle normally; the writer then raises the recorded error (:func:`check_writes` at
+    its checkpoints, at the latest when the file is closed) and the file is deleted. The memory
+    held is what HDF5 writes between the failure and the next checkpoint.
+    """
+
+    PAGE = 1 << 16
+
+    def __init__(self, path: str):
+        self.path = path
+        self._fd = os.open(path, os.O_RDWR)
+        self._pos = 0
+        self._size = os.fstat(self._fd).st_size
+        self.error: OSError | None = None
+        self._pages: dict[int, bytearray] = {}  # page number -> content, once a write failed
+        _GUARDED[path] = self
+
+    def __repr__(self) -> str:  # h5py takes it as the file's name (h5.filename, HDF5's messages)
+        return self.path
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, pos: int, whence: int = 0) -> int:
+        self._pos = pos if whence == 0 else self._pos + pos if whence == 1 else self._size + pos
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def _disk(self, pos: int, n: int) -> bytes:
+        n = max(0, min(n, self._size - pos))
+        data = os.pread(self._fd, n, pos) if n else b""
+        return data + bytes(n - len(data))
+
+    def _page(self, k: int) -> bytearray:
+        page = self._pages.get(k)
+        if page is None:
+            page = self._pages[k] = bytearray(self._disk(k * self.PAGE, self.PAGE).ljust(self.PAGE, b"\0"))
+        return page
+
+    def readinto(self, b) -> int:
+        out = memoryview(b).cast("B")
+        pos, n = self._pos, len(out)
+        if not self._pages:
+            data = self._disk(pos, n)
+            out[:len(data)] = data
+            out[len(data):] = bytes(n - len(data))
+        else:
+            done = 0
+            while done < n:
+                k, off = divmod(pos + done, self.PAGE)
+                m = min(n - done, self.PAGE - off)
+                page = self._pages.get(k)
+                piece = page[off:off + m] if page is not None else self._disk(pos + done, m)
+                out[done:done + m] = bytes(piece).ljust(m, b"\0")
+                done += m
+        self._pos += n
+        return n
+
+    def write(self, b) -> int:
+        data = memoryview(b).cast("B")
+        pos, n = self._pos, len(data)
+        if self.error is None:
+            try:
+                done = 0
+                while done < n:
+                    done += os.pwrite(self._fd, data[done:], pos + done)
+            except OSError as exc:
+                self.error = exc
+        if self.error is not None:
+            done = 0
+            while done < n:
+                k, off = divmod(pos + done, self.PAGE)
+                m = min(n - done, self.PAGE - off)
+                self._page(k)[off:off + m] = data[done:done + m]
+                done += m
+        self._pos += n
+        self._size = max(self._size, pos + n)
+        return n
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self._pos if size is None else size
+        if self.error is None:
+            try:
+                os.ftruncate(self._fd, size)
+            except OSError as exc:
+                self.error = exc
+        for k in [k for k in self._pages if (k + 1) * self.PAGE > size]:
+            if k * self.PAGE >= size:
+                del self._pages[k]
+            else:
+                self._pages[k][size - k * self.PAGE:] = bytes((k + 1) * self.PAGE - size)
+        self._size = size
+        return size
+
+    def flush(self) -> None:
+        pass  # every write is an unbuffered pwrite
+
+    def close(self) -> None:
+        if not self.closed:
+            _GUARDED.pop(self.path, None)
+            self._pages.clear()
+            os.close(self._fd)
+        super().close()
+
+    def close_h5(self, h5, *, check: bool = True) -> None:
+        """Close ``h5`` (every handle of it), then raise the write that failed, if one did."""
+        try:
+            h5.close()
+        finally:
+            if h5.id.valid:  # a close that failed half-way (say, interrupted): once more
+                with contextlib.suppress(Exception):
+                    h5.close()
+        if check:
+            self.check()
+
+    def check(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+
+#: the guarded temporary files being written, by name (``h5.filename``), for :func:`check_writes`
+_GUARDED: dict[str, _GuardedFile] = {}
+
+
+def check_writes(h5) -> None:
+    """Raise the OSError of a write to ``h5`` that the disk refused (see :class:`_GuardedFile`).
+
+    Writers call it at checkpoints (a build: after each recording and each stage), so that
+    a full disk stops them there, with what HDF5 wrote since held in memory; nothing for a
+    file not written by :func:`write_atomically`."""
+    guard = _GUARDED.get(h5.filename)
+    if guard is not None:
+        guard.check()
+
+
 def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
     """Create an HDF5 file by writing a temporary file beside ``out_path`` and renaming it.
 
@@ -229,8 +381,15 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
         tmp = None
         try:
             tmp = _mkstemp(out_path)
-            with h5py.File(tmp, "w", track_order=True) as h5:
-                fill(h5)
+            with _GuardedFile(tmp) as guard:
+                h5 = h5py.File(guard, "w", track_order=True)
+                try:
+                    fill(h5)
+                except BaseException as exc:
+                    # a refused write is the cause of what failed after it; an interruption stays one
+                    guard.close_h5(h5, check=isinstance(exc, Exception))
+                    raise
+                guard.close_h5(h5)
             if signals:
                 raise KeyboardInterrupt("SIGTERM")
             # mkstemp makes the file 0600; give it the mode a plain open() would
