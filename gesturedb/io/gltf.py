@@ -211,8 +211,8 @@ _URI_SCHEME = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*:")
 #: Frames x nodes (the joints and the nodes above them) a read may animate: about 120 bytes each
 #: while reading (2 GB at this cap: 11 minutes at 120 fps of a 200-node rig).
 MAX_JOINT_FRAMES = 1 << 24
-# (frame, node) transforms held at once while composing world matrices (128 bytes each)
-_FK_BLOCK = 1 << 20
+# (frame, node) pairs composed at once: about 500 bytes each in flight (some 256 MB at most)
+_FK_BLOCK = 1 << 19
 _TRS = {"translation": 3, "rotation": 4, "scale": 3}
 _MISSING = object()
 
@@ -527,8 +527,14 @@ class _Rig:
         Parent node of every node (-1 for roots).
     needed : list of int
         The joints and every node above them, parents first: what forward kinematics walks.
-    rest_world : dict
-        Node index (of ``needed``) -> rest world matrix (4, 4).
+    slot : dict
+        Node index -> its position in ``needed``.
+    rest_t, rest_q, rest_s : ndarray [shape=(N, 3), (N, 4), (N, 3)]
+        Rest translation, rotation (x, y, z, w) and scale of each of ``needed``.
+    fixed : dict
+        Position in ``needed`` -> (4, 4) local matrix, for nodes given by ``matrix``.
+    rest_world : ndarray [shape=(N, 4, 4)]
+        Rest world matrix of each of ``needed``.
     """
 
     def __init__(self, doc: _Doc):
@@ -613,14 +619,44 @@ class _Rig:
             dup = sorted(x for x, k in collections.Counter(names).items() if k > 1)  # not names.count: O(J^2)
             doc.fail("skins[0].joints", f"expected joints with unique names (nodes[i].name); repeated: "
                                         f"{_shown(', '.join(dup))}")
-        self.rest_world = {}
-        for i in self.needed:
-            loc = self.rest_local(i)
-            p = parent[i]
-            w = loc if p == -1 else self.rest_world[p] @ loc
-            if not np.all(np.isfinite(w)):
-                doc.fail(f"nodes[{i}]", "its rest transform, composed with the nodes above it, is not finite")
-            self.rest_world[i] = w
+        self.slot = {i: k for k, i in enumerate(self.needed)}
+        n_need = len(self.needed)
+        self.rest_t, self.rest_q, self.rest_s = np.zeros((n_need, 3)), np.zeros((n_need, 4)), np.ones((n_need, 3))
+        self.rest_q[:, 3] = 1.0
+        self.fixed = {}
+        for k, i in enumerate(self.needed):
+            trs = self.trs(i)
+            if isinstance(trs, np.ndarray):
+                self.fixed[k] = trs
+            else:
+                self.rest_t[k], self.rest_q[k], self.rest_s[k] = trs
+        # nodes by depth (parents first): a level's world matrices are one batched product with the level above
+        up = np.array([-1 if parent[i] == -1 else self.slot[parent[i]] for i in self.needed], dtype=np.int64)
+        depth = np.zeros(n_need, dtype=np.int64)
+        for k in range(n_need):
+            if up[k] >= 0:
+                depth[k] = depth[up[k]] + 1
+        by_depth = np.argsort(depth, kind="stable")
+        cuts = np.flatnonzero(np.diff(depth[by_depth])) + 1
+        self.levels = [(lv, up[lv]) for lv in np.split(by_depth, cuts)[1:]]
+        self.rest_world = self.compose(self.local(self.rest_t, self.rest_q, self.rest_s))
+        if not np.all(np.isfinite(self.rest_world)):
+            k = int(np.argwhere(~np.isfinite(self.rest_world))[0, 0])
+            doc.fail(f"nodes[{self.needed[k]}]", "its rest transform, composed with the nodes above it, is not finite")
+
+    def local(self, t, q, s) -> np.ndarray:
+        """Local matrices (..., N, 4, 4) of ``needed`` from TRS (..., N, 3/4/3); ``matrix`` nodes fixed."""
+        m = _trs_matrix(t, q, s)
+        for k, fixed in self.fixed.items():
+            m[..., k, :, :] = fixed
+        return m
+
+    def compose(self, local: np.ndarray) -> np.ndarray:
+        """World matrices (..., N, 4, 4) from local ones, level by level down the tree."""
+        world = local.copy()
+        for lv, up in self.levels:
+            world[..., lv, :, :] = world[..., up, :, :] @ local[..., lv, :, :]
+        return world
 
     def name(self, i: int) -> str:
         v = self.doc.item("nodes", i).get("name")
@@ -641,14 +677,11 @@ class _Rig:
             doc.fail(f"{where}.rotation", f"expected a unit quaternion; got {_shown(q.tolist())}")
         return t, q, s
 
-    def rest_local(self, i: int) -> np.ndarray:
-        trs = self.trs(i)
-        return trs if isinstance(trs, np.ndarray) else _trs_matrix(*trs)
-
     def skeleton(self):
         """The rig as a `Skeleton` (offsets from rest world positions) and the joints' rest world rotations."""
         order = self.order
-        pos = np.array([self.rest_world[i][:3, 3] for i in order])
+        at = [self.slot[i] for i in order]
+        pos = self.rest_world[at, :3, 3]
         idx = {n: k for k, n in enumerate(order)}
         parents = np.array([-1] + [idx[self.joint_parent[i]] for i in order[1:]], dtype=np.int64)
         offsets = pos.copy()
@@ -657,7 +690,7 @@ class _Rig:
             skel = Skeleton([self.name(i) for i in order], parents, offsets, ["ZXY"] * len(order))
         except ParameterError as exc:
             self.doc.fail("skins[0]", str(exc))
-        rest_rot = _polar(np.array([self.rest_world[i][:3, :3] for i in order]))
+        rest_rot = _polar(self.rest_world[at, :3, :3])
         return skel, rest_rot
 
 
@@ -819,28 +852,31 @@ def read_gltf(path, *, animation: int = 0) -> Motion:
         anim_of[(node, tpath)] = val
 
     # forward kinematics through every node above the joints, in blocks of frames
-    rest = {}  # node -> its rest TRS, or its fixed (4, 4) matrix
-    for i in rig.needed:
-        rest[i] = rig.trs(i)
-        if isinstance(rest[i], np.ndarray) and any((i, p) in anim_of for p in _TRS):
-            doc.fail(f"nodes[{i}].matrix", "an animated node must have translation/rotation/scale, not a matrix")
+    # per path: the animated slots of rig.needed and their values (F, n, 3 or 4), stacked once
+    animated = {}
+    for tpath in _TRS:
+        nodes = [i for (i, p) in anim_of if p == tpath]
+        for i in nodes:
+            if rig.slot[i] in rig.fixed:
+                doc.fail(f"nodes[{i}].matrix", "an animated node must have translation/rotation/scale, not a matrix")
+        if nodes:
+            animated[tpath] = ([rig.slot[i] for i in nodes], np.stack([anim_of.pop((i, tpath)) for i in nodes], 1))
+    rest_trs = dict(zip(_TRS, (rig.rest_t, rig.rest_q, rig.rest_s)))
+    at = [rig.slot[i] for i in rig.order]
     rotations = np.empty((n_f, len(rig.order), 4))
     root_pos = np.empty((n_f, 3))
     block = max(1, _FK_BLOCK // len(rig.needed))
     inv_rest = np.swapaxes(rest_rot, -1, -2)[None]
     for a in range(0, n_f, block):
         b = min(n_f, a + block)
-        worlds = {}
-        for i in rig.needed:
-            if isinstance(rest[i], np.ndarray):
-                loc = rest[i]
-            else:
-                t, q, s = (anim_of[(i, p)][a:b] if (i, p) in anim_of else v[None]
-                           for p, v in zip(_TRS, rest[i]))
-                loc = _trs_matrix(t, q, s)
-            p = rig.parent[i]
-            worlds[i] = loc if p == -1 else worlds[p] @ loc
-        w = np.stack([np.broadcast_to(worlds[i], (b - a, 4, 4)) for i in rig.order], axis=1)  # (B, J, 4, 4)
+        trs = []
+        for tpath in _TRS:
+            v = np.repeat(rest_trs[tpath][None], b - a, axis=0)
+            if tpath in animated:
+                slots, vals = animated[tpath]
+                v[:, slots] = vals[a:b]
+            trs.append(v)
+        w = rig.compose(rig.local(*trs))[:, at]  # (B, J, 4, 4)
         if not np.all(np.isfinite(w)):
             f, j = (int(x) for x in np.argwhere(~np.isfinite(w))[0, :2])
             doc.fail(aw, f"the world transform of nodes[{rig.order[j]}] at frame {a + f} is not finite")
