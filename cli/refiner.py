@@ -23,7 +23,11 @@ def add_parser(sub) -> None:
                    "searches and caches fewer windows, for large databases")
     t.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
-    t.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
+    again = t.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
+    again.add_argument("--overwrite", action="store_true",
+                       help="start afresh over an existing --output (without --resume or --overwrite an existing "
+                       "file is refused)")
     t.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="run the training windows' self-search over --parts shards on Dask workers, and their "
                    "assembly on the same workers (same data)")
@@ -67,7 +71,7 @@ def run(args) -> int:
         from gesturedb.db.cluster import optional_client
 
         with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
-            tr = train(db, args.output, config=cfg, resume=args.resume, progress=True,
+            tr = train(db, args.output, config=cfg, resume=args.resume, overwrite=args.overwrite, progress=True,
                        log=lambda m: print(m, file=sys.stderr), client=client, parts=args.parts,
                        workers=args.workers)
         last = tr.history[-1] if tr.history else {}

@@ -1,6 +1,7 @@
 """The cGAN refiner: shapes, gradient penalty, training, exact resume, representation, checkpoints, CLI."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -32,6 +33,11 @@ def _tiny_data(W=6, C=12, T=16, seed=0) -> TrainingData:
         knn=rng.standard_normal((W, C, T)).astype(np.float32),
         joints=np.arange(1, C // 6 + 1), starts=3 * np.arange(W), ks=np.ones(W, np.int64),
     )
+
+
+#: the feature identity of a three-joint skeleton, which _tiny_data's channels (joints 1 and 2) fit
+_FEATURES = {"joint_names": ["root", "spine", "head"], "parents": [-1, 0, 1], "fps": 15.0, "audio_channels": 28,
+             "n_mfcc": 13}
 
 
 # -- model --------------------------------------------------------------------------
@@ -97,17 +103,17 @@ def test_critic_updates_lower_the_critic_loss_on_a_tiny_batch():
 # -- resume -------------------------------------------------------------------------
 def test_resume_gives_the_weights_of_an_uninterrupted_run(tmp_path):
     cfg = TrainConfig(batch=3, width=8, n_critic=2, iterations=4, seed=7)
-    straight = Trainer(_tiny_data(), cfg, "id", {"x": 1})
+    straight = Trainer(_tiny_data(), cfg, "id", _FEATURES)
     for _ in range(4):
         straight.step()
 
-    first = Trainer(_tiny_data(), cfg, "id", {"x": 1})
+    first = Trainer(_tiny_data(), cfg, "id", _FEATURES)
     for _ in range(2):
         first.step()
     first.save(tmp_path / "ck.pt")
     torch.manual_seed(12345)  # whatever happened in between must not matter
-    second = Trainer(_tiny_data(), cfg, "id", {"x": 1})
-    second.restore(read_checkpoint(tmp_path / "ck.pt"))
+    second = Trainer(_tiny_data(), cfg, "id", _FEATURES)
+    second.restore(read_checkpoint(tmp_path / "ck.pt", training=True))
     for _ in range(2):
         second.step()
     assert second.iteration == 4
@@ -249,7 +255,7 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
 def test_a_checkpoint_for_another_skeleton_is_refused(scott_db, tmp_path):
     feats = feature_identity(scott_db)
     tr = Trainer(_tiny_data(), TrainConfig(width=8), database_identity(scott_db),
-                 dict(feats, joint_names=feats["joint_names"][:-1]))
+                 dict(feats, joint_names=feats["joint_names"][:-1], parents=feats["parents"][:-1]))
     tr.save(tmp_path / "other.pt")
     with pytest.raises(InputFileError, match="other.pt.*skeleton joints: the refiner was trained for"):
         Refiner.load(tmp_path / "other.pt", db=scott_db)
@@ -289,3 +295,285 @@ def test_refiner_commands_never_write_over_their_inputs(scott_db_path, tmp_path)
     assert main(["refiner", "apply", str(tmp_path / "r.pt"), "--db", str(scott_db_path), "--audio", "a.wav",
                  "--input", str(scott_db_path), "-o", str(scott_db_path)]) == 2
     assert scott_db_path.is_file()
+
+
+# -- nothing lost, nothing poisoned (issue 41, cases 6 and 13) ----------------------------
+def _cache(db, path, *, n=8, poison=None) -> None:
+    """A training-data cache for ``db`` made by hand (its fakes are the real windows), as
+    train() with seed 0 and stride 5 reads it; ``poison``: (dataset, index, value) to plant."""
+    from gesturedb.refiner.data import cache_settings, frame_arrays
+
+    joints = moving_joints(db.local_rotations)
+    starts = window_starts(db)[:n]
+    _, real = frame_arrays(db, joints)
+    arrays = {"starts": starts, "ks": np.ones(n, np.int64), "joints": joints,
+              "knn": np.stack([real[s:s + 64].T for s in starts]).astype(np.float32)}
+    if poison is not None:
+        name, index, value = poison
+        arrays[name][index] = value
+    with h5py.File(path, "w") as h5:
+        for k, v in cache_settings(db, seed=0, window=64, stride=5).items():
+            h5.attrs[k] = v
+        for k, v in arrays.items():
+            h5[k] = v
+
+
+_SMALL = dict(iterations=1, batch=2, width=8, n_critic=1)
+
+
+def _one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+@pytest.mark.parametrize("poison, match", [
+    (("knn", (3, 5, 7), np.nan), r"knn: expected finite values, got nan in window 3 \(channel 5, frame 7\)"),
+    (("knn", (0, 0, 0), np.inf), r"knn: expected finite values, got inf in window 0"),
+    (("joints", 0, 999), r"joints: expected ascending joint indices from 0 to 54, got \[999, "),
+    (("starts", 2, 10**9), r"starts: expected first frames from 0 to 889 \(windows of 64 frames in 953\), got 1000000000"),
+    (("ks", 1, 0), r"ks: expected k from 1 to 15, got 0"),
+], ids=["nan", "inf", "joint-999", "start-1e9", "k-0"])
+def test_a_poisoned_or_crafted_cache_is_refused_and_the_checkpoint_kept(poison, match, scott_db, tmp_path):
+    """One NaN in the cached fakes made every weight NaN, exited 0 and overwrote the good
+    checkpoint; a crafted cache gave IndexError. Now: one line naming the cache and the dataset,
+    and the checkpoint as it was (a resumed run, through the CLI)."""
+    from gesturedb.cli.main import main
+    from gesturedb.refiner.train import train
+
+    ck = tmp_path / "r.pt"
+    _cache(scott_db, tmp_path / "r.pt.data.h5")
+    train(scott_db, ck, config=TrainConfig(**_SMALL))
+    before = ck.read_bytes()
+    _cache(scott_db, tmp_path / "r.pt.data.h5", poison=poison)
+    with pytest.raises(InputFileError, match=rf"^{tmp_path}/r\.pt\.data\.h5: {match}.*delete the file"):
+        train(scott_db, ck, config=TrainConfig(**dict(_SMALL, iterations=2)), resume=True)
+    assert ck.read_bytes() == before
+
+
+def test_cli_resume_from_a_poisoned_cache_exits_2_with_one_line(scott_db_path, tmp_path, capsys):
+    from gesturedb.cli.main import main
+    from gesturedb.refiner.train import train
+
+    ck = tmp_path / "r.pt"
+    with gesturedb.open(scott_db_path) as db:
+        _cache(db, tmp_path / "r.pt.data.h5")
+        train(db, ck, config=TrainConfig(**_SMALL))
+        _cache(db, tmp_path / "r.pt.data.h5", poison=("knn", (1, 2, 3), np.nan))
+    before = ck.read_bytes()
+    capsys.readouterr()
+    assert main(["refiner", "train", str(scott_db_path), "-o", str(ck), "--iterations", "3", "--resume"]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith(f"gesturedb refiner: error: {ck}.data.h5: knn: expected finite values, got nan"), line
+    assert ck.read_bytes() == before
+
+
+def test_a_non_finite_loss_stops_training_before_any_save(scott_db, tmp_path, monkeypatch):
+    """Training data with a NaN that got past the cache's check (planted after it): the first
+    non-finite loss stops the run with an error, before the save due at every iteration, and
+    the resumed checkpoint stays as it was."""
+    from gesturedb.refiner import train as T
+
+    ck = tmp_path / "r.pt"
+    _cache(scott_db, tmp_path / "r.pt.data.h5")
+    T.train(scott_db, ck, config=TrainConfig(**_SMALL))
+    before = ck.read_bytes()
+    real_load = T.load_cache
+
+    def poisoned(*a, **k):
+        data = real_load(*a, **k)
+        data.frame_audio[:] = np.nan
+        return data
+
+    monkeypatch.setattr(T, "load_cache", poisoned)
+    with pytest.raises(gesturedb.GestureDBError,
+                       match=rf"^{ck}: training stopped at iteration 2: critic loss: expected a finite value, got "
+                             r"nan; the checkpoint of iteration 1 is kept$"):
+        T.train(scott_db, ck, config=TrainConfig(**dict(_SMALL, iterations=5, checkpoint_every_s=0.0)), resume=True)
+    assert ck.read_bytes() == before
+    # and weights that did go non-finite are never written, whatever the loss said
+    tr = Trainer(_tiny_data(), TrainConfig(width=8), "id", _FEATURES)
+    with torch.no_grad():
+        tr.G.out.bias[0] = float("inf")
+    with pytest.raises(gesturedb.GestureDBError, match=r"^\S+r\.pt: not saved: generator out\.bias: expected finite "
+                                                       r"values, got inf after iteration 0; the previous checkpoint"):
+        tr.save(ck)
+    assert ck.read_bytes() == before
+
+
+def test_an_existing_checkpoint_is_replaced_only_with_overwrite(scott_db_path, tmp_path, capsys):
+    from gesturedb.cli.main import main
+    from gesturedb.refiner.train import train
+
+    ck = tmp_path / "r.pt"
+    with gesturedb.open(scott_db_path) as db:
+        _cache(db, tmp_path / "r.pt.data.h5")
+        train(db, ck, config=TrainConfig(**dict(_SMALL, iterations=2)))
+    before = ck.read_bytes()
+    argv = ["refiner", "train", str(scott_db_path), "-o", str(ck), "--iterations", "1", "--batch", "2"]
+    capsys.readouterr()
+    assert main(argv) == 2
+    assert _one_line(capsys.readouterr().err) == (
+        f"gesturedb refiner: error: {ck}: a file already exists here; continue its training with --resume, or "
+        "start afresh over it with --overwrite")
+    assert ck.read_bytes() == before
+    with pytest.raises(SystemExit):
+        main(argv + ["--resume", "--overwrite"])
+    assert "not allowed with argument" in capsys.readouterr().err
+    assert main(argv + ["--overwrite"]) == 0
+    assert read_checkpoint(ck)["iteration"] == 1 and ck.read_bytes() != before
+
+
+def _checkpoint(tmp_path, **change) -> "Path":
+    """A real checkpoint (tiny training data, three-joint skeleton) with entries changed or removed (None)."""
+    tr = Trainer(_tiny_data(), TrainConfig(width=8, batch=2, n_critic=1), "id", _FEATURES)
+    tr.step()
+    ck = tr.state()
+    for k, v in change.items():
+        if v is None:
+            del ck[k]
+        else:
+            ck[k] = v(ck) if callable(v) else v
+    path = tmp_path / "c.pt"
+    torch.save(ck, path)
+    return path
+
+
+def _nan_weight(ck):
+    g = dict(ck["generator"])
+    g["enc.0.0.weight"] = g["enc.0.0.weight"].clone()
+    g["enc.0.0.weight"][0, 0, 0] = float("nan")
+    return g
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(generator=None), r"generator: missing; expected a gesturedb refiner checkpoint with this entry"),
+    (dict(config="width=8"), r"config: expected dict, got str"),
+    (dict(joints=lambda ck: ck["joints"].tolist()), r"joints: expected Tensor, got list"),
+    (dict(config=lambda ck: dict(ck["config"], width=30000)), r"config: width: expected an integer from 1 to 1024, "
+                                                              r"got 30000"),
+    (dict(config=lambda ck: dict(ck["config"], colour=1)), r"config: expected settings among .*, got 'colour'"),
+    (dict(config=lambda ck: dict(ck["config"], width=16)), r"generator: does not fit the model of the checkpoint's "
+                                                           r"settings \(Error\(s\) in loading state_dict"),
+    (dict(features=lambda ck: dict(ck["features"], audio_channels="28")),
+     r"features\.audio_channels: expected an integer from 1 to 1024, got '28'"),
+    (dict(features=lambda ck: {}), r"features\.joint_names: expected 1 to 1024 joint names, got NoneType"),
+    (dict(joints=lambda ck: torch.tensor([1, 999])), r"joints: expected ascending joint indices from 0 to 2, got \[1, 999\]"),
+    (dict(generator=_nan_weight), r"generator: enc\.0\.0\.weight: expected finite values, got nan"),
+    (dict(format=2), r"format: expected a gesturedb refiner checkpoint of format 1, got 2"),
+], ids=["missing", "mistyped", "joints-list", "width-30000", "unknown-setting", "width-mismatch", "audio-str",
+        "no-features", "joint-999", "nan-weight", "format"])
+def test_a_damaged_checkpoint_is_one_line_naming_the_file_and_entry(change, match, tmp_path):
+    """Missing or mistyped entries gave KeyError, AttributeError or TypeError; a width of 30000
+    tried to allocate 10.8 GB; NaN weights were loaded. All are refused on load, before any
+    model is built from them."""
+    path = _checkpoint(tmp_path, **change)
+    with pytest.raises(InputFileError, match=rf"^{path}: {match}") as info:
+        Refiner.load(path)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(opt_g=None), r"opt_g: missing"),
+    (dict(history=lambda ck: [[1, "x", 0.0, 0.0]]), r"history: expected at most 1 rows of 4 numbers"),
+    (dict(iteration=-1), r"iteration: expected an integer from 0 to 1000000000, got -1"),
+    (dict(discriminator=_nan_weight), r"discriminator: enc\.0\.0\.weight: expected finite values, got nan"),
+    (dict(sampler_state=lambda ck: ck["sampler_state"].float()), r"sampler_state: expected a random generator state"),
+], ids=["no-optimiser", "history", "iteration", "nan-critic", "sampler"])
+def test_a_damaged_checkpoint_is_refused_on_resume(change, match, tmp_path):
+    path = _checkpoint(tmp_path, **change)
+    with pytest.raises(InputFileError, match=rf"^{path}: {match}"):
+        read_checkpoint(path, training=True)
+
+
+def test_an_empty_or_foreign_checkpoint_file_is_one_line(tmp_path, scott_db_path, capsys):
+    """A 0-byte .pt crashed the error handler itself (the first line of an empty message)."""
+    import zipfile
+
+    from gesturedb.cli.main import main
+
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(InputFileError, match=rf"^{empty}: expected a gesturedb refiner checkpoint, got an empty file"):
+        read_checkpoint(empty)
+    huge = tmp_path / "huge.pt"  # a zip whose member claims more bytes than the file has
+    with zipfile.ZipFile(huge, "w") as z:
+        z.writestr("c/data.pkl", b"x" * 100)
+    data = bytearray(huge.read_bytes())
+    i = data.rindex(b"PK\x01\x02")  # central directory entry: uncompressed size at +24
+    data[i + 24:i + 28] = (2**31).to_bytes(4, "little")
+    huge.write_bytes(bytes(data))
+    with pytest.raises(InputFileError, match=r"huge\.pt: c/data\.pkl: expected an uncompressed member of at most"):
+        read_checkpoint(huge)
+    wav = tmp_path / "a.wav"
+    wav.write_bytes(b"")
+    capsys.readouterr()
+    assert main(["refiner", "apply", str(empty), "--db", str(scott_db_path), "--audio", str(wav), "--input",
+                 str(tmp_path / "in.bvh"), "-o", str(tmp_path / "out.bvh")]) == 2
+    assert _one_line(capsys.readouterr().err) == (f"gesturedb refiner: error: {empty}: expected a gesturedb refiner "
+                                                  "checkpoint, got an empty file (0 bytes)")
+
+
+def _full_after(limit):
+    """An ``open`` for gesturedb.io.atomic whose files take ``limit`` bytes, then say the disk is full."""
+    import builtins
+    import errno
+
+    class Full:
+        def __init__(self, f):
+            self.f, self.left = f, limit
+
+        def write(self, b):
+            n = len(memoryview(b).cast("B"))
+            if n > self.left:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            self.left -= n
+            return self.f.write(b)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    return lambda *a, **k: Full(builtins.open(*a, **k))
+
+
+
+@pytest.mark.parametrize("disk", ["injected", "tmpfs"])
+def test_disk_full_while_saving_a_checkpoint_keeps_the_previous_one(disk, tmp_path, monkeypatch):
+    """torch reported a full disk as ``unexpected pos``: now one line naming the checkpoint and
+    the disk's reason, the previous checkpoint byte for byte, no temporary file."""
+    import contextlib
+
+    from gesturedb.io import atomic
+
+    tr = Trainer(_tiny_data(), TrainConfig(width=64, batch=2, n_critic=1), "id", _FEATURES)
+    if disk == "tmpfs":
+        folder = tmp_path / "small"
+        folder.mkdir()
+        p = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1200k", "tmpfs", str(folder)], capture_output=True,
+                           text=True)
+        if p.returncode != 0:
+            pytest.skip(f"cannot mount a small tmpfs here ({p.stderr.strip()}); the injected variant runs")
+        cleanup = lambda: subprocess.run(["umount", "-l", str(folder)], capture_output=True)  # noqa: E731
+    else:
+        folder, cleanup = tmp_path, (lambda: None)
+    try:
+        ck = folder / "r.pt"
+        tr.save(ck)  # about 0.8 MB
+        before = ck.read_bytes()
+        tr.step()
+        if disk == "injected":
+            monkeypatch.setattr(atomic, "open", _full_after(100_000), raising=False)
+        with pytest.raises(InputFileError, match=rf"^{ck}: cannot write: No space left on device$"):
+            tr.save(ck)
+        assert ck.read_bytes() == before
+        assert sorted(p.name for p in folder.iterdir()) == ["r.pt"]
+        with contextlib.suppress(Exception):
+            monkeypatch.undo()
+    finally:
+        cleanup()

@@ -171,6 +171,9 @@ def load_cache(path, db, settings: dict) -> TrainingData | None:
     database or with other settings, or it cannot be read (it is then made again).
 
     The fakes stay on disk (a read-only memory map of the file's contiguous dataset).
+    A cache made for this database whose content is wrong (a window or joint outside the
+    database, a non-finite fake, which made every weight NaN) is refused with an
+    :class:`InputFileError` naming the file and the dataset.
     """
     import h5py
 
@@ -192,8 +195,34 @@ def load_cache(path, db, settings: dict) -> TrainingData | None:
                 knn = ds[()]
     except (OSError, KeyError, ValueError):
         return None
+    _check_cache(path, db, knn, starts, ks, joints, int(settings["window"]))
     audio, real = frame_arrays(db, joints)
     return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks)
+
+
+def _check_cache(path: str, db, knn, starts: np.ndarray, ks: np.ndarray, joints: np.ndarray, window: int,
+                 *, chunk: int = 256) -> None:
+    """Refuse a cache whose windows, k, joints or fakes could not have been made from ``db``."""
+    F, J = int(db.n_frames), len(db.skeleton.names)
+
+    def bad(field, problem):
+        return InputFileError(path, f"{field}: {problem}; delete the file and the training data is made again")
+
+    if starts.ndim != 1 or (starts.size and not (starts.min() >= 0 and starts.max() <= F - window)):
+        raise bad("starts", f"expected first frames from 0 to {F - window} (windows of {window} frames in "
+                            f"{F}), got {starts.min() if starts.min() < 0 else starts.max()}")
+    if ks.size and not (ks.min() >= 1 and ks.max() <= K_MAX):
+        raise bad("ks", f"expected k from 1 to {K_MAX}, got {ks.min() if ks.min() < 1 else ks.max()}")
+    if joints.ndim != 1 or joints.size == 0 or not (joints.min() >= 0 and joints.max() < J) \
+            or np.any(np.diff(joints) <= 0):
+        raise bad("joints", f"expected ascending joint indices from 0 to {J - 1}, got {joints[:8].tolist()}")
+    for a in range(0, knn.shape[0], chunk):  # a chunk at a time: the fakes stay on disk
+        block = np.asarray(knn[a:a + chunk])
+        finite = np.isfinite(block)
+        if not finite.all():
+            w, c, t = (int(i) for i in np.argwhere(~finite)[0])
+            raise bad("knn", f"expected finite values, got {block[w, c, t]} in window {a + w} (channel {c}, "
+                             f"frame {t})")
 
 
 def _attr(v):
