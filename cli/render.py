@@ -66,28 +66,30 @@ def load_positions(path):
         m = read_gltf(path)
         return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
     if ext == ".npz":
+        from gesturedb.io.npz import npz_keys, read_npz  # memory bounded before numpy allocates
+
         try:
-            with np.load(path, allow_pickle=False) as z:
-                keys = set(z.files)
-                if "positions" in keys:
-                    missing = [k for k in ("parents", "fps") if k not in keys]
-                    if missing:
-                        raise InputFileError(path, f"joint-position npz: expected fields positions, parents, fps; "
-                                                   f"missing {', '.join(missing)}")
-                    pos = np.asarray(z["positions"], dtype=np.float64)
-                    par = np.asarray(z["parents"]).astype(np.int64)
-                    fps = float(z["fps"])
-                    names = [str(n) for n in z["names"]] if "names" in keys else None
-                    if pos.ndim != 3 or pos.shape[2] != 3 or par.shape != (pos.shape[1],):
-                        raise InputFileError(path, f"positions: expected (T, J, 3) with parents (J,); got "
-                                                   f"{pos.shape} and {par.shape}")
-                    if not (fps > 0):
-                        raise InputFileError(path, f"fps: expected a positive frame rate; got {fps}")
-                    return pos, par, fps, names
-                smplx = "poses" in keys and "trans" in keys
+            keys = set(npz_keys(path))
+            if "positions" in keys:
+                missing = [k for k in ("parents", "fps") if k not in keys]
+                if missing:
+                    raise InputFileError(path, f"joint-position npz: expected fields positions, parents, fps; "
+                                               f"missing {', '.join(missing)}")
+                z = read_npz(path, ("positions", "parents", "fps"), optional=("names",))
+                pos = np.asarray(z["positions"], dtype=np.float64)
+                par = np.asarray(z["parents"]).astype(np.int64)
+                fps = float(z["fps"])
+                names = [str(n) for n in z["names"]] if "names" in keys else None
+                if pos.ndim != 3 or pos.shape[2] != 3 or par.shape != (pos.shape[1],):
+                    raise InputFileError(path, f"positions: expected (T, J, 3) with parents (J,); got "
+                                               f"{pos.shape} and {par.shape}")
+                if not (fps > 0):
+                    raise InputFileError(path, f"fps: expected a positive frame rate; got {fps}")
+                return pos, par, fps, names
+            smplx = "poses" in keys and "trans" in keys
         except InputFileError:
             raise
-        except Exception as exc:  # np.load raises several types for damaged files
+        except Exception as exc:  # a damaged array (a string as fps, a ragged names list...)
             raise InputFileError(path, f"not a readable npz file ({exc})") from None
         if smplx:
             from gesturedb.io import read_smplx

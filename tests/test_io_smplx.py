@@ -117,7 +117,7 @@ def test_small_file_and_amass_rate_key(tmp_path, good_arrays):
      r"trans: expected shape \(12, 3\) to match poses, got float64 \(10, 3\)"),
     (lambda a: a["poses"].__setitem__((7, 61), np.nan), r"poses: frame 7, joint 20 \(left_wrist\) is not finite"),
     (lambda a: a["trans"].__setitem__((3, 1), np.inf), r"trans: frame 3 is not finite"),
-    (lambda a: a.update(mocap_frame_rate=np.array(0.0)), r"mocap_frame_rate: expected one positive frame rate"),
+    (lambda a: a.update(mocap_frame_rate=np.array(0.0)), r"mocap_frame_rate: expected one frame rate of 1 to 1000 Hz"),
 ])
 def test_malformed_files_name_the_key(tmp_path, good_arrays, change, message):
     change(good_arrays)
@@ -130,7 +130,8 @@ def test_malformed_files_name_the_key(tmp_path, good_arrays, change, message):
 def test_unreadable_files(tmp_path):
     garbage = tmp_path / "garbage.npz"
     garbage.write_bytes(b"not a zip archive at all")
-    with pytest.raises(InputFileError, match="cannot read as .npz"):
+    with pytest.raises(InputFileError, match=r"expected an .npz archive \(a zip of .npy arrays, starting with 'PK'\); "
+                                             r"got a file starting with b'not a zi': not a zip archive$"):
         read_smplx(garbage)
     npy = tmp_path / "array.npz"
     with open(npy, "wb") as f:
@@ -139,3 +140,94 @@ def test_unreadable_files(tmp_path):
         read_smplx(npy)
     with pytest.raises(InputFileError, match="cannot read as .npz"):
         read_smplx(tmp_path / "missing.npz")
+
+
+# --- issue 41: what a non-npz file is, deflate bombs, frame rates BVH can carry ------------------------------
+
+def _bomb(path, frames, *, trans_frames=None):
+    """A deflated .npz whose poses are `frames` x 165 float32 zeros: about 1000x smaller than it inflates."""
+    import io
+    import zipfile
+
+    import numpy.lib.format as fmt
+
+    hdr = io.BytesIO()
+    fmt.write_array_header_1_0(hdr, {"descr": "<f4", "fortran_order": False, "shape": (frames, 165)})
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        with z.open("poses.npy", "w", force_zip64=True) as f:
+            f.write(hdr.getvalue())
+            left, zero = frames * 165 * 4, bytes(1 << 22)
+            while left > 0:
+                f.write(zero[:min(left, len(zero))])
+                left -= len(zero)
+        for name, arr in (("trans", np.zeros((trans_frames or frames, 3))), ("mocap_frame_rate", np.array(30.0))):
+            b = io.BytesIO()
+            np.save(b, arr)
+            z.writestr(name + ".npy", b.getvalue())
+    return path
+
+
+def test_a_deflate_bomb_is_refused_before_it_inflates(tmp_path):
+    """A real bomb (3.9 MB inflating to 4 GB) reached 3.85 GB RSS (23 GB on the way to rotations); the
+    inflated size is now bounded by the bytes the entry really stores, before anything is allocated.
+    This one: 160k frames (106 MB of zeros) in about 0.1 MB."""
+    import tracemalloc
+
+    p = _bomb(tmp_path / "bomb.npz", 160_000)
+    assert p.stat().st_size < 1_000_000
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputFileError, match=r"bomb.npz: poses: header declares float32 \(160000, 165\) "
+                                                 r"\(105600000 bytes\), but the archive entry may hold at most "
+                                                 r"67108864 bytes \(stored \d+, MAX_NPZ_INFLATE_RATIO = 64\); "
+                                                 r"a damaged file or a deflate bomb$"):
+            read_smplx(p)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 8e6, peak
+
+
+def test_compressed_files_within_the_bounds_read(tmp_path, good_arrays):
+    p = tmp_path / "compressed.npz"
+    big = {"poses": np.random.default_rng(1).normal(scale=0.3, size=(6000, 165)),  # 7.9 MB, ~1.1x compressible
+           "trans": np.zeros((6000, 3)), "mocap_frame_rate": np.array(30.0)}
+    np.savez_compressed(p, **big)
+    np.testing.assert_array_equal(read_smplx(p).rotations, read_smplx(_write(tmp_path, "stored.npz", **big)).rotations)
+    # highly compressible but small (a rest pose): under MAX_NPZ_FREE_BYTES whatever the ratio
+    assert read_smplx(_bomb(tmp_path / "rest.npz", 20_000)).n_frames == 20_000
+    # Fortran-ordered arrays come back in their logical layout
+    arrays = dict(good_arrays, poses=np.asfortranarray(good_arrays["poses"]))
+    back = read_smplx(_write(tmp_path, "fortran.npz", **arrays))
+    np.testing.assert_array_equal(back.rotations, read_smplx(_write(tmp_path, "c.npz", **good_arrays)).rotations)
+
+
+@pytest.mark.parametrize("data, message", [
+    (bytes(range(256)) * 40, r"expected an \.npz archive \(a zip of \.npy arrays, starting with 'PK'\); got a file "
+                             r"starting with b'\\x00\\x01\\x02\\x03\\x04\\x05\\x06\\x07': not a zip archive$"),
+    (b"", r"expected an \.npz archive \(a zip of \.npy arrays\); got an empty file$"),
+    (b"PK\x03\x04" + bytes(200), r"cannot read as \.npz: "),
+])
+def test_a_file_that_is_no_npz_is_called_what_it_is(tmp_path, data, message):
+    """Random bytes used to be reported as 'Cannot load file containing pickled data'."""
+    p = tmp_path / "random.npz"
+    p.write_bytes(data)
+    with pytest.raises(InputFileError, match=message) as err:
+        read_smplx(p)
+    assert str(err.value).startswith(f"{p}: ") and "pickled" not in str(err.value) and "\n" not in str(err.value)
+
+
+def test_object_arrays_are_never_unpickled(tmp_path, good_arrays):
+    p = tmp_path / "objects.npz"
+    np.savez(p, poses=np.array([{"a": 1}] * 165, dtype=object).reshape(1, 165), trans=np.zeros((1, 3)),
+             mocap_frame_rate=np.array(30))
+    with pytest.raises(InputFileError, match=r"poses: expected numbers; got an array of Python objects"):
+        read_smplx(p)
+
+
+@pytest.mark.parametrize("fps", [1e9, 1e-9, 1000.5])
+def test_frame_rates_bvh_cannot_carry_are_refused(tmp_path, good_arrays, fps):
+    """Motion read at 1e9 fps was retargeted and written to a BVH read_bvh refuses."""
+    p = _write(tmp_path, **dict(good_arrays, mocap_frame_rate=np.array(fps)))
+    with pytest.raises(InputFileError, match=r"mocap_frame_rate: expected one frame rate of 1 to 1000 Hz, got "):
+        read_smplx(p)

@@ -26,16 +26,14 @@ Export
 """
 from __future__ import annotations
 
-import lzma
 import math
-import tokenize
-import zipfile
-import zlib
 
 import numpy as np
 
 from gesturedb import rotations as rot
-from gesturedb.errors import InputFileError
+from gesturedb.errors import InputFileError, echo, echo_list
+from gesturedb.io.bvh import MAX_FPS, MIN_FPS
+from gesturedb.io.npz import npz_keys, read_npz
 from gesturedb.motion import Motion, Skeleton
 
 __all__ = ["CHANNEL_ORDER", "SMPLX_JOINT_NAMES", "SMPLX_PARENTS", "read_smplx", "smplx_skeleton"]
@@ -145,55 +143,6 @@ def smplx_skeleton() -> Skeleton:
                     [CHANNEL_ORDER] * _N_JOINTS, ends, 1.0)
 
 
-def _check_declared_size(path, data, key) -> None:
-    """Refuse an array whose header declares more bytes than its archive entry can hold, before allocating.
-
-    numpy allocates the declared shape first and reads after; a 1 KB file can declare
-    a (10**12, 165) array. Deflate expands at most ~1032:1, so the declared size must
-    fit the entry's uncompressed size and its compressed size times 1100.
-    """
-    import numpy.lib.format as fmt
-
-    name = key + ".npy"
-    if getattr(data, "zip", None) is None or name not in data.zip.namelist():
-        return
-    info = data.zip.getinfo(name)
-    with data.zip.open(name) as f:
-        version = fmt.read_magic(f)
-        reader = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(version)
-        if reader is None:
-            raise InputFileError(path, f"{key}: unsupported .npy format version {version}")
-        shape, _fortran, dtype = reader(f)
-    n = 1
-    for d in shape:
-        n *= int(d)
-    declared = n * dtype.itemsize
-    limit = min(info.file_size, 1100 * info.compress_size + 4096)
-    if declared > limit:
-        raise InputFileError(path, f"{key}: header declares {dtype} {tuple(shape)} ({declared} bytes), but the "
-                                   f"archive entry holds at most {limit} bytes; damaged or hostile file")
-
-
-#: What numpy raises on a damaged .npz or .npy (each found by tests/fuzz/fuzz_npz.py): zlib.error, a corrupt
-#: deflate stream; NotImplementedError, a zip compression or "version needed" this Python cannot read;
-#: RuntimeError, an encrypted entry; EOFError, a truncated entry; tokenize.TokenError and SyntaxError,
-#: a damaged header dict (numpy 2.4 parses it with Python's tokenizer and literal_eval); lzma.LZMAError, an
-#: entry marked LZMA-compressed (zip method 14) whose properties are damaged (bz2's errors are OSErrors).
-_NPZ_ERRORS = (OSError, ValueError, zipfile.BadZipFile, zlib.error, lzma.LZMAError, NotImplementedError,
-               RuntimeError, EOFError, tokenize.TokenError, SyntaxError)
-
-
-def _array(path, data, key, shape_desc):
-    if key not in data.files:
-        raise InputFileError(path, f"{key}: missing (expected {shape_desc}); the file has keys "
-                                   f"{', '.join(sorted(data.files)) or 'none'}")
-    try:
-        _check_declared_size(path, data, key)
-        return np.asarray(data[key])
-    except _NPZ_ERRORS as exc:
-        raise InputFileError(path, f"{key}: unreadable ({exc})") from None
-
-
 def read_smplx(path) -> Motion:
     """Read BEAT2 / AMASS SMPL-X motion onto `smplx_skeleton`.
 
@@ -212,37 +161,41 @@ def read_smplx(path) -> Motion:
     Raises
     ------
     InputFileError
-        Unreadable file; a missing key, wrong shape or non-finite value (the
-        message names the key, and the frame and joint for non-finite values).
+        Unreadable file (not a zip archive, damaged, an array larger than its entry
+        can hold or inflating past `gesturedb.io.npz.MAX_NPZ_INFLATE_RATIO`); a
+        missing key, wrong shape or non-finite value (the message names the key, and
+        the frame and joint for non-finite values); a frame rate outside the 1-1000 Hz
+        BVH files can carry.
     """
-    try:
-        data = np.load(path, allow_pickle=False)
-    except _NPZ_ERRORS as exc:
-        raise InputFileError(path, f"cannot read as .npz: {exc}") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise InputFileError(path, "expected an .npz archive with poses, trans and mocap_frame_rate; "
-                                   "got a single .npy array")
-    with data:
-        poses = _array(path, data, "poses", f"(F, {3 * _N_JOINTS}) axis-angle")
-        trans = _array(path, data, "trans", "(F, 3) metres")
-        fps_key = next((k for k in _FPS_KEYS if k in data.files), None)
-        if fps_key is None:
-            raise InputFileError(path, f"mocap_frame_rate: missing (expected the frame rate in Hz); the file has "
-                                       f"keys {', '.join(sorted(data.files))}")
-        fps_arr = _array(path, data, fps_key, "a frame rate")
+    have = npz_keys(path)
+    for key, desc in (("poses", f"(F, {3 * _N_JOINTS}) axis-angle"), ("trans", "(F, 3) metres")):
+        if key not in have:
+            raise InputFileError(path, f"{key}: missing (expected {desc}); the file has keys "
+                                       f"{echo_list(sorted(have)) or 'none'}")
+    # memory bounded before allocation: declared and inflated sizes (gesturedb.io.npz)
+    arrays = read_npz(path, ("poses", "trans"))
+    fps_key = next((k for k in _FPS_KEYS if k in have), None)
+    if fps_key is None:
+        raise InputFileError(path, f"mocap_frame_rate: missing (expected the frame rate in Hz); the file has "
+                                   f"keys {echo_list(sorted(have)) or 'none'}")
+    poses, trans, fps_arr = arrays["poses"], arrays["trans"], read_npz(path, (fps_key,))[fps_key]
     if poses.ndim != 2 or poses.shape[1] != 3 * _N_JOINTS or poses.shape[0] < 1 \
             or not np.issubdtype(poses.dtype, np.number):
         raise InputFileError(path, f"poses: expected shape (F, {3 * _N_JOINTS}) (55 SMPL-X joints x axis-angle), "
-                                   f"got {poses.dtype} {poses.shape}")
+                                   f"got {poses.dtype} {echo(poses.shape)}")
     n_f = poses.shape[0]
     if trans.shape != (n_f, 3) or not np.issubdtype(trans.dtype, np.number):
-        raise InputFileError(path, f"trans: expected shape ({n_f}, 3) to match poses, got {trans.dtype} {trans.shape}")
+        raise InputFileError(path, f"trans: expected shape ({n_f}, 3) to match poses, got {trans.dtype} "
+                                   f"{echo(trans.shape)}")
     try:
         fps = float(np.asarray(fps_arr).reshape(-1)[0]) if np.asarray(fps_arr).size == 1 else float("nan")
     except (TypeError, ValueError):
         fps = float("nan")
-    if not (math.isfinite(fps) and fps > 0):
-        raise InputFileError(path, f"{fps_key}: expected one positive frame rate in Hz, got {fps_arr!r}")
+    if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
+        # the range read_bvh accepts: motion at 1e9 fps could be read, retargeted and written
+        # to a BVH our own reader refuses
+        raise InputFileError(path, f"{fps_key}: expected one frame rate of {MIN_FPS:g} to {MAX_FPS:g} Hz, "
+                                   f"got {echo(fps_arr)}")
 
     aa = poses.astype(np.float64).reshape(n_f, _N_JOINTS, 3)
     bad = ~np.isfinite(aa).all(axis=-1)
