@@ -37,8 +37,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gesturedb import rotations as rot
-from gesturedb.errors import InputFileError, ParameterError
-from gesturedb.io.joints import body_keys
+from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
+from gesturedb.io.bvh import MAX_FPS, MIN_FPS
+from gesturedb.io.joints import MESSAGE_JOINTS, body_keys
 from gesturedb.motion import Motion, Skeleton
 
 __all__ = ["RIG_EXTENSIONS", "RetargetResult", "load_rig", "match_joints", "retarget"]
@@ -104,11 +105,11 @@ def match_joints(source: Skeleton, target: Skeleton, mapping=None) -> dict[int, 
     mapping = dict(mapping or {})
     for t, s in mapping.items():
         if t not in target.names:
-            raise ParameterError(f"mapping: target joint {t!r} not in the target rig; joints: "
-                                 f"{', '.join(target.names)}")
+            raise ParameterError(f"mapping: target joint {echo(t)} not in the target rig; joints: "
+                                 f"{echo_list(target.names, MESSAGE_JOINTS)}")
         if s and s not in source.names:
-            raise ParameterError(f"mapping[{t!r}]: source joint {s!r} not in the source skeleton; joints: "
-                                 f"{', '.join(source.names)}")
+            raise ParameterError(f"mapping[{echo(t)}]: source joint {echo(s)} not in the source skeleton; joints: "
+                                 f"{echo_list(source.names, MESSAGE_JOINTS)}")
     src_by_key = {k: j for j, k in body_keys(source.names).items()}
     pairs: dict[int, int] = {}
     for t, key in body_keys(target.names).items():
@@ -234,12 +235,17 @@ def retarget(motion: Motion, target: Skeleton, *, mapping=None) -> RetargetResul
     ------
     ParameterError
         If the arms (upper arm, forearm, hand on both sides) cannot be paired:
-        the message says which parts each rig lacks.
+        the message says which parts each rig lacks; a frame rate outside
+        `gesturedb.io.bvh.MIN_FPS` to `MAX_FPS` (1-1000, what `read_bvh` accepts).
     """
     if not isinstance(motion, Motion):
         raise ParameterError(f"motion: expected a Motion; got {type(motion).__name__}")
     if not isinstance(target, Skeleton):
         raise ParameterError(f"target: expected a Skeleton; got {type(target).__name__}")
+    if not MIN_FPS <= motion.fps <= MAX_FPS:
+        # the output is BVH or glTF: never make a file read_bvh would refuse (1e9 or 1e-9 fps)
+        raise ParameterError(f"motion.fps: expected {MIN_FPS:g} to {MAX_FPS:g} frames per second (what a BVH "
+                             f"file carries); got {motion.fps:g}")
     src = motion.skeleton
     pairs = match_joints(src, target, mapping)
     t_keys = body_keys(target.names)
@@ -253,7 +259,8 @@ def retarget(motion: Motion, target: Skeleton, *, mapping=None) -> RetargetResul
         raise ParameterError(
             f"retarget: no arms found to pair: {', '.join(missing)} unpaired (target rig lacks "
             f"{', '.join(no_t) or 'none'}; source lacks {', '.join(no_s) or 'none'}); target joints: "
-            f"{', '.join(target.names)}. Pass mapping={{target_joint: source_joint}} (--map T=S) to pair them")
+            f"{echo_list(target.names, MESSAGE_JOINTS)}. Pass mapping={{target_joint: source_joint}} (--map T=S) "
+            "to pair them")
 
     rest_s = src.rest_positions()
     rest_t = target.rest_positions()

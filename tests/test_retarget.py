@@ -241,3 +241,33 @@ def test_synthesized_motion_onto_a_rig_and_glb_cli(scott_db_path, scott_dir, tmp
     _, err = capsys.readouterr()
     assert "--map: expected TARGET=SOURCE" in err
     json.dumps(err)  # printable
+
+
+# --- issue 41: frame rates BVH can carry, messages of bounded length ----------------------------------------
+
+@pytest.mark.parametrize("fps", [1e9, 1e-9])
+def test_frame_rates_no_bvh_reader_accepts_are_refused(source, tmp_path, fps):
+    """retarget accepted 1e9 or 1e-9 fps (a glTF or npz can say so) and wrote a BVH read_bvh refuses."""
+    from gesturedb.motion import Motion
+
+    _, rig = _rig(tmp_path, "mixamo")
+    odd = Motion(source.skeleton, fps, source.rotations[:3], source.root_positions[:3])
+    with pytest.raises(ParameterError, match=rf"^motion.fps: expected 1 to 1000 frames per second \(what a BVH "
+                                             rf"file carries\); got {fps:g}$".replace("+", r"\+")):
+        retarget(odd, rig)
+    # and at the limits the whole chain works: retarget, write, read back
+    for ok in (1.0, 1000.0):
+        res = retarget(Motion(source.skeleton, ok, source.rotations[:3], source.root_positions[:3]), rig)
+        write_bvh(tmp_path / "ok.bvh", res.motion)
+        assert read_bvh(tmp_path / "ok.bvh").fps == ok
+
+
+def test_mapping_messages_are_capped(source, tmp_path):
+    _, rig = _rig(tmp_path, "mixamo")
+    with pytest.raises(ParameterError, match=r"^mapping: target joint 'x{80}'\.\.\. \(125000 characters\) not in the "
+                                             r"target rig; joints: mixamorig:Hips, ") as err:
+        match_joints(source.skeleton, rig, {"x" * 125_000: "left_elbow"})
+    assert len(str(err.value)) < 3000
+    with pytest.raises(ParameterError, match=r"source joint 'y{80}'\.\.\. \(125000 characters\) not in the source "
+                                             r"skeleton; joints: pelvis, left_hip, .*, right_thumb3$"):
+        match_joints(source.skeleton, rig, {"mixamorig:Hips": "y" * 125_000})
