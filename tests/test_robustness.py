@@ -557,3 +557,85 @@ def test_an_output_reaching_an_input_through_a_symlink_or_hard_link_is_refused(t
     with pytest.raises(ParameterError, match="the same file as -o"):
         check_outputs({"-o": tmp_path / "x.bvh", "--npz": tmp_path / "x.bvh"})
     check_outputs({"-o": tmp_path / "new.bvh", "--npz": None}, [src])  # a fine output passes
+
+
+# ---------------------------------------------------------------- issue 41, cases 14 and 15: short messages,
+# byte-order marks, files called what they are, frame rates a BVH can carry (through the CLI: exit 2, one line)
+
+def test_a_control_item_is_never_echoed_whole():
+    """A 125k-character named mask was echoed whole; a long expression is shown around its error."""
+    from gesturedb.control.compile import compile_mask
+    from gesturedb.control.expression import parse_mask_expression
+
+    c = {"left_wrist_height": np.linspace(0.0, 1.0, 100)}
+    with pytest.raises(ParameterError, match=r"^named mask 'big' = 'x{80}'\.\.\. \(125000 characters\): mask "
+                                             r"expression: expected at most 10000 characters") as err:
+        compile_mask("big", controls=c, named={"big": "x" * 125_000})
+    assert len(str(err.value)) < 400 and "\n" not in str(err.value)
+    with pytest.raises(ParameterError, match=r"^named: mask names must be identifiers .* got 'y{80}'\.\.\. "
+                                             r"\(125001 characters\)$"):
+        compile_mask("left_wrist_height > p50", controls=c, named={"y" * 125_000 + "!": "left_wrist_height > p50"})
+    many = {f"feature_{i}": np.zeros(100) for i in range(5_000)}
+    with pytest.raises(ParameterError, match=r"unknown control feature 'nope'; known features: feature_0, .*"
+                                             r"\.\.\. \(5000 in all\)") as err:
+        compile_mask("nope > p50", controls=many)
+    assert len(str(err.value).splitlines()[0]) < 1500
+    expr = " and ".join(["left_wrist_height > p50"] * 300)[:9_000] + " and &"
+    with pytest.raises(ParameterError) as err:
+        parse_mask_expression(expr)
+    lines = str(err.value).splitlines()
+    assert lines[0].startswith(f"mask expression: column {len(expr)}: unexpected character '&'")
+    assert len(lines) == 3 and all(len(ln) < 200 for ln in lines), lines
+    assert lines[1].rstrip().endswith("and &") and lines[2].index("^") == lines[1].index("&")
+
+
+def test_a_byte_order_mark_is_accepted_by_every_text_reader(scott_dir, data_dir, tmp_path):
+    """Excel's "CSV UTF-8" and some exporters start text with a UTF-8 BOM: BVH, transcripts, joint maps."""
+    from gesturedb.io import read_bvh, read_transcript
+    from gesturedb.io.joints import read_joint_map
+
+    bom = b"\xef\xbb\xbf"
+    sources = [data_dir / "bvh-foreign" / "AV_8Walk_Meredith_HVHA_Rep1.bvh", scott_dir / f"{STEM}.TextGrid",
+               next((data_dir / "genea2023-transcripts").glob("*.tsv"))]
+    js = tmp_path / "words.json"
+    js.write_text(json.dumps({"words": [{"start": 0.1, "end": 0.4, "word": "hello"}]}))
+    for src in sources + [js]:
+        with_bom = tmp_path / ("bom_" + src.name)
+        with_bom.write_bytes(bom + src.read_bytes())
+        if src.suffix == ".bvh":
+            a, b = read_bvh(src), read_bvh(with_bom)
+            assert a.skeleton.names == b.skeleton.names and np.array_equal(a.rotations, b.rotations)
+        else:
+            a, b = read_transcript(src), read_transcript(with_bom)
+            assert a.text == b.text and np.array_equal(a.start_s, b.start_s) and len(a.text) > 0, src.name
+    jm = tmp_path / "map.json"
+    jm.write_bytes(bom + b'{"left_index1": "LeftHandThumb1"}')
+    assert read_joint_map(str(jm)) == {"left_index1": "LeftHandThumb1"}
+
+
+def test_retarget_cli_exits_2_with_one_line_for_hostile_inputs(scott_dir, tmp_path, capsys):
+    import rigs
+
+    rig = tmp_path / "rig.bvh"
+    rig.write_text(rigs.mixamo_rig())
+    out = tmp_path / "out.bvh"
+    # random bytes named .npz: called what they are (was "Cannot load file containing pickled data")
+    noise = tmp_path / "noise.npz"
+    noise.write_bytes(np.random.default_rng(0).bytes(4096))
+    code, _, err = run(capsys, "retarget", noise, "--to", rig, "-o", out)
+    assert code == 2 and "noise.npz: expected an .npz archive" in one_line_error(err, "not a zip archive")
+    # SMPL-X at 1e9 fps: refused where it is read, naming the file (was written to a BVH read_bvh refuses)
+    d = dict(np.load(scott_dir / f"{STEM}.npz"))
+    d["mocap_frame_rate"] = np.array(1e9)
+    fast = tmp_path / "fast.npz"
+    np.savez(fast, **{k: v[:30] if k in ("poses", "trans") else v for k, v in d.items()})
+    code, _, err = run(capsys, "retarget", fast, "--to", rig, "-o", out)
+    assert code == 2
+    one_line_error(err, "fast.npz: mocap_frame_rate: expected one frame rate of 1 to 1000 Hz")
+    # a rig declaring 10^7 channels: refused at the count, one short line (was a 100 MB line)
+    huge = tmp_path / "huge.bvh"
+    huge.write_text("HIERARCHY\nROOT Hips\n{\nOFFSET 0 0 0\nCHANNELS 10000000 " + "Xrotation " * 100_000
+                    + "\n}\nMOTION\nFrames: 1\nFrame Time: 0.03\n0\n")
+    code, _, err = run(capsys, "retarget", scott_dir / f"{STEM}.npz", "--to", huge, "-o", out)
+    assert code == 2 and len(one_line_error(err, "huge.bvh: line 5: Hips CHANNELS: expected 0 to 6 channels")) < 300
+    assert not out.exists() and not list(tmp_path.glob("*.tmp"))

@@ -11,7 +11,7 @@ from typing import Mapping
 
 import numpy as np
 
-from gesturedb.errors import ParameterError
+from gesturedb.errors import ParameterError, echo, echo_list
 from gesturedb.control.bitsets import _check_count, count_bits, mask_and, mask_not, mask_or, n_words, pack_bits, unpack_bits, validate_bitset
 from gesturedb.control.expression import _KEYWORDS, _NAME_RE, _OPS, _PCT_RE, _UNITS, MaskExpression, _Bin, _caret_error, _Cmp, _Not, _Ref, parse_mask_expression
 
@@ -71,7 +71,7 @@ def feature_unit(feature: str, units: Mapping[str, str | None] | None = None) ->
         unit = units[feature]
         if unit is not None and unit not in _UNITS:
             raise ParameterError(
-                f"units[{feature!r}]: expected one of {', '.join(_UNITS)} or None; got {unit!r}"
+                f"units[{echo(feature)}]: expected one of {', '.join(_UNITS)} or None; got {echo(unit)}"
             )
         return unit
     if feature in CONTROL_UNITS:
@@ -120,10 +120,10 @@ def mask_definitions(
             if not isinstance(k, str) or not _NAME_RE.fullmatch(k) or k.lower() in _KEYWORDS:
                 raise ParameterError(
                     f"named: mask names must be identifiers (letters, digits, '_') other than "
-                    f"and/or/not; got {k!r}"
+                    f"and/or/not; got {echo(k)}"
                 )
             if _PCT_RE.fullmatch(k):
-                raise ParameterError(f"named: {k!r} reads as a percentile; choose another mask name")
+                raise ParameterError(f"named: {echo(k)} reads as a percentile; choose another mask name")
         defs.update(named)
     return defs
 
@@ -247,7 +247,7 @@ def percentile_threshold(values: np.ndarray, p: float) -> float:
 
 def _check_percentile(p, what: str) -> float:
     if isinstance(p, (bool, np.bool_)) or not isinstance(p, (int, float, np.integer, np.floating)):
-        raise ParameterError(f"{what}: expected a number in [0, 100]; got {p!r}")
+        raise ParameterError(f"{what}: expected a number in [0, 100]; got {echo(p)}")
     if not 0.0 <= float(p) <= 100.0:
         raise ParameterError(f"{what}: expected a number in [0, 100]; got {p}")
     return float(p)
@@ -290,15 +290,15 @@ class _Compiler:
             a = v if all(hasattr(v, x) for x in ("shape", "ndim", "dtype")) else np.asarray(v)
             if a.ndim != 1 or a.dtype.kind not in "fiu":
                 raise ParameterError(
-                    f"controls[{name!r}]: expected a 1-D array of per-frame values (F,); "
+                    f"controls[{echo(name)}]: expected a 1-D array of per-frame values (F,); "
                     f"got {a.dtype} {a.shape}"
                 )
             if F is None:
                 F, first = a.shape[0], name
             elif a.shape[0] != F:
-                against = f"controls[{first!r}]" if first is not None else "n_frames"
+                against = f"controls[{echo(first)}]" if first is not None else "n_frames"
                 raise ParameterError(
-                    f"controls[{name!r}]: expected {F} frames like {against}; got {a.shape[0]}"
+                    f"controls[{echo(name)}]: expected {F} frames like {against}; got {a.shape[0]}"
                 )
         if F is None:
             raise ParameterError(
@@ -329,7 +329,7 @@ class _Compiler:
     # ---- lookups -------------------------------------------------------------------
     def values(self, feature: str) -> np.ndarray:
         if feature not in self._values:
-            self._values[feature] = _finite_values(self.controls[feature], f"controls[{feature!r}]")
+            self._values[feature] = _finite_values(self.controls[feature], f"controls[{echo(feature)}]")
         return self._values[feature]
 
     def percentile(self, feature: str, p: float) -> float:
@@ -348,7 +348,7 @@ class _Compiler:
             raise _caret_error(
                 text,
                 node.value_col,
-                f"{node.feature!r} has no unit; write the value without {node.unit!r}",
+                f"{echo(node.feature)} has no unit; write the value without {echo(node.unit)}",
             )
         dim, exp = _UNITS[node.unit]
         fdim, fexp = _UNITS[unit]
@@ -356,7 +356,7 @@ class _Compiler:
             raise _caret_error(
                 text,
                 node.value_col,
-                f"unit {node.unit!r} is a {dim} but {node.feature!r} is a {fdim} in {unit}",
+                f"unit {echo(node.unit)} is a {dim} but {echo(node.feature)} is a {fdim} in {unit}",
             )
         shift = exp - fexp
         # One correctly rounded operation: 5 cm -> 5 / 100, not 5 * 0.01.
@@ -369,14 +369,14 @@ class _Compiler:
             if arr.dtype == np.bool_:
                 if arr.shape != (self.F,):
                     raise ParameterError(
-                        f"named[{name!r}]: expected a bool mask ({self.F},); got {arr.shape}"
+                        f"named[{echo(name)}]: expected a bool mask ({self.F},); got {arr.shape}"
                     )
                 arr = pack_bits(arr)
             else:
-                validate_bitset(arr, self.F, name=f"named[{name!r}]")
+                validate_bitset(arr, self.F, name=f"named[{echo(name)}]")
                 if arr.ndim != 1:
                     raise ParameterError(
-                        f"named[{name!r}]: expected one bitset ({n_words(self.F)},); got {arr.shape}"
+                        f"named[{echo(name)}]: expected one bitset ({n_words(self.F)},); got {arr.shape}"
                     )
             self._saved[name] = arr
         return self._saved[name]
@@ -386,7 +386,7 @@ class _Compiler:
             try:
                 self._parsed[name] = parse_mask_expression(expr)
             except ParameterError as e:
-                raise ParameterError(f"named mask {name!r} = {expr!r}: {e}") from e
+                raise ParameterError(f"named mask {echo(name)} = {echo(expr)}: {e}") from e
         return self._parsed[name]
 
     # ---- evaluation ----------------------------------------------------------------
@@ -412,14 +412,14 @@ class _Compiler:
                     raise _caret_error(
                         text,
                         node.col,
-                        f"{node.feature!r} is a named mask, not a control feature; use it alone "
+                        f"{echo(node.feature)} is a named mask, not a control feature; use it alone "
                         f"(e.g. '{node.feature} and ...'), or compare a feature: "
                         f"{_known(self.controls)}",
                     )
                 raise _caret_error(
                     text,
                     node.col,
-                    f"unknown control feature {node.feature!r}"
+                    f"unknown control feature {echo(node.feature)}"
                     f"{_did_you_mean(node.feature, self.controls)}; known features: "
                     f"{_known(self.controls)}",
                 )
@@ -448,13 +448,13 @@ class _Compiler:
                 raise _caret_error(
                     text,
                     node.col,
-                    f"{name!r} is a control feature, not a mask: compare it with a value, "
+                    f"{echo(name)} is a control feature, not a mask: compare it with a value, "
                     f"e.g. '{name} > p{HIGH_PERCENTILE:g}'",
                 )
             raise _caret_error(
                 text,
                 node.col,
-                f"unknown mask name {name!r}{_did_you_mean(name, list(self.defs) + list(self.controls))}; "
+                f"unknown mask name {echo(name)}{_did_you_mean(name, list(self.defs) + list(self.controls))}; "
                 f"known names: {_known(self.defs)}",
             )
         definition = self.defs[name]
@@ -462,7 +462,8 @@ class _Compiler:
             return self.saved(name, definition)
         if name in self._stack:
             cycle = " -> ".join(self._stack[self._stack.index(name) :] + [name])
-            raise ParameterError(f"named mask {name!r} refers to itself: {cycle}")
+            raise ParameterError(f"named mask {echo(name)} refers to itself: "
+                                 f"{echo_list(cycle.split(' -> ')).replace(', ', ' -> ')}")
         parsed = self.parsed(name, definition)
         self._stack.append(name)
         try:
@@ -470,7 +471,7 @@ class _Compiler:
         except ParameterError as e:
             if str(e).startswith("named mask "):
                 raise
-            raise ParameterError(f"named mask {name!r} = {definition!r}: {e}") from e
+            raise ParameterError(f"named mask {echo(name)} = {echo(definition)}: {e}") from e
         finally:
             self._stack.pop()
 
@@ -499,12 +500,16 @@ def _did_you_mean(name: str, known) -> str:
     close = difflib.get_close_matches(name, list(known), n=2, cutoff=0.6)
     if not close:
         return ""
-    return " (did you mean " + " or ".join(repr(c) for c in close) + "?)"
+    return " (did you mean " + " or ".join(echo(c) for c in close) + "?)"
+
+
+#: known names a message lists before it counts the rest
+MESSAGE_NAMES = 60
 
 
 def _known(names) -> str:
     names = sorted(names)
-    return ", ".join(names) if names else "(none)"
+    return echo_list(names, MESSAGE_NAMES) if names else "(none)"
 
 
 def compile_mask(

@@ -9,7 +9,7 @@ from typing import Iterator, NamedTuple
 
 import numpy as np
 
-from gesturedb.errors import ParameterError
+from gesturedb.errors import ParameterError, echo
 
 # unit -> (dimension, power of ten relative to the SI unit)
 _UNITS: dict[str, tuple[str, int]] = {
@@ -48,10 +48,20 @@ MAX_EXPRESSION_CHARS = 10_000
 _OPS = {"<": np.less, "<=": np.less_equal, ">": np.greater, ">=": np.greater_equal}
 
 
+#: characters of the expression shown on each side of the caret (a 10,000-character
+#: expression is shown around its error, not whole)
+CARET_CONTEXT = 60
+
+
 def _caret_error(text: str, col: int, message: str) -> ParameterError:
     shown = text.translate({9: " ", 10: " ", 13: " "})
+    at = col
+    if len(shown) > 2 * CARET_CONTEXT + 8:
+        a, b = max(0, col - CARET_CONTEXT), min(len(shown), col + CARET_CONTEXT)
+        pre, post = ("..." if a > 0 else ""), ("..." if b < len(shown) else "")
+        shown, at = pre + shown[a:b] + post, col - a + len(pre)
     return ParameterError(
-        f"mask expression: column {col + 1}: {message}\n    {shown}\n    {' ' * col}^"
+        f"mask expression: column {col + 1}: {message}\n    {shown}\n    {' ' * at}^"
     )
 
 
@@ -150,7 +160,7 @@ class _Bin:
 def _describe_tok(t: _Tok) -> str:
     if t.kind == "eof":
         return "the end of the expression"
-    return repr(t.text)
+    return echo(t.text)
 
 
 class _Parser:
@@ -238,13 +248,13 @@ class _Parser:
             return _Ref(t.text, t.col)
         expected = "expected a mask name, a comparison such as 'left_wrist_height > p85', or '('"
         if t.kind == "num":
-            raise self.error(t, f"{expected}; got the number {t.text!r} (the feature goes on the left)")
+            raise self.error(t, f"{expected}; got the number {echo(t.text)} (the feature goes on the left)")
         if t.kind == "pct":
             raise self.error(
-                t, f"{expected}; got the percentile {t.text!r} (percentiles go on the right of <, >)"
+                t, f"{expected}; got the percentile {echo(t.text)} (percentiles go on the right of <, >)"
             )
         if t.kind == "op":
-            raise self.error(t, f"comparison {t.text!r} needs a control feature on its left")
+            raise self.error(t, f"comparison {echo(t.text)} needs a control feature on its left")
         raise self.error(t, f"{expected}; got {_describe_tok(t)}")
 
     def comparison(self, feature: _Tok) -> _Cmp:
@@ -260,17 +270,17 @@ class _Parser:
                 raise self.error(first, "a percentile takes no sign")
             p = float(t.text[1:])
             if not 0.0 <= p <= 100.0:
-                raise self.error(t, f"percentile {t.text!r} is outside p0..p100")
+                raise self.error(t, f"percentile {echo(t.text)} is outside p0..p100")
             return _Cmp(feature.text, feature.col, op.text, p, None, True, t.text.lower(), t.col)
         if t.kind == "num":
             value = sign * float(t.text)
             if not math.isfinite(value):
-                raise self.error(t, f"number {t.text!r} is not finite")
+                raise self.error(t, f"number {echo(t.text)} is not finite")
             if t.unit is not None and t.unit not in _UNITS:
                 raise _caret_error(
                     self.text,
                     t.unit_col,
-                    f"unknown unit {t.unit!r} after {t.text}; expected one of "
+                    f"unknown unit {echo(t.unit)} after {t.text}; expected one of "
                     f"{', '.join(_UNITS)} (comparisons combine with 'and' / 'or')",
                 )
             value_text = ("-" if sign < 0 else "") + t.text + (f" {t.unit}" if t.unit else "")
@@ -279,7 +289,7 @@ class _Parser:
         raise self.error(
             t,
             f"expected a number (e.g. 0.3, 5 cm, 20 cm/s) or a percentile (e.g. p85) after "
-            f"{op.text!r}; got {_describe_tok(t)}",
+            f"{echo(op.text)}; got {_describe_tok(t)}",
         )
 
 
