@@ -639,3 +639,31 @@ def test_retarget_cli_exits_2_with_one_line_for_hostile_inputs(scott_dir, tmp_pa
     code, _, err = run(capsys, "retarget", scott_dir / f"{STEM}.npz", "--to", huge, "-o", out)
     assert code == 2 and len(one_line_error(err, "huge.bvh: line 5: Hips CHANNELS: expected 0 to 6 channels")) < 300
     assert not out.exists() and not list(tmp_path.glob("*.tmp"))
+
+
+def test_reading_speech_costs_about_its_samples(tmp_path):
+    """issue 41, case 16: read_audio's whole-file temporaries (NaN mask, |x|, the channel mean) were 2-3x
+    the samples; checks and mix-down now go in slices, with the same samples and messages."""
+    import tracemalloc
+
+    from gesturedb.io.audio import read_audio
+
+    rng = np.random.default_rng(3)
+    n = 16000 * 120
+    stereo = (0.1 * rng.standard_normal((n, 2))).astype(np.float32)
+    p = tmp_path / "stereo.wav"
+    sf.write(p, stereo, 16000, subtype="FLOAT")
+    tracemalloc.start()
+    try:
+        y, sr = read_audio(p, sr=None)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert sr == 16000 and y.tobytes() == stereo.mean(axis=1, dtype=np.float32).tobytes()
+    # the file's frames (2 channels) and the mono result: 3 x 7.7 MB, plus slices
+    assert peak < 3 * n * 4 + 6e6, peak / 1e6  # the old whole-file checks: 34.6 MB here
+    stereo[n - 7, 1] = np.nan
+    sf.write(p, stereo, 16000, subtype="FLOAT")
+    with pytest.raises(InputFileError, match=rf"stereo.wav: sample {n - 7} \(t = 120.000 s, channel 1\) is not "
+                                             r"finite: nan$"):
+        read_audio(p)
