@@ -309,7 +309,9 @@ def test_a_worker_refuses_a_stale_copy_of_a_shard(db_copy, scott_dir, tmp_path, 
     other = shard_database(db_copy, 2, index=str(tmp_path / "other.h5"))
     speech = scott_dir / "inputs/2_scott_0_2_2.wav"
     with gesturedb.open(rep.index) as idx:  # the client's check passes here
-        shutil.copyfile(other.shards[1], rep.shards[1])  # what the worker will see
+        # what the worker will see: another file at the path (the client holds the shard it checked open)
+        shutil.copyfile(other.shards[1], str(tmp_path / "stale.h5"))
+        os.replace(tmp_path / "stale.h5", rep.shards[1])
         with pytest.raises(SchemaError) as err:
             Searcher(idx, client=dask_client).synthesize(speech, smooth=False)
     msg = str(err.value)
@@ -449,3 +451,178 @@ def test_cli_synth_on_workers_started_by_hand(db_copy, scott_dir, tmp_path, caps
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "scheduler: expected a reachable Dask scheduler at tcp://127.0.0.1:1" in err
     assert not gone.exists()
+
+
+# ---------------------------------------------------------------- issue 41: readers during a re-sharding
+
+ROUNDS = 10
+JOIN_S = 60.0
+
+
+def _frames_digest(db) -> dict:
+    return {name: getattr(db, name).tobytes() for name in ("local_rotations", "pose_features", "root_positions")}
+
+
+def test_an_open_index_reads_its_own_shards_after_a_resharding_removed_them(db_copy):
+    """Case 3: the reader opened the index, the index was re-sharded in place (old shard files
+    removed): the reader still reads the frames it opened, not HDF5's fill values (zeros)."""
+    with gesturedb.open(db_copy) as db:
+        want = _frames_digest(db)
+        frames = np.arange(db.n_frames)[::7]
+        want_rows = db.local_rotations[frames].copy()
+    first = shard_database(db_copy, 2, index=db_copy)
+    with gesturedb.open(db_copy) as idx:
+        second = shard_database(db_copy, 3, index=db_copy)
+        assert sorted(second.removed) == sorted(first.shards)
+        assert not any(os.path.exists(f) for f in first.shards)
+        np.testing.assert_array_equal(idx.rows("local_rotations", frames), want_rows)
+        np.testing.assert_array_equal(idx.rows("local_rotations", frames, column=0), want_rows[:, 0])
+        assert idx.frame_mean("pose_features", stored=False).shape == (idx.pose_features.shape[1],)
+        assert _frames_digest(idx) == want
+        motion = idx.motion(idx.recordings[-1].name)  # what `gesturedb export` refused as "norm 0"
+        np.testing.assert_allclose(np.linalg.norm(motion.rotations, axis=-1), 1.0, atol=1e-5)
+
+
+def _read_while_resharding(index, want, barrier, done, queue):
+    try:
+        barrier.wait(JOIN_S)
+        reads = 0
+        while not done.is_set() or reads < 2:
+            with gesturedb.open(index) as db:
+                if _frames_digest(db) != want:
+                    queue.put(("wrong", f"read {reads}: frames differ (zeros: "
+                                        f"{not np.any(db.local_rotations)})"))
+                    return
+            reads += 1
+        queue.put(("ok", reads))
+    except BaseException as exc:
+        queue.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def _reshard(index, parts, barrier, done, queue):
+    try:
+        barrier.wait(JOIN_S)
+        for n in parts:
+            shard_database(index, n, index=index)
+        queue.put(("ok", 0))
+    except BaseException as exc:
+        queue.put(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        done.set()
+
+
+def test_readers_racing_a_resharding_read_the_database_every_time(db_copy):
+    """Case 3 as a race: readers open and read the index over and over while it is re-sharded in
+    in another process; every read is the database (no zeros, no error)."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    with gesturedb.open(db_copy) as db:
+        want = _frames_digest(db)
+    shard_database(db_copy, 2, index=db_copy)
+    total = 0
+    for r in range(ROUNDS):
+        barrier, done, queue = ctx.Barrier(2), ctx.Event(), ctx.Queue()
+        procs = [ctx.Process(target=_read_while_resharding, args=(db_copy, want, barrier, done, queue)),
+                 ctx.Process(target=_reshard, args=(db_copy, (3 - r % 2,), barrier, done, queue))]
+        for p in procs:
+            p.start()
+        out = [queue.get(timeout=JOIN_S) for _ in procs]
+        for p in procs:
+            p.join(JOIN_S)
+            assert not p.is_alive(), "a reader or the re-sharding hung"
+        assert all(state == "ok" for state, _ in out), out
+        total += sum(n for state, n in out)
+    assert total >= 2 * ROUNDS
+    with gesturedb.open(db_copy) as db:
+        assert _frames_digest(db) == want and len(db.shard_entries) == 2
+    left = [f for f in os.listdir(os.path.dirname(db_copy)) if f.endswith(".h5")]
+    assert len(left) == 3, left  # the index and its two shards: every older shard was removed
+
+
+def test_concurrent_reshardings_and_an_edit_lose_nothing(db_copy):
+    """Two re-shardings of one index and a mask edit of it at once: the edit survives (the
+    sharding holds the index's lock while it copies), and no shard file is left behind."""
+    import multiprocessing
+
+    from gesturedb.db import edit as dbedit
+
+    ctx = multiprocessing.get_context("fork")
+    shard_database(db_copy, 2, index=db_copy)
+
+    def run(fn, barrier, queue):
+        try:
+            barrier.wait(JOIN_S)
+            fn()
+            queue.put(("ok", None))
+        except BaseException as exc:
+            queue.put(("error", f"{type(exc).__name__}: {exc}"))
+
+    for i in range(ROUNDS):
+        barrier, queue = ctx.Barrier(3), ctx.Queue()
+        fns = [lambda: shard_database(db_copy, 3, index=db_copy), lambda: shard_database(db_copy, 2, index=db_copy),
+               lambda i=i: dbedit.save_mask(db_copy, f"m{i}", "left_wrist_speed < p50")]
+        procs = [ctx.Process(target=run, args=(fn, barrier, queue)) for fn in fns]
+        for p in procs:
+            p.start()
+        out = [queue.get(timeout=JOIN_S) for _ in procs]
+        for p in procs:
+            p.join(JOIN_S)
+            assert not p.is_alive(), "a sharding or an edit hung"
+        assert all(state == "ok" for state, _ in out), out
+        with gesturedb.open(db_copy) as db:
+            assert {f"m{k}" for k in range(i + 1)} <= set(db.masks)
+            shards = {e["file"] for e in db.shard_entries}
+        on_disk = {os.path.join(os.path.dirname(db_copy), f) for f in os.listdir(os.path.dirname(db_copy))
+                   if f.endswith(".h5") and f != os.path.basename(db_copy)}
+        assert on_disk == shards
+
+
+# ---------------------------------------------------------------- issue 41: the mappings that are read
+
+def _remap(index: str, path: str, files: list[str]) -> None:
+    """Point the virtual dataset ``path`` of an index at ``files`` (one per shard), leaving its shards list."""
+    with h5py.File(index, "r+") as h5:
+        old = h5[path]
+        shape, dtype, attrs = old.shape, old.dtype, dict(old.attrs)
+        entries = schema.shard_entries(h5, index)
+        del h5[path]
+        layout = h5py.VirtualLayout(shape=shape, dtype=dtype)
+        for f, e in zip(files, entries):
+            a, b = e["frames"]
+            layout[a:b] = h5py.VirtualSource(f, path, shape=(b - a,) + shape[1:])
+        ds = h5.create_virtual_dataset(path, layout, fillvalue=None)
+        for k, v in attrs.items():
+            ds.attrs[k] = v
+
+
+def test_the_virtual_dataset_mappings_themselves_are_checked(db_copy, tmp_path, capsys):
+    """Case 4: the shards list is right but a mapping reads another file: refused, naming the
+    dataset and the mapping, instead of synthesizing from the other file with exit 0."""
+    from gesturedb.cli.main import main
+
+    rep = shard_database(db_copy, 2)
+    other = shard_database(db_copy, 2, index=str(tmp_path / "other.h5"))
+    assert os.path.dirname(other.shards[0]) == os.path.dirname(rep.index)  # another sharding's files, beside it
+    _remap(rep.index, "frames/local_rotations", [os.path.basename(f) for f in other.shards])
+    want0 = os.path.basename(rep.shards[0])
+    got0 = os.path.basename(other.shards[0])
+    with pytest.raises(SchemaError, match=rf"frames/local_rotations: mapping 0: expected {want0}:frames/local_rotations "
+                                          rf"\(shard 1 of the index's list\), got {got0}:frames/local_rotations"):
+        gesturedb.open(rep.index)
+    _remap(rep.index, "frames/local_rotations", ["/etc/passwd", os.path.basename(rep.shards[1])])
+    with pytest.raises(SchemaError, match=r"frames/local_rotations: mapping 0: expected .*got /etc/passwd:"):
+        gesturedb.open(rep.index)
+    assert main(["info", rep.index]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err and "/etc/passwd" in err and rep.index in err
+    # a mapping onto the wrong rows of the right file
+    _remap(rep.index, "frames/local_rotations", [os.path.basename(f) for f in reversed(rep.shards)])
+    with pytest.raises(SchemaError, match=r"frames/local_rotations: mapping 0: expected .*1-of-2\.h5.*got .*2-of-2"):
+        gesturedb.open(rep.index)
+    # the data stored in the index itself instead of its shards
+    with h5py.File(rep.index, "r+") as h5:
+        del h5["frames/local_rotations"]
+        h5.create_dataset("frames/local_rotations", data=np.zeros((1, 1, 4), dtype=np.float32))
+    with pytest.raises(SchemaError, match=r"frames/local_rotations: expected a virtual dataset over the 2 shard"):
+        gesturedb.open(rep.index)

@@ -6,6 +6,17 @@ be handed to the search kernel without a copy. :meth:`Database.rows` and
 :meth:`Database.frame_mean` read a per-frame array's rows without loading it,
 for a client of a database larger than its memory (a sharded search reads the
 frames on the workers; the client needs only the chosen windows).
+
+An index file (``gesturedb shard``) is opened with its shard files: each is
+checked (it is the part the index was written with, and the index's
+virtual-dataset mappings name exactly it) and kept open, and the per-frame
+arrays are read from those open files rather than through HDF5's virtual
+datasets, which look the shards up by name at every read. A re-sharding that
+replaces the index and removes the old shards while a reader has it open
+therefore changes nothing for that reader (POSIX keeps a removed file readable
+while it is open), where the virtual datasets read fill values (zeros) for the
+removed files; and a shard swapped for another file after the check is never
+read.
 """
 from __future__ import annotations
 
@@ -17,6 +28,46 @@ import numpy as np
 
 from gesturedb.db import schema
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
+
+
+#: times an open retries when the index it opened was replaced (re-sharded) while it checked its shards
+OPEN_TRIES = 5
+
+
+class ShardedArray:
+    """A per-frame dataset of an index file, read from the shard files the database holds open.
+
+    Quacks like the h5py dataset it stands for where the database reads one: ``shape``,
+    ``dtype``, ``ndim``, ``attrs`` (the index's), and ``[a:b]`` / ``[a:b, column]`` /
+    ``[()]`` reads that come back as one array, whatever shards they span.
+    """
+
+    def __init__(self, index_ds, parts: list):
+        self.shape = tuple(index_ds.shape)
+        self.dtype = index_ds.dtype
+        self.ndim = len(self.shape)
+        self.attrs = index_ds.attrs
+        self._parts = parts  # [(f0, f1, shard dataset)] in frame order
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key):
+        rest: tuple = ()
+        if isinstance(key, tuple):
+            key, rest = (key[0], key[1:]) if key else (slice(None), ())
+        if key is Ellipsis:
+            key = slice(None)
+        if not isinstance(key, slice):
+            raise TypeError(f"ShardedArray: expected a slice of rows, got {key!r}")
+        a, b, step = key.indices(self.shape[0])
+        if step != 1:
+            raise TypeError(f"ShardedArray: expected a slice with step 1, got {key!r}")
+        pieces = [ds[(slice(max(a, f0) - f0, min(b, f1) - f0),) + rest]
+                  for f0, f1, ds in self._parts if max(a, f0) < min(b, f1)]
+        if not pieces:
+            return self._parts[0][2][(slice(0, 0),) + rest]
+        return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
 
 
 @dataclass(frozen=True)
@@ -97,26 +148,84 @@ class Database:
     """
 
     def __init__(self, path, mode: str = "r"):
-        import h5py
-
         if mode != "r":
             raise ParameterError(f"mode: expected 'r', got {mode!r} (edit databases through gesturedb.db.storage)")
         self.path = os.fspath(path)
-        if not os.path.exists(self.path):
-            raise InputFileError(self.path, "no such file")
+        self._shard_files: list = []
+        for attempt in range(OPEN_TRIES):
+            ino = _inode(self.path)
+            if ino is None:
+                raise InputFileError(self.path, "no such file")
+            try:
+                self._open()
+                return
+            except SchemaError:
+                # a re-sharding replaced the index (and removed the shards it named) while this
+                # one checked them: open the new index, as a reader that came a moment later would
+                if attempt + 1 < OPEN_TRIES and _inode(self.path) not in (ino, None):
+                    continue
+                raise
+
+    def _open(self) -> None:
+        import h5py
+
         try:
             self._h5 = h5py.File(self.path, "r")
         except OSError as exc:
             raise InputFileError(self.path, f"not an HDF5 file ({exc})") from None
         try:
-            schema.check_file(self._h5, self.path)
-        except Exception:
-            self._h5.close()
+            try:
+                schema.check_file(self._h5, self.path)
+            except OSError as exc:  # HDF5 reading a shard that vanished under the check's sampled rows
+                raise SchemaError(self.path, f"cannot read while checking the file: {exc}") from None
+            self._shard_files = self._open_shards()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open_shards(self) -> list:
+        """Open every shard file of an index and check the open file (not only its name) is the right part."""
+        import h5py
+
+        entries = schema.shard_entries(self._h5, self.path)
+        _allow_open_files(len(entries))
+        files = []
+        try:
+            for i, e in enumerate(entries):
+                where = f"{schema.SHARDS_ATTR}[{i}] ({os.path.basename(e['file'])})"
+                try:
+                    f = h5py.File(e["file"], "r")
+                except OSError as exc:
+                    raise SchemaError(self.path, f"{where}: cannot open the shard file {e['file']} "
+                                                 f"({exc.strerror or exc})") from None
+                files.append(f)
+                want = schema.shard_expected(entries, i)
+                try:
+                    of = schema.read_json_attr(f, schema.SHARD_OF_ATTR, None)
+                except (TypeError, ValueError):
+                    of = None
+                got = {k: (of if isinstance(of, dict) else {}).get(k) for k in want}
+                if got != want:
+                    raise SchemaError(self.path, f"{where}: expected the shard {want} of this index, got {got} in "
+                                                 f"{e['file']} (the file changed after it was checked)")
+                n = e["frames"][1] - e["frames"][0]
+                for p in schema.SHARDED_FIELDS:
+                    if p in self._h5 and (p not in f or f[p].shape != (n,) + self._h5[p].shape[1:]):
+                        raise SchemaError(self.path, f"{where}: {p}: expected shape {(n,) + self._h5[p].shape[1:]}, "
+                                                     f"got {f[p].shape if p in f else 'no dataset'}")
+            return [(e["frames"][0], e["frames"][1], f) for e, f in zip(entries, files)]
+        except BaseException:
+            for f in files:
+                f.close()
             raise
 
     # -- lifetime -------------------------------------------------------------
     def close(self) -> None:
-        self._h5.close()
+        for _, _, f in self._shard_files:
+            f.close()
+        self._shard_files = []
+        if getattr(self, "_h5", None) is not None:
+            self._h5.close()
 
     def __enter__(self):
         return self
@@ -168,8 +277,30 @@ class Database:
     def _read(self, path: str) -> np.ndarray:
         return schema.read(self._h5, path)
 
+    def frame_source(self, path: str):
+        """The per-frame dataset at ``path`` (``"frames/pose_features"`` ...) to read rows from.
+
+        An h5py dataset of a single-file database; for an index, a :class:`ShardedArray`
+        over the shard files this database holds open (see the module notes).
+        """
+        if path not in self._h5:
+            field = schema.FIELDS_BY_PATH.get(path)
+            raise SchemaError(self.path, f"missing dataset {path!r}" + (f" ({field.doc})" if field else ""))
+        ds = self._h5[path]
+        if self._shard_files and path in schema.SHARDED_FIELDS:
+            return ShardedArray(ds, [(f0, f1, f[path]) for f0, f1, f in self._shard_files])
+        return ds
+
     def _frames(self, path: str) -> np.ndarray:
-        arr = np.ascontiguousarray(self._read(path))
+        if self._shard_files and path in schema.SHARDED_FIELDS:
+            src = self.frame_source(path)
+            want = np.dtype(schema.FIELDS_BY_PATH[path].dtype)
+            if src.dtype != want:
+                raise SchemaError(self.path, f"{path}: expected dtype {want}, got {src.dtype}")
+            arr = src[()]
+        else:
+            arr = self._read(path)
+        arr = np.ascontiguousarray(arr)
         if arr.shape[0] != self.n_frames:
             raise SchemaError(self.path, f"{path}: expected {self.n_frames} frames, got {arr.shape[0]}")
         arr.setflags(write=False)
@@ -189,9 +320,7 @@ class Database:
             raise ParameterError(f"name: expected one of {sorted(self.FRAME_ARRAYS)}, got {name!r}")
         cache = self.__dict__.setdefault("_frame_datasets", {})
         if path not in cache:
-            if path not in self._h5:
-                raise SchemaError(self.path, f"missing dataset {path!r} ({schema.FIELDS_BY_PATH[path].doc})")
-            ds = self._h5[path]
+            ds = self.frame_source(path)
             want = np.dtype(schema.FIELDS_BY_PATH[path].dtype)
             if ds.dtype != want:
                 raise SchemaError(self.path, f"{path}: expected dtype {want}, got {ds.dtype}")
@@ -477,3 +606,25 @@ class Database:
             rotations=np.asarray(self.local_rotations[frames], dtype=np.float64),
             root_positions=np.asarray(self.root_positions[frames], dtype=np.float64),
         )
+
+
+def _inode(path: str):
+    """(device, inode) of ``path``, or None if there is no such file (an index replaced by a rename changes it)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _allow_open_files(n: int) -> None:
+    """Raise the soft limit on open files if an index's ``n`` shard files would not fit under it."""
+    try:
+        import resource
+
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        need = n + 256
+        if soft != resource.RLIM_INFINITY and soft < need:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else min(need, hard), hard))
+    except (ImportError, ValueError, OSError):
+        pass  # opening a shard then fails with a one-line error naming it

@@ -555,7 +555,9 @@ def check_shards(h5, filename: str | os.PathLike | None = None) -> None:
     """An index file's shards exist, are the parts it was written with, and cover its frames.
 
     A missing shard would otherwise read as fill values (HDF5 virtual datasets do not fail),
-    so every shard file is opened here and its ``shard_of`` attribute compared with the index.
+    so every shard file is opened here and its ``shard_of`` attribute compared with the index;
+    and the virtual datasets' own mappings must name exactly those files
+    (:func:`virtual_source_problem`), since those are what HDF5 reads.
     """
     name = os.fspath(filename) if filename is not None else h5.filename
     entries = shard_entries(h5, name)
@@ -563,12 +565,50 @@ def check_shards(h5, filename: str | os.PathLike | None = None) -> None:
     if entries[-1]["frames"][1] != n_frames:
         raise SchemaError(name, f"{SHARDS_ATTR}: expected shards covering frames 0..{n_frames}, got 0.."
                                 f"{entries[-1]['frames'][1]}")
+    for p in SHARDED_FIELDS:  # first: what HDF5 would read is what the list names
+        if p in h5:
+            problem = virtual_source_problem(h5[p], entries, p)
+            if problem is not None:
+                raise SchemaError(name, f"{p}: {problem}")
     for i, e in enumerate(entries):
         n = e["frames"][1] - e["frames"][0]
         shapes = {p: (n,) + h5[p].shape[1:] for p in SHARDED_FIELDS if p in h5}
         problem = shard_file_problem(e["file"], shard_expected(entries, i), shapes)
         if problem is not None:
             raise SchemaError(name, f"{SHARDS_ATTR}[{i}] ({os.path.basename(e['file'])}): {problem}")
+
+
+def virtual_source_problem(ds, entries: list[dict], path: str) -> str | None:
+    """What keeps a per-frame dataset of an index from mapping exactly its shards' rows, or None.
+
+    The ``shards`` list is what the index says; the virtual-dataset mappings are what HDF5
+    reads. Both must agree: the dataset is virtual, with one mapping per shard, in order,
+    from dataset ``path`` of the shard file named in the list (beside the index) onto that
+    shard's rows. Otherwise an index whose mappings name another file would read from it
+    (or, for a file that is not HDF5, fail inside HDF5).
+    """
+    if not ds.is_virtual:
+        return f"expected a virtual dataset over the {len(entries)} shard file(s), got a dataset stored in the index"
+    maps = ds.virtual_sources()
+    if len(maps) != len(entries):
+        return f"expected {len(entries)} virtual-dataset mapping(s), one per shard file, got {len(maps)}"
+    tail = tuple(ds.shape[1:])
+    for i, (m, e) in enumerate(zip(maps, entries)):
+        f0, f1 = e["frames"]
+        want = os.path.basename(e["file"])
+        if m.file_name != want or m.dset_name != path:
+            got = f"{m.file_name[:200]}:{m.dset_name[:100]}"
+            return (f"mapping {i}: expected {want}:{path} (shard {i + 1} of the index's list), got "
+                    f"{got if got.isprintable() else repr(got)}")
+        try:
+            lo, hi = m.vspace.get_select_bounds()
+            n = m.vspace.get_select_npoints()
+        except (ValueError, RuntimeError):
+            lo = hi = n = None
+        full = (f0,) + (0,) * len(tail), (f1 - 1,) + tuple(d - 1 for d in tail)
+        if (tuple(lo or ()), tuple(hi or ())) != full or n != (f1 - f0) * int(np.prod(tail, dtype=np.int64)):
+            return f"mapping {i} ({want}): expected rows {f0}..{f1} of the dataset, got bounds {lo}..{hi}"
+    return None
 
 
 def shard_expected(entries: list[dict], i: int) -> dict:

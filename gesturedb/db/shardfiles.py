@@ -23,8 +23,12 @@ written to a temporary file and renamed (:mod:`gesturedb.db.storage`); the index
 renamed last, and only then are the shards of an index it replaced removed. An
 interrupted sharding removes the shards it wrote and leaves the previous files as
 they were. Opening an index checks that every shard is present and is the part the
-index was written with (:func:`gesturedb.db.schema.check_shards`): HDF5 would
-otherwise read a missing shard as fill values.
+index was written with (:func:`gesturedb.db.schema.check_shards`) and that the
+index's virtual-dataset mappings name exactly those files (HDF5 would otherwise
+read a missing shard as fill values, and a mapping to another file from it); the
+open database then reads the shard files it checked and holds open
+(:class:`gesturedb.db.database.ShardedArray`), so a re-sharding that removes them
+later changes nothing for it. Sharding holds the index's write lock throughout.
 """
 from __future__ import annotations
 
@@ -137,43 +141,48 @@ def shard_database(path, parts: int, *, index=None, progress: bool = False) -> S
 
     path = os.fspath(path)
     index = os.fspath(index) if index is not None else default_index(path)
-    with Database(path) as db:
+    # The index's lock for the whole sharding: an edit of the index (masks add ...) made while
+    # its frames are copied would otherwise be lost when the new index replaces it, and two
+    # re-shardings would each remove only the shards they saw. The source is read through a
+    # Database, which holds its shard files open: a re-sharding of the source elsewhere cannot
+    # turn what is copied into fill values.
+    with storage.locked(index), Database(path) as db:
         rec_ranges = plan_shards([r.n_frames for r in db.recordings], parts)
         starts = [r.start_frame for r in db.recordings]
         n_frames = db.n_frames
-        old_shards = [e["file"] for e in db.shard_entries]
-    frame_ranges = [(int(starts[a]), int(starts[b]) if b < len(starts) else n_frames) for a, b in rec_ranges]
-    token = uuid.uuid4().hex[:8]
-    shards = [shard_path(index, token, i + 1, parts) for i in range(parts)]
-    if os.path.isfile(index):
-        with contextlib.suppress(Exception), h5py.File(index, "r") as h5:
-            old_shards = sorted(set(old_shards) | {e["file"] for e in schema.shard_entries(h5, index)})
-    written: list[str] = []
-    bar = _bar(progress, n_frames)
-    try:
-        with h5py.File(path, "r") as src:
+        frame_ranges = [(int(starts[a]), int(starts[b]) if b < len(starts) else n_frames) for a, b in rec_ranges]
+        token = uuid.uuid4().hex[:8]
+        shards = [shard_path(index, token, i + 1, parts) for i in range(parts)]
+        old_shards = {e["file"] for e in db.shard_entries}
+        if os.path.isfile(index):
+            # raw: an index whose shards are already gone still names the files to clean up
+            with contextlib.suppress(Exception), h5py.File(index, "r") as h5:
+                old_shards |= {e["file"] for e in schema.shard_entries(h5, index)}
+        written: list[str] = []
+        bar = _bar(progress, n_frames)
+        try:
             for i, ((f0, f1), out) in enumerate(zip(frame_ranges, shards)):
                 of = {"token": token, "part": i + 1, "parts": parts, "frames": [f0, f1],
                       "index": os.path.basename(index)}
-                storage.write_atomically(out, lambda h5, f0=f0, f1=f1, of=of: _fill_shard(h5, src, f0, f1, of, bar))
+                storage.write_atomically(out, lambda h5, f0=f0, f1=f1, of=of: _fill_shard(h5, db, f0, f1, of, bar))
                 written.append(out)
                 _drop_lock(out)  # a fresh name no other writer can want: its lock file is clutter
-            storage.write_atomically(index, lambda h5: _fill_index(h5, src, shards, frame_ranges, token))
-    except BaseException:
-        for f in written:
-            with contextlib.suppress(OSError):
-                os.unlink(f)
-        raise
-    finally:
-        if bar is not None:
-            bar.close()
-    removed = []
-    for f in old_shards:
-        if f not in shards and os.path.isfile(f):
-            with contextlib.suppress(OSError):
-                os.unlink(f)
-                removed.append(f)
-            _drop_lock(f)
+            storage.write_atomically(index, lambda h5: _fill_index(h5, db.h5, shards, frame_ranges, token))
+        except BaseException:
+            for f in written:
+                with contextlib.suppress(OSError):
+                    os.unlink(f)
+            raise
+        finally:
+            if bar is not None:
+                bar.close()
+        removed = []
+        for f in sorted(old_shards):
+            if f not in shards and os.path.isfile(f):
+                with contextlib.suppress(OSError):
+                    os.unlink(f)
+                    removed.append(f)
+                _drop_lock(f)
     return ShardingReport(index=index, shards=shards, frames=frame_ranges, recordings=rec_ranges, removed=removed)
 
 
@@ -190,13 +199,14 @@ def _bar(progress, total):
     return tqdm(total=total, unit="frame", desc="shard", leave=False)
 
 
-def _fill_shard(h5, src, f0: int, f1: int, of: dict, bar) -> None:
+def _fill_shard(h5, db, f0: int, f1: int, of: dict, bar) -> None:
+    src = db.h5
     schema.write_json_attr(h5, schema.SHARD_OF_ATTR, of)
     h5.attrs["gesturedb_version"] = src.attrs.get("gesturedb_version", "?")
     for p in schema.SHARDED_FIELDS:
         if p not in src:
             continue
-        s = src[p]
+        s = db.frame_source(p)  # of a sharded source, its open shard files (not the virtual dataset)
         d = h5.create_dataset(p, shape=(f1 - f0,) + s.shape[1:], dtype=s.dtype)
         for k, v in s.attrs.items():
             if k != schema.MEAN_ATTR:  # the whole database's, not this part's (the index keeps it)
