@@ -56,13 +56,17 @@ import difflib
 import math
 import os
 from collections import Counter
-from dataclasses import dataclass, field
 from typing import NamedTuple, Sequence
 
 import numpy as np
 
 from gesturedb.db import schema
-from gesturedb.errors import ParameterError, SchemaError
+from gesturedb.db.subdatabase import SUBDB_FIELDS, SubDatabase, time_to_frames  # noqa: F401 (re-exported)
+from gesturedb.db.subdatabase import mask_of as _mask_of
+from gesturedb.db.subdatabase import read_all as _read_all
+from gesturedb.db.subdatabase import read_subdb as _read_subdb
+from gesturedb.db.subdatabase import write_subdb as _write_subdb
+from gesturedb.errors import ParameterError
 
 __all__ = [
     "SubDatabase",
@@ -82,21 +86,6 @@ __all__ = [
     "keyword_step_masks",
     "normalise_word",
 ]
-
-#: Datasets of one sub-database: name -> (dtype, unit, meaning). The group layout is
-#: declared here rather than in :data:`gesturedb.db.schema.FIELDS` because its path
-#: holds a run-time name (the keyword).
-SUBDB_FIELDS: dict[str, tuple[str, str, str]] = {
-    "start": ("int64", "frame", "first database frame of each occurrence stretch"),
-    "length": ("int64", "frame", "length of each occurrence stretch in frames"),
-    "recording": ("int32", "", "index into the recordings table"),
-    "word_index": ("int64", "", "index of the keyword occurrence into words/"),
-    "mask": ("uint64", "", "union of the stretches: packed bitset over database frames (bit f&63 of word f>>6)"),
-}
-
-#: Frames-per-time rounding slack: a word boundary computed as exactly k / fps in
-#: floating point (k an integer) must fall on frame k, not k - 1.
-_EPS_FRAMES = 1e-6
 
 def normalise_word(text: str) -> str:
     """The project's word normalisation (:func:`gesturedb.io.transcripts.normalize_word`).
@@ -148,127 +137,9 @@ def _check_int(name: str, value, minimum: int) -> int:
     return int(value)
 
 
-def time_to_frames(start_s, end_s, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Frames covered by time intervals.
-
-    Parameters
-    ----------
-    start_s, end_s : array-like [shape=(n,)], seconds
-    fps : float, Hz
-
-    Returns
-    -------
-    first, stop : ndarray [shape=(n,)], int64, frames
-        Interval ``[start_s, end_s)`` covers frames ``first <= f < stop``, frame
-        ``f`` being ``[f / fps, (f + 1) / fps)``; ``stop >= first + 1`` always.
-        Not clipped to any recording.
-    """
-    s = np.atleast_1d(np.asarray(start_s, dtype=np.float64))
-    e = np.atleast_1d(np.asarray(end_s, dtype=np.float64))
-    first = np.floor(s * fps + _EPS_FRAMES).astype(np.int64)
-    stop = np.ceil(e * fps - _EPS_FRAMES).astype(np.int64)
-    return first, np.maximum(stop, first + 1)
-
-
 # --------------------------------------------------------------------------
 # reading
 # --------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class SubDatabase:
-    """A keyword sub-database: the stretches of the database around every occurrence of a word.
-
-    Attributes
-    ----------
-    word : str
-        The keyword, lower case (also the group name in the file).
-    start : ndarray [shape=(n,)], int64, frames
-        First global database frame of each occurrence stretch.
-    length : ndarray [shape=(n,)], int64, frames
-    recording : ndarray [shape=(n,)], int32
-        Index into the recordings table.
-    word_index : ndarray [shape=(n,)], int64
-        Index of the occurrence into the database's words table.
-    mask : ndarray [shape=(B,)], uint64
-        Union of the stretches, packed bitset over database frames.
-    definition : dict
-        How it was made: ``word``, ``before_s``, ``after_s``, ``matched`` (the word
-        forms of the words table that matched), ``found`` (occurrences found),
-        ``skipped`` (occurrences outside the motion), ``removed`` (word indices
-        taken out with :func:`remove_occurrence`).
-    """
-
-    word: str
-    start: np.ndarray
-    length: np.ndarray
-    recording: np.ndarray
-    word_index: np.ndarray
-    mask: np.ndarray
-    definition: dict = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return int(self.start.shape[0])
-
-    @property
-    def before_s(self) -> float:
-        return float(self.definition.get("before_s", float("nan")))
-
-    @property
-    def after_s(self) -> float:
-        return float(self.definition.get("after_s", float("nan")))
-
-    @property
-    def n_frames(self) -> int:
-        """Frames in the stretches, counting overlapping stretches twice."""
-        return int(self.length.sum())
-
-    def segments(self):
-        """The stretches as :class:`gesturedb.db.database.Segments` (e.g. to search the sub-database alone)."""
-        from gesturedb.db.database import Segments
-
-        return Segments(self.start.copy(), self.length.copy(), self.recording.copy())
-
-
-def _read_subdb(g, word: str, n_frames: int, filename: str) -> SubDatabase:
-    from gesturedb import control
-
-    arrays = {}
-    for name, (dtype, _unit, doc) in SUBDB_FIELDS.items():
-        path = f"{schema.SUBDB_GROUP}/{word}/{name}"
-        if name not in g:
-            raise SchemaError(filename, f"missing dataset {path!r} ({doc})")
-        arr = g[name][()]
-        if arr.dtype != np.dtype(dtype) or arr.ndim != 1:
-            raise SchemaError(filename, f"{path}: expected {dtype} (n,), got {arr.dtype} {arr.shape}")
-        arrays[name] = arr
-    n = arrays["start"].shape[0]
-    for name in ("length", "recording", "word_index"):
-        if arrays[name].shape[0] != n:
-            raise SchemaError(
-                filename,
-                f"{schema.SUBDB_GROUP}/{word}/{name}: expected {n} rows (as start), got {arrays[name].shape[0]}",
-            )
-    nw = control.n_words(n_frames)
-    if arrays["mask"].shape[0] != nw:
-        raise SchemaError(
-            filename,
-            f"{schema.SUBDB_GROUP}/{word}/mask: expected {nw} uint64 words for {n_frames} frames, "
-            f"got {arrays['mask'].shape[0]}",
-        )
-    return SubDatabase(
-        word=word, start=arrays["start"], length=arrays["length"], recording=arrays["recording"],
-        word_index=arrays["word_index"], mask=arrays["mask"],
-        definition=schema.read_json_attr(g, "definition", {}),
-    )
-
-
-def _read_all(h5, filename: str) -> dict[str, SubDatabase]:
-    g = h5.get(schema.SUBDB_GROUP)
-    if g is None:
-        return {}
-    n_frames = int(h5.attrs["n_frames"])
-    return {w: _read_subdb(g[w], w, n_frames, filename) for w in sorted(g)}
-
 
 def subdatabases(db) -> dict[str, SubDatabase]:
     """Every keyword sub-database of an open database.
@@ -424,31 +295,9 @@ def _occurrences(t: _Tables, w: str, before_s: float, after_s: float, *, index: 
     )
 
 
-def _mask_of(start: np.ndarray, length: np.ndarray, n_frames: int) -> np.ndarray:
-    from gesturedb import control
-
-    bits = np.zeros(n_frames, dtype=bool)
-    for a, n in zip(start, length):
-        bits[a:a + n] = True
-    return control.pack_bits(bits)
-
-
 # --------------------------------------------------------------------------
 # editing (atomic, through gesturedb.db.storage)
 # --------------------------------------------------------------------------
-
-def _write_subdb(h5, sub: SubDatabase) -> None:
-    """Create ``subdatabases/<word>/`` (replacing an existing one) in an open writable file."""
-    g = h5.require_group(schema.SUBDB_GROUP)
-    if sub.word in g:
-        del g[sub.word]
-    sg = g.create_group(sub.word)
-    for name, (dtype, unit, doc) in SUBDB_FIELDS.items():
-        ds = sg.create_dataset(name, data=np.ascontiguousarray(getattr(sub, name), dtype=dtype))
-        ds.attrs["unit"] = unit
-        ds.attrs["doc"] = doc
-    schema.write_json_attr(sg, "definition", sub.definition)
-
 
 def _open(db_path):
     from gesturedb.db.database import Database
