@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import hashlib
+import os
 import shutil
 
 import h5py
@@ -87,3 +88,64 @@ def test_masks_cli(db_copy, capsys):
     assert "left_wrist_height" in out and "up " in out and "p85" in out
     assert main(["masks", str(db_copy), "add", "bad", "left_wrist_height >> 3"]) == 2
     assert "gesturedb masks: error:" in capsys.readouterr().err
+
+
+_FAIL_AFTER = """\
+import errno, os, sys
+budget = [int(sys.argv[1])]
+real = os.pwrite
+def pwrite(fd, data, offset):  # the disk takes int(argv[1]) bytes, then is full
+    n = min(len(data), budget[0])
+    if n == 0:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    budget[0] -= n
+    return real(fd, memoryview(data)[:n], offset)
+os.pwrite = pwrite
+from gesturedb.cli.main import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("free", [300_000, -20_000], ids=["full-in-the-copy", "full-near-the-end"])
+def test_disk_full_during_an_edit_is_one_line_and_keeps_the_database(db_copy, tmp_path, free):
+    """Issue 41: an edit now writes its compact copy through HDF5 (not a byte copy), so a full
+    disk must stay one line and exit 2 there too (no h5py tracebacks, no segfault), with the
+    database byte for byte and no temporary file."""
+    import subprocess
+    import sys
+
+    old = db_copy.read_bytes()
+    budget = free if free > 0 else len(old) + free
+    p = subprocess.run([sys.executable, "-c", _FAIL_AFTER, str(budget), "masks", str(db_copy), "add", "calm",
+                        "hand_speed < p30"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+    assert p.stderr.splitlines() == [f"gesturedb masks: error: {db_copy}: no space left on device while writing "
+                                     "it; the previous file (if any) is unchanged"], p.stderr[-3000:]
+    assert db_copy.read_bytes() == old
+    assert sorted(os.listdir(tmp_path)) == sorted(["db.h5", ".db.h5.lock"])
+
+
+def test_disk_full_during_an_edit_on_a_real_small_file_system(db_copy, tmp_path):
+    """The same on a tmpfs with room for the database but not its copy (root only; skips otherwise)."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "small"
+    folder.mkdir()
+    old = db_copy.read_bytes()
+    p = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={len(old) // 1024 + 300}k", "tmpfs", str(folder)],
+                       capture_output=True, text=True)
+    if p.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({(p.stderr or p.stdout).strip()}); the injected variant runs")
+    try:
+        target = folder / "db.h5"
+        target.write_bytes(old)
+        p = subprocess.run([sys.executable, "-m", "gesturedb.cli", "keywords", str(target), "add", "like", "time"],
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+        assert p.stderr.splitlines() == [f"gesturedb keywords: error: {target}: no space left on device while "
+                                         "writing it; the previous file (if any) is unchanged"], p.stderr[-3000:]
+        assert target.read_bytes() == old
+        assert sorted(os.listdir(folder)) == sorted(["db.h5", ".db.h5.lock"])
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], capture_output=True)

@@ -423,19 +423,29 @@ def _other_file(exc: OSError, own) -> str | None:
     return None if any(p is not None and os.path.abspath(name) == os.path.abspath(p) for p in own) else name
 
 
-def compact_copy(src_path: str, dst_path: str) -> None:
-    """Copy the HDF5 file ``src_path`` to ``dst_path`` object by object (a fresh, compact file).
+def compact_copy(src_path: str, dst) -> None:
+    """Copy the HDF5 file ``src_path`` into ``dst`` object by object (a fresh, compact file).
 
     HDF5 does not give back the space of a deleted or replaced object once the file
     is closed: a byte copy carries every earlier edit's dead space into the next
     one. Copying each top-level object (``H5Ocopy``: datasets with their layout,
     filters and attributes, virtual datasets as virtual) and the root attributes
-    into a new file leaves it behind. Creation order of links and attributes is
-    tracked, as in files :func:`write_atomically` makes.
+    into a new file leaves it behind.
+
+    Parameters
+    ----------
+    src_path : str
+    dst : str or h5py.File
+        A path (created with creation order tracked, as :func:`write_atomically`
+        makes files), or an empty file open for writing.
     """
     import h5py
 
-    with h5py.File(src_path, "r") as src, h5py.File(dst_path, "w", track_order=True) as dst:
+    if isinstance(dst, (str, os.PathLike)):
+        with h5py.File(dst, "w", track_order=True) as h5:
+            compact_copy(src_path, h5)
+        return
+    with h5py.File(src_path, "r") as src:
         for k, v in src.attrs.items():
             dst.attrs[k] = v
         for name in src:
@@ -474,13 +484,22 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
             tmp = _mkstemp(path)
             with h5py.File(path, "r") as h5:  # before the copy: a file of another version is refused as it is
                 schema.check_version(h5, shown, upgradable=upgrade)
-            try:
-                compact_copy(path, tmp)
-                shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
-            except OSError as exc:
-                raise _os_error(shown, exc) from None
-            with h5py.File(tmp, "r+") as h5:
-                yield h5
+            # the copy and the edit are one session of HDF5 on a guarded file (see _GuardedFile):
+            # a full disk is one error, not a failed close inside HDF5
+            with _GuardedFile(tmp) as guard:
+                h5 = h5py.File(guard, "w", track_order=True)
+                try:
+                    try:
+                        compact_copy(path, h5)
+                        guard.check()
+                    except OSError as exc:
+                        raise _os_error(shown, _is_disk_error(exc) or exc) from None
+                    yield h5
+                except BaseException as exc:
+                    guard.close_h5(h5, check=isinstance(exc, Exception))
+                    raise
+                guard.close_h5(h5)
+            shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
             if signals:
                 raise KeyboardInterrupt("SIGTERM")
             os.replace(tmp, path)
