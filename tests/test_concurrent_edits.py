@@ -304,6 +304,10 @@ def test_cli_adds_many_keywords_and_masks_in_one_edit(db_copy, tmp_path, capsys)
     with gesturedb.open(db_copy) as db:
         assert db.mask_definitions["busy"] == "hand_speed >= p70"
         assert set(kw.subdatabases(db)) == {"you", "like", "time"}
+        like = kw.subdatabases(db)["like"]
+    assert main(["keywords", str(db_copy), "remove", "like", "3", "0"]) == 0
+    assert capsys.readouterr().out.strip() == f"removed occurrence 0, 3 of 'like' from {db_copy}; 2 left"
+    np.testing.assert_array_equal(_like(db_copy).word_index, like.word_index[[1, 2]])
 
     def one_line(argv, *needles):
         assert main(argv) == 2
@@ -323,3 +327,28 @@ def test_cli_adds_many_keywords_and_masks_in_one_edit(db_copy, tmp_path, capsys)
     one_line(["masks", str(db_copy), "add", "--from", str(bad)], f"{bad}: line 1: mask name: expected a name")
     one_line(["masks", str(db_copy), "add", "x", "hand_speed < p30", "y"], "add: expected NAME EXPR pairs, got 3")
     one_line(["masks", str(db_copy), "add", "--from", str(tmp_path / "nope.txt")], "nope.txt: cannot read as text")
+
+
+# ---------------------------------------------------------------- the lock itself
+
+def _try_lock(path, queue):
+    try:
+        with storage.locked(path, timeout_s=0.5):
+            queue.put("got it")
+    except InputFileError as exc:
+        queue.put(str(exc))
+
+
+def test_the_lock_is_reentrant_in_a_thread_but_not_inherited_by_a_forked_child(db_copy):
+    with storage.locked(db_copy):
+        with storage.locked(db_copy):  # an edit inside an edit's checks shares the hold
+            queue = CTX.Queue()
+            child = CTX.Process(target=_try_lock, args=(db_copy, queue))
+            child.start()
+            got = queue.get(timeout=JOIN_S)
+            child.join(JOIN_S)
+        assert "another gesturedb process is writing this database" in got, got
+    child = CTX.Process(target=_try_lock, args=(db_copy, queue))
+    child.start()
+    assert queue.get(timeout=JOIN_S) == "got it"
+    child.join(JOIN_S)

@@ -60,8 +60,9 @@ def lock_path(path: str | os.PathLike) -> str:
     return os.path.join(os.path.dirname(path), "." + os.path.basename(path) + ".lock")
 
 
-#: (lock file, thread) -> how many nested :func:`locked` blocks of this thread hold it
-_held: dict[tuple[str, int], int] = {}
+#: (lock file, process, thread) -> how many nested :func:`locked` blocks of this thread hold it (the
+#: process too: a child forked inside a locked block inherits this dict, not the lock)
+_held: dict[tuple[str, int, int], int] = {}
 
 
 @contextlib.contextmanager
@@ -74,7 +75,7 @@ def locked(path: str | os.PathLike, *, timeout_s: float | None = None):
     import filelock
 
     lp = lock_path(path)
-    key = (lp, threading.get_ident())
+    key = (lp, os.getpid(), threading.get_ident())
     if key in _held:
         _held[key] += 1
         try:
