@@ -277,6 +277,9 @@ def test_pairing_file(tmp_path, clip):
     a, b = read_pairing_file(tmp_path / "pairs.csv")
     assert (a.name, a.speaker, a.transcript) == ("first", "anna", None)
     assert a.motion == str(tmp_path / "takes/a.bvh") and (b.name, b.speaker) == ("b", None)
+    # Excel's "CSV UTF-8" starts with a byte order mark: the header still reads "motion"
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "pairs.csv").read_bytes())
+    assert [r.name for r in read_pairing_file(tmp_path / "bom.csv")] == ["first", "b"]
     (tmp_path / "bad.csv").write_text("motion,sound\nx.bvh,x.wav\n")
     with pytest.raises(InputFileError, match="bad.csv: line 1: header: expected the columns motion, audio"):
         read_pairing_file(tmp_path / "bad.csv")

@@ -78,7 +78,8 @@ def read_pairing_file(path) -> list[RecordingSource]:
 
     path = Path(path)
     try:
-        with open(path, newline="", encoding="utf-8") as f:
+        # utf-8-sig: Excel's "CSV UTF-8" (and some exporters) start the file with a BOM
+        with open(path, newline="", encoding="utf-8-sig") as f:
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputFileError(path, f"cannot read the pairing file: {exc}") from None
