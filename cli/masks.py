@@ -31,11 +31,11 @@ def run(args) -> int:
     from gesturedb.errors import GestureDBError
 
     if args.op == "add":
-        from gesturedb.errors import ParameterError
+        from gesturedb.errors import ParameterError, echo_list
 
         if len(args.pairs) % 2:
             raise ParameterError(f"add: expected NAME EXPR pairs, got {len(args.pairs)} argument(s): "
-                                 f"{' '.join(map(repr, args.pairs))[:80]} (quote each expression)")
+                                 f"{echo_list(args.pairs, quote=True)} (quote each expression)")
         items = list(zip(args.pairs[::2], args.pairs[1::2]))
         items += dbedit.read_mask_file(args.from_file) if args.from_file else []
         if not items:

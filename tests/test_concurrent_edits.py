@@ -116,7 +116,7 @@ def test_several_occurrences_go_in_one_removal_numbered_as_before_it(scott_db_pa
     new = kw.remove_occurrence(p, "like", [3, 0])
     np.testing.assert_array_equal(new.word_index, orig.word_index[[1, 2]])
     np.testing.assert_array_equal(_like(p).mask, new.mask)
-    with pytest.raises(ParameterError, match=r"keyword 'like': occurrences \[0, 1\] are all 2 .*drop"):
+    with pytest.raises(ParameterError, match=r"keyword 'like': occurrences 0, 1 are all 2 .*drop"):
         kw.remove_occurrence(p, "like", [0, 1])
     with pytest.raises(ParameterError, match=r"index: expected an occurrence of 'like' in \[0, 2\).*got 5"):
         kw.remove_occurrence(p, "like", [0, 5])
@@ -352,3 +352,14 @@ def test_the_lock_is_reentrant_in_a_thread_but_not_inherited_by_a_forked_child(d
     child.start()
     assert queue.get(timeout=JOIN_S) == "got it"
     child.join(JOIN_S)
+
+
+def test_a_huge_word_in_a_word_list_is_a_short_line(db_copy, tmp_path):
+    words = tmp_path / "words.txt"
+    words.write_text("like\n" + "x" * 200_000 + " y\n")
+    with pytest.raises(InputFileError) as err:
+        kw.read_word_list(words)
+    msg = str(err.value)
+    assert msg.startswith(f"{words}: line 2: keyword: expected a single word") and len(msg) < 600, msg[:700]
+    with pytest.raises(ParameterError, match=r"keywords: 2 of the 3 words .*'zz+'\.\.\. \(100000 characters\)"):
+        kw.add_keywords(db_copy, ["like", "z" * 100_000, "qq" * 50_000])

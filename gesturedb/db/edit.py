@@ -74,7 +74,7 @@ def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = 
 
 
 def _mask_items(masks) -> list[tuple[str, str]]:
-    from gesturedb.errors import ParameterError
+    from gesturedb.errors import ParameterError, echo
 
     items = list(masks.items()) if isinstance(masks, dict) else list(masks)
     if not items:
@@ -82,7 +82,7 @@ def _mask_items(masks) -> list[tuple[str, str]]:
     seen = set()
     for item in items:
         if not (isinstance(item, tuple) and len(item) == 2 and isinstance(item[1], str)):
-            raise ParameterError(f"masks: expected (name, expression) pairs of strings, got {item!r:.80}")
+            raise ParameterError(f"masks: expected (name, expression) pairs of strings, got {echo(item)}")
         schema.check_name("mask name", item[0], schema.MASK_NAME_PATTERN)
         if item[0] in seen:
             raise ParameterError(f"mask {item[0]!r}: given twice in one edit; expected each name once")

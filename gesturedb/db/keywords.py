@@ -66,7 +66,7 @@ from gesturedb.db.subdatabase import mask_of as _mask_of
 from gesturedb.db.subdatabase import read_all as _read_all
 from gesturedb.db.subdatabase import read_subdb as _read_subdb
 from gesturedb.db.subdatabase import write_subdb as _write_subdb
-from gesturedb.errors import ParameterError
+from gesturedb.errors import ParameterError, echo, echo_list
 
 __all__ = [
     "SubDatabase",
@@ -106,18 +106,18 @@ def _tokens(text: str) -> list[str]:
 def _keyword_name(word) -> str:
     """Validate what a caller gave as a keyword and return its sub-database name."""
     if not isinstance(word, str):
-        raise ParameterError(f"keyword: expected a word (str), got {type(word).__name__} {word!r}")
+        raise ParameterError(f"keyword: expected a word (str), got {type(word).__name__} {echo(word)}")
     w = normalise_word(word)
     if not w:
         raise ParameterError(
-            f"keyword: expected a word with at least one letter or digit (not a silence marker), got {word!r}"
+            f"keyword: expected a word with at least one letter or digit (not a silence marker), got {echo(word)}"
         )
     if any(c.isspace() for c in w):
         raise ParameterError(
-            f"keyword: expected a single word (sub-databases match whole words of the transcript), got {word!r}"
+            f"keyword: expected a single word (sub-databases match whole words of the transcript), got {echo(word)}"
         )
     if "/" in w or w == ".":
-        raise ParameterError(f"keyword: expected a word without '/', got {word!r}")
+        raise ParameterError(f"keyword: expected a word without '/', got {echo(word)}")
     return w
 
 
@@ -168,10 +168,10 @@ def get_subdatabase(db, word: str) -> SubDatabase:
 
 def _missing_message(w: str, existing: list[str], path: str) -> str:
     if not existing:
-        return f"keyword {w!r}: {path} has no keyword sub-databases (add one with `gesturedb keywords {path} add WORD`)"
+        return f"keyword {echo(w)}: {path} has no keyword sub-databases (add one with `gesturedb keywords {path} add WORD`)"
     close = difflib.get_close_matches(w, existing, n=3)
     hint = f"; did you mean {', '.join(map(repr, close))}?" if close else ""
-    return f"keyword {w!r}: no such sub-database in {path}; keywords: {', '.join(existing)}{hint}"
+    return f"keyword {echo(w)}: no such sub-database in {path}; keywords: {echo_list(existing)}{hint}"
 
 
 # --------------------------------------------------------------------------
@@ -208,13 +208,13 @@ def _tables(db) -> _Tables:
 
 def _unknown_word_message(w: str, t: _Tables) -> str:
     if not t.w_text:
-        return (f"keyword {w!r}: {t.path} has no words (it was built without transcripts), "
+        return (f"keyword {echo(w)}: {t.path} has no words (it was built without transcripts), "
                 "so no keyword can be found in it")
     vocab = Counter(tok for x in t.w_text for tok in _tokens(x))
     close = difflib.get_close_matches(w, list(vocab), n=5, cutoff=0.6)
     hint = (f"; close words: {', '.join(f'{c!r} ({vocab[c]}x)' for c in close)}" if close
             else f"; the most frequent words are {', '.join(repr(x) for x, _ in vocab.most_common(8))}")
-    return f"keyword {w!r}: not among the {len(t.w_text)} words of {t.path}{hint}"
+    return f"keyword {echo(w)}: not among the {len(t.w_text)} words of {t.path}{hint}"
 
 
 def find_occurrences(db, word: str, *, before_s: float = 0.5, after_s: float = 1.0) -> SubDatabase:
@@ -317,7 +317,7 @@ class KeywordAdded(NamedTuple):
 def _keyword_names(words) -> list[str]:
     """Validated sub-database names of ``words`` in order, each once."""
     if isinstance(words, (str, bytes)) or not hasattr(words, "__iter__"):
-        raise ParameterError(f"words: expected a list of words, got {type(words).__name__} {words!r:.60}")
+        raise ParameterError(f"words: expected a list of words, got {type(words).__name__} {echo(words)}")
     names = list(dict.fromkeys(_keyword_name(w) for w in words))
     if not names:
         raise ParameterError("words: expected at least one word, got none")
@@ -374,7 +374,7 @@ def _add(db_path, names: list[str], before_s: float, after_s: float, replace: bo
                     "(--replace) to rebuild it, or drop it first"
                 )
             raise ParameterError(
-                f"keywords {', '.join(map(repr, existing))}: {t.path} already has their sub-databases; pass "
+                f"keywords {echo_list(list(existing), quote=True)}: {t.path} already has their sub-databases; pass "
                 "replace=True (--replace) to rebuild them, or drop them first (nothing was added)"
             )
         index = _token_index(t) if len(names) > 1 else None
@@ -383,7 +383,7 @@ def _add(db_path, names: list[str], before_s: float, after_s: float, replace: bo
             if len(unknown) > 1:
                 raise ParameterError(
                     f"keywords: {len(unknown)} of the {len(names)} words are not among the {len(t.w_text)} words of "
-                    f"{t.path}: {', '.join(map(repr, unknown[:10]))}{' ...' if len(unknown) > 10 else ''} "
+                    f"{t.path}: {echo_list(unknown, quote=True)} "
                     "(nothing was added)"
                 )
         # stretches only (no masks) for all words first: every refusal comes before the copy
@@ -475,7 +475,7 @@ def _indices(value, n: int, word: str, path: str) -> list[int]:
         if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) or not 0 <= i < n:
             raise ParameterError(
                 f"index: expected an occurrence of {word!r} in [0, {n}) (see `gesturedb keywords {path} show "
-                f"{word}`), got {i!r}"
+                f"{word}`), got {echo(i)}"
             )
     return sorted({int(i) for i in items})
 
@@ -508,7 +508,8 @@ def remove_occurrence(db_path, word: str, index) -> SubDatabase:
         n = len(sub)
         drop = _indices(index, n, sub.word, path)
         if len(drop) == n:
-            which = f"occurrence {drop[0]} is the last one" if n == 1 else f"occurrences {drop} are all {n}"
+            which = (f"occurrence {drop[0]} is the last one" if n == 1
+                     else f"occurrences {echo_list(drop)} are all {n}")
             raise ParameterError(
                 f"keyword {sub.word!r}: {which} of the sub-database in {path}; "
                 "drop the sub-database instead (`drop WORD`)"
