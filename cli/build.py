@@ -67,6 +67,10 @@ def run(args) -> int:
 
     if not args.inputs and not args.pairs:
         raise ParameterError("inputs: expected files or folders, or --pairs PAIRS.csv; got neither")
+    if args.scheduler is not None:
+        from gesturedb.db.cluster import check_scheduler
+
+        check_scheduler(args.scheduler)  # before the inputs are read (local:100000 started without limit)
     unit = None if args.length_unit is None else parse_length_unit(args.length_unit)
     listed = read_pairing_file(args.pairs) if args.pairs else []
     pairing = pair_inputs(args.inputs, recursive=args.recursive)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import sys
 
+from gesturedb.cli._args import int_range
 from gesturedb.refiner.data import STRIDE  # no torch: the data module is plain numpy
 
 
@@ -31,8 +32,8 @@ def add_parser(sub) -> None:
     t.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="run the training windows' self-search over --parts shards on Dask workers, and their "
                    "assembly on the same workers (same data)")
-    t.add_argument("--parts", type=int, default=2, help="shards with --scheduler (default: %(default)s)")
-    t.add_argument("-j", "--workers", type=int, default=min(2, os.cpu_count() or 1),
+    t.add_argument("--parts", type=int_range(1, 256), default=2, help="shards with --scheduler (default: %(default)s)")
+    t.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1),
                    help="local processes assembling the training windows without --scheduler (default: %(default)s)")
     a = ops.add_parser("apply", help="refine motion that already exists (BVH on the database's skeleton)")
     a.add_argument("refiner", metavar="REFINER.pt")
@@ -64,6 +65,10 @@ def run(args) -> int:
 
         for name in ("iterations", "batch", "stride", "threads", "parts", "workers"):
             _positive(name, getattr(args, name))
+        if args.scheduler:
+            from gesturedb.db.cluster import check_scheduler
+
+            check_scheduler(args.scheduler)  # before the database is opened or anything is searched
         if args.threads:
             torch.set_num_threads(args.threads)
         cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed, stride=args.stride,

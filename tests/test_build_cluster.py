@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 
 import pytest
 
@@ -99,7 +100,9 @@ def test_failed_graph_task_leaves_nothing_behind(scott_dir, tmp_path, dask_clien
 
 
 def test_scheduler_validation(scott_dir, tmp_path):
-    for bad, msg in (("local:0", "expected local:N with N >= 1"), ("http://x:1", "expected 'local:N' or 'tcp://HOST:PORT'"),
+    for bad, msg in (("local:0", "expected local:N with N from 1 to 256 workers; got 'local:0'"),
+                     ("local:100000", "expected local:N with N from 1 to 256 workers; got 'local:100000'"),
+                     ("http://x:1", "expected 'local:N' or 'tcp://HOST:PORT'"),
                      (3, "expected 'local:N', 'tcp://HOST:PORT' or a distributed.Client")):
         with pytest.raises(ParameterError, match=msg):
             gesturedb.build([scott_dir], tmp_path / "x.h5", scheduler=bad)
@@ -243,3 +246,99 @@ def test_code_identity_is_the_same_for_a_checkout_and_an_installed_copy(tmp_path
     main_py = site / "gesturedb" / "cli" / "main.py"
     main_py.write_text(main_py.read_text() + "\n# changed\n")
     assert cluster.tree_hash(str(site / "gesturedb"), str(site / "gesturedb" / "cli")) != cluster.code_identity()
+
+
+# ---------------------------------------------------------------- a cluster failing under a build (issue 41, case 11)
+
+_BUILD_WITH_TIMEOUT = """\
+import sys
+from gesturedb.db import cluster
+cluster.NO_WORKER_TIMEOUT_S = float(sys.argv[1])
+from gesturedb.cli.main import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("kill", ["the-only-worker", "the-scheduler"])
+def test_a_cluster_lost_mid_build_is_one_line_in_bounded_time(kill, scott_dir, scott_db_path, tmp_path):
+    """`gesturedb build --scheduler tcp://...` while its one worker (with its nanny) or its
+    scheduler is killed (SIGKILL) as the recordings are processed: before, the build hung with
+    no message and a temporary file (worker), or ended in a FutureCancelledError traceback
+    (scheduler). Now exit 2, one line naming the scheduler, the old database byte for byte, no
+    temporary file, within a bounded time (no worker for 3 s here, 30 s by default)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from daskprocs import QUIET, kill_groups, start_scheduler, worker_command
+
+    pytest.importorskip("distributed")
+    src = _two_recordings(scott_dir, tmp_path)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    out = out_dir / "db.h5"
+    old = scott_db_path.read_bytes()
+    out.write_bytes(old)
+    elsewhere = tmp_path / "cluster"
+    elsewhere.mkdir()
+    scheduler, address = start_scheduler(elsewhere, "127.0.0.1")
+    procs = [scheduler]
+    try:
+        procs.append(subprocess.Popen(worker_command(address), cwd=elsewhere, **QUIET))
+        import distributed
+
+        with distributed.Client(address, timeout="60s") as watch:
+            watch.wait_for_workers(1, timeout=180)
+        build = subprocess.Popen([sys.executable, "-c", _BUILD_WITH_TIMEOUT, "3", "build", str(src), "-o", str(out),
+                                  "-q", "--no-graph", "--scheduler", address],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                 env=dict(os.environ, OMP_NUM_THREADS="1"))
+        try:
+            deadline = time.monotonic() + 180
+            while not [p for p in out_dir.iterdir() if p.name.endswith(".tmp")] and time.monotonic() < deadline:
+                assert build.poll() is None, build.communicate()
+                time.sleep(0.02)
+            time.sleep(0.5)  # the tasks are on the worker
+            victim = procs[1] if kill == "the-only-worker" else procs[0]
+            os.killpg(victim.pid, signal.SIGKILL)
+            killed = time.monotonic()
+            _, err = build.communicate(timeout=120)
+        finally:
+            if build.poll() is None:
+                build.kill()
+                build.communicate()
+    finally:
+        kill_groups(procs)
+    assert build.returncode == 2, err[-3000:]
+    assert time.monotonic() - killed < 60, "stopped long after the cluster was lost"
+    assert "Traceback" not in err, err[-3000:]
+    want = (f"no Dask worker left for 3 s while 2 task\\(s\\) of the build's recordings waited \\(workers lost or "
+            f"stopped\\); stopped" if kill == "the-only-worker" else
+            f"lost the connection to the Dask scheduler while the build's recordings ran( \\(.*\\))?; stopped")
+    assert re.fullmatch(rf"gesturedb build: error: scheduler {address}: {want}\n", err), err[-3000:]
+    assert out.read_bytes() == old
+    assert sorted(p.name for p in out_dir.iterdir() if not p.name.endswith(".lock")) == ["db.h5"]
+
+
+def test_a_lost_connection_while_writing_is_the_clusters_failure_not_the_file(tmp_path, dask_client):
+    """Dask's CommClosedError is an OSError: inside the write it became "cannot write DB.h5:
+    Stream is closed". It is now one line about the cluster, and the file is as it was."""
+    from distributed.comm.core import CommClosedError
+
+    from gesturedb.db.cluster import ClusterError, dask_client as open_client
+    from gesturedb.db.storage import write_atomically
+
+    out = tmp_path / "db.h5"
+    out.write_bytes(b"previous")
+
+    def fill(h5):
+        h5["x"] = [1, 2, 3]
+        raise CommClosedError("in <TCP (closed) ConnectionPool.scatter local=tcp://127.0.0.1:1>: Stream is closed")
+
+    with pytest.raises(ClusterError, match=r"^scheduler \S+: the Dask cluster failed under the work \(CommClosedError: "
+                                           r"in <TCP \(closed\) ConnectionPool\.scatter .*Stream is closed\); stopped$"):
+        with open_client(dask_client):
+            write_atomically(out, fill)
+    assert out.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == ["db.h5"]

@@ -566,6 +566,10 @@ def build(
         The new database, open for reading. ``db.pairing`` tells what was paired and skipped.
     """
     cfg = BuildConfig.from_kwargs(**config)
+    if isinstance(scheduler, str):
+        from gesturedb.db.cluster import check_scheduler
+
+        check_scheduler(scheduler)  # before any input is read
     if isinstance(inputs, (str, os.PathLike)):
         inputs = [inputs]
     if not isinstance(workers, int) or workers < 1:
@@ -690,7 +694,7 @@ def _iter_processed(sources: list[RecordingSource], cfg: BuildConfig, *, workers
             # tasks finish in any order; input order keeps the content independent of scheduling
             ready, nxt = {}, 0
             remote = [(_on_worker_paths(s), cfg, w) for s, cfg, w in tasks]
-            for i, res in iter_on_cluster(_process_on_worker, remote, scheduler):
+            for i, res in iter_on_cluster(_process_on_worker, remote, scheduler, what="the build's recordings"):
                 done(i)
                 for r in res:
                     r.source = sources[i]  # the paths as given, as a local build stores them

@@ -8,6 +8,12 @@ the caller owns. Workers only compute: in a build each returns the
 range of the motion graphs' rows, to the client, which writes the HDF5 file
 through :mod:`gesturedb.db.storage` as a local build does. A failed task raises
 on the client before anything is written.
+
+Nothing waits forever and nothing surfaces as Dask's own traceback: :func:`completed` (the
+one wait loop of every caller) gives up after :data:`NO_WORKER_TIMEOUT_S` seconds without a
+single worker (a lost worker's tasks otherwise wait for a new one forever), and a lost
+scheduler, a task that killed its workers or any other Dask failure becomes one
+:class:`~gesturedb.errors.GestureDBError` line naming the scheduler (:func:`dask_client`).
 """
 from __future__ import annotations
 
@@ -18,12 +24,82 @@ import os
 import re
 from collections.abc import Callable, Iterator, Sequence
 
-from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.errors import GestureDBError, InputFileError, ParameterError
 
-__all__ = ["check_on_worker", "check_workers_code", "code_identity", "dask_client", "iter_on_cluster", "local_cluster", "optional_client",
-           "worker_address"]
+__all__ = ["check_on_worker", "check_scheduler", "check_workers_code", "code_identity", "completed", "dask_client", "iter_on_cluster",
+           "local_cluster", "optional_client", "worker_address"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
+#: the most worker processes ``local:N`` starts on this machine (as ``build -j``)
+MAX_LOCAL_WORKERS = 256
+#: seconds the tasks may wait without any worker before the work stops with an error (a worker
+#: that its nanny restarts is back within seconds; a lost one's tasks would wait forever)
+NO_WORKER_TIMEOUT_S = 30.0
+
+
+class ClusterError(GestureDBError):
+    """The Dask cluster failed under the work: scheduler lost, no worker left, a task killed its workers."""
+
+
+def _address(client) -> str:
+    return str(getattr(getattr(client, "scheduler", None), "address", None) or "(unknown address)")
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return f"{type(exc).__name__}: {lines[0][:200]}" if lines else type(exc).__name__
+
+
+def _from_dask(exc: BaseException) -> bool:
+    """Raised by Dask itself (a lost connection, a cancelled future), not by a task's own code."""
+    from concurrent.futures import CancelledError
+
+    return isinstance(exc, CancelledError) or type(exc).__module__.split(".")[0] in ("distributed", "tornado")
+
+
+def completed(client, futures, *, what: str = "the tasks") -> Iterator[object]:
+    """Each of ``futures`` as it finishes (``distributed.as_completed``), without waiting forever.
+
+    Raises :class:`ClusterError` (one line naming the scheduler and ``what``) when the
+    scheduler has had no worker for :data:`NO_WORKER_TIMEOUT_S` seconds, when the connection
+    to the scheduler is lost (its futures are then cancelled), or when a task killed every
+    worker that ran it (``KilledWorker``). A task's own exception is left to ``fut.result()``.
+    """
+    import time
+
+    from distributed import as_completed
+
+    ac = as_completed(futures)
+    alone_since = None
+    next_check = time.monotonic() + 1.0
+    while not ac.is_empty():
+        if ac.has_ready():
+            fut = next(ac)
+            if fut.status == "cancelled":
+                raise ClusterError(f"scheduler {_address(client)}: lost the connection to the Dask scheduler while "
+                                   f"{what} ran; stopped")
+            if fut.status == "error":
+                exc = fut.exception()
+                if type(exc).__name__ == "KilledWorker":
+                    raise ClusterError(f"scheduler {_address(client)}: a task of {what} was running on every worker "
+                                       f"that died ({_first_line(exc)}); stopped")
+            yield fut
+            continue
+        now = time.monotonic()
+        if now >= next_check:
+            next_check = now + 1.0
+            try:
+                n = len(client.scheduler_info(n_workers=-1)["workers"])
+            except Exception as exc:  # noqa: BLE001 - the scheduler is gone or unreachable
+                raise ClusterError(f"scheduler {_address(client)}: lost the connection to the Dask scheduler while "
+                                   f"{what} ran ({_first_line(exc)}); stopped") from None
+            alone_since = None if n else (alone_since or now)
+            if alone_since is not None and now - alone_since > NO_WORKER_TIMEOUT_S:
+                raise ClusterError(f"scheduler {_address(client)}: no Dask worker left for {NO_WORKER_TIMEOUT_S:g} s "
+                                   f"while {ac.count()} task(s) of {what} waited (workers lost or stopped); "
+                                   f"stopped")
+        with ac.thread_condition:
+            ac.thread_condition.wait(timeout=0.1)
 
 
 @contextlib.contextmanager
@@ -35,28 +111,77 @@ def dask_client(scheduler) -> Iterator[object]:
         raise ParameterError(
             "scheduler: expected dask[distributed] to be installed (pip install 'dask[distributed]')") from None
     if isinstance(scheduler, Client):
-        check_workers_code(scheduler)
-        yield scheduler
+        with _one_line_failures(scheduler):
+            check_workers_code(scheduler)
+            yield scheduler
         return
-    if not isinstance(scheduler, str):
-        raise ParameterError(f"scheduler: expected 'local:N', 'tcp://HOST:PORT' or a distributed.Client; got {scheduler!r}")
-    m = _LOCAL.match(scheduler)
-    if m:
-        n = int(m.group(1))
-        if n < 1:
-            raise ParameterError(f"scheduler: expected local:N with N >= 1 workers; got {scheduler!r}")
-        with local_cluster(n) as cluster, Client(cluster) as client:
+    n = check_scheduler(scheduler)
+    if n is not None:
+        with local_cluster(n) as cluster, Client(cluster) as client, _one_line_failures(client):
             yield client
         return
-    if not scheduler.startswith("tcp://"):
-        raise ParameterError(f"scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got {scheduler!r}")
     try:
         client = Client(scheduler, timeout="10s")
     except OSError as exc:
         raise ParameterError(f"scheduler: expected a reachable Dask scheduler at {scheduler}; got {exc}") from None
-    with client:
+    with _quiet_close(client), _one_line_failures(client):
         check_workers_code(client)
         yield client
+
+
+def check_scheduler(scheduler) -> int | None:
+    """Check a ``--scheduler`` text before any work: the N of ``"local:N"`` (1 to
+    :data:`MAX_LOCAL_WORKERS`), or None for ``"tcp://HOST:PORT"``; anything else is a
+    :class:`ParameterError`."""
+    if not isinstance(scheduler, str):
+        raise ParameterError(f"scheduler: expected 'local:N', 'tcp://HOST:PORT' or a distributed.Client; got {scheduler!r}")
+    m = _LOCAL.match(scheduler)
+    if m:
+        n = int(m.group(1)) if len(m.group(1)) < 10 else MAX_LOCAL_WORKERS + 1
+        if not 1 <= n <= MAX_LOCAL_WORKERS:
+            raise ParameterError(f"scheduler: expected local:N with N from 1 to {MAX_LOCAL_WORKERS} workers; got "
+                                 f"{scheduler[:40]!r}")
+        return n
+    if not scheduler.startswith("tcp://"):
+        raise ParameterError(f"scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got {scheduler[:80]!r}")
+    return None
+
+
+@contextlib.contextmanager
+def _one_line_failures(client) -> Iterator[None]:
+    """Dask's own exceptions escaping the work (a lost connection while sending data, a cancelled
+    future, ``KilledWorker``) as one :class:`ClusterError` line naming the scheduler."""
+    try:
+        yield
+    except Exception as exc:
+        if isinstance(exc, GestureDBError) or not _from_dask(exc):
+            raise
+        raise ClusterError(f"scheduler {_address(client)}: the Dask cluster failed under the work "
+                           f"({_first_line(exc)}); stopped") from None
+
+
+@contextlib.contextmanager
+def _quiet_close(client) -> Iterator[None]:
+    """Close ``client`` on exit; once its scheduler is gone, without Dask's log of the failed
+    reconnection (tracebacks after a one-line error, or after work that was already done)."""
+    import logging
+
+    try:
+        yield
+    finally:
+        quiet = client.status not in ("running", "newly-created")
+        loggers = [logging.getLogger(n) for n in ("distributed.client", "distributed.batched", "distributed.core")]
+        levels = [lg.level for lg in loggers]
+        if quiet:
+            for lg in loggers:
+                lg.setLevel(logging.CRITICAL)
+        try:
+            client.close(timeout=10)
+        except Exception:  # noqa: BLE001 - the scheduler is gone: nothing left to close there
+            pass
+        finally:
+            for lg, lv in zip(loggers, levels):
+                lg.setLevel(lv)
 
 
 @contextlib.contextmanager
@@ -90,25 +215,26 @@ def local_cluster(n_workers: int, **kwargs) -> Iterator[object]:
         yield cluster
 
 
-def iter_on_cluster(fn: Callable, items: Sequence, scheduler) -> Iterator[tuple[int, object]]:
+def iter_on_cluster(fn: Callable, items: Sequence, scheduler, *, what: str = "the tasks") -> Iterator[tuple[int, object]]:
     """``(i, fn(items[i]))`` as each Dask task finishes, for callers that store each
     result as it comes rather than holding them all (the build's recordings, the refiner's
     training windows).
 
-    The first failed task's exception is raised after the others were cancelled.
+    The first failed task's exception is raised after the others were cancelled; a cluster
+    that fails under the tasks is a :class:`ClusterError` (see :func:`completed`, where
+    ``what`` names the tasks).
     """
-    from distributed import as_completed
-
     with dask_client(scheduler) as client:
         # pure=False: every item is computed even if two compare equal
         futures = client.map(fn, list(items), pure=False)
         index = {f.key: i for i, f in enumerate(futures)}
         try:
-            for fut in as_completed(futures):
+            for fut in completed(client, futures, what=what):
                 yield index[fut.key], fut.result()  # re-raises the task's exception
                 fut.release()
         except BaseException:
-            client.cancel(futures)
+            with contextlib.suppress(Exception):  # a lost scheduler has nothing left to cancel
+                client.cancel(futures)
             raise
 
 

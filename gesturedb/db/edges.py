@@ -289,9 +289,7 @@ def _edges_on_cluster(shared: _Shared, step: int, delta_T: float, min_out: int, 
     """Every block's edges as Dask tasks: the features and bounds are sent once to every worker
     (``scatter``, broadcast), each task computes a range of whole blocks, and the ranges are put
     back in order. A block's edges do not depend on where it runs, so they are the local ones."""
-    from distributed import as_completed
-
-    from gesturedb.db.cluster import dask_client
+    from gesturedb.db.cluster import completed, dask_client
 
     K = shared.g.K
     with dask_client(scheduler) as client:
@@ -305,7 +303,7 @@ def _edges_on_cluster(shared: _Shared, step: int, delta_T: float, min_out: int, 
         index = {f.key: i for i, f in enumerate(futures)}
         parts = [None] * len(ranges)
         try:
-            for fut in as_completed(futures):
+            for fut in completed(client, futures, what="the motion graph's edge search"):  # never waits forever
                 i = index[fut.key]
                 parts[i] = fut.result()  # re-raises the task's exception
                 fut.release()

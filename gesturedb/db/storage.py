@@ -405,6 +405,8 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
             disk = _is_disk_error(exc)
             if disk is not None:
                 raise _os_error(out_path, disk) from None
+            if isinstance(exc, OSError) and type(exc).__module__.split(".")[0] in ("distributed", "tornado"):
+                raise  # a lost Dask connection (CommClosedError), not this file: "cannot write" misled
             if isinstance(exc, OSError) and not isinstance(exc, GestureDBError):
                 other = _other_file(exc, (out_path, tmp))
                 if other is not None:
