@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 FUZZ = Path(__file__).resolve().parent / "fuzz"
-TARGETS = ["bvh", "transcripts", "expression", "npz", "gltf"]
+TARGETS = ["bvh", "transcripts", "expression", "npz", "gltf", "checkpoint"]
 SECONDS = 3
 
 

@@ -577,3 +577,26 @@ def test_disk_full_while_saving_a_checkpoint_keeps_the_previous_one(disk, tmp_pa
             monkeypatch.undo()
     finally:
         cleanup()
+
+
+def test_cli_resume_from_nan_weights_exits_2_and_keeps_the_file(scott_db_path, tmp_path, capsys):
+    """Resuming from a checkpoint whose weights are NaN exited 0 (and trained on NaN): refused."""
+    from gesturedb.cli.main import main
+    from gesturedb.refiner.train import train
+
+    ck = tmp_path / "r.pt"
+    with gesturedb.open(scott_db_path) as db:
+        _cache(db, tmp_path / "r.pt.data.h5")
+        train(db, ck, config=TrainConfig(**_SMALL))
+    state = torch.load(ck, weights_only=True)
+    state["generator"] = _nan_weight(state)
+    torch.save(state, ck)
+    before = ck.read_bytes()
+    capsys.readouterr()
+    for argv in (["refiner", "train", str(scott_db_path), "-o", str(ck), "--iterations", "2", "--resume"],
+                 ["refiner", "apply", str(ck), "--db", str(scott_db_path), "--audio", str(tmp_path / "a.wav"),
+                  "--input", str(tmp_path / "in.bvh"), "-o", str(tmp_path / "out.bvh")]):
+        assert main(argv) == 2
+        assert _one_line(capsys.readouterr().err) == (
+            f"gesturedb refiner: error: {ck}: generator: enc.0.0.weight: expected finite values, got nan")
+    assert ck.read_bytes() == before

@@ -296,9 +296,11 @@ def read_checkpoint(path, *, training: bool = False) -> dict:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many kinds for a damaged or foreign file
         raise InputFileError(path, f"expected a gesturedb refiner checkpoint, could not read it ({_first_line(exc)})") from None
-    if not isinstance(ck, dict) or ck.get("format") != FORMAT:
-        got = ck.get("format") if isinstance(ck, dict) else type(ck).__name__
-        raise InputFileError(path, f"format: expected a gesturedb refiner checkpoint of format {FORMAT}, got {got!r:.100}")
+    fmt = ck.get("format") if isinstance(ck, dict) else None
+    if not (_is_int(fmt) and fmt == FORMAT):
+        got = (repr(fmt) if _is_int(fmt) or fmt is None else type(fmt).__name__) if isinstance(ck, dict) \
+            else type(ck).__name__
+        raise InputFileError(path, f"format: expected a gesturedb refiner checkpoint of format {FORMAT}, got {got[:100]}")
     _check_entries(ck, path, training)
     return ck
 
