@@ -461,8 +461,9 @@ def _nan_weight(ck):
     (dict(joints=lambda ck: torch.tensor([1, 999])), r"joints: expected ascending joint indices from 0 to 2, got \[1, 999\]"),
     (dict(generator=_nan_weight), r"generator: enc\.0\.0\.weight: expected finite values, got nan"),
     (dict(format=2), r"format: expected a gesturedb refiner checkpoint of format 1, got 2"),
+    (dict(format=lambda ck: torch.ones(2)), r"format: expected a gesturedb refiner checkpoint of format 1, got Tensor"),
 ], ids=["missing", "mistyped", "joints-list", "width-30000", "unknown-setting", "width-mismatch", "audio-str",
-        "no-features", "joint-999", "nan-weight", "format"])
+        "no-features", "joint-999", "nan-weight", "format", "format-tensor"])  # format-tensor: found by fuzz_checkpoint
 def test_a_damaged_checkpoint_is_one_line_naming_the_file_and_entry(change, match, tmp_path):
     """Missing or mistyped entries gave KeyError, AttributeError or TypeError; a width of 30000
     tried to allocate 10.8 GB; NaN weights were loaded. All are refused on load, before any
