@@ -233,7 +233,9 @@ class _GuardedFile(io.RawIOBase):
         self._size = os.fstat(self._fd).st_size
         self.error: OSError | None = None
         self._pages: dict[int, bytearray] = {}  # page number -> content, once a write failed
-        _GUARDED[path] = self
+        # the name h5py gives HDF5 (and h5.filename returns): repr(self) made ASCII
+        self.key = path.encode("ascii", "replace").decode()
+        _GUARDED[self.key] = self
 
     def __repr__(self) -> str:  # h5py takes it as the file's name (h5.filename, HDF5's messages)
         return self.path
@@ -325,7 +327,7 @@ class _GuardedFile(io.RawIOBase):
 
     def close(self) -> None:
         if not self.closed:
-            _GUARDED.pop(self.path, None)
+            _GUARDED.pop(self.key, None)
             self._pages.clear()
             os.close(self._fd)
         super().close()
