@@ -342,3 +342,17 @@ def test_a_lost_connection_while_writing_is_the_clusters_failure_not_the_file(tm
             write_atomically(out, fill)
     assert out.read_bytes() == b"previous"
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == ["db.h5"]
+
+
+def test_a_task_that_kills_its_worker_is_one_line():
+    """A task whose worker process dies under it, each time it runs (here: once allowed), was
+    Dask's KilledWorker traceback; now one ClusterError line naming the scheduler and the tasks."""
+    import dask
+
+    from gesturedb.db.cluster import ClusterError, iter_on_cluster
+
+    pytest.importorskip("distributed")
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        with pytest.raises(ClusterError, match=r"^scheduler tcp://\S+: a task of the doomed tasks was running on every "
+                                               r"worker that died \(KilledWorker: .*\); stopped$"):
+            list(iter_on_cluster(lambda i: os._exit(1), [1], "local:1", what="the doomed tasks"))
