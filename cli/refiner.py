@@ -61,7 +61,9 @@ def run(args) -> int:
     if args.op == "train":
         # the training-window cache is written beside the checkpoint
         check_outputs({"-o": args.output, "-o (cache)": args.output + ".data.h5"}, [args.db])
-        from gesturedb.refiner.train import TrainConfig, train
+        from gesturedb.refiner.train import TrainConfig, check_output, train
+
+        check_output(args.output, resume=args.resume, overwrite=args.overwrite)  # before a cluster is started
 
         for name in ("iterations", "batch", "stride", "threads", "parts", "workers"):
             _positive(name, getattr(args, name))

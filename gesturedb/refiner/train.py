@@ -406,6 +406,15 @@ def check_compatible(ck: dict, db, path) -> None:
                                        "train a refiner on this database")
 
 
+def check_output(out_path, *, resume: bool, overwrite: bool) -> None:
+    """Refuse to start a run over an existing file unless told to continue it or to replace it."""
+    if resume and overwrite:
+        raise ParameterError("resume, overwrite: expected at most one of them, got both")
+    if not resume and not overwrite and os.path.lexists(out_path):
+        raise InputFileError(out_path, "a file already exists here; continue its training with --resume, or start "
+                                       "afresh over it with --overwrite")
+
+
 def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = False, overwrite: bool = False,
           progress: bool = False, log=None, client=None, parts: int = 2, workers: int = 1) -> Trainer:
     """Train (or resume training) a refiner on a database and write its checkpoint.
@@ -432,11 +441,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     folder = os.path.dirname(os.path.abspath(out_path))
     if not os.path.isdir(folder):
         raise ParameterError(f"output: folder {folder} does not exist")
-    if resume and overwrite:
-        raise ParameterError("resume, overwrite: expected at most one of them, got both")
-    if not resume and not overwrite and os.path.lexists(out_path):
-        raise InputFileError(out_path, "a file already exists here; continue its training with --resume, or start "
-                                       "afresh over it with --overwrite")
+    check_output(out_path, resume=resume, overwrite=overwrite)
     identity = database_identity(db)
     # a resumed run keeps its own settings, the seed and stride of its training data included
     ck = None
