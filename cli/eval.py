@@ -9,7 +9,8 @@ from __future__ import annotations
 import os
 import sys
 
-from gesturedb.cli._args import add_init_argument
+from gesturedb.cli._args import add_init_argument, float_range
+from gesturedb.synth.seams import SEAM_DECAY_S
 
 
 def _search_options(p, *, preselect: bool) -> None:
@@ -19,9 +20,10 @@ def _search_options(p, *, preselect: bool) -> None:
         g.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     add_init_argument(g)
     g.add_argument("--seed", type=int, default=0, help="seed of --init random and of the random baseline")
-    g.add_argument("--step", type=int, default=8, help="frames per search step N (default: 8)")
-    g.add_argument("--blend", type=int, default=4, dest="blend_frames",
-                   help="cross-fade frames at window boundaries, 0 = off (default: 4)")
+    g.add_argument("--step", type=int, default=None,
+                   help="frames per search step N (default: 8/15 s in frames, 8 at 15 fps)")
+    g.add_argument("--seam-decay", type=float_range(0, 60), default=SEAM_DECAY_S, dest="seam_decay_s", metavar="S",
+                   help="seconds over which a seam's offset decays, 0 = windows back to back (default: %(default).3g)")
     g.add_argument("--segments", choices=("chunks", "clips"), default="chunks")
 
 
@@ -99,7 +101,7 @@ def add_parser(sub) -> None:
 
 
 def _search_kwargs(args) -> dict:
-    return dict(k=args.k, init=args.init, seed=args.seed, step=args.step, blend_frames=args.blend_frames,
+    return dict(k=args.k, init=args.init, seed=args.seed, step=args.step, seam_decay_s=args.seam_decay_s,
                 segments=args.segments)
 
 

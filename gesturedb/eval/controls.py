@@ -30,6 +30,7 @@ import numpy as np
 from gesturedb.errors import InputFileError, ParameterError, SearchError
 from gesturedb.eval.common import _fmt, _read_samples, _stats, feature_joint_indices, json_clean
 from gesturedb.synth.matching import DEFAULT_INIT
+from gesturedb.synth.seams import SEAM_DECAY_S
 
 #: Default share of the unconstrained standard deviation a controlled synthesis must keep.
 DEFAULT_MIN_STD_RATIO = 0.3
@@ -251,8 +252,8 @@ def evaluate_controls(
     preselect: str = "pose",
     init: str = DEFAULT_INIT,
     seed: int | None = 0,
-    step: int = 8,
-    blend_frames: int = 4,
+    step: int | None = None,
+    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
     exclude=None,
     min_std_ratio: float = DEFAULT_MIN_STD_RATIO,
@@ -267,7 +268,7 @@ def evaluate_controls(
         Speech (a WAV file, or mono samples with ``sr``).
     cases : sequence of ControlCase
         Controls to evaluate (default: the paper's six).
-    k, preselect, init, seed, step, blend_frames, segments, exclude
+    k, preselect, init, seed, step, seam_decay_s, segments, exclude
         Search settings, the same for the unconstrained and every controlled
         synthesis (see :meth:`gesturedb.synth.matching.Searcher.synthesize`).
     min_std_ratio : float
@@ -301,7 +302,7 @@ def evaluate_controls(
     samples, rate, audio_path = _read_samples(db, audio, sr)
     joints = feature_joint_indices(db)
     searcher = Searcher(db, segments=segments)
-    opts = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames,
+    opts = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s,
                 keywords=False, exclude=exclude)
 
     def measure(res) -> dict[str, np.ndarray]:

@@ -67,6 +67,7 @@ from gesturedb.eval.controls import (  # noqa: F401
     DEFAULT_MIN_STD_RATIO, TABLE2_CASES, ControlCase, ControlRow, ControlsReport, evaluate_controls,
 )
 from gesturedb.synth.matching import DEFAULT_INIT
+from gesturedb.synth.seams import SEAM_DECAY_S
 
 __all__ = [
     "SYSTEMS",
@@ -110,6 +111,9 @@ METRIC_COLUMNS = (
 )
 
 from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
+from gesturedb.eval.strokes import (  # noqa: E402  (the stroke tables)
+    STROKE_COLUMNS, STROKE_GT_COLUMNS, database_strokes, stroke_metrics,
+)
 
 #: (key, header, format) of the world-space table (:func:`gesturedb.eval.placement.world_metrics`).
 WORLD_COLUMNS = (
@@ -176,8 +180,8 @@ def synthesize_systems(
     k: int = 1,
     init: str = DEFAULT_INIT,
     seed: int | None = 0,
-    step: int = 8,
-    blend_frames: int = 4,
+    step: int | None = None,
+    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
     exclude=None,
     refiner=None,
@@ -186,8 +190,8 @@ def synthesize_systems(
     """Motion of every system for the same speech.
 
     Baselines choose windows with :mod:`gesturedb.eval.baselines` and are assembled
-    with :meth:`Searcher.assemble` (same root placement and ``blend_frames``
-    cross-fade as the rank-sum search), so the systems differ only in the
+    with :meth:`Searcher.assemble` (same root placement and seam
+    treatment as the rank-sum search), so the systems differ only in the
     windows they choose. The random baseline uses ``seed``; pose-only starts
     from the same initial pose as the search.
 
@@ -224,6 +228,10 @@ def synthesize_systems(
         raise ParameterError("systems: 'ground_truth' needs the ground_truth positions")
     if searcher is None:
         searcher = Searcher(db, segments=segments)
+    if step is None:
+        from gesturedb.synth.matching import default_step
+
+        step = default_step(db.fps)
     query = searcher.query_features(samples, sr)
     T = query.shape[0]
     if T < step:
@@ -232,7 +240,7 @@ def synthesize_systems(
     out: dict[str, SystemOutput] = {}
 
     def assembled(name, choice):
-        motion = searcher.assemble(choice.source_frames, choice.out_frames, blend_frames=blend_frames)
+        motion = searcher.assemble(choice.source_frames, choice.out_frames, seam_decay_s=seam_decay_s)
         out[name] = SystemOutput(name, motion.positions, choice.boundaries, choice.source_frames, motion)
 
     for name in systems:
@@ -251,14 +259,13 @@ def synthesize_systems(
         elif name == "graph":
             from gesturedb.synth.graph import GraphSynthesizer
 
-            # its seams are seconds apart: it blends twice as long (8 frames for the default 4)
             res = GraphSynthesizer(db).synthesize(samples, sr=sr, transcript=transcript, keywords=keywords,
-                                                  blend_frames=2 * blend_frames, exclude=exclude)
+                                                  seam_decay_s=seam_decay_s, exclude=exclude)
             out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
         else:
             res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k,
                                       preselect=name.split("_", 1)[1], init=init, seed=seed, step=step,
-                                      blend_frames=blend_frames, exclude=exclude)
+                                      seam_decay_s=seam_decay_s, exclude=exclude)
             out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
     if refiner is not None:
         from gesturedb.features.audio import audio_deltas
@@ -268,7 +275,7 @@ def synthesize_systems(
         base = out.get("ranksum_pose")
         if base is None:
             res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k, init=init,
-                                      seed=seed, step=step, blend_frames=blend_frames, exclude=exclude)
+                                      seed=seed, step=step, seam_decay_s=seam_decay_s, exclude=exclude)
             base = SystemOutput("ranksum_pose", res.positions, res.boundaries, res.source_frames, res.motion)
         m = refiner.refine(base.motion, np.concatenate([query, audio_deltas(query)], axis=1))
         out["ranksum_refined"] = SystemOutput("ranksum_refined", m.positions, base.boundaries, base.source_frames, m)
@@ -307,6 +314,7 @@ def database_reference(db, *, joints: np.ndarray, root: int) -> dict:
     n_tot = n_div = 0
     counts = None
     edges = None
+    recs = []
     for rec in db.recordings:
         if rec.n_frames < 4:
             continue
@@ -321,9 +329,14 @@ def database_reference(db, *, joints: np.ndarray, root: int) -> dict:
             n_div += n
         c, edges = _speed_counts(pos, fps=fps, joints=joints)
         counts = c if counts is None else counts + c
+        recs.append(pos)
     if n_tot == 0:
         raise InputFileError(db.path, "recordings: expected at least one recording of 4 frames or more")
+    bands, p95 = database_strokes(recs, fps=fps, names=db.joint_names, root=root)
     return {
+        "band_power": bands,
+        **{f"band_{g}_{k}_db": 1.0 for g, v in bands.items() for k in v},
+        "wrist_p95_m_s": p95,
         "n_frames": int(n_tot),
         "duration_s": n_tot / fps,
         "average_jerk_m_s3": jerk / n_tot,
@@ -514,7 +527,7 @@ class MotionEvaluation:
         return out
 
     def reference_row(self) -> dict:
-        return {k: v for k, v in self.reference.items() if k not in ("speed_counts", "speed_edges", "fgd")}
+        return {k: v for k, v in self.reference.items() if k not in ("speed_counts", "speed_edges", "fgd", "band_power")}
 
     def to_dict(self) -> dict:
         """Everything as plain JSON types (NaN and inf become None)."""
@@ -546,7 +559,8 @@ class MotionEvaluation:
         for the world-space one, which has no reference row)."""
         cols = self.columns(rows, spec)
         head = ["system"] + [h for _, h, _ in cols]
-        all_rows = {"reference": self.reference_row(), **rows} if spec is METRIC_COLUMNS else dict(rows)
+        all_rows = ({"reference": self.reference_row(), **rows} if spec in (METRIC_COLUMNS, STROKE_COLUMNS)
+                    else dict(rows))
         body = [[SYSTEM_LABELS.get(n, n)] + [_fmt(r.get(k), f) for k, _, f in cols] for n, r in all_rows.items()]
         return _text_table(head, body)
 
@@ -591,7 +605,7 @@ class MotionEvaluation:
         s = self.settings
         out = [
             f"Objective metrics ({self.mode}): database {os.path.basename(self.database)}, "
-            f"step {s['step']} frames, blend {s['blend_frames']} frames, seed {s['seed']}",
+            f"step {s['step']} frames, seam decay {s['seam_decay_s']:.2f} s, seed {s['seed']}",
             "positions: root's horizontal position removed; joints: upper body "
             f"({len(s['joints'])} joints); BeatAlign: wrist speed minima vs speech onsets (sigma 0.3 s); "
             "H(speed): Hellinger distance of joint-speed histograms; FGD*: Frechet distance of 32-frame windows "
@@ -601,6 +615,12 @@ class MotionEvaluation:
         for inp in self.inputs:
             out.append(f"{inp.name} ({inp.n_frames} frames, {inp.n_frames / inp.fps:.1f} s)")
             out.append(self.table(inp.metrics))
+            out.append("strokes: band power of root-relative joint velocity (Hz bands) / the database's own motion; "
+                       "wrist p95: 95th percentile of wrist speed (docs/metrics.md)")
+            out.append(self.table(inp.metrics, STROKE_COLUMNS))
+            if any(math.isfinite(r.get(STROKE_GT_COLUMNS[0][0], float("nan"))) for r in inp.metrics.values()):
+                out.append("strokes against the ground truth: band power / the ground truth's")
+                out.append(self.table(inp.metrics, STROKE_GT_COLUMNS))
             out.append("world space (whole body; 'rel': root's horizontal position removed)")
             out.append(self.table(inp.metrics, WORLD_COLUMNS))
             out.append("published conventions (GENEA histograms in cm/s, overflow dropped; BeatAlign audio->motion, "
@@ -613,6 +633,7 @@ class MotionEvaluation:
         if len(self.inputs) > 1:
             out.append(f"mean over {len(self.inputs)} inputs")
             out.append(self.table(self.summary()))
+            out.append(self.table(self.summary(), STROKE_COLUMNS))
             out.append(self.table(self.summary(), WORLD_COLUMNS))
             out.append(self.table(self.summary(), CONVENTION_COLUMNS))
             out.append("")
@@ -671,6 +692,11 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
 
     for n, o in outputs.items():  # world space, before the root is removed for the arm metrics
         rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
+    for n, o in outputs.items():
+        rows[n].update(stroke_metrics(o.positions, fps=db.fps, names=db.joint_names, root=root,
+                                      reference=reference["band_power"],
+                                      ground_truth=outputs["ground_truth"].positions if "ground_truth" in outputs
+                                      else None))
     from gesturedb.eval import conventions as CV, metrics as M
 
     conv_args = dict(audio_beats_s=M.audio_beats(samples, sr=sr),
@@ -710,6 +736,10 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
 
 def _common(db, opts, controls, control_audio):
     from gesturedb import control
+    from gesturedb.synth.matching import default_step
+
+    if opts.get("step") is None:  # the default step is the paper's in seconds: frames at this database's rate
+        opts["step"] = default_step(db.fps)
 
     fj = feature_joint_indices(db)
     for role in ("root", "left_hip", "right_hip"):
@@ -755,8 +785,8 @@ def evaluate_inputs(
     k: int = 1,
     init: str = DEFAULT_INIT,
     seed: int | None = 0,
-    step: int = 8,
-    blend_frames: int = 4,
+    step: int | None = None,
+    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
     keywords: bool = False,
     refiner=None,
@@ -777,7 +807,7 @@ def evaluate_inputs(
         From :data:`SYSTEMS` without ``"ground_truth"``.
     controls : bool
         Also run :func:`evaluate_controls` on the first input.
-    k, init, seed, step, blend_frames, segments, keywords, exclude
+    k, init, seed, step, seam_decay_s, segments, keywords, exclude
         Search settings shared by all systems.
     starts : int
         Also run every rank-sum system from this many random starting poses
@@ -802,7 +832,7 @@ def evaluate_inputs(
     transcripts = list(transcripts) if transcripts is not None else [None] * len(audio)
     if len(transcripts) != len(audio):
         raise ParameterError(f"transcripts: expected one per audio file ({len(audio)}), got {len(transcripts)}")
-    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments, refiner=refiner,
+    opts = dict(k=k, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s, segments=segments, refiner=refiner,
                 keywords=keywords, exclude=exclude)
     first = _read_samples(db, audio[0], None)
     root, joints, reference, thresholds, ctl = _common(db, opts, controls, (first[0], first[1]))
@@ -875,8 +905,8 @@ def evaluate_holdout(
     k: int = 1,
     init: str = DEFAULT_INIT,
     seed: int | None = 0,
-    step: int = 8,
-    blend_frames: int = 4,
+    step: int | None = None,
+    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
     keywords: bool = False,
     refiner=None,
@@ -901,7 +931,7 @@ def evaluate_holdout(
         Where to write the training database (default: a temporary file that is removed).
     mirror : bool
         Add mirrored copies to the training database (doubles a small database).
-    systems, controls, k, init, seed, step, blend_frames, segments, keywords, starts
+    systems, controls, k, init, seed, step, seam_decay_s, segments, keywords, starts
         As in :func:`evaluate_inputs`; ``"ground_truth"`` is the held-out motion capture.
     build_options : dict, optional
         Further :class:`gesturedb.db.build.BuildConfig` fields.
@@ -941,7 +971,7 @@ def evaluate_holdout(
         raise ParameterError(f"holdout: nothing left to build a database from once {holdout_start_s}-{end_s} s of "
                              f"{held.name} is held out")
 
-    opts = dict(k=k, init=init, seed=seed, step=step, blend_frames=blend_frames, segments=segments, refiner=refiner,
+    opts = dict(k=k, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s, segments=segments, refiner=refiner,
                 keywords=keywords, exclude=None)
     tmp = None
     if db_path is None:

@@ -32,6 +32,7 @@ from gesturedb.io.atomic import write_text
 
 __all__ = [
     "plot_speed_histograms",
+    "plot_band_power",
     "plot_wrist_height",
     "plot_metric_summary",
     "plot_controls",
@@ -75,6 +76,40 @@ def _save(fig, path) -> Path:
 
 
 # ---------------------------------------------------------------------- plots
+def plot_band_power(path, metrics: dict) -> Path:
+    """Band power against the database's own motion: one panel per joint group, bars per band and system.
+
+    Parameters
+    ----------
+    metrics : dict name -> row
+        Rows of ``gesturedb eval motion`` with ``band_<group>_<band>_db`` keys
+        (:func:`gesturedb.eval.strokes.stroke_metrics`). 1 is the database's own motion;
+        the shaded band is 0.67-1.5x.
+    """
+    from gesturedb.eval.strokes import BANDS_HZ, band_key
+
+    plt = _plt()
+    groups = [g for g in ("arms", "hands", "head") if any(f"band_{g}_{band_key(BANDS_HZ[0])}_db" in r
+                                                          for r in metrics.values())]
+    names = list(metrics)
+    fig, axes = plt.subplots(1, max(len(groups), 1), figsize=(4.2 * max(len(groups), 1), 3.6), sharey=True)
+    axes = np.atleast_1d(axes)
+    width = 0.8 / max(len(names), 1)
+    x = np.arange(len(BANDS_HZ))
+    for ax, g in zip(axes, groups):
+        ax.axhspan(0.67, 1.5, color="0.92", zorder=0)
+        ax.axhline(1.0, color="0.5", lw=1, ls="--", zorder=1)
+        for i, n in enumerate(names):
+            vals = [metrics[n].get(f"band_{g}_{band_key(b)}_db", np.nan) for b in BANDS_HZ]
+            ax.bar(x - 0.4 + (i + 0.5) * width, vals, width, label=_label(n), color=_COLORS.get(n), zorder=2)
+        ax.set_xticks(x, [f"{band_key(b)} Hz" for b in BANDS_HZ])
+        ax.set_yscale("log")
+        ax.set_title(f"{g}: velocity power / database's")
+    axes[0].set_ylabel("ratio (log); shaded 0.67-1.5")
+    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    return _save(fig, path)
+
+
 def plot_speed_histograms(path, counts: dict, edges: np.ndarray, *, reference: np.ndarray | None = None,
                           max_speed_m_s: float = 1.5) -> Path:
     """Normalised joint-speed histograms, one line per system (and the database reference).
@@ -317,10 +352,10 @@ _METRIC_DOCS = (
 )
 
 
-def _html_table(ev, rows: dict) -> str:
+def _html_table(ev, rows: dict, spec=None) -> str:
     from gesturedb.eval.common import _fmt
 
-    cols = ev.columns(rows)
+    cols = ev.columns(rows) if spec is None else ev.columns(rows, spec)
     head = "<tr><th>system</th>" + "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in cols) + "</tr>"
     body = []
     for n, r in {"reference": ev.reference_row(), **rows}.items():
@@ -384,7 +419,7 @@ def _write_html(path: Path, ev, files: dict) -> Path:
            f"New speech without motion capture against the database {html.escape(ev.database)}; "
            "the reference is the database's own motion.")
         + f" Every system chooses one database window every {s['step']} frames and is assembled the same way "
-        f"(cross-fade {s['blend_frames']} frames); random seed {s['seed']}.</p>",
+        f"(seams inertialized over {s['seam_decay_s']:.2f} s); random seed {s['seed']}.</p>",
         "<p class='note'>Systems: <b>random</b> windows (real motion, mismatched audio); <b>pose-only</b> "
         "(nearest entry pose, audio ignored); <b>audio-only</b> (nearest audio by cosine, pose ignored); "
         "<b>rank-sum</b> (Habibie et al. 2022: rank by pose and by audio, pick the smallest rank sum) with pose or "
@@ -393,10 +428,17 @@ def _write_html(path: Path, ev, files: dict) -> Path:
     for i, inp in enumerate(ev.inputs):
         parts.append(f"<h2>{html.escape(inp.name)} — {inp.n_frames} frames, {inp.n_frames / inp.fps:.1f} s</h2>")
         parts.append(_html_table(ev, inp.metrics))
+        from gesturedb.eval.strokes import STROKE_COLUMNS
+
+        parts.append('<p class="note">Strokes: power of root-relative joint velocity per band, divided by the '
+                     "database's own motion (1 = the database's; docs/metrics.md), and the 95th percentile of wrist "
+                     "speed.</p>")
+        parts.append(_html_table(ev, inp.metrics, STROKE_COLUMNS))
         if inp.starts:
             parts.append(_starts_html(ev, inp))
         for key, alt in (("video", "side-by-side video with speech"), ("sheet", "contact sheet"),
-                         ("summary", "metric summary"), ("speed", "speed histograms"), ("wrist", "left wrist height")):
+                         ("summary", "metric summary"), ("bands", "strokes: velocity power per band against the database"),
+                         ("speed", "speed histograms"), ("wrist", "left wrist height")):
             f = files.get((key, i))
             if f is None:
                 continue
@@ -456,6 +498,7 @@ def write_motion_report(ev, out_dir, *, render: bool = True, video: str | None =
                                                     reference=ev.reference["speed_counts"]).name
         files[("wrist", i)] = plot_wrist_height(out / f"wrist_{i}.png", inp.wrist_height, fps=inp.fps,
                                                 p15=th["p15"], p85=th["p85"], start_s=inp.start_s).name
+        files[("bands", i)] = plot_band_power(out / f"bands_{i}.png", inp.metrics).name
         files[("summary", i)] = plot_metric_summary(out / f"summary_{i}.png", inp.metrics,
                                                     reference=ev.reference_row()).name
         if render:
