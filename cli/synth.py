@@ -5,6 +5,7 @@ import os
 
 from gesturedb.cli._args import add_init_argument, float_range, int_range
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
+from gesturedb.synth.seams import SEAM_DECAY_S
 
 
 def add_parser(sub) -> None:
@@ -32,11 +33,14 @@ def add_parser(sub) -> None:
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     add_init_argument(p)
     p.add_argument("--seed", type=int_range(0, 2**63 - 1), default=0, help="seed for --init random")
-    p.add_argument("--step", type=int_range(1, 10**5), default=8, help="frames per search step N (default: 8)")
-    p.add_argument("--blend", type=int_range(0, 10**5), default=None, dest="blend_frames",
-                   help="cross-fade frames at window boundaries, 0 = off (default: 4; --method graph: 8)")
-    p.add_argument("--no-smooth", action="store_true",
-                   help="no Savitzky-Golay smoothing (window 7, order 2) of the result")
+    p.add_argument("--step", type=int_range(1, 10**5), default=None,
+                   help="frames per search step N (default: 8/15 s in frames, 8 at 15 fps)")
+    p.add_argument("--seam-decay", type=float_range(0, 60), default=SEAM_DECAY_S, dest="seam_decay_s", metavar="S",
+                   help="seconds over which the offset at a seam decays to zero (inertialization); 0 = windows "
+                   "back to back as in the paper (default: %(default).3g)")
+    p.add_argument("--smooth", action="store_true",
+                   help="Savitzky-Golay smoothing of the result (GestureMaster's window, 0.23 s); off by default: "
+                   "it removes beat strokes")
     p.add_argument("--segments", choices=("chunks", "clips"), default="chunks")
     p.add_argument("--control", default=None,
                    help='control schedule, e.g. "0-12: left_wrist_height > p85; 12-: left_wrist_speed < p15"')
@@ -99,13 +103,11 @@ def run(args) -> int:
                 exclude = (exclude or []) + [r.name for r in db.recordings if r.name not in mine]
             res = GraphSynthesizer(db).synthesize(
                 args.audio, transcript=args.transcript, gap_s=args.gap_s, vad=args.vad,
-                blend_frames=8 if args.blend_frames is None else args.blend_frames,
-                smooth=not args.no_smooth, control=args.control, keywords=keywords, exclude=exclude)
+                seam_decay_s=args.seam_decay_s, smooth=args.smooth, control=args.control, keywords=keywords, exclude=exclude)
         else:
             res = Searcher(db, segments=args.segments, client=client, parts=args.parts).synthesize(
                 args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
-                seed=args.seed, step=args.step, blend_frames=4 if args.blend_frames is None else args.blend_frames,
-                smooth=not args.no_smooth,
+                seed=args.seed, step=args.step, seam_decay_s=args.seam_decay_s, smooth=args.smooth,
                 control=args.control,
                 keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None, refiner=refiner,
                 speaker=args.speaker,

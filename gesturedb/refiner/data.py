@@ -4,7 +4,7 @@ Real pairs: the database's own audio-gesture windows of ``window`` = 64 frames
 with stride 5, never crossing a recording boundary. Fake inputs ``G_kNN``: the
 k-NN synthesis of each window's own audio over the same database (one batched
 kernel call, :func:`gesturedb.search.rank_sum_search_batch`), assembled exactly
-as synthesis assembles it (seam cross-fades and smoothing), so the refiner
+as synthesis assembles it (seams inertialized, as in synthesis), so the refiner
 trains on what it will be given. k = 1 for half of the windows and uniform in
 2..15 for the other half; the initial pose is a random database frame.
 

@@ -3,8 +3,8 @@
 Shared by both synthesis methods. The k-NN (:mod:`gesturedb.synth.matching`)
 hands over one database frame per output frame (:func:`assemble_frames`); the
 motion graph hands over time-warped clips. Both become a list of
-:class:`Piece` and go through :func:`assemble_pieces`, so placement, seam blends
-and smoothing are the same for every method.
+:class:`Piece` and go through :func:`assemble_pieces`, so placement, seam
+treatment and feet are the same for every method.
 
 Placement (``placement="continue"``, the default). The first piece keeps its
 own placement (recordings are normalised so that their mean floor position is
@@ -27,7 +27,7 @@ floor (the lowest foot point of all pieces) and its ankle moves horizontally
 slower than ``CONTACT_SPEED_M_S`` (or, nearly still, within ``RESTING_HEIGHT_M``:
 a foot on its heel or toe); contacts are computed on every piece's own
 forward kinematics, so mirrored recordings and time-warped clips are handled
-the same way (or given as ``Piece.contacts``). After blending, smoothing and the
+the same way (or given as ``Piece.contacts``). After the seams, any smoothing and the
 pulls, a two-bone leg IK (hip, knee) holds each planted ankle where its contact
 began, and the ankle keeps its world orientation; when the motion carries a
 planted foot more than ``MAX_ANCHOR_DRIFT_M`` away, the foot takes a short
@@ -36,19 +36,19 @@ by the legs instead of the feet (moving the root against the slip, which an
 earlier version did, doubled the root's jerk and raised the pelvis speed by a
 quarter on the four BEAT2 inputs).
 
-Seams. After each piece boundary a short cross-fade (``blend_frames``, default
-4) goes from the previous piece's natural continuation in its source into the
-new piece, with smoothstep weights, so neither position nor velocity jumps at
-the seam: rotations are slerped, the root height is lerped, and the horizontal
-root (with ``"continue"``) moves by the weighted mix of the two pieces' own
-steps, after which the new piece goes on from where that leaves it. Lerping the
-horizontal position instead (still done with ``"source"``) follows the old
-direction and then walks back wherever the two paths part, which added 6% to
-the pelvis speed on the held-out BEAT2 stretch. ``blend_frames=0``: pieces back
-to back, as in the paper.
+Seams (:mod:`gesturedb.synth.seams`). At each piece boundary the difference between
+the previous piece's natural continuation in its own recording (``Piece.lead_in``)
+and the new piece, with its velocity and acceleration, is added to the new piece
+and decays to zero over ``seam_decay_s`` (inertialization): position, velocity and
+acceleration run on across the seam, and every frame ``seam_decay_s`` or more after
+a seam is the placed source frame exactly. Nothing is low-passed, so the strokes
+of the source motion are kept. ``seam_decay_s=0``: pieces back to back, as in the
+paper. An earlier version cross-faded 4 frames and ran a Savitzky-Golay filter
+(7 frames) over everything: at 15 fps that filter's zeros sit near 4 and 6 Hz and
+it removed most beat strokes (``docs/metrics.md``, band power).
 
-Smoothing. A Savitzky-Golay filter (window 7, order 2) over rotations and root,
-as GestureMaster (Sec. 4.2) smooths its output.
+Smoothing (``smooth=True``, off by default). A Savitzky-Golay filter whose window
+is defined in seconds (:data:`SMOOTH_WINDOW_S`, GestureMaster's 7 frames at 30 fps).
 """
 from __future__ import annotations
 
@@ -59,10 +59,14 @@ import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.motion import Motion
-from gesturedb.synth.contacts import foot_contacts, foot_joints, plant_feet, smoothstep
+from gesturedb.synth.contacts import foot_contacts, foot_joints, plant_feet
+from gesturedb.synth.seams import (
+    LEAD_FRAMES, SEAM_DECAY_S, adaptive_decays, apply_rotation_offsets, check_decay_s, decay_frames, extend_constant_velocity,
+    quintic_offsets, rotation_offsets, seam_derivatives,
+)
 
-__all__ = ["Piece", "assemble_frames", "assemble_pieces", "continuation", "continuations", "foot_contacts",
-           "foot_joints", "placed_frames", "savgol_smooth"]
+__all__ = ["Piece", "SEAM_DECAY_S", "SMOOTH_WINDOW_S", "assemble_frames", "assemble_pieces", "continuation",
+           "continuations", "foot_contacts", "foot_joints", "placed_frames", "savgol_smooth"]
 
 #: Time constant (s) of the pull of the heading towards +z.
 HEADING_PULL_S = 2.0
@@ -85,8 +89,9 @@ class Piece:
         Root positions in the recording's normalised placement.
     lead_in : tuple of ndarray or None
         ``(rotations (m, J, 4), root (m, 3))``: how the *previous* piece would have
-        continued over this piece's first ``m`` frames in its own source; the
-        seam cross-fade starts from it. ``None``: no cross-fade into this piece.
+        continued over this piece's first ``m`` frames in its own source (``m`` up to
+        :data:`gesturedb.synth.seams.LEAD_FRAMES`); the seam's offset is measured
+        against it. ``None``: the output is taken to go on at its last velocity.
         Expressed in the same coordinates as the previous piece.
     contacts : ndarray [shape=(n, 2)], bool, optional
         Left and right foot planted in each frame; ``None``: detected from the
@@ -232,9 +237,9 @@ def _pull(rot, root, fps):
 
 
 def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int | None = None,
-                    blend_frames: int = 4, smooth: bool = True, placement: str = "continue",
-                    lock_feet: bool = True) -> Motion:
-    """Place pieces one after the other, cross-fade each seam from the previous piece's continuation, smooth.
+                    seam_decay_s: float = SEAM_DECAY_S, smooth: bool = False, placement: str = "continue",
+                    lock_feet: bool = True, seam_accel: tuple | None = None) -> Motion:
+    """Place pieces one after the other and inertialize each seam (:mod:`gesturedb.synth.seams`).
 
     Parameters
     ----------
@@ -245,21 +250,31 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
         (the last one up to ``n_frames``), and is cut to that span.
     n_frames : int, optional
         Output length (default: the end of the last piece).
-    blend_frames : int
-        Cross-fade length after each seam that has a ``lead_in`` (0: no cross-fade).
+    seam_decay_s : float >= 0
+        Seconds over which the offset at a seam decays to zero; frames further from
+        the last seam are the placed piece's frames exactly. 0: no seam treatment
+        (pieces back to back, as in the paper).
     smooth : bool
-        Savitzky-Golay filter over the result.
+        Savitzky-Golay filter over the result (:func:`savgol_smooth`; its window is
+        defined in seconds). Off by default: it removes the beat strokes.
     placement : {"continue", "source"}
         ``"continue"``: each piece continues the output's root position and heading,
         with the pulls to the origin and +z; ``"source"``: each piece where its
         recording was (the behaviour before the placement issue). See the module docstring.
     lock_feet : bool
         Keep planted feet in place with leg IK (only with ``"continue"``).
+    seam_accel : (ndarray [shape=(J,)] rad/s^2, float m/s^2), optional
+        The source motion's typical angular acceleration per joint and the root's linear
+        acceleration (:func:`typical_accelerations`): a seam's offset on a joint then decays
+        over at least ``seam_decay_s`` and long enough not to accelerate that joint more than
+        this (:func:`gesturedb.synth.seams.adaptive_decays`). None: ``seam_decay_s`` for all.
     """
     if not pieces:
         raise ValueError("assemble_pieces: expected at least one piece")
     if placement not in ("continue", "source"):
         raise ValueError(f"assemble_pieces: placement: expected 'continue' or 'source'; got {placement!r}")
+    decay_s = check_decay_s(seam_decay_s)
+    n_decay = decay_frames(decay_s, fps)
     T = pieces[-1].out_start + pieces[-1].n_frames if n_frames is None else int(n_frames)
     J = pieces[0].rotations.shape[1]
     rot = np.empty((T, J, 4))
@@ -270,16 +285,22 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
     contacts = np.zeros((T, 2), dtype=bool)
     src_pos = []
     tf_prev = None
+    active = None  # the offset being decayed: (seam frame, (x0, v0, a0) rotations, root, decays rot, root, frames)
     for i, (p, b) in enumerate(zip(pieces, ends)):
         a = p.out_start
         if p.n_frames < b - a:
             raise ValueError(f"assemble_pieces: piece at frame {a} has {p.n_frames} frames, needs {b - a}")
-        p_rot = np.asarray(p.rotations[: b - a], dtype=np.float64)
-        p_root = np.asarray(p.root[: b - a], dtype=np.float64)
-        lead = p.lead_in if (blend_frames > 0 and p.lead_in is not None and a > 0) else None
+        if b <= a:
+            continue
+        # the piece's first LEAD_FRAMES frames (where it is shorter, its own continuation is unknown:
+        # it is extended at its last velocity) define the offset at its seam
+        m = min(p.n_frames, max(b - a, LEAD_FRAMES))
+        p_rot = np.asarray(p.rotations[:m], dtype=np.float64)
+        p_root = np.asarray(p.root[:m], dtype=np.float64)
+        lead = p.lead_in if (p.lead_in is not None and a > 0) else None
         if lead is not None and lead[0].shape[0] == 0:
             lead = None
-        if cont and b > a:
+        if cont:
             if tf_prev is None or a == 0:
                 tf = (0.0, np.zeros(3), np.zeros(3))
             else:
@@ -292,33 +313,24 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
                     target_yaw = float(_yaw_of(rot[a - 1, 0]))
                 tf = (target_yaw - float(_yaw_of(p_rot[0, 0])), p_root[0], target)
             if feet.shape[0]:
-                src_pos.append((a, b, p_rot, p_root, p.contacts))
+                src_pos.append((a, b, p_rot[: b - a], p_root[: b - a], p.contacts))
             if lead is not None:
                 lead = _place(np.asarray(lead[0], dtype=np.float64), np.asarray(lead[1], dtype=np.float64), tf_prev)
             p_rot, p_root = _place(p_rot, p_root, tf)
             tf_prev = tf
-        rot[a:b] = p_rot
-        root[a:b] = p_root
-        if lead is not None:
-            c_rot, c_root = lead
-            n_bl = min(blend_frames, b - a, c_rot.shape[0])
-            if n_bl == 0:
-                continue
-            x = (np.arange(1, n_bl + 1) / (n_bl + 1))[:, None]
-            w = smoothstep(x)
-            rot[a:a + n_bl] = R.slerp(c_rot[:n_bl], rot[a:a + n_bl], w)
-            if cont:
-                # Horizontally the root's velocity is cross-faded, not its position: a position fade between
-                # two paths that part at the seam walks the old direction and then back (it added 6% to the
-                # pelvis speed held out). Both start where the lead-in does (placement), each step is the
-                # weighted mix of the two pieces' own steps, and the rest of the piece follows, shifted.
-                step = (1 - w[1:]) * np.diff(c_root[:n_bl], axis=0) + w[1:] * np.diff(root[a:a + n_bl], axis=0)
-                shift = root[a] + np.concatenate([np.zeros((1, 3)), np.cumsum(step, axis=0)]) - root[a:a + n_bl]
-                shift[:, 1] = (1 - w[:, 0]) * (c_root[:n_bl, 1] - root[a:a + n_bl, 1])  # the height is lerped
-                root[a:b] += np.concatenate([shift, np.broadcast_to(shift[-1] * [1, 0, 1], (b - a - n_bl, 3))])
-                tf_prev = (tf_prev[0], tf_prev[1], tf_prev[2] + shift[-1] * [1, 0, 1])
-            else:
-                root[a:a + n_bl] = (1 - w) * c_root[:n_bl] + w * root[a:a + n_bl]
+        elif lead is not None:
+            lead = (np.asarray(lead[0], dtype=np.float64), np.asarray(lead[1], dtype=np.float64))
+        if n_decay > 0 and a > 0 and (lead is not None or a >= 2):
+            active = _seam_offset(rot, root, a, lead, p_rot, p_root, active, fps=fps, decay_s=decay_s,
+                                  accel=seam_accel)
+        rot[a:b] = p_rot[: b - a]
+        root[a:b] = p_root[: b - a]
+        if active is not None and active[0] + active[5] > a:
+            s0, (rx, rv, ra), (px, pv, pa), d_rot, d_root, n_act = active
+            k = np.arange(a, min(b, s0 + n_act))
+            t = (k - s0) / fps
+            rot[k] = apply_rotation_offsets(quintic_offsets(rx, rv, ra, d_rot, t), rot[k])
+            root[k] += quintic_offsets(px, pv, pa, d_root, t)
     if src_pos:
         # the pieces' own (unplaced) poses, by one forward kinematics over all of them (one call per piece
         # was a fifth of a k-NN synthesis); contacts need only heights and speeds, which placement keeps
@@ -331,7 +343,7 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
             contacts[a:b] = (np.asarray(given[: b - a], dtype=bool) if given is not None
                              else foot_contacts(pp, fps=fps, feet=feet, floor_y=floor_y))
     if smooth:
-        rot, root = savgol_smooth(rot, root)
+        rot, root = savgol_smooth(rot, root, fps=fps)
     if cont:
         rot, root = _pull(rot, root, fps)
         if feet.shape[0]:
@@ -339,8 +351,95 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
     return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
 
 
-def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4,
-                    smooth: bool = True, placement: str = "continue", lock_feet: bool = True) -> Motion:
+def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, accel=None):
+    """The offset that the seam at output frame ``a`` starts: ``(a, (x0, v0, a0) rotations, (x0, v0, a0) root)``.
+
+    The old motion over frames ``a .. a+2`` is its own continuation (``lead``, placed in output
+    coordinates), extended at its last velocity where it has fewer frames (from the output's
+    last two frames where it has none), plus the offset still active from an earlier seam;
+    the new motion is the placed piece's first frames.
+    """
+    n = LEAD_FRAMES
+    if lead is not None:
+        got = min(lead[0].shape[0], n)
+        l_rot, l_root = lead[0][:got], lead[1][:got]
+        if active is not None:
+            # an offset still decaying from an earlier seam goes on under the old motion: the output ran with it
+            s0, (rx, rv, ra), (px, pv, pa), d_rot, d_root, _ = active
+            t = (a + np.arange(got) - s0) / fps
+            l_rot = apply_rotation_offsets(quintic_offsets(rx, rv, ra, d_rot, t), l_rot)
+            l_root = l_root + quintic_offsets(px, pv, pa, d_root, t)
+        if got >= n:
+            old_rot, old_root = l_rot, l_root
+        else:  # the old recording ends within the stencil: on at its last velocity (the output's last frame first)
+            seq_rot, seq_root = np.concatenate([rot[a - 1:a], l_rot]), np.concatenate([root[a - 1:a], l_root])
+            e_rot, e_root = extend_constant_velocity(seq_rot, seq_root, n - got)
+            old_rot, old_root = np.concatenate([l_rot, e_rot]), np.concatenate([l_root, e_root])
+    else:  # no continuation at all: the output (offset included) goes on at its last velocity
+        old_rot, old_root = extend_constant_velocity(rot[a - 2:a], root[a - 2:a], n)
+    new_rot, new_root = p_rot[:n], p_root[:n]
+    if new_rot.shape[0] < n:
+        if new_rot.shape[0] < 2:
+            new_rot, new_root = np.concatenate([new_rot, new_rot]), np.concatenate([new_root, new_root])
+        e_rot, e_root = extend_constant_velocity(new_rot, new_root, n - new_rot.shape[0])
+        new_rot, new_root = np.concatenate([new_rot, e_rot])[:n], np.concatenate([new_root, e_root])[:n]
+    d_rot = rotation_offsets(old_rot, new_rot)
+    # rotation vectors wrap at pi: keep the three samples on one branch so their differences are small
+    ang = np.linalg.norm(d_rot, axis=-1, keepdims=True)
+    flip = ((d_rot * d_rot[:1]).sum(-1, keepdims=True) < 0) & (ang > np.pi / 2)
+    d_rot = np.where(flip, d_rot - 2 * np.pi * d_rot / np.maximum(ang, 1e-12), d_rot)
+    r_der, p_der = seam_derivatives(d_rot, fps), seam_derivatives(old_root - new_root, fps)
+    if accel is None:
+        dr, dp = decay_s, decay_s
+    else:
+        # no longer than a few times the base decay: a seam between opposite poses still ends
+        dr = np.minimum(adaptive_decays(r_der[0], r_der[1], accel[0], decay_s), MAX_DECAY_FACTOR * decay_s)
+        dp = float(np.minimum(adaptive_decays(p_der[0], p_der[1], accel[1], decay_s), MAX_DECAY_FACTOR * decay_s)[0])
+    n = decay_frames(float(np.max(dr)) if np.ndim(dr) else float(dr), fps)
+    return a, r_der, p_der, dr, dp, max(n, decay_frames(float(dp), fps))
+
+
+#: The longest decay of an adaptive seam, in base decays (``seam_decay_s``).
+MAX_DECAY_FACTOR = 3.0
+
+
+# One acceleration reference per open database (reads a bounded sample of frames once).
+_ACCEL: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+#: Frames read for :func:`typical_accelerations` (contiguous runs spread over the database).
+ACCEL_SAMPLE_FRAMES = 1 << 15
+
+
+def typical_accelerations(db) -> tuple[np.ndarray, float]:
+    """RMS angular acceleration of every joint's local rotation (J,) rad/s^2 and of the root position (m/s^2).
+
+    Measured on the database's own motion (mirrored copies included), within recordings, from
+    up to :data:`ACCEL_SAMPLE_FRAMES` frames in runs of one chunk spread evenly over the database.
+    """
+    cached = _ACCEL.get(db)
+    if cached is not None:
+        return cached
+    run = 64
+    n_runs = max(1, min(db.n_frames // run, ACCEL_SAMPLE_FRAMES // run))
+    starts = np.linspace(0, max(db.n_frames - run, 0), n_runs).astype(np.int64)
+    frames = (starts[:, None] + np.arange(min(run, db.n_frames))[None]).ravel()
+    rec = np.asarray(db.rows("frame_recording", frames)).reshape(n_runs, -1)
+    q = np.asarray(db.rows("local_rotations", frames), dtype=np.float64).reshape(n_runs, rec.shape[1], -1, 4)
+    p = np.asarray(db.rows("root_positions", frames), dtype=np.float64).reshape(n_runs, rec.shape[1], 3)
+    fps = db.fps
+    w = R.to_axis_angle(R.multiply(q[:, 1:], R.inverse(q[:, :-1]))) * fps  # (runs, n-1, J, 3) rad/s
+    acc_w = np.linalg.norm(np.diff(w, axis=1), axis=-1) * fps  # (runs, n-2, J)
+    acc_p = np.linalg.norm(np.diff(p, n=2, axis=1), axis=-1) * fps * fps  # (runs, n-2)
+    ok = (rec[:, 2:] == rec[:, :-2])  # the three frames of a stencil in one recording
+    if not ok.any():
+        cached = (np.full(q.shape[2], np.inf), float("inf"))
+    else:
+        cached = (np.sqrt((acc_w[ok] ** 2).mean(axis=0)), float(np.sqrt((acc_p[ok] ** 2).mean())))
+    _ACCEL[db] = cached
+    return cached
+
+
+def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, seam_decay_s: float = SEAM_DECAY_S,
+                    smooth: bool = False, placement: str = "continue", lock_feet: bool = True) -> Motion:
     """Copy chosen database frames into one :class:`Motion` (the k-NN path).
 
     Parameters
@@ -350,21 +449,27 @@ def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, blend_frames:
         Database frame for every output frame.
     starts : ndarray, int64
         Output frame where each window starts (the first is 0).
-    blend_frames, smooth, placement, lock_feet
+    seam_decay_s, smooth, placement, lock_feet
         See :func:`assemble_pieces`.
     """
     source = np.asarray(source, dtype=np.int64)
     starts = [int(s) for s in starts]
     ends = starts[1:] + [source.shape[0]]
+    decay_s = check_decay_s(seam_decay_s)
     # every frame the pieces and their lead-ins use, read at once: a database
     # that is not loaded (Database.rows) costs one read per run of frames, not
-    # several per piece
-    seams = [i for i, a in enumerate(starts) if a > 0 and blend_frames > 0]
+    # several per piece. A piece shorter than the seam's stencil reads its own
+    # recording's next frames too (the output ends or the next seam comes first).
+    seams = [i for i, a in enumerate(starts) if a > 0 and decay_s > 0]
     conts = [np.zeros(0, np.int64)] * len(starts)
-    for i, c in zip(seams, continuations(db, [source[starts[i] - 1] for i in seams],
-                                         [min(blend_frames, ends[i] - starts[i]) for i in seams])):
+    for i, c in zip(seams, continuations(db, [source[starts[i] - 1] for i in seams], [LEAD_FRAMES] * len(seams))):
         conts[i] = c
-    used = np.concatenate([source] + conts)
+    tails = [np.zeros(0, np.int64)] * len(starts)
+    short = [i for i, (a, b) in enumerate(zip(starts, ends)) if 0 < b - a < LEAD_FRAMES]
+    for i, c in zip(short, continuations(db, [source[ends[i] - 1] for i in short],
+                                         [LEAD_FRAMES - (ends[i] - starts[i]) for i in short])):
+        tails[i] = c
+    used = np.concatenate([source] + conts + tails)
     rot_all, root_all = placed_frames(db, used)
     pieces = []
     at = source.shape[0]
@@ -373,22 +478,39 @@ def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, blend_frames:
         if cont.size:
             lead_in = (rot_all[at:at + cont.size], root_all[at:at + cont.size])
             at += cont.size
-        pieces.append(Piece(out_start=a, rotations=rot_all[a:b], root=root_all[a:b], lead_in=lead_in))
-    return assemble_pieces(db.skeleton, db.fps, pieces, n_frames=source.shape[0],
-                           blend_frames=blend_frames, smooth=smooth, placement=placement, lock_feet=lock_feet)
+        pieces.append([a, b, lead_in])
+    out = []
+    for (a, b, lead_in), tail in zip(pieces, tails):
+        r, p = rot_all[a:b], root_all[a:b]
+        if tail.size:
+            r = np.concatenate([r, rot_all[at:at + tail.size]])
+            p = np.concatenate([p, root_all[at:at + tail.size]])
+            at += tail.size
+        out.append(Piece(out_start=a, rotations=r, root=p, lead_in=lead_in))
+    return assemble_pieces(db.skeleton, db.fps, out, n_frames=source.shape[0],
+                           seam_decay_s=decay_s, smooth=smooth, placement=placement, lock_feet=lock_feet,
+                           seam_accel=typical_accelerations(db) if decay_s > 0 else None)
 
 
-def savgol_smooth(rotations: np.ndarray, root: np.ndarray, *, window: int = 7, order: int = 2):
+#: Savitzky-Golay window (s) of the optional smoothing: GestureMaster's 7 frames at its 30 fps (Sec. 4.2).
+SMOOTH_WINDOW_S = 7.0 / 30.0
+
+
+def savgol_smooth(rotations: np.ndarray, root: np.ndarray, *, fps: float, window_s: float = SMOOTH_WINDOW_S,
+                  order: int = 2):
     """Savitzky-Golay smoothing of local rotations (T, J, 4) and root positions (T, 3) over time.
 
-    Quaternions are first made continuous in time (q and -q are one rotation),
-    filtered component-wise and renormalised: for the small angles between
-    neighbouring frames this is close to filtering on the rotation manifold.
-    Sequences shorter than the window are returned unchanged.
+    The window is ``window_s`` seconds rounded to an odd number of frames at ``fps``
+    (5 frames at 15 fps, 7 at 30 fps for the default): the same filter in time at any
+    frame rate. Quaternions are first made continuous in time (q and -q are one
+    rotation), filtered component-wise and renormalised: for the small angles between
+    neighbouring frames this is close to filtering on the rotation manifold. Sequences
+    shorter than the window, or windows too short for ``order``, are returned unchanged.
     """
     from scipy.signal import savgol_filter
 
-    if rotations.shape[0] < window:
+    window = int(round(window_s * fps)) | 1
+    if rotations.shape[0] < window or window <= order:
         return rotations, root
     q = savgol_filter(R.make_continuous(rotations, axis=0), window, order, axis=0)
     q /= np.linalg.norm(q, axis=-1, keepdims=True)

@@ -13,7 +13,7 @@ import numpy as np
 from gesturedb import rotations as R
 from gesturedb.motion import Motion
 
-__all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "foot_contacts", "foot_joints", "leg_joints",
+__all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "fill_non_steps", "foot_contacts", "foot_joints", "leg_joints",
            "plant_feet", "smoothstep", "two_bone_ik"]
 
 #: A foot's lowest point within this height (m) of the floor can be planted.
@@ -33,6 +33,15 @@ MAX_ANCHOR_DRIFT_M = 0.2
 #: Frames of such a step, and how high (m) the ankle lifts at its middle: a short arc, not a slide.
 STEP_FRAMES = 10
 STEP_HEIGHT_M = 0.05
+#: What :func:`plant_feet` uses, by frame rate and rig: a release and a step in seconds (the frames
+#: above at 15 fps); the drift that makes a planted foot step as a fraction of the leg's length (hip to
+#: knee to ankle): about half a short step's length. At 0.2 m (0.22 legs, the value until the strokes
+#: issue) the anchored feet stepped every few seconds as the root's path wandered from the stance,
+#: and the mean foot speed was 1.3-1.4x the capture's on the BEAT2 inputs; at 0.35 legs 1.0-1.1x.
+RELEASE_S = RELEASE_FRAMES / 15.0
+STEP_S = STEP_FRAMES / 15.0
+STEP_DRIFT_LEG_FRACTION = 0.35
+STEP_HEIGHT_LEG_FRACTION = 0.055
 
 
 def foot_joints(skeleton) -> np.ndarray:
@@ -177,12 +186,17 @@ def smoothstep(x):
     return x * x * (3 - 2 * x)
 
 
-def _ankle_targets(free: np.ndarray, planted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float = MAX_ANCHOR_DRIFT_M,
+                   step_frames: int = STEP_FRAMES, release_frames: int = RELEASE_FRAMES,
+                   step_height_m: float = STEP_HEIGHT_M) -> tuple[np.ndarray, np.ndarray]:
     """Where one ankle should be (T, 3) and whether the IK applies (T,) bool, for :func:`plant_feet`.
 
     ``free`` is the ankle where the motion puts it, ``planted`` its contacts. Horizontal
-    targets only, except during a step, which also lifts the ankle.
+    targets only, except during a step, which also lifts the ankle. The defaults are the
+    15 fps values; :func:`plant_feet` derives them from the frame rate and the rig.
     """
+    RELEASE_FRAMES, STEP_FRAMES, MAX_ANCHOR_DRIFT_M, STEP_HEIGHT_M = (  # noqa: N806 (the module's names)
+        release_frames, step_frames, max_drift_m, step_height_m)
     T = free.shape[0]
     target = free.copy()
     weight = np.zeros(T, dtype=bool)
@@ -225,6 +239,38 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray) -> tuple[np.ndarray, n
     return target, weight
 
 
+def fill_non_steps(planted: np.ndarray, free: np.ndarray, min_step_m: float) -> np.ndarray:
+    """Contacts (T,) bool with every gap that is not a step filled.
+
+    A gap between two contacts is a step when the foot comes down at least ``min_step_m``
+    (horizontally) from where its previous contact began, the place a planted foot is held;
+    a shorter gap (contact detection flickering while the foot rests, a heel lifting, the
+    body shifting its weight) keeps the foot planted where it was, instead of easing it to
+    where the motion puts it and planting it again there.
+
+    planted : ndarray [shape=(T,)], bool
+    free : ndarray [shape=(T, 3)], metres: the ankle where the motion puts it
+    """
+    out = planted.copy()
+    T = planted.shape[0]
+    t = 0
+    anchor = None
+    while t < T:
+        if out[t]:
+            if anchor is None:
+                anchor = free[t]
+            t += 1
+            continue
+        g0 = t
+        while t < T and not out[t]:
+            t += 1
+        if anchor is not None and t < T and np.linalg.norm((free[t] - anchor)[[0, 2]]) < min_step_m:
+            out[g0:t] = True  # not a step: the foot stays where it is
+        else:
+            anchor = None
+    return out
+
+
 def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, contacts: np.ndarray) -> np.ndarray:
     """Hold each planted ankle where its contact began (horizontally), by leg IK.
 
@@ -256,9 +302,18 @@ def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, co
         return rotations
     pos, grot = Motion(skeleton=skeleton, fps=fps, rotations=rotations, root_positions=root).forward_kinematics()
     out = rotations
+    feet = foot_joints(skeleton)
+    # frames from seconds, distances from the rig: the same behaviour at any frame rate and body size
+    steps = dict(step_frames=max(2, int(round(STEP_S * fps))), release_frames=max(1, int(round(RELEASE_S * fps))))
     for side in range(2):
         hip, knee, ankle = (int(j) for j in legs[side])
-        target, weight = _ankle_targets(pos[:, ankle], contacts[:, side])
+        leg_m = float(np.linalg.norm(pos[0, knee] - pos[0, hip]) + np.linalg.norm(pos[0, ankle] - pos[0, knee]))
+        steps.update(max_drift_m=STEP_DRIFT_LEG_FRACTION * leg_m, step_height_m=STEP_HEIGHT_LEG_FRACTION * leg_m)
+        # a step moves a foot by at least its own length (ankle to toe on this rig)
+        foot_len = (float(np.linalg.norm(pos[0, feet[side, 1]] - pos[0, feet[side, 0]]))
+                    if feet.shape[0] and feet[side, 1] != feet[side, 0] else 0.0)
+        planted = fill_non_steps(contacts[:, side], pos[:, ankle], foot_len) if foot_len > 0 else contacts[:, side]
+        target, weight = _ankle_targets(pos[:, ankle], planted, **steps)
         sel = np.flatnonzero(weight > 0)
         if sel.size == 0:
             continue

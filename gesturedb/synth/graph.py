@@ -26,21 +26,26 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
 5. **Fitting.** Each chosen upper-body clip is played at speed ``clamp(len_d / len_i, 1/1.25, 1.25)``
    (rotations slerped between source frames, root lerped); where it is still longer it is
    trimmed, where shorter it runs on into its recording's following frames. Pieces go
-   through :func:`gesturedb.synth.assemble.assemble_pieces` (placement, seam cross-fades),
-   then a Savitzky-Golay filter per joint group (Sec. 4.2: window 7, order 2 for arms,
-   hands and head; 7, 1 for the rest and the root).
+   through :func:`gesturedb.synth.assemble.assemble_pieces` (placement, seams inertialized
+   as for the k-NN). GestureMaster's Savitzky-Golay filter per joint group (Sec. 4.2:
+   window 7 frames at its 30 fps, order 2 for arms, hands and head; order 1 for the rest
+   and the root) is ``smooth=True``, off by default: its window, kept in seconds, still
+   removes beat strokes.
 
 Two graphs (Sec. 4.1), one path each over the same input clips: the upper body (spine, arms,
 hands, head) follows the path that minimises the whole cost above over the upper-body graph;
 the lower body (root and legs: where the speaker stands, the pelvis' tilt, the stance) follows
-the path of least transition cost over the lower-body graph, its data term only the duration
+the path of least transition cost over the lower-body graph, its data term the duration
 term (the paper sets the lower body's data term to 0; the duration term makes the graph's
-transition cost, measured at the end of a node, the one that plays) plus the penalty for a
-node whose recording ends before the clip does. The lower body carries no rhythm, so it is
+transition cost, measured at the end of a node, the one that plays), a stepping term (a node
+whose feet move more than the database's median clip costs the log of the ratio: transitions
+alone chose the stretches where the speaker walks about) and the penalty for a node whose
+recording ends before the clip does. The lower body carries no rhythm, so it is
 not time-warped: each node plays at its own speed, trimmed or run on into its recording
 (warped like the upper body, its feet slid: on the four BEAT2 inputs with 30 nodes, skating
 0.085 against 0.064 m/s unwarped). The two motions are joined: upper-body local rotations
-from the first, root and legs from the second (feet planted on those), then smoothed.
+from the first (the spine's first joint keeping its own orientation in the world, less the
+heading, :func:`join_upper_body`), root and legs from the second (feet planted on those).
 """
 from __future__ import annotations
 
@@ -50,7 +55,8 @@ import numpy as np
 from gesturedb.db.graph import body_parts
 from gesturedb.errors import ParameterError, SchemaError
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
-from gesturedb.synth.assemble import Piece, assemble_pieces, continuation, placed_frames
+from gesturedb.synth.assemble import SMOOTH_WINDOW_S, Piece, assemble_pieces, placed_frames, typical_accelerations
+from gesturedb.synth.seams import LEAD_FRAMES, SEAM_DECAY_S, check_decay_s
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.viterbi import viterbi
 
@@ -64,13 +70,40 @@ UNFIT_PENALTY = 1000.0
 #: style, rhythm and duration terms (a few units), below UNFIT_PENALTY (a clip that cannot be fitted
 #: is worse than a phrase without the keyword).
 KEYWORD_MISS_PENALTY = 100.0
-#: seam cross-fade of the graph (frames): its seams are seconds apart, so it can afford twice
-#: the k-NN's 4; measured on the 4 scott inputs, seam/inside jerk 2.33 (4), 1.31 (8), 1.19 (12)
-GRAPH_BLEND_FRAMES = 8
 #: shortest piece a long input clip is split into, frames
 MIN_CLIP = 8
 ORDER2_PARTS = ("shoulder", "elbow", "wrist", "hand", "arm", "index", "middle", "ring", "pinky", "thumb",
                 "head", "neck", "jaw", "eye", "collar", "finger")
+
+
+def join_upper_body(skeleton, rot: np.ndarray, upper_rot: np.ndarray, upper_joints) -> np.ndarray:
+    """Keep the upper body's own orientation in the world when it rides on another path's pelvis.
+
+    ``rot`` (T, J, 4) holds the lower path's rotations with the upper joints' local rotations
+    already copied from ``upper_rot``. An upper joint whose parent is a lower-body joint (the
+    spine's first joint, a child of the pelvis) gets the local rotation that gives it its world
+    rotation in the upper path, turned about +y by the difference of the two pelvises' headings.
+    In a capture the spine compensates the pelvis's sway and tilt; copied as local rotations onto
+    another pelvis those compensations moved the head instead (its 4-7 Hz power 8-11x the
+    database's on the BEAT2 inputs, against about 1x for either path alone).
+    """
+    from gesturedb import rotations as R
+    from gesturedb.synth.assemble import _yaw_of, _yaw_quat
+
+    upper = set(int(j) for j in np.asarray(upper_joints).ravel())
+    parents = np.asarray(skeleton.parents)
+    roots = [j for j in sorted(upper) if parents[j] >= 0 and int(parents[j]) not in upper]
+    if not roots:
+        return rot
+    out = rot.copy()
+    for j in roots:
+        p = int(parents[j])
+        if p != 0:
+            continue  # only a child of the root joint can be re-parented by the pelvis's world rotation alone
+        turn = _yaw_quat(_yaw_of(rot[:, 0]) - _yaw_of(upper_rot[:, 0]))
+        world = R.multiply(turn, R.multiply(upper_rot[:, 0], upper_rot[:, j]))
+        out[:, j] = R.multiply(R.inverse(rot[:, 0]), world)
+    return out
 
 
 def _split_long(bounds: list[int], w_start, w_end, fps: float, max_len: int) -> list[int]:
@@ -126,6 +159,28 @@ class GraphSynthesizer:
         self.style = np.asarray(c.style, dtype=np.float64)
         rec_end = np.array([r.start_frame + r.n_frames for r in db.recordings], dtype=np.int64)
         self.avail = rec_end[self.recording] - self.start  # frames from clip start to its recording's end
+        self.stepping = self._stepping()
+
+    def _stepping(self) -> np.ndarray:
+        """Per node: how much more its feet move than the database's typical clip, ``max(0, log(s / median s))``
+        with ``s`` the mean horizontal ankle speed over the node's frames (0 for the calmer half).
+
+        The lower body's path is chosen by transition cost alone (Sec. 4.1), which happily walks: on the
+        held-out BEAT2 stretch it took the recording's first 16 s, where the speaker steps about, and
+        the feet moved 1.8-1.9x as fast as the capture's. This term, weighted like the duration term,
+        keeps the stance of a speaker who mostly stands unless the transitions say otherwise.
+        """
+        from gesturedb.synth.contacts import foot_joints
+
+        feet = foot_joints(self.db.skeleton)[:, 0]
+        if feet.size == 0 or self.start.size == 0:
+            return np.zeros(self.start.size)
+        speeds = np.empty(self.start.size)
+        for d, (a, n) in enumerate(zip(self.start, self.length)):
+            p = np.asarray(self.db.joint_positions[a:a + max(int(n), 2)][:, feet][..., [0, 2]], dtype=np.float64)
+            speeds[d] = np.linalg.norm(np.diff(p, axis=0), axis=-1).mean() * self.db.fps
+        med = float(np.median(speeds))
+        return np.log(np.maximum(speeds / med, 1.0)) if med > 0 else np.zeros(self.start.size)
 
     # -- input side -----------------------------------------------------------
     def input_clips(self, samples, sr, T, *, transcript=None, gap_s=None, vad=DEFAULT_VAD):
@@ -189,7 +244,7 @@ class GraphSynthesizer:
 
     # -- synthesis ------------------------------------------------------------
     def synthesize(self, audio, *, sr=None, transcript=None, gap_s=None, w_data=1.0, w_trans=3.0,
-                   l5=1.0, l6=0.1, l_dur=0.5, blend_frames=GRAPH_BLEND_FRAMES, smooth=True, control=None, keywords=True,
+                   l5=1.0, l6=0.1, l_dur=0.5, seam_decay_s=SEAM_DECAY_S, smooth=False, control=None, keywords=True,
                    exclude=None, vad=DEFAULT_VAD) -> SynthResult:
         """Synthesize gestures for speech by the best path through the motion graph.
 
@@ -207,8 +262,11 @@ class GraphSynthesizer:
             lambda_3, lambda_4, lambda_5, lambda_6 (Sec. 5: 1, 3, 1, 0.1).
         l_dur : float
             Weight of the duration term ``|log(len_d / len_i)|``.
-        blend_frames : int
-            Seam cross-fade (default 8: twice the k-NN's, the graph's seams being seconds apart).
+        seam_decay_s : float
+            Seconds over which the offset at a seam decays (0: clips back to back);
+            :mod:`gesturedb.synth.seams`.
+        smooth : bool
+            GestureMaster's Savitzky-Golay filter per joint group (window in seconds); off by default.
         control, keywords, exclude
             As for :meth:`gesturedb.synth.Searcher.synthesize` (node rule in the module doc).
 
@@ -224,8 +282,7 @@ class GraphSynthesizer:
 
         db = self.db
         samples, sr, audio_path = speech_samples(db, audio, sr)
-        if not isinstance(blend_frames, (int, np.integer)) or blend_frames < 0:
-            raise ParameterError(f"blend_frames: expected a non-negative number of frames, got {blend_frames!r}")
+        seam_decay_s = check_decay_s(seam_decay_s)
         searcher = Searcher(db, segments="clips")
         query = searcher.query_features(samples, sr)
         T = query.shape[0]
@@ -241,14 +298,15 @@ class GraphSynthesizer:
         # recording ends before the clip does (it plays at its own speed); excluded recordings stay
         # out; controls and keywords are about the arms and do not restrict it
         lens = np.diff(bounds)
-        unary_low = l_dur * terms["duration"] + UNFIT_PENALTY * (lens[:, None] > self.avail[None, :])
+        unary_low = (l_dur * (terms["duration"] + self.stepping[None, :])
+                     + UNFIT_PENALTY * (lens[:, None] > self.avail[None, :]))
         if exclude:
             unary_low[:, searcher.exclude_recordings(exclude)] = np.inf
         path_low, total_low = viterbi(unary_low, *self.lower_graph, w_data=w_data, w_trans=w_trans)
         motion, source, steps = self._assemble(path, path_low, bounds, terms, unary, unary_low, labels,
-                                               blend_frames=blend_frames, smooth=smooth)
+                                               seam_decay_s=seam_decay_s, smooth=smooth)
         options = dict(method="graph", gap_s=self.last_gap_s, w_data=w_data, w_trans=w_trans, l5=l5, l6=l6, l_dur=l_dur,
-                       blend_frames=blend_frames, smooth=smooth, total_cost=total, total_cost_lower=total_low,
+                       seam_decay_s=seam_decay_s, smooth=smooth, total_cost=total, total_cost_lower=total_low,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        transcript=transcript is not None, vad=None if transcript is not None else vad,
@@ -310,7 +368,7 @@ class GraphSynthesizer:
                 labels[i] = (ctl_labels[i], kw_labels[i])
         return labels, kw_ok
 
-    def _pieces(self, path, bounds, speeds, blend_frames):
+    def _pieces(self, path, bounds, speeds, seam_decay_s):
         """The time-warped source pieces of a path, their source frames (T,) and warp times per clip.
 
         ``speeds``: (n, K) warp rate of node ``d`` for clip ``i``, or None for the source speed.
@@ -320,28 +378,36 @@ class GraphSynthesizer:
         db = self.db
         pieces, times = [], []
         source = np.empty(int(bounds[-1]), dtype=np.int64)
-        prev_last = None
+        prev = None  # (time of the previous piece's last frame, its speed, its recording's last frame)
+
+        def warped(t, hi):
+            """Source motion at fractional frames t (slerp / lerp between neighbours), held at frame hi."""
+            f0 = np.minimum(np.floor(t).astype(np.int64), hi)
+            f1 = np.minimum(f0 + 1, hi)
+            w = (t - np.floor(t))[:, None]
+            r0, p0 = placed_frames(db, f0)
+            r1, p1 = placed_frames(db, f1)
+            return R.slerp(r0, r1, np.broadcast_to(w, r0.shape[:2])), (1 - w) * p0 + w * p1
+
         for i, d in enumerate(path):
             a, b = int(bounds[i]), int(bounds[i + 1])
             L = b - a
             speed = 1.0 if speeds is None else float(speeds[i, d])
             t = self.start[d] + np.arange(L) * speed
             hi = self.start[d] + self.avail[d] - 1  # hold the recording's last frame if it runs out
-            f0 = np.minimum(np.floor(t).astype(np.int64), hi)
-            f1 = np.minimum(f0 + 1, hi)
-            w = (t - np.floor(t))[:, None]
-            r0, p0 = placed_frames(db, f0)
-            r1, p1 = placed_frames(db, f1)
-            rot = R.slerp(r0, r1, np.broadcast_to(w, r0.shape[:2]))
-            root = (1 - w) * p0 + w * p1
+            rot, root = warped(t, hi)
             lead = None
-            if prev_last is not None and blend_frames > 0:
-                cont = continuation(db, prev_last, min(blend_frames, L))
-                if cont.size:
-                    lead = placed_frames(db, cont)
+            if prev is not None and seam_decay_s > 0:
+                # how the previous piece goes on: its own recording, at its own warp rate, from the time
+                # after its last frame (the next source frame would skip or repeat part of a frame)
+                t_prev, s_prev, hi_prev = prev
+                tl = t_prev + s_prev * np.arange(1, LEAD_FRAMES + 1)
+                tl = tl[tl <= hi_prev]
+                if tl.size:
+                    lead = warped(tl, hi_prev)
             pieces.append(Piece(out_start=a, rotations=rot, root=root, lead_in=lead))
             source[a:b] = np.rint(t).astype(np.int64).clip(max=hi)
-            prev_last = int(f1[-1])
+            prev = (float(t[-1]), speed, int(self.start[d] + self.avail[d] - 1) if t[-1] <= hi else -1)
             times.append(t)
         return pieces, source, times
 
@@ -350,7 +416,7 @@ class GraphSynthesizer:
         row = indices[indptr[p]:indptr[p + 1]]
         return float(cost[indptr[p] + np.searchsorted(row, q)])
 
-    def _assemble(self, path, path_low, bounds, terms, unary, unary_low, labels, *, blend_frames, smooth):
+    def _assemble(self, path, path_low, bounds, terms, unary, unary_low, labels, *, seam_decay_s, smooth):
         """Upper body from ``path``, root and legs from ``path_low``, joined into one motion (Sec. 4.2).
 
         Each path's pieces go through :func:`assemble_pieces` (placement, seam cross-fades; feet
@@ -363,13 +429,17 @@ class GraphSynthesizer:
         db = self.db
         recs = db.recordings
         T = int(bounds[-1])
-        up_pieces, source, up_t = self._pieces(path, bounds, terms["speed"], blend_frames)
-        low_pieces, _, low_t = self._pieces(path_low, bounds, None, blend_frames)
-        upper = assemble_pieces(db.skeleton, db.fps, up_pieces, n_frames=T, blend_frames=blend_frames, smooth=False,
-                                lock_feet=False)  # its legs are dropped
-        lower = assemble_pieces(db.skeleton, db.fps, low_pieces, n_frames=T, blend_frames=blend_frames, smooth=False)
+        up_pieces, source, up_t = self._pieces(path, bounds, terms["speed"], seam_decay_s)
+        low_pieces, _, low_t = self._pieces(path_low, bounds, None, seam_decay_s)
+        accel = typical_accelerations(db) if seam_decay_s > 0 else None
+        upper = assemble_pieces(db.skeleton, db.fps, up_pieces, n_frames=T, seam_decay_s=seam_decay_s, smooth=False,
+                                lock_feet=False, seam_accel=accel)  # its legs are dropped
+        lower = assemble_pieces(db.skeleton, db.fps, low_pieces, n_frames=T, seam_decay_s=seam_decay_s, smooth=False,
+                                seam_accel=accel)
+        self._last_parts = (upper, lower)  # for diagnostics: the two paths before they are joined
         rot = np.array(lower.rotations, dtype=np.float64, copy=True)
         rot[:, self.upper_joints] = upper.rotations[:, self.upper_joints]
+        rot = join_upper_body(db.skeleton, rot, upper.rotations, self.upper_joints)
         motion = Motion(skeleton=db.skeleton, fps=db.fps, rotations=rot, root_positions=lower.root_positions)
 
         def where(d, t):
@@ -401,7 +471,7 @@ class GraphSynthesizer:
         return motion, source, steps
 
     def _smooth(self, motion):
-        """Savitzky-Golay per joint group (Sec. 4.2): window 7, order 2 for arms/hands/head, 7, 1 elsewhere."""
+        """Savitzky-Golay per joint group (Sec. 4.2): order 2 for arms/hands/head, 1 elsewhere; window in seconds."""
         from gesturedb.motion import Motion
         from gesturedb.synth.assemble import savgol_smooth
 
@@ -409,7 +479,7 @@ class GraphSynthesizer:
         o2 = np.array([any(k in nm.lower() for k in ORDER2_PARTS) for nm in names])
         rot = np.array(motion.rotations, dtype=np.float64)
         root = np.array(motion.root_positions, dtype=np.float64)
-        r2, _ = savgol_smooth(rot[:, o2], root, order=2)
-        r1, root1 = savgol_smooth(rot[:, ~o2], root, order=1)
+        r2, _ = savgol_smooth(rot[:, o2], root, fps=motion.fps, window_s=SMOOTH_WINDOW_S, order=2)
+        r1, root1 = savgol_smooth(rot[:, ~o2], root, fps=motion.fps, window_s=SMOOTH_WINDOW_S, order=1)
         rot[:, o2], rot[:, ~o2] = r2, r1
         return Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=rot, root_positions=root1)

@@ -13,8 +13,9 @@ experiments" (Sec. 4) and as the refiner's training paths start; ``init="mean"``
 
 Window boundaries, placement and foot contacts are the shared assembly's
 (:mod:`gesturedb.synth.assemble`): each window continues the output's root from
-where it is and a short cross-fade (``blend_frames``, default 4 frames) removes
-the seam's step in position and velocity; ``blend_frames=0`` copies the windows
+where it is, and the step in position, velocity and acceleration at each seam is
+inertialized (an offset that decays to zero over ``seam_decay_s``, 0.4 s by
+default; :mod:`gesturedb.synth.seams`); ``seam_decay_s=0`` copies the windows
 back to back as in the paper.
 """
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 
 from gesturedb.errors import ParameterError, SearchError
 from gesturedb.synth.assemble import assemble_frames
+from gesturedb.synth.seams import SEAM_DECAY_S, check_decay_s
 from gesturedb.synth.repeats import DEFAULT_REPEAT_GUARD_S, check_guard_s, guarded_search, repeat_of, repeat_stats
 from gesturedb.synth.result import SynthResult
 
@@ -39,6 +41,17 @@ INIT_CHOICES = ("random", "mean")
 #: over seeds 0-7 (README, "The body slides"); on the four inputs both were
 #: within the capture's range.
 DEFAULT_INIT = "random"
+
+
+#: The paper's search step, N = 8 frames at its 15 fps, in seconds: a database of another frame rate steps
+#: as often in time (16 frames at 30 fps). At 30 fps with 8-frame steps the seams came twice as often and the
+#: seam/inside jerk was 1.18-1.23 on the four BEAT2 inputs; with 16, 1.06-1.10 (15 fps: 0.85-1.08).
+STEP_S = 8.0 / 15.0
+
+
+def default_step(fps: float) -> int:
+    """Frames per search step at ``fps``: :data:`STEP_S` rounded, at least 1."""
+    return max(1, int(round(STEP_S * float(fps))))
 
 
 def speech_samples(db, audio, sr: int | None = None):
@@ -176,9 +189,9 @@ class Searcher:
         preselect: str = "pose",
         init: str = DEFAULT_INIT,
         seed: int | None = 0,
-        step: int = 8,
-        blend_frames: int = 4,
-        smooth: bool = True,
+        step: int | None = None,
+        seam_decay_s: float = SEAM_DECAY_S,
+        smooth: bool = False,
         control=None,
         keywords=True,
         exclude=None,
@@ -200,12 +213,14 @@ class Searcher:
         init : {"random", "mean"}
             Initial previous pose: a database frame drawn with ``seed`` (default,
             as the paper's experiments) or the mean pose.
-        step : int
-            N, frames per search step (8).
-        blend_frames : int
-            Cross-fade length at window boundaries (0 = back-to-back copies as in the paper).
+        step : int, optional
+            N, frames per search step (default :func:`default_step`: 8 at 15 fps, 16 at 30 fps).
+        seam_decay_s : float
+            Seconds over which the offset at a window boundary decays (0 = back-to-back
+            copies as in the paper); see :mod:`gesturedb.synth.seams`.
         smooth : bool
-            Savitzky-Golay smoothing of the result (GestureMaster); off to get exact database frames.
+            Savitzky-Golay smoothing of the result (GestureMaster's, window in seconds);
+            off by default: it removes beat strokes.
         control : str, list or None
             A control schedule (``"0-12: left_wrist_height > p85; 12-: slow"``) or one
             mask expression for the whole synthesis; see :mod:`gesturedb.control`.
@@ -243,10 +258,11 @@ class Searcher:
 
         db = self.db
         samples, sr, audio_path = speech_samples(db, audio, sr)
+        if step is None:
+            step = default_step(db.fps)
         if not isinstance(step, (int, np.integer)) or step < 1:
             raise ParameterError(f"step: expected a positive number of frames, got {step!r}")
-        if not isinstance(blend_frames, (int, np.integer)) or blend_frames < 0:
-            raise ParameterError(f"blend_frames: expected a non-negative number of frames, got {blend_frames!r}")
+        seam_decay_s = check_decay_s(seam_decay_s)
         n_seg = len(self.seg_start)
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= max(n_seg, 1):
             raise ParameterError(f"k: expected an integer from 1 to the number of {self.segments_kind} of "
@@ -351,12 +367,12 @@ class Searcher:
                 "guard_relaxed": bool(relaxed[i]),
             })
         starts = np.asarray(res.out_frames, dtype=np.int64)
-        motion = self.assemble(source, starts, blend_frames=blend_frames, smooth=smooth)
+        motion = self.assemble(source, starts, seam_decay_s=seam_decay_s, smooth=smooth)
         if refiner is not None:
             from gesturedb.features.audio import audio_deltas
 
             motion = refiner.refine(motion, np.concatenate([query, audio_deltas(query)], axis=1))
-        options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, blend_frames=blend_frames, smooth=smooth,
+        options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s, smooth=smooth,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        segments=self.segments_kind, database=db.path,
@@ -436,6 +452,7 @@ class Searcher:
         return err
 
     # -- assembly ---------------------------------------------------------------
-    def assemble(self, source: np.ndarray, starts: np.ndarray, *, blend_frames: int = 4, smooth: bool = True):
+    def assemble(self, source: np.ndarray, starts: np.ndarray, *, seam_decay_s: float = SEAM_DECAY_S,
+                 smooth: bool = False):
         """Copy the chosen database frames into one Motion; see :func:`gesturedb.synth.assemble.assemble_frames`."""
-        return assemble_frames(self.db, source, starts, blend_frames=blend_frames, smooth=smooth)
+        return assemble_frames(self.db, source, starts, seam_decay_s=seam_decay_s, smooth=smooth)

@@ -1,0 +1,134 @@
+"""Stroke metrics (gesturedb/eval/strokes.py) and the strokes issue's goals at another frame rate."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gesturedb.errors import ParameterError
+from gesturedb.eval import strokes as ST
+
+
+def _sine(fps, seconds, freq, amp, n_joints=3):
+    t = np.arange(int(seconds * fps)) / fps
+    pos = np.zeros((t.size, n_joints, 3))
+    pos[:, 1:, 0] = amp * np.sin(2 * np.pi * freq * t)[:, None]  # joint 0 is the root and stays put
+    return pos
+
+
+@pytest.mark.parametrize("fps", [15.0, 30.0])
+@pytest.mark.parametrize("freq", [1.0, 3.0, 5.0])
+def test_band_power_of_a_sinusoid(fps, freq):
+    """A sinusoid of amplitude A at f Hz has velocity power (2 pi f A)^2 / 2, all in the band holding f
+    (times sinc^2(f / fps): the velocity is a first difference, whose gain is sin(pi f/fps) / (pi f/fps))."""
+    amp = 0.05
+    bp = ST.band_power(_sine(fps, 40, freq, amp), fps=fps, joints=[1, 2])
+    want = (2 * np.pi * freq * amp) ** 2 / 2 * np.sinc(freq / fps) ** 2
+    home = next(ST.band_key(b) for b in ST.BANDS_HZ if b[0] <= freq < b[1])
+    assert bp[home] == pytest.approx(want, rel=0.05)
+    for k, v in bp.items():
+        if k != home:
+            assert v < 0.02 * want, (k, v)
+
+
+def test_band_power_is_root_relative_and_nan_past_nyquist():
+    fps = 10.0  # Nyquist 5 Hz: the 4-7 Hz band cannot be measured
+    pos = _sine(fps, 30, 1.0, 0.05)
+    moved = pos + np.linspace(0, 3, pos.shape[0])[:, None, None] * np.array([1.0, 0.0, 1.0])  # the body walks
+    a = ST.band_power(pos, fps=fps, joints=[1, 2])
+    b = ST.band_power(moved, fps=fps, joints=[1, 2])
+    assert a["0.5-2"] == pytest.approx(b["0.5-2"], rel=1e-9)
+    assert np.isnan(a["4-7"])
+
+
+def test_pooled_power_and_ratios():
+    fps = 15.0
+    slow, fast = _sine(fps, 30, 1.0, 0.05), _sine(fps, 30, 3.0, 0.05)
+    pooled = ST.pooled_band_power([slow, fast], fps=fps, joints=[1, 2])
+    one = ST.band_power(slow, fps=fps, joints=[1, 2])
+    assert pooled["0.5-2"] == pytest.approx(one["0.5-2"] / 2, rel=1e-6)  # equal lengths: the mean of the two
+    r = ST.band_ratios(one, pooled)
+    assert r["0.5-2"] == pytest.approx(2.0, rel=1e-6)
+    assert ST.band_ratios({"x": 1.0}, {"x": 0.0})["x"] != ST.band_ratios({"x": 1.0}, {"x": 0.0})["x"]  # NaN
+
+
+def test_stroke_strength_is_the_wrist_speed_percentile():
+    fps = 15.0
+    pos = _sine(fps, 20, 2.0, 0.1)
+    speed = np.abs(np.diff(pos[:, 1, 0])) * fps
+    assert ST.stroke_strength(pos, fps=fps, wrists=[1, 2]) == pytest.approx(np.percentile(speed, 95))
+
+
+def test_bad_input_says_what_was_expected():
+    with pytest.raises(ParameterError, match=r"positions: expected an array \(frames, joints, 3\); got shape"):
+        ST.band_power(np.zeros((10, 3)), fps=15, joints=[0])
+    with pytest.raises(ParameterError, match="fps: expected a positive frame rate"):
+        ST.band_power(np.zeros((10, 2, 3)), fps=0, joints=[0])
+    with pytest.raises(ParameterError, match="at least 5 frames"):
+        ST.band_power(np.zeros((3, 2, 3)), fps=15, joints=[0])
+
+
+def test_groups_on_smplx_names(scott_db):
+    g = ST.band_groups(scott_db.joint_names)
+    names = scott_db.joint_names
+    assert sorted(names[j] for j in g["arms"]) == ["left_elbow", "left_wrist", "right_elbow", "right_wrist"]
+    assert len(g["hands"]) == 30 and sorted(names[j] for j in g["head"]) == ["head", "neck"]
+
+
+@pytest.fixture()
+def speech(scott_dir):
+    return scott_dir / "inputs" / "2_scott_0_2_2.wav"
+
+
+@pytest.fixture(scope="module")
+def scott_db_30fps(scott_dir, tmp_path_factory):
+    import gesturedb
+
+    out = tmp_path_factory.mktemp("fps30") / "scott30.h5"
+    db = gesturedb.build([scott_dir], out, fps=30.0)
+    yield db
+    db.close()
+
+
+def test_a_30_fps_database_keeps_strokes_and_local_seams(scott_db_30fps, speech):
+    """At 30 fps: the search step and the seam decay are in seconds (twice the frames), frames beyond the
+    decay are the placed source frames, seams are no jerkier than the inside of the windows, and the slow
+    band keeps the database's power. (The stroke bands are 1.4-1.75x there on the four inputs, above the
+    goal of 1.5; see the strokes issue's closing note.)"""
+    from gesturedb.eval.metrics import seam_jerk
+    from gesturedb.synth import Searcher
+    from gesturedb.synth.contacts import leg_joints
+    from gesturedb.synth.seams import SEAM_DECAY_S, decay_frames
+
+    db = scott_db_30fps
+    assert db.fps == 30.0
+    s = Searcher(db)
+    res = s.synthesize(speech)
+    assert res.options["step"] == 16  # 8/15 s
+    placed = s.synthesize(speech, seam_decay_s=0)
+    assert np.array_equal(res.source_frames, placed.source_frames)
+    nd = decay_frames(SEAM_DECAY_S, db.fps)
+    assert nd == 16  # 0.533 s at 30 fps, twice the frames of 15 fps
+    starts = np.concatenate([[0], res.boundaries])
+    idx = np.arange(res.n_frames)
+    since = idx - starts[np.searchsorted(starts, idx, side="right") - 1]
+    keep = np.setdiff1d(np.arange(1, db.skeleton.n_joints), leg_joints(db.skeleton).ravel())
+    # locality: 16-frame steps and a 0.1 s base decay, whose offsets last at most 0.3 s = 9 frames here
+    from gesturedb.synth.assemble import MAX_DECAY_FACTOR
+
+    short = s.synthesize(speech, seam_decay_s=0.1, step=16)
+    placed16 = s.synthesize(speech, seam_decay_s=0, step=16)
+    starts16 = np.concatenate([[0], short.boundaries])
+    since16 = idx - starts16[np.searchsorted(starts16, idx, side="right") - 1]
+    n9 = decay_frames(MAX_DECAY_FACTOR * 0.1, db.fps)
+    assert n9 == 9
+    far = (since16 >= n9) | (idx < starts16[1])
+    assert far.sum() > res.n_frames / 4
+    np.testing.assert_array_equal(short.motion.rotations[far][:, keep], placed16.motion.rotations[far][:, keep])
+
+    arms = ST.band_groups(db.joint_names)["arms"]
+    ref = ST.pooled_band_power([db.joint_positions.astype(np.float64)], fps=db.fps, joints=arms)
+    ratios = ST.band_ratios(ST.band_power(res.positions, fps=db.fps, joints=arms), ref)
+    assert 0.67 <= ratios["0.5-2"] <= 1.5, ratios
+    assert all(v < 2.5 for v in ratios.values()), ratios  # no seam energy like unsmoothed cuts (10x and more)
+    r = seam_jerk(res.positions, fps=db.fps, boundaries=res.boundaries, joints=arms)
+    assert r["ratio"] < 1.12, r
