@@ -313,8 +313,8 @@ def test_a_cluster_lost_mid_build_is_one_line_in_bounded_time(kill, scott_dir, s
     assert build.returncode == 2, err[-3000:]
     assert time.monotonic() - killed < 60, "stopped long after the cluster was lost"
     assert "Traceback" not in err, err[-3000:]
-    want = (f"no Dask worker left for 3 s while 2 task\\(s\\) of the build's recordings waited \\(workers lost or "
-            f"stopped\\); stopped" if kill == "the-only-worker" else
+    want = (f"no Dask worker for 3 s while 2 task\\(s\\) of the build's recordings waited \\(every worker was lost, "
+            f"or none joined\\); stopped" if kill == "the-only-worker" else
             f"lost the connection to the Dask scheduler while the build's recordings ran( \\(.*\\))?; stopped")
     assert re.fullmatch(rf"gesturedb build: error: scheduler {address}: {want}\n", err), err[-3000:]
     assert out.read_bytes() == old

@@ -95,8 +95,8 @@ def completed(client, futures, *, what: str = "the tasks") -> Iterator[object]:
                                    f"{what} ran ({_first_line(exc)}); stopped") from None
             alone_since = None if n else (alone_since or now)
             if alone_since is not None and now - alone_since > NO_WORKER_TIMEOUT_S:
-                raise ClusterError(f"scheduler {_address(client)}: no Dask worker left for {NO_WORKER_TIMEOUT_S:g} s "
-                                   f"while {ac.count()} task(s) of {what} waited (workers lost or stopped); "
+                raise ClusterError(f"scheduler {_address(client)}: no Dask worker for {NO_WORKER_TIMEOUT_S:g} s while "
+                                   f"{ac.count()} task(s) of {what} waited (every worker was lost, or none joined); "
                                    f"stopped")
         with ac.thread_condition:
             ac.thread_condition.wait(timeout=0.1)
