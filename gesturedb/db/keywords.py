@@ -334,11 +334,9 @@ def read_word_list(path) -> list[str]:
     """
     from gesturedb.errors import InputFileError
 
-    try:
-        with open(path, "r", encoding="utf-8-sig") as f:
-            lines = f.read().splitlines()
-    except (OSError, UnicodeError) as exc:
-        raise InputFileError(path, f"cannot read as text: {exc}") from None
+    from gesturedb.io.text import read_text_lines
+
+    lines = read_text_lines(path)
     words = []
     for k, line in enumerate(lines, start=1):
         text = line.split("#", 1)[0].strip()

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.io.text import read_text_lines
 
 __all__ = ["Words", "read_genea_tsv", "read_json_words", "read_textgrid", "read_transcript", "normalize_word"]
 
@@ -268,11 +269,7 @@ def read_genea_tsv(path) -> Words:
         Unreadable file, a line without three fields, a non-numeric time, or
         bad times; the message names the line.
     """
-    try:
-        with open(path, "r", encoding="utf-8-sig") as f:
-            lines = f.read().splitlines()
-    except (OSError, UnicodeError) as exc:
-        raise InputFileError(path, f"cannot read as text: {exc}") from None
+    lines = read_text_lines(path)
     rows = []
     for k, line in enumerate(lines, start=1):
         if not line.strip():
