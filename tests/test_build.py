@@ -309,20 +309,7 @@ def test_streamed_build_equals_the_whole_arrays(scott_dir, tmp_path):
 
 # ---------------------------------------------------------------- disk full (issue 41, case 8)
 
-_FAIL_AFTER = """\
-import errno, os, sys
-budget = [int(sys.argv[1])]
-real = os.pwrite
-def pwrite(fd, data, offset):  # the disk takes int(argv[1]) bytes, then is full
-    n = min(len(data), budget[0])
-    if n == 0:
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-    budget[0] -= n
-    return real(fd, memoryview(data)[:n], offset)
-os.pwrite = pwrite
-from gesturedb.cli.main import main
-sys.exit(main(sys.argv[2:]))
-"""
+from diskfull import FAIL_AFTER as _FAIL_AFTER  # noqa: E402  (tests/diskfull.py)
 
 
 @contextlib.contextmanager
