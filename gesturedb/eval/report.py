@@ -50,6 +50,8 @@ _COLORS = {
     "audio_only": "#ff7f0e",
     "ranksum_pose": "#1f77b4",
     "ranksum_audio": "#2ca02c",
+    "graph": "#8c564b",
+    "ranksum_refined": "#17becf",
 }
 
 
