@@ -19,6 +19,7 @@
 
 #include "kernels.h"
 #include "search.h"
+#include "threads.h"
 
 namespace py = pybind11;
 using namespace gesturedb;
@@ -241,7 +242,11 @@ PYBIND11_MODULE(_core, m) {
           "The instruction set the next search will use.");
     m.def("set_simd", [](const std::string& isa) { set_simd(isa.c_str()); }, py::arg("isa"),
           "Switch the instruction set for subsequent searches ('scalar', 'avx2', 'avx512').");
-    m.def("default_threads", &default_threads, "Threads used when a call passes threads <= 0.");
+    m.def("default_threads", &default_threads,
+          "Threads used when a call passes threads <= 0: the CPUs in this process's affinity mask, "
+          "bounded by the cgroup CPU quota, at least 1.");
+    m.def("cgroup_cpu_limit", &cgroup_cpu_limit, py::arg("root"),
+          "The CPU quota of the cgroup mounted at root, in whole CPUs rounded up; 0 when there is none.");
 
     // --- raw kernels, for tests and benchmarks --------------------------------
     m.def("l2sq_rows_f32", [](const F32& rows, const F32& v, const std::string& isa) {

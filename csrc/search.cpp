@@ -12,6 +12,7 @@
 // kernels.h), recomputing exactly every candidate that could still win; it
 // therefore returns exactly what the single-query path returns.
 #include "search.h"
+#include "threads.h"
 
 #include <algorithm>
 #include <atomic>
@@ -229,11 +230,6 @@ constexpr int64_t kScatterAhead = 6;
 }  // namespace
 
 // ---------------------------------------------------------------------------
-int default_threads() {
-    const unsigned n = std::thread::hardware_concurrency();
-    return n == 0 ? 1 : int(n);
-}
-
 double stream_sum_f32(const float* data, int64_t n, int threads) {
     if (threads <= 0) threads = default_threads();
     // blocks of 1 MiB handed out dynamically, each summed by accumulate16

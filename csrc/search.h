@@ -228,7 +228,4 @@ double stream_sum_f32(const float* data, int64_t n, int threads);
 double gather_sum_f32(const float* data, int64_t rows, int64_t cols, const int64_t* starts, int64_t n,
                       int64_t rows_each, int threads);
 
-// Number of worker threads to use when the caller passes threads <= 0.
-int default_threads();
-
 }  // namespace gesturedb
