@@ -1,11 +1,11 @@
 """`gesturedb build INPUT... -o DB.h5`"""
 from __future__ import annotations
 
-import os
 import sys
 
 from gesturedb.cli._args import float_range, int_range
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
+from gesturedb.threads import available_cpus
 
 
 def add_parser(sub) -> None:
@@ -20,7 +20,7 @@ def add_parser(sub) -> None:
                    help="a CSV file listing recordings: header motion,audio[,transcript,speaker,name]; "
                    "paths relative to the file")
     p.add_argument("-o", "--output", required=True, metavar="DB.h5")
-    p.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1), help="processes (default: %(default)s)")
+    p.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, available_cpus()), help="processes (default: %(default)s)")
     p.add_argument("--scheduler", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="process recordings and the motion graphs' edge search as Dask tasks (a LocalCluster of N "
                    "workers or a running scheduler); this process still writes the file")

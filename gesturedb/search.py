@@ -456,7 +456,8 @@ def rank_sum_step(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, k=
     exclude : ndarray [shape=(M,)], bool, optional
         Segments to leave out.
     threads : int, optional
-        Worker threads (default: all cores).
+        Worker threads (default: the CPUs this process may use, ``_core.default_threads()``:
+        its affinity mask bounded by the cgroup CPU quota).
     pose_f16 : HalfPose, optional
         ``HalfPose(pose)``: pose pre-selection reads half the bytes; same results.
     pose_proj : PoseProjection, optional
@@ -599,7 +600,8 @@ def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, in
         ``(M,)`` for all queries or ``(Q, M)`` per query (e.g. each query's own
         segment when the queries are the database's audio).
     threads : int, optional
-        Worker threads (default: all cores).
+        Worker threads (default: the CPUs this process may use, ``_core.default_threads()``:
+        its affinity mask bounded by the cgroup CPU quota).
     method : {"auto", "blocked", "per_query"}
         Evaluation strategy (results are identical).
     pose_f16 : HalfPose, optional

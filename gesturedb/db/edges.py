@@ -23,12 +23,12 @@ given a Dask scheduler, as tasks on its workers.
 from __future__ import annotations
 
 import contextlib
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.threads import available_cpus
 
 DELTA_QUANTILE = 0.10
 MIN_OUT = 4
@@ -37,7 +37,7 @@ MAX_OUT = 32
 BOUND_DIMS = 32
 #: clips from which ``edges_from_features`` bounds the costs instead of computing them all
 BOUND_MIN_K = 4096
-#: threads the edge search runs its blocks of rows on (at most the CPU's), from BOUND_MIN_K clips on
+#: threads the edge search runs its blocks of rows on (at most the CPUs this process may use), from BOUND_MIN_K clips on
 EDGE_THREADS = 8
 
 
@@ -257,7 +257,7 @@ def _edges_here(shared: _Shared, step: int, delta_T: float, min_out: int, max_ou
     # blocks on threads when there are many (numpy releases the GIL in the passes over a
     # block, which run on one core each); the results are taken in order, so the edges do not
     # depend on the threads
-    threads = min(os.cpu_count() or 1, EDGE_THREADS) if K >= BOUND_MIN_K else 1
+    threads = min(available_cpus(), EDGE_THREADS) if K >= BOUND_MIN_K else 1
 
     def run(r: tuple[int, int]):
         return shared.block(*r, delta_T, min_out, max_out)
