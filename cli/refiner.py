@@ -1,11 +1,11 @@
 """`gesturedb refiner train|apply`: the cGAN refiner (needs the `refiner` extra: PyTorch CPU)."""
 from __future__ import annotations
 
-import os
 import sys
 
 from gesturedb.cli._args import int_range
 from gesturedb.refiner.data import STRIDE  # no torch: the data module is plain numpy
+from gesturedb.threads import available_cpus
 
 
 def add_parser(sub) -> None:
@@ -22,7 +22,8 @@ def add_parser(sub) -> None:
     t.add_argument("--stride", type=int, default=STRIDE, metavar="FRAMES",
                    help="frames between training windows (default: %(default)s, the paper's); a larger stride "
                    "searches and caches fewer windows, for large databases")
-    t.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    t.add_argument("--threads", type=int, default=None,
+                   help=f"torch threads while training (default: the CPUs this process may use, {available_cpus()})")
     t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
     again = t.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
@@ -33,7 +34,7 @@ def add_parser(sub) -> None:
                    help="run the training windows' self-search over --parts shards on Dask workers, and their "
                    "assembly on the same workers (same data)")
     t.add_argument("--parts", type=int_range(1, 256), default=2, help="shards with --scheduler (default: %(default)s)")
-    t.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, os.cpu_count() or 1),
+    t.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, available_cpus()),
                    help="local processes assembling the training windows without --scheduler (default: %(default)s)")
     a = ops.add_parser("apply", help="refine motion that already exists (BVH on the database's skeleton)")
     a.add_argument("refiner", metavar="REFINER.pt")
@@ -57,7 +58,7 @@ def run(args) -> int:
 
     from gesturedb.io.outputs import check_outputs
 
-    torch = require_torch()
+    require_torch()  # before anything else: says how to install torch when it is missing
     if args.op == "train":
         # the training-window cache is written beside the checkpoint
         check_outputs({"-o": args.output, "-o (cache)": args.output + ".data.h5"}, [args.db])
@@ -71,8 +72,6 @@ def run(args) -> int:
             from gesturedb.db.cluster import check_scheduler
 
             check_scheduler(args.scheduler)  # before the database is opened or anything is searched
-        if args.threads:
-            torch.set_num_threads(args.threads)
         cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed, stride=args.stride,
                           checkpoint_every_s=args.checkpoint_every)
         from gesturedb.db.cluster import optional_client
@@ -80,7 +79,7 @@ def run(args) -> int:
         with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
             tr = train(db, args.output, config=cfg, resume=args.resume, overwrite=args.overwrite, progress=True,
                        log=lambda m: print(m, file=sys.stderr), client=client, parts=args.parts,
-                       workers=args.workers)
+                       workers=args.workers, threads=args.threads)
         last = tr.history[-1] if tr.history else {}
         print(f"trained {tr.iteration} iterations -> {args.output}"
               + (f" (critic {last['critic']:.3f}, L1 {last['l1']:.4f})" if last else ""))

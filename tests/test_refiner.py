@@ -601,3 +601,31 @@ def test_cli_resume_from_nan_weights_exits_2_and_keeps_the_file(scott_db_path, t
         assert _one_line(capsys.readouterr().err) == (
             f"gesturedb refiner: error: {ck}: generator: enc.0.0.weight: expected finite values, got nan")
     assert ck.read_bytes() == before
+
+
+def test_training_threads_default_to_the_available_cpus_and_threads_is_honoured(scott_db, tmp_path, monkeypatch):
+    """torch's own default counts the machine's cores and ignores a CPU quota: training takes
+    gesturedb.threads.available_cpus() unless told, and gives torch its setting back after."""
+    from gesturedb.refiner import train as T
+
+    seen = []
+    real_step = T.Trainer.step
+
+    def step(self):
+        seen.append(torch.get_num_threads())
+        return real_step(self)
+
+    monkeypatch.setattr(T.Trainer, "step", step)
+    monkeypatch.setattr(T, "available_cpus", lambda: 1)  # what a `taskset -c 0` or a 1-CPU quota gives
+    _cache(scott_db, tmp_path / "r.pt.data.h5")
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        T.train(scott_db, tmp_path / "r.pt", config=TrainConfig(**_SMALL))
+        assert seen == [1] and torch.get_num_threads() == 3
+        T.train(scott_db, tmp_path / "r.pt", config=TrainConfig(**dict(_SMALL, iterations=2)), resume=True, threads=2)
+        assert seen == [1, 2] and torch.get_num_threads() == 3
+        with pytest.raises(gesturedb.ParameterError, match=r"^threads: expected a positive integer or None, got 0$"):
+            T.train(scott_db, tmp_path / "r.pt", config=TrainConfig(**_SMALL), overwrite=True, threads=0)
+    finally:
+        torch.set_num_threads(before)

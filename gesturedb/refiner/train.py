@@ -40,6 +40,7 @@ from gesturedb.refiner.data import (STRIDE, WINDOW, TrainingData, cache_settings
                                     load_cache, make_training_data)
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
+from gesturedb.threads import available_cpus
 
 FORMAT = 1
 
@@ -416,7 +417,8 @@ def check_output(out_path, *, resume: bool, overwrite: bool) -> None:
 
 
 def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = False, overwrite: bool = False,
-          progress: bool = False, log=None, client=None, parts: int = 2, workers: int = 1) -> Trainer:
+          progress: bool = False, log=None, client=None, parts: int = 2, workers: int = 1,
+          threads: int | None = None) -> Trainer:
     """Train (or resume training) a refiner on a database and write its checkpoint.
 
     Parameters
@@ -435,7 +437,13 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         its workers, and their assembly too; without one the assembly runs on
         ``workers`` local processes (:func:`gesturedb.refiner.data.make_training_data`;
         the same data either way).
+    threads : int, optional
+        torch's intra-op threads while training (restored afterwards); default
+        :func:`gesturedb.threads.available_cpus`, not torch's own choice, which counts the
+        machine's cores and ignores a CPU quota.
     """
+    if threads is not None and (not _is_int(threads) or threads < 1):
+        raise ParameterError(f"threads: expected a positive integer or None, got {threads!r}")
     config = (config or TrainConfig()).check()
     out_path = os.fspath(out_path)
     folder = os.path.dirname(os.path.abspath(out_path))
@@ -497,6 +505,9 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         stop["now"] = True
 
     old = signal.signal(signal.SIGTERM, on_term) if _main_thread() else None
+    # one thread per CPU this process may use: more would take turns on the same CPUs
+    torch_threads = torch.get_num_threads()
+    torch.set_num_threads(int(threads) if threads is not None else available_cpus())
     try:
         while tr.iteration < config.iterations and not stop["now"]:
             rec = tr.step()
@@ -518,6 +529,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
             bar.close()
         if old is not None:
             signal.signal(signal.SIGTERM, old)
+        torch.set_num_threads(torch_threads)
     tr.save(out_path)
     return tr
 
