@@ -112,7 +112,7 @@ METRIC_COLUMNS = (
 
 from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
 from gesturedb.eval.strokes import (  # noqa: E402  (the stroke tables)
-    STROKE_COLUMNS, STROKE_GT_COLUMNS, database_strokes, stroke_metrics,
+    STROKE_COLUMNS, STROKE_GT_COLUMNS, database_strokes, group_band_power, stroke_metrics,
 )
 
 #: (key, header, format) of the world-space table (:func:`gesturedb.eval.placement.world_metrics`).
@@ -692,11 +692,11 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
 
     for n, o in outputs.items():  # world space, before the root is removed for the arm metrics
         rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
+    truth = (group_band_power(outputs["ground_truth"].positions, fps=db.fps, names=db.joint_names, root=root)
+             if "ground_truth" in outputs else None)
     for n, o in outputs.items():
         rows[n].update(stroke_metrics(o.positions, fps=db.fps, names=db.joint_names, root=root,
-                                      reference=reference["band_power"],
-                                      ground_truth=outputs["ground_truth"].positions if "ground_truth" in outputs
-                                      else None))
+                                      reference=reference["band_power"], truth=truth))
     from gesturedb.eval import conventions as CV, metrics as M
 
     conv_args = dict(audio_beats_s=M.audio_beats(samples, sr=sr),

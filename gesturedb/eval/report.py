@@ -28,6 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.eval.strokes import BANDS_HZ, STROKE_COLUMNS, band_key
 from gesturedb.io.atomic import write_text
 
 __all__ = [
@@ -88,8 +89,6 @@ def plot_band_power(path, metrics: dict) -> Path:
         (:func:`gesturedb.eval.strokes.stroke_metrics`). 1 is the database's own motion;
         the shaded band is 0.67-1.5x.
     """
-    from gesturedb.eval.strokes import BANDS_HZ, band_key
-
     plt = _plt()
     groups = [g for g in ("arms", "hands", "head") if any(f"band_{g}_{band_key(BANDS_HZ[0])}_db" in r
                                                           for r in metrics.values())]
@@ -430,8 +429,6 @@ def _write_html(path: Path, ev, files: dict) -> Path:
     for i, inp in enumerate(ev.inputs):
         parts.append(f"<h2>{html.escape(inp.name)} — {inp.n_frames} frames, {inp.n_frames / inp.fps:.1f} s</h2>")
         parts.append(_html_table(ev, inp.metrics))
-        from gesturedb.eval.strokes import STROKE_COLUMNS
-
         parts.append('<p class="note">Strokes: power of root-relative joint velocity per band, divided by the '
                      "database's own motion (1 = the database's; docs/metrics.md), and the 95th percentile of wrist "
                      "speed.</p>")

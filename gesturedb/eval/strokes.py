@@ -30,10 +30,11 @@ from typing import Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.eval.placement import root_relative
 
 __all__ = ["BANDS_HZ", "WELCH_SEGMENT_S", "STROKE_PERCENTILE", "band_groups", "band_psd", "band_power",
            "band_ratios", "stroke_strength", "band_key", "pooled_band_power", "stroke_metrics", "database_strokes",
-           "STROKE_GROUPS", "STROKE_COLUMNS", "STROKE_GT_COLUMNS"]
+           "STROKE_GROUPS", "STROKE_COLUMNS", "STROKE_GT_COLUMNS", "group_band_power"]
 
 #: Frequency bands (Hz): slow movement and sway, gesture phrases, beat strokes.
 BANDS_HZ: tuple[tuple[float, float], ...] = ((0.5, 2.0), (2.0, 4.0), (4.0, 7.0))
@@ -95,10 +96,6 @@ def _check(positions, fps) -> tuple[np.ndarray, float]:
     return pos, fps
 
 
-def _root_relative(pos: np.ndarray, root: int) -> np.ndarray:
-    return pos - pos[:, root:root + 1] * np.array([1.0, 0.0, 1.0])
-
-
 def band_psd(positions, *, fps: float, joints, root: int = 0,
              segment_s: float = WELCH_SEGMENT_S) -> tuple[np.ndarray, np.ndarray, int]:
     """Welch PSD of root-relative velocity, summed over x, y, z and averaged over ``joints``.
@@ -124,7 +121,7 @@ def band_psd(positions, *, fps: float, joints, root: int = 0,
 
     pos, fps = _check(positions, fps)
     joints = np.asarray(joints, dtype=np.int64)
-    vel = np.diff(_root_relative(pos, root)[:, joints], axis=0) * fps  # (F-1, j, 3)
+    vel = np.diff(root_relative(pos, root=root)[:, joints], axis=0) * fps  # (F-1, j, 3)
     n = vel.shape[0]
     nper = int(round(segment_s * fps))
     if n < 4:
@@ -200,7 +197,7 @@ def stroke_strength(positions, *, fps: float, wrists, root: int = 0, percentile:
     w = np.asarray(wrists, dtype=np.int64)
     if pos.shape[0] < 2:
         return float("nan")
-    v = np.linalg.norm(np.diff(_root_relative(pos, root)[:, w], axis=0), axis=-1) * fps
+    v = np.linalg.norm(np.diff(root_relative(pos, root=root)[:, w], axis=0), axis=-1) * fps
     return float(np.percentile(v, percentile))
 
 
@@ -211,7 +208,7 @@ def _wrists(names) -> list[int]:
 
 
 def stroke_metrics(positions, *, fps: float, names: Sequence[str], root: int, reference: dict,
-                   ground_truth=None) -> dict:
+                   truth: dict | None = None) -> dict:
     """One motion's stroke numbers, flat, for the evaluation tables.
 
     Parameters
@@ -223,27 +220,31 @@ def stroke_metrics(positions, *, fps: float, names: Sequence[str], root: int, re
     root : int
     reference : dict group -> dict band -> power
         The database's own band power (:func:`database_strokes`).
-    ground_truth : ndarray [shape=(F', J, 3)], optional
+    truth : dict group -> dict band -> power, optional
+        The ground truth's band power (:func:`group_band_power` of it, computed once for all systems).
 
     Returns
     -------
     dict
         ``band_<group>_<band>_db`` (ratio to ``reference``), ``band_<group>_<band>_gt``
-        (ratio to the ground truth's, NaN without one), ``band_<group>_<band>_m2_s2``
+        (ratio to ``truth``, NaN without one), ``band_<group>_<band>_m2_s2``
         (the power itself) and ``wrist_p95_m_s`` (:func:`stroke_strength`).
     """
     out = {}
-    for g, js in band_groups(names).items():
-        bp = band_power(positions, fps=fps, joints=js, root=root)
-        gt = band_power(ground_truth, fps=fps, joints=js, root=root) if ground_truth is not None else None
+    for g, bp in group_band_power(positions, fps=fps, names=names, root=root).items():
         for k, v in band_ratios(bp, reference[g]).items():
             out[f"band_{g}_{k}_db"] = v
-        for k, v in (band_ratios(bp, gt) if gt is not None else {k: float("nan") for k in bp}).items():
+        for k, v in (band_ratios(bp, truth[g]) if truth is not None else {k: float("nan") for k in bp}).items():
             out[f"band_{g}_{k}_gt"] = v
         for k, v in bp.items():
             out[f"band_{g}_{k}_m2_s2"] = v
     out["wrist_p95_m_s"] = stroke_strength(positions, fps=fps, wrists=_wrists(names), root=root)
     return out
+
+
+def group_band_power(positions, *, fps: float, names: Sequence[str], root: int) -> dict:
+    """:func:`band_power` of every group of :func:`band_groups`: group -> band -> power (m^2/s^2)."""
+    return {g: band_power(positions, fps=fps, joints=js, root=root) for g, js in band_groups(names).items()}
 
 
 def database_strokes(recordings: Sequence[np.ndarray], *, fps: float, names: Sequence[str],
@@ -255,6 +256,6 @@ def database_strokes(recordings: Sequence[np.ndarray], *, fps: float, names: Seq
     bands = {g: pooled_band_power(recordings, fps=fps, joints=js, root=root) for g, js in band_groups(names).items()}
     w = _wrists(names)
     speeds = np.concatenate([
-        np.linalg.norm(np.diff(_root_relative(np.asarray(p, dtype=np.float64), root)[:, w], axis=0), axis=-1).ravel()
+        np.linalg.norm(np.diff(root_relative(np.asarray(p, dtype=np.float64), root=root)[:, w], axis=0), axis=-1).ravel()
         * fps for p in recordings if p.shape[0] > 1])
     return bands, float(np.percentile(speeds, STROKE_PERCENTILE)) if speeds.size else float("nan")
