@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -285,7 +286,7 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
     contacts = np.zeros((T, 2), dtype=bool)
     src_pos = []
     tf_prev = None
-    active = None  # the offset being decayed: (seam frame, (x0, v0, a0) rotations, root, decays rot, root, frames)
+    active = None  # the _Offset being decayed
     for i, (p, b) in enumerate(zip(pieces, ends)):
         a = p.out_start
         if p.n_frames < b - a:
@@ -325,12 +326,9 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
                                   accel=seam_accel)
         rot[a:b] = p_rot[: b - a]
         root[a:b] = p_root[: b - a]
-        if active is not None and active[0] + active[5] > a:
-            s0, (rx, rv, ra), (px, pv, pa), d_rot, d_root, n_act = active
-            k = np.arange(a, min(b, s0 + n_act))
-            t = (k - s0) / fps
-            rot[k] = apply_rotation_offsets(quintic_offsets(rx, rv, ra, d_rot, t), rot[k])
-            root[k] += quintic_offsets(px, pv, pa, d_root, t)
+        if active is not None and active.seam + active.n_frames > a:
+            k = np.arange(a, min(b, active.seam + active.n_frames))
+            rot[k], root[k] = active.apply(rot[k], root[k], (k - active.seam) / fps)
     if src_pos:
         # the pieces' own (unplaced) poses, by one forward kinematics over all of them (one call per piece
         # was a fifth of a k-NN synthesis); contacts need only heights and speeds, which placement keeps
@@ -351,8 +349,8 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
     return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
 
 
-def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, accel=None):
-    """The offset that the seam at output frame ``a`` starts: ``(a, (x0, v0, a0) rotations, (x0, v0, a0) root)``.
+def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, accel=None) -> "_Offset":
+    """The offset that the seam at output frame ``a`` starts.
 
     The old motion over frames ``a .. a+2`` is its own continuation (``lead``, placed in output
     coordinates), extended at its last velocity where it has fewer frames (from the output's
@@ -365,10 +363,7 @@ def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, acc
         l_rot, l_root = lead[0][:got], lead[1][:got]
         if active is not None:
             # an offset still decaying from an earlier seam goes on under the old motion: the output ran with it
-            s0, (rx, rv, ra), (px, pv, pa), d_rot, d_root, _ = active
-            t = (a + np.arange(got) - s0) / fps
-            l_rot = apply_rotation_offsets(quintic_offsets(rx, rv, ra, d_rot, t), l_rot)
-            l_root = l_root + quintic_offsets(px, pv, pa, d_root, t)
+            l_rot, l_root = active.apply(l_rot, l_root, (a + np.arange(got) - active.seam) / fps)
         if got >= n:
             old_rot, old_root = l_rot, l_root
         else:  # the old recording ends within the stencil: on at its last velocity (the output's last frame first)
@@ -395,8 +390,25 @@ def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, acc
         # no longer than a few times the base decay: a seam between opposite poses still ends
         dr = np.minimum(adaptive_decays(r_der[0], r_der[1], accel[0], decay_s), MAX_DECAY_FACTOR * decay_s)
         dp = float(np.minimum(adaptive_decays(p_der[0], p_der[1], accel[1], decay_s), MAX_DECAY_FACTOR * decay_s)[0])
-    n = decay_frames(float(np.max(dr)) if np.ndim(dr) else float(dr), fps)
-    return a, r_der, p_der, dr, dp, max(n, decay_frames(float(dp), fps))
+    n = decay_frames(float(np.max(dr)), fps)
+    return _Offset(a, r_der, p_der, dr, dp, max(n, decay_frames(float(dp), fps)))
+
+
+class _Offset(NamedTuple):
+    """The offset a seam started: ``(x0, v0, a0)`` of the joints' rotation vectors (J, 3) and of the
+    root position (3,), their decays (s; per joint (J, 1) or one), and the frames it lasts."""
+
+    seam: int
+    rot: tuple
+    root: tuple
+    decay_rot: np.ndarray | float
+    decay_root: float
+    n_frames: int
+
+    def apply(self, rot: np.ndarray, root: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rotations (n, J, 4) and root (n, 3) with the offset at times ``t`` (s after the seam) added."""
+        return (apply_rotation_offsets(quintic_offsets(*self.rot, self.decay_rot, t), rot),
+                root + quintic_offsets(*self.root, self.decay_root, t))
 
 
 #: The longest decay of an adaptive seam, in base decays (``seam_decay_s``).
@@ -471,22 +483,15 @@ def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, seam_decay_s:
         tails[i] = c
     used = np.concatenate([source] + conts + tails)
     rot_all, root_all = placed_frames(db, used)
-    pieces = []
-    at = source.shape[0]
-    for a, b, cont in zip(starts, ends, conts):
-        lead_in = None
-        if cont.size:
-            lead_in = (rot_all[at:at + cont.size], root_all[at:at + cont.size])
-            at += cont.size
-        pieces.append([a, b, lead_in])
+    # where each piece's lead-in and tail sit in the one read
+    cont_at = source.size + np.cumsum([0] + [c.size for c in conts])
+    tail_at = cont_at[-1] + np.cumsum([0] + [t.size for t in tails])
     out = []
-    for (a, b, lead_in), tail in zip(pieces, tails):
-        r, p = rot_all[a:b], root_all[a:b]
-        if tail.size:
-            r = np.concatenate([r, rot_all[at:at + tail.size]])
-            p = np.concatenate([p, root_all[at:at + tail.size]])
-            at += tail.size
-        out.append(Piece(out_start=a, rotations=r, root=p, lead_in=lead_in))
+    for i, (a, b) in enumerate(zip(starts, ends)):
+        c0, c1, t0, t1 = cont_at[i], cont_at[i + 1], tail_at[i], tail_at[i + 1]
+        out.append(Piece(out_start=a, rotations=np.concatenate([rot_all[a:b], rot_all[t0:t1]]),
+                         root=np.concatenate([root_all[a:b], root_all[t0:t1]]),
+                         lead_in=(rot_all[c0:c1], root_all[c0:c1]) if c1 > c0 else None))
     return assemble_pieces(db.skeleton, db.fps, out, n_frames=source.shape[0],
                            seam_decay_s=decay_s, smooth=smooth, placement=placement, lock_feet=lock_feet,
                            seam_accel=typical_accelerations(db) if decay_s > 0 else None)

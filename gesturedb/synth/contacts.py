@@ -195,13 +195,11 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
     targets only, except during a step, which also lifts the ankle. The defaults are the
     15 fps values; :func:`plant_feet` derives them from the frame rate and the rig.
     """
-    RELEASE_FRAMES, STEP_FRAMES, MAX_ANCHOR_DRIFT_M, STEP_HEIGHT_M = (  # noqa: N806 (the module's names)
-        release_frames, step_frames, max_drift_m, step_height_m)
     T = free.shape[0]
     target = free.copy()
     weight = np.zeros(T, dtype=bool)
     anchor = None
-    since_release = RELEASE_FRAMES + 1
+    since_release = release_frames + 1
     t = 0
     while t < T:
         if planted[t]:
@@ -211,14 +209,14 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
                 # planted again while easing back from the last anchor: the new contact starts where the
                 # ankle is now (going back to the old anchor would be a jump)
                 anchor = target[t - 1].copy()
-            if np.linalg.norm((free[t] - anchor)[[0, 2]]) > MAX_ANCHOR_DRIFT_M:
+            if np.linalg.norm((free[t] - anchor)[[0, 2]]) > max_drift_m:
                 # a step: from the anchor to where the motion has the foot at the step's end
-                end = min(t + STEP_FRAMES, T - 1)
+                end = min(t + step_frames, T - 1)
                 n = end - t + 1
                 u = np.arange(1, n + 1) / n
                 w = smoothstep(u)[:, None]
                 target[t:end + 1, [0, 2]] = (1 - w) * anchor[[0, 2]] + w * free[end, [0, 2]]
-                target[t:end + 1, 1] = free[t:end + 1, 1] + STEP_HEIGHT_M * np.sin(np.pi * u)
+                target[t:end + 1, 1] = free[t:end + 1, 1] + step_height_m * np.sin(np.pi * u)
                 weight[t:end + 1] = True
                 anchor = free[end].copy()
                 since_release = 0 if planted[end] else 1
@@ -229,8 +227,8 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
             since_release = 0
         elif anchor is not None:
             since_release += 1
-            w = 1.0 - smoothstep(since_release / (RELEASE_FRAMES + 1))
-            if since_release <= RELEASE_FRAMES:
+            w = 1.0 - smoothstep(since_release / (release_frames + 1))
+            if since_release <= release_frames:
                 target[t, [0, 2]] = w * anchor[[0, 2]] + (1 - w) * free[t, [0, 2]]
                 weight[t] = True
             else:

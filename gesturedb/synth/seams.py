@@ -33,7 +33,7 @@ from gesturedb import rotations as R
 from gesturedb.errors import ParameterError
 
 __all__ = ["SEAM_DECAY_S", "LEAD_FRAMES", "quintic_offsets", "adaptive_decays", "seam_derivatives", "decay_frames",
-           "check_decay_s", "extend_constant_velocity"]
+           "check_decay_s", "extend_constant_velocity", "rotation_offsets", "apply_rotation_offsets"]
 
 #: Time (s) the offset at a seam takes to reach zero: one search step of the paper
 #: (N = 8 frames at 15 fps), the time until the k-NN's next seam. Measured on the
