@@ -176,10 +176,15 @@ class GraphSynthesizer:
         feet = foot_joints(self.db.skeleton)[:, 0]
         if feet.size == 0 or self.start.size == 0:
             return np.zeros(self.start.size)
-        speeds = np.empty(self.start.size)
-        for d, (a, n) in enumerate(zip(self.start, self.length)):
-            p = np.asarray(self.db.joint_positions[a:a + max(int(n), 2)][:, feet][..., [0, 2]], dtype=np.float64)
-            speeds[d] = np.linalg.norm(np.diff(p, axis=0), axis=-1).mean() * self.db.fps
+        # every clip's frames (at least two), one read per ankle: Database.rows reads runs of frames
+        n = np.maximum(self.length, 2)
+        frames = np.minimum(np.concatenate([a + np.arange(k) for a, k in zip(self.start, n)]), self.db.n_frames - 1)
+        p = np.stack([np.asarray(self.db.rows("joint_positions", frames, column=int(j)), dtype=np.float64)[:, [0, 2]]
+                      for j in feet], axis=1)  # (n_frames, 2, 2)
+        step = np.linalg.norm(np.diff(p, axis=0), axis=-1).mean(axis=1) * self.db.fps  # (n_frames - 1,)
+        # the mean over each clip's own steps (none across two clips)
+        ends, cs = np.cumsum(n), np.concatenate([[0.0], np.cumsum(step)])
+        speeds = (cs[ends - 1] - cs[ends - n]) / (n - 1)
         med = float(np.median(speeds))
         return np.log(np.maximum(speeds / med, 1.0)) if med > 0 else np.zeros(self.start.size)
 
@@ -449,7 +454,6 @@ class GraphSynthesizer:
                                 lock_feet=False, seam_accel=accel)  # its legs are dropped
         lower = assemble_pieces(db.skeleton, db.fps, low_pieces, n_frames=T, seam_decay_s=seam_decay_s, smooth=False,
                                 seam_accel=accel)
-        self._last_parts = (upper, lower)  # for diagnostics: the two paths before they are joined
         rot = np.array(lower.rotations, dtype=np.float64, copy=True)
         rot[:, self.upper_joints] = upper.rotations[:, self.upper_joints]
         rot = join_upper_body(db.skeleton, rot, upper.rotations, self.upper_joints)
