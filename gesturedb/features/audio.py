@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from gesturedb.errors import ParameterError
-from gesturedb.features.body import check_fps
+from gesturedb.features.body import _check_nonnegative, check_fps
 
 __all__ = [
     "AUDIO_HOP_S",
@@ -409,7 +409,7 @@ class AudioFeatureStream:
         if n_frames < self._i:
             raise ParameterError(f"n_frames: expected at least the {self._i} frames already returned; "
                                  f"got {n_frames}")
-        max_pad_s = _check_pad(max_pad_s)
+        max_pad_s = _check_nonnegative("max_pad_s", max_pad_s)
         _check_shortfall(self._pushed / self.sr, n_frames, self.fps, max_pad_s)
         self._finished = True
         if n_frames == self._i:
@@ -426,16 +426,6 @@ class AudioFeatureStream:
     def n_returned(self) -> int:
         """Motion frames returned so far."""
         return self._i
-
-
-def _check_pad(max_pad_s) -> float:
-    try:
-        max_pad_s = float(max_pad_s)
-    except (TypeError, ValueError):
-        raise ParameterError(f"max_pad_s: expected seconds >= 0; got {max_pad_s!r}") from None
-    if not (math.isfinite(max_pad_s) and max_pad_s >= 0):
-        raise ParameterError(f"max_pad_s: expected seconds >= 0; got {max_pad_s!r}")
-    return max_pad_s
 
 
 def _check_shortfall(have_s: float, n_frames: int, fps: float, max_pad_s: float) -> None:
@@ -509,7 +499,7 @@ def audio_features(
     fps = check_fps(fps)
     n_frames = _check_int("n_frames", n_frames, 0, what="an int >= 0")
     n_mfcc = _check_int("n_mfcc", n_mfcc, 1, N_MELS, what=f"an int in [1, {N_MELS}]")
-    max_pad_s = _check_pad(max_pad_s)
+    max_pad_s = _check_nonnegative("max_pad_s", max_pad_s)
     if n_frames == 0:
         return np.zeros((0, n_mfcc + 1), dtype=np.float32)
     _check_shortfall(len(y) / int(sr), n_frames, fps, max_pad_s)
