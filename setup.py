@@ -58,7 +58,7 @@ setup(
         "soxr>=0.3",         # high-quality resampling of speech to the analysis rate
         "librosa>=0.10",     # MFCC and onset strength
         # librosa's onset peak picking is a numba gufunc; numba 0.68.1 (llvmlite 0.50) compiles it into code
-        # that segfaults on this AVX-512 host (onset_detect on 3 s of noise, exit 139); 0.67 runs it
+        # that segfaults on an AMD EPYC host with AVX2 (onset_detect on 3 s of noise, exit 139); 0.67 runs it
         "numba>=0.59,<0.68",
         "praatio>=6.0",      # Praat TextGrid reader
         "tqdm>=4.60",        # progress bars on long builds
