@@ -13,14 +13,14 @@ import glob
 import os
 
 from pybind11.setup_helpers import Pybind11Extension, build_ext
-from setuptools import setup
+from setuptools import find_packages, setup
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def _version() -> str:
     ns: dict = {}
-    with open(os.path.join(HERE, "gesturedb", "_version.py")) as f:
+    with open(os.path.join(HERE, "src", "gesturedb", "_version.py")) as f:
         exec(f.read(), ns)
     return ns["__version__"]
 
@@ -41,13 +41,10 @@ setup(
     version=_version(),
     description="Database-driven, controllable co-speech gesture synthesis",
     python_requires=">=3.10",
-    packages=[
-        "gesturedb", "gesturedb.io", "gesturedb.features", "gesturedb.db", "gesturedb.control",
-        "gesturedb.synth", "gesturedb.refiner", "gesturedb.eval", "gesturedb.cli",
-    ],
-    # cli/ lives at the top of the repository to keep the command line visibly
-    # thin and separate, but installs as gesturedb.cli.
-    package_dir={"gesturedb.cli": "cli"},
+    # the src/ layout: the checkout's folder never shadows the installed package (run from the
+    # checkout's parent, `import gesturedb` found the source folder as a namespace package)
+    package_dir={"": "src"},
+    packages=find_packages("src"),
     ext_modules=[core],
     cmdclass={"build_ext": build_ext},
     install_requires=[

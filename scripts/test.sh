@@ -4,8 +4,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 . scripts/venv.sh  # the environment setup.sh installed into: its pytest, lint-imports and gesturedb
-# plain `pytest` (not `python -m pytest`): the repository root must not shadow the
-# installed package, whose gesturedb.cli comes from cli/
 # the layers contract (.importlinter): a stage importing a stage above it fails here
 lint-imports --no-cache
 exec pytest -q "$@"

@@ -222,10 +222,9 @@ def test_workers_running_other_gesturedb_code_are_refused(scott_dir, tmp_path, d
 
 
 def test_code_identity_is_the_same_for_a_checkout_and_an_installed_copy(tmp_path):
-    """gesturedb.cli is cli/ in a checkout (editable install) and gesturedb/cli/ once installed:
-    a copy laid out as pip installs it, imported in another process, has this checkout's code
-    identity (walking the package folder alone gave another hash, and a client in a checkout
-    refused workers that had pip-installed the same commit). A changed CLI file changes it."""
+    """A copy laid out as pip installs it, imported in another process, has this checkout's code
+    identity (an editable install and a wheel of the same commit must agree, or a client in a
+    checkout refuses workers that pip-installed it). A changed CLI file changes it."""
     import shutil
     import subprocess
     import sys
@@ -236,8 +235,7 @@ def test_code_identity_is_the_same_for_a_checkout_and_an_installed_copy(tmp_path
     root = Path(__file__).resolve().parents[1]
     site = tmp_path / "site"
     skip = shutil.ignore_patterns("__pycache__")
-    shutil.copytree(root / "gesturedb", site / "gesturedb", ignore=skip)
-    shutil.copytree(root / "cli", site / "gesturedb" / "cli", ignore=skip)
+    shutil.copytree(root / "src" / "gesturedb", site / "gesturedb", ignore=skip)
     probe = ("import sys; sys.path.insert(0, sys.argv[1]); import gesturedb; "
              "from gesturedb.db import cluster; print(gesturedb.__file__, cluster.code_identity())")
     out = subprocess.run([sys.executable, "-c", probe, str(site)], cwd=tmp_path, capture_output=True, text=True,
@@ -245,7 +243,7 @@ def test_code_identity_is_the_same_for_a_checkout_and_an_installed_copy(tmp_path
     assert out == [str(site / "gesturedb" / "__init__.py"), cluster.code_identity()]
     main_py = site / "gesturedb" / "cli" / "main.py"
     main_py.write_text(main_py.read_text() + "\n# changed\n")
-    assert cluster.tree_hash(str(site / "gesturedb"), str(site / "gesturedb" / "cli")) != cluster.code_identity()
+    assert cluster.tree_hash(str(site / "gesturedb")) != cluster.code_identity()
 
 
 # ---------------------------------------------------------------- a cluster failing under a build (issue 41, case 11)

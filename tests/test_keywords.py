@@ -1,4 +1,4 @@
-"""Keyword sub-databases (gesturedb.db.keywords, cli/keywords.py).
+"""Keyword sub-databases (gesturedb.db.keywords, gesturedb.cli.keywords).
 
 Hand-made databases (recordings + words only) pin the stretch arithmetic, the
 whole-word matching and the per-step choice against brute force in exact
@@ -75,13 +75,10 @@ def _brute_frames(a_s, b_s, fps, n_frames) -> set[int]:
 
 
 def _cli_module(name):
-    """A command module: installed as gesturedb.cli.<name>, or cli/<name>.py in a source checkout."""
+    """A command module, gesturedb.cli.<name>."""
     import importlib
 
-    try:
-        return importlib.import_module(f"gesturedb.cli.{name}")
-    except ImportError:
-        return importlib.import_module(f"cli.{name}")
+    return importlib.import_module(f"gesturedb.cli.{name}")
 
 
 def _sha(path) -> str:
@@ -90,7 +87,7 @@ def _sha(path) -> str:
 
 
 def _cli(argv, capsys):
-    """Run `gesturedb keywords ...` through the module's own parser, as cli/main.py will."""
+    """Run `gesturedb keywords ...` through the module's own parser, as gesturedb.cli.main will."""
     cli_kw = _cli_module("keywords")
     parser = argparse.ArgumentParser(prog="gesturedb")
     sub = parser.add_subparsers(dest="command", required=True)

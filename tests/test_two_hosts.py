@@ -5,8 +5,8 @@ in a network namespace of its own, with its own address reached over a veth pair
 machine on a LAN), and a mount namespace of its own: an empty private /tmp, so none of the
 files this session writes (databases, shard files, pair lists) is visible there, and its own
 copy of the real recordings at the same path (as a folder copied to it), and its own copy of
-gesturedb, laid out as pip installs it (gesturedb/cli inside the package, not the checkout's
-cli/ folder). What the two share is the kernel and the virtualenv's other packages.
+gesturedb, laid out as pip installs it. What the two share is the kernel and the virtualenv's
+other packages.
 
 This is what the hand-started workers of `test_build_cluster.py` cannot show: a worker that
 does not see the client's files. Each test runs a command the way a user would on two
@@ -57,13 +57,8 @@ exec "$@"
 def _installed_copy(dest) -> None:
     """gesturedb (the package this process imported, with its extension) as pip installs it,
     gesturedb.cli inside it, in ``dest``."""
-    import importlib.util
-
     skip = shutil.ignore_patterns("__pycache__")
     shutil.copytree(os.path.dirname(gesturedb.__file__), dest / "gesturedb", ignore=skip)
-    if not (dest / "gesturedb" / "cli").is_dir():  # a checkout: cli/ lives beside the package
-        shutil.copytree(importlib.util.find_spec("gesturedb.cli").submodule_search_locations[0],
-                        dest / "gesturedb" / "cli", ignore=skip)
 
 
 def _run(*cmd, **kw):

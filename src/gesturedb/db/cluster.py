@@ -269,31 +269,21 @@ def code_identity() -> str:
 
 @functools.lru_cache(maxsize=1)
 def _source_hash() -> str:
-    import importlib.util
-
-    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    cli = importlib.util.find_spec("gesturedb.cli").submodule_search_locations[0]
-    return tree_hash(package, cli)
+    return tree_hash(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-def tree_hash(package: str, cli: str) -> str:
-    """The hash of :func:`code_identity` over the ``.py`` files of the folders ``package``
-    (gesturedb) and ``cli`` (gesturedb.cli), each file by its path in an installed package.
-
-    gesturedb.cli lives in ``cli/`` at the top of a checkout and installs as ``gesturedb/cli/``:
-    an editable install and a wheel of the same sources must hash alike (walking the package
-    folder alone gave them different hashes, and a client in a checkout refused workers that
-    had installed the same commit with pip)."""
+def tree_hash(package: str) -> str:
+    """The hash of :func:`code_identity` over the ``.py`` files under the folder ``package``
+    (gesturedb, its CLI included), each file by its path inside the package: an editable
+    install and a wheel of the same sources hash alike."""
     h = hashlib.sha256()
-    skip = os.path.realpath(cli)
-    for top, prefix in ((package, ""), (cli, "cli")):
-        for folder, dirs, files in os.walk(top):
-            dirs[:] = sorted(d for d in dirs if os.path.realpath(os.path.join(folder, d)) != skip)
-            for name in sorted(f for f in files if f.endswith(".py")):
-                path = os.path.join(folder, name)
-                h.update(os.path.join(prefix, os.path.relpath(path, top)).encode())
-                with open(path, "rb") as f:
-                    h.update(f.read())
+    for folder, dirs, files in os.walk(package):
+        dirs.sort()
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(folder, name)
+            h.update(os.path.relpath(path, package).encode())
+            with open(path, "rb") as f:
+                h.update(f.read())
     return h.hexdigest()[:16]
 
 
