@@ -257,8 +257,20 @@ def test_a_checkpoint_for_another_skeleton_is_refused(scott_db, tmp_path):
     tr = Trainer(_tiny_data(), TrainConfig(width=8), database_identity(scott_db),
                  dict(feats, joint_names=feats["joint_names"][:-1], parents=feats["parents"][:-1]))
     tr.save(tmp_path / "other.pt")
-    with pytest.raises(InputFileError, match="other.pt.*skeleton joints: the refiner was trained for"):
+    last = feats["joint_names"][-1]
+    n = len(feats["joint_names"])
+    with pytest.raises(InputFileError, match=rf"other.pt.*skeleton joints: the refiner was trained for {n - 1} entries, "
+                                             rf"database .* has {n}; only in the database: entry {n - 1} '{last}'; "):
         Refiner.load(tmp_path / "other.pt", db=scott_db)
+    # same length, one joint renamed: the message names it, not "different entries"
+    names = list(feats["joint_names"])
+    old, names[3] = names[3], "Renamed"
+    Trainer(_tiny_data(), TrainConfig(width=8), database_identity(scott_db),
+            dict(feats, joint_names=names)).save(tmp_path / "renamed.pt")
+    with pytest.raises(InputFileError, match=rf"skeleton joints: the refiner was trained for {n} entries, database .* "
+                                             rf"has {n}; 1 of the first {n} differ: entry 3: 'Renamed' \(refiner\) vs "
+                                             rf"'{old}' \(database\); train a refiner"):
+        Refiner.load(tmp_path / "renamed.pt", db=scott_db)
 
 
 def test_without_torch_the_commands_say_how_to_install(tmp_path):

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from gesturedb.errors import GestureDBError, InputFileError, ParameterError
+from gesturedb.errors import GestureDBError, InputFileError, ParameterError, echo, echo_list
 from gesturedb.io.atomic import atomic_open
 from gesturedb.io.joints import leg_joints
 from gesturedb.refiner.data import (STRIDE, WINDOW, TrainingData, cache_settings, database_identity, feature_identity,
@@ -401,10 +401,27 @@ def check_compatible(ck: dict, db, path) -> None:
         if got.get(key) != want[key]:
             what = {"joint_names": "skeleton joints", "parents": "skeleton hierarchy"}.get(key, key)
             a, b = got.get(key), want[key]
-            if isinstance(a, list):
-                a, b = f"{len(a)} entries", f"{len(b)} entries" if len(a) != len(b) else "different entries"
-            raise InputFileError(path, f"{what}: the refiner was trained for {a}, database {db.path} has {b}; "
-                                       "train a refiner on this database")
+            if isinstance(a, list) and isinstance(b, list):
+                raise InputFileError(path, f"{what}: the refiner was trained for {len(a)} entries, database {db.path} "
+                                           f"has {len(b)}; {_list_difference(a, b)}; train a refiner on this database")
+            raise InputFileError(path, f"{what}: the refiner was trained for {echo(a)}, database {db.path} has "
+                                       f"{echo(b)}; train a refiner on this database")
+
+
+def _list_difference(trained: list, database: list) -> str:
+    """Which entries of two lists differ, for a message: by position, then what only one side has.
+
+    ``1 of the first 55 differ: entry 3: 'LeftHand' (refiner) vs 'L_Hand' (database); only in the database: entry 55 'Jaw'``;
+    `echo_list` names the first `MAX_ECHO_ITEMS` of each kind and counts the rest.
+    """
+    n = min(len(trained), len(database))
+    changed = [f"entry {i}: {echo(trained[i])} (refiner) vs {echo(database[i])} (database)"
+               for i in range(n) if trained[i] != database[i]]
+    parts = [f"{len(changed)} of the first {n} differ: {echo_list(changed)}"] if changed else []
+    for side, longer in (("the refiner", trained), ("the database", database)):
+        if len(longer) > n:
+            parts.append(f"only in {side}: {echo_list([f'entry {i} {echo(longer[i])}' for i in range(n, len(longer))])}")
+    return "; ".join(parts) or "same entries"
 
 
 def check_output(out_path, *, resume: bool, overwrite: bool) -> None:
