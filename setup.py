@@ -79,6 +79,8 @@ setup(
                  'atheris>=2.3; platform_system == "Linux" and platform_machine == "x86_64"'],
         # the cGAN refiner; the CPU build of torch is pinned (a plain `torch` pulls GBs of CUDA)
         "refiner": ["torch==2.13.0"],
+        # the docs site (mkdocs.yml): built with --strict by scripts/test.sh, the API pages from the docstrings
+        "docs": ["mkdocs==1.6.1", "mkdocstrings>=0.26", "mkdocstrings-python>=1.12", "mkdocs-material>=9.5"],
     },
     entry_points={"console_scripts": ["gesturedb=gesturedb.cli.main:main"]},
 )

@@ -6,4 +6,5 @@ bash scripts/setup.sh
 . scripts/venv.sh  # the environment setup.sh installed into: its pytest, lint-imports and gesturedb
 # the layers contract (.importlinter): a stage importing a stage above it fails here
 lint-imports --no-cache
+NO_MKDOCS_2_WARNING=1 mkdocs build --strict --quiet --site-dir "$(mktemp -d)"  # the docs site: a broken link or docstring fails
 exec pytest -q "$@"
