@@ -128,26 +128,52 @@ def short_speech(scott_dir, tmp_path):
     return wav, scott_dir / "2_scott_0_1_1.TextGrid"
 
 
-def test_transcript_longer_than_the_audio_warns(scott_db, short_speech, tmp_path, capsys):
-    from gesturedb.synth import Searcher
-
+def test_transcript_longer_than_the_audio_is_refused_unless_accepted(scott_db, short_speech, tmp_path, capsys):
     from gesturedb.io import read_transcript
+    from gesturedb.io.transcripts import FIT_TOLERANCE_S
+    from gesturedb.synth import Searcher
+    from gesturedb.synth.graph import GraphSynthesizer
 
     wav, tg = short_speech
     w = read_transcript(tg)
-    late = int((w.start_s >= 20.0).sum())
-    with pytest.warns(GestureDBWarning, match=rf"2_scott_0_1_1.TextGrid: the words run to {w.end_s.max():.2f} s but "
-                                              rf"the audio \(.*short.wav\) lasts 20.00 s; {late} of 199 words start "
-                                              "after it and are ignored"):
+    late = int((w.start_s > 20.0 + FIT_TOLERANCE_S).sum())
+    msg = (rf"2_scott_0_1_1.TextGrid: does not fit the audio \(.*short.wav\): the transcript ends at "
+           rf"{w.end_s.max():.2f} s, the audio is 20.00 s long: {late} of 199 words start more than 0.1 s after its "
+           r"end; the transcript was made for 64.10 s of speech \(its xmax\), the audio is 20.00 s long")
+    with pytest.raises(InputFileError, match=msg + r"\. A transcript of another recording\? To use it anyway pass "
+                                               r"--accept-transcript-mismatch \(accept_mismatch=True\)"):
         Searcher(scott_db).synthesize(wav, transcript=tg)
+    with pytest.raises(InputFileError, match="does not fit the audio"):
+        GraphSynthesizer(scott_db).synthesize(wav, transcript=tg)
+    # said so: a warning, and the words inside the audio drive the keyword steps
+    with pytest.warns(GestureDBWarning, match=msg + r" \(accepted; words that start after the audio's end are "
+                                                  r"ignored\)"):
+        Searcher(scott_db).synthesize(wav, transcript=read_transcript(tg, accept_mismatch=True))
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # its own transcript fits: no warning
+        warnings.simplefilter("error")  # its own words (a selection: no declared length) fit: no warning
         Searcher(scott_db).synthesize(wav, transcript=_words_until(tg, 20.0))
-    # the command line says it in one line
-    assert main(["synth", str(scott_db.path), "--audio", str(wav), "--transcript", str(tg),
-                 "-o", str(tmp_path / "o.bvh")]) == 0
+    # the command line refuses it, names the flag, and writes nothing
+    out = tmp_path / "o.bvh"
+    args = ["synth", str(scott_db.path), "--audio", str(wav), "--transcript", str(tg), "-o", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "does not fit the audio" in err and "--accept-transcript-mismatch" in err and not out.exists()
+    # with the flag it says so in one line and synthesizes
+    assert main(args + ["--accept-transcript-mismatch"]) == 0
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("gesturedb synth: warning: ") and "lasts 20.00 s" in err[0]
+    assert len(err) == 1 and err[0].startswith("gesturedb synth: warning: ") and "audio is 20.00 s long" in err[0]
+    assert out.exists()
+
+
+def test_transcript_of_a_shorter_recording_is_refused(scott_db, scott_dir, capsys, tmp_path):
+    """Every word of another, shorter take lies inside the audio: its TextGrid's declared length gives it away."""
+    from gesturedb.synth import Searcher
+
+    wav, tg = scott_dir / "inputs/2_scott_0_3_3.wav", scott_dir / "inputs/2_scott_0_2_2.TextGrid"
+    with pytest.raises(InputFileError, match=r"2_scott_0_2_2.TextGrid: does not fit the audio \(.*2_scott_0_3_3.wav\):"
+                                             r" the transcript was made for 62.00 s of speech \(its xmax\), the audio "
+                                             r"is 68.00 s long\. A transcript of another recording\?"):
+        Searcher(scott_db).synthesize(wav, transcript=tg)
 
 
 def _words_until(tg, end_s):

@@ -248,3 +248,49 @@ def test_words_container():
         Words(np.array([0.0]), np.array([0.4, 0.3]), ["a", "b"])
     empty = Words(np.zeros(0), np.zeros(0), [])
     assert len(empty) == 0 and len(empty.between(0, 10)) == 0
+
+
+# --- does a transcript fit its audio ------------------------------------------------------
+
+def test_declared_length_comes_from_the_textgrid_and_selections_drop_it(scott_dir, data_dir):
+    import soundfile as sf
+
+    for tg in [scott_dir / "2_scott_0_1_1.TextGrid", *sorted((scott_dir / "inputs").glob("*.TextGrid"))]:
+        w = read_transcript(tg)
+        # the aligner wrote the length of the audio it was given
+        assert abs(w.duration_s - sf.info(tg.with_suffix(".wav")).duration) < 1e-3, tg
+        assert w.accept_mismatch is False
+    assert read_transcript(data_dir / "genea2023-transcripts/trn_2023_v0_000_main-agent.tsv").duration_s is None
+    w = read_transcript(scott_dir / "2_scott_0_1_1.TextGrid", accept_mismatch=True)
+    for part in (w[:10], w[w.start_s < 5], w.between(0, 5), w[3]):
+        assert part.duration_s is None and part.accept_mismatch is True
+
+
+def test_check_words_fit_tolerance_and_acceptance():
+    import warnings
+
+    from gesturedb.errors import GestureDBWarning
+    from gesturedb.io.transcripts import FIT_TOLERANCE_S, check_words_fit
+
+    w = Words([0.5, 9.0, 9.9 + FIT_TOLERANCE_S], [1.0, 9.5, 11.0], ["a", "b", "c"], source="t.tsv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_words_fit(w, 9.9)  # the last word starts within the tolerance, ends past the audio: fits
+    with pytest.raises(InputFileError, match=r"^t.tsv: does not fit the audio \(s.wav\): the transcript ends at "
+                                             r"11.00 s, the audio is 9.70 s long: 1 of 3 words start more than 0.1 s "
+                                             r"after its end\. A transcript of another recording\? To use it anyway "
+                                             r"pass --accept-transcript-mismatch \(accept_mismatch=True\)$"):
+        check_words_fit(w, 9.7, audio="s.wav")
+    with pytest.warns(GestureDBWarning, match=r"t.tsv: does not fit the audio: .* \(accepted; words that start"):
+        check_words_fit(w, 9.7, accept_mismatch=True)
+    # a declared length that differs: refused even with every word inside
+    tg = Words(w.start_s, w.end_s, w.text, source="t.TextGrid", duration_s=12.0)
+    check_words_fit(tg, 12.0 - FIT_TOLERANCE_S / 2)
+    with pytest.raises(InputFileError, match=r"the transcript was made for 12.00 s of speech \(its xmax\), the audio "
+                                             r"is 20.00 s long\. A transcript"):
+        check_words_fit(tg, 20.0)
+    with pytest.warns(GestureDBWarning, match=r"made for 12.00 s .* \(accepted\)$"):
+        check_words_fit(Words(w.start_s, w.end_s, w.text, duration_s=12.0, accept_mismatch=True), 20.0)
+    # no word inside the audio: nothing to use, refused even when accepted
+    with pytest.raises(InputFileError, match="expected words inside the audio"):
+        check_words_fit(w, 0.4, accept_mismatch=True)

@@ -18,6 +18,9 @@ def add_parser(sub) -> None:
     p.add_argument("db", metavar="DB.h5")
     p.add_argument("--audio", required=True, metavar="SPEECH.wav")
     p.add_argument("--transcript", default=None, metavar="WORDS", help="TextGrid/TSV/JSON word timings (for keywords)")
+    p.add_argument("--accept-transcript-mismatch", action="store_true",
+                   help="use --transcript even where it does not fit the audio (words starting after the audio's "
+                   "end, or a TextGrid made for speech of another length): a warning instead of an error")
     p.add_argument("-o", "--output", required=True, metavar="OUT.bvh|OUT.glb")
     p.add_argument("--npz", default=None, metavar="OUT.npz", help="also write joint positions (T, J, 3) in metres")
     p.add_argument("--provenance", default=None, metavar="OUT.json",
@@ -80,6 +83,10 @@ def run(args) -> int:
                    "speech beside the .glb": speech},
                   [args.db, args.audio, args.transcript, getattr(args, "target_skeleton", None)])
     load_target(args)  # a broken rig fails now, not after the synthesis
+    if args.transcript and args.accept_transcript_mismatch:
+        from gesturedb.io import read_transcript
+
+        args.transcript = read_transcript(args.transcript, accept_mismatch=True)
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
     from gesturedb.db.cluster import optional_client

@@ -19,7 +19,8 @@ import numpy as np
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.io.text import read_text_lines
 
-__all__ = ["Words", "read_genea_tsv", "read_json_words", "read_textgrid", "read_transcript", "normalize_word"]
+__all__ = ["FIT_TOLERANCE_S", "Words", "check_words_fit", "read_genea_tsv", "read_json_words", "read_textgrid",
+           "read_transcript", "normalize_word"]
 
 _SILENCE = frozenset({"sil", "sp", "spn", "sil>", "<sil>", "<sp>", "<spn>", "<p:>", "#"})
 _PUNCT = re.compile(r"[^\w\s']|_")
@@ -61,6 +62,15 @@ class Words:
         Normalised words (see `normalize_word`).
     source : str or None
         The file the words came from.
+    duration_s : float or None
+        Length of the speech the timings were made for, seconds, where the file
+        says (a TextGrid's ``xmax``); None for TSV and JSON, and for a selection
+        of words (slicing drops it: a selection no longer claims to be the
+        whole transcript of that speech).
+    accept_mismatch : bool
+        Use these words with speech they do not fit (`check_words_fit` warns
+        instead of refusing them); ``read_transcript(..., accept_mismatch=True)``,
+        ``gesturedb synth --accept-transcript-mismatch``. Kept by slicing.
 
     Raises
     ------
@@ -73,6 +83,8 @@ class Words:
     end_s: np.ndarray
     text: list
     source: str | None = None
+    duration_s: float | None = None
+    accept_mismatch: bool = False
 
     def __post_init__(self):
         self.start_s = np.asarray(self.start_s, dtype=np.float64).reshape(-1)
@@ -96,7 +108,8 @@ class Words:
                 raise IndexError(f"word {item} out of range for {n} words")
             item = slice(item % n, item % n + 1)
         if isinstance(item, slice):
-            return Words(self.start_s[item], self.end_s[item], self.text[item], self.source)
+            return Words(self.start_s[item], self.end_s[item], self.text[item], self.source,
+                         accept_mismatch=self.accept_mismatch)
         idx = np.asarray(item)
         if idx.dtype == bool:
             if idx.shape != (len(self),):
@@ -104,7 +117,8 @@ class Words:
             idx = np.flatnonzero(idx)
         elif not np.issubdtype(idx.dtype, np.integer) or idx.ndim != 1:
             raise ParameterError(f"Words[...]: expected a slice, int, boolean mask or 1-d int array; got {item!r}")
-        return Words(self.start_s[idx], self.end_s[idx], [self.text[i] for i in idx], self.source)
+        return Words(self.start_s[idx], self.end_s[idx], [self.text[i] for i in idx], self.source,
+                     accept_mismatch=self.accept_mismatch)
 
     def __iter__(self):
         """Iterate over ``(start_s, end_s, text)`` tuples."""
@@ -141,7 +155,7 @@ def _check_times(start, end, text) -> tuple[int, str] | None:
     return None
 
 
-def _build(path, rows) -> Words:
+def _build(path, rows, duration_s: float | None = None) -> Words:
     """rows: (start, end, raw text, where) -> validated Words; ``where`` names the line/entry for errors.
 
     Besides what :class:`Words` checks (finite, end not before start, starts in order), a
@@ -162,7 +176,7 @@ def _build(path, rows) -> Words:
     if problem:
         i, msg = problem
         raise InputFileError(path, f"{kept[i][3]}: {msg}")
-    return Words(start, end, text, os.fspath(path))
+    return Words(start, end, text, os.fspath(path), duration_s)
 
 
 def read_textgrid(path, *, tier: str = "words") -> Words:
@@ -207,7 +221,9 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
     if not isinstance(t, textgrid.IntervalTier):
         raise InputFileError(path, f"tier {match[0]!r}: expected an interval tier, got a point tier")
     rows = [(e.start, e.end, e.label, f"tier {match[0]!r} interval {k + 1}") for k, e in enumerate(t.entries)]
-    return _build(path, rows)
+    # xmin..xmax: the stretch of speech the TextGrid was made for (Praat and aligners write the audio's length)
+    span = float(tg.maxTimestamp) - float(tg.minTimestamp)
+    return _build(path, rows, span if math.isfinite(span) and span > 0 else None)
 
 
 _TEXTGRID_TIME = re.compile(r"\s*(xmin|xmax|number)\s*=\s*(\S+)\s*$")
@@ -357,17 +373,31 @@ def read_json_words(path) -> Words:
 _READERS = {".textgrid": read_textgrid, ".tsv": read_genea_tsv, ".json": read_json_words}
 
 
-#: a transcript may run this many seconds past the end of its audio before a warning says so
-MAX_OVERRUN_S = 1.0
+#: How far (s) a transcript's times may disagree with its audio before the transcript counts as
+#: another recording's: a word may start this long after the audio's end, and a TextGrid's declared
+#: length (``xmax``) may differ from the audio's by this much. Transcripts write times to
+#: milliseconds or centiseconds and forced aligners step in 10 ms frames; 0.1 s covers that
+#: rounding (the BEAT2 TextGrids declare their audio's length to the sample) and is less than half a
+#: median word (0.20-0.28 s in the BEAT2 and GENEA transcripts of ../shared/data).
+FIT_TOLERANCE_S = 0.1
 
 
-def check_words_fit(words: Words, duration_s: float, *, audio=None) -> None:
-    """Check that word timings belong to speech of ``duration_s`` seconds.
+def check_words_fit(words: Words, duration_s: float, *, audio=None, accept_mismatch: bool | None = None) -> None:
+    """Refuse word timings that do not belong to speech of ``duration_s`` seconds.
 
-    A transcript of another file, or of a longer take, silently shifts every
-    keyword step; so this warns (:class:`gesturedb.errors.GestureDBWarning`)
-    when the last word ends more than ``MAX_OVERRUN_S`` (1 s) after the audio,
-    and refuses a transcript with no word starting inside the audio.
+    A transcript of another file, or of a longer take, silently shifts every keyword
+    step. The words do not fit the speech when
+
+    - a word starts more than `FIT_TOLERANCE_S` after the speech ends (the transcript
+      times speech the audio does not have), or
+    - the transcript declares the length of the speech it was made for (a TextGrid's
+      ``xmax``, `Words.duration_s`) and it differs from ``duration_s`` by more than
+      `FIT_TOLERANCE_S` (a transcript of a shorter recording has all its words inside).
+
+    The last word may end past the speech (audio cut mid-word). With ``accept_mismatch``
+    the same message is a :class:`gesturedb.errors.GestureDBWarning` and the words that
+    start inside the speech are used. A transcript with no word starting inside the
+    speech is refused either way: it has nothing to use.
 
     Parameters
     ----------
@@ -376,11 +406,15 @@ def check_words_fit(words: Words, duration_s: float, *, audio=None) -> None:
         Length of the speech, seconds.
     audio : str, optional
         The speech file, for the messages.
+    accept_mismatch : bool, optional
+        Use the words anyway (default: ``words.accept_mismatch``, set by
+        ``read_transcript(..., accept_mismatch=True)``).
 
     Raises
     ------
     InputFileError
-        If words exist but none starts before ``duration_s``.
+        Naming the transcript, the audio, the transcript's end (or declared length) and
+        the audio's length, unless the mismatch is accepted.
     """
     import warnings
 
@@ -388,20 +422,34 @@ def check_words_fit(words: Words, duration_s: float, *, audio=None) -> None:
 
     if len(words) == 0:
         return
+    if accept_mismatch is None:
+        accept_mismatch = words.accept_mismatch
     where = words.source or "transcript"
     of = f" ({audio})" if audio else ""
     first, last = float(words.start_s.min()), float(words.end_s.max())
     if first >= duration_s:
         raise InputFileError(where, f"words: expected words inside the audio{of}, which lasts {duration_s:.2f} s; "
                                     f"got {len(words)} words from {first:.2f} to {last:.2f} s (another file's transcript?)")
-    if last > duration_s + MAX_OVERRUN_S:
-        inside = int((words.start_s < duration_s).sum())
-        warnings.warn(GestureDBWarning(
-            f"{where}: the words run to {last:.2f} s but the audio{of} lasts {duration_s:.2f} s; "
-            f"{len(words) - inside} of {len(words)} words start after it and are ignored"), stacklevel=2)
+    problems = []
+    late = int((words.start_s > duration_s + FIT_TOLERANCE_S).sum())
+    if late:
+        problems.append(f"the transcript ends at {last:.2f} s, the audio is {duration_s:.2f} s long: {late} of "
+                        f"{len(words)} words start more than {FIT_TOLERANCE_S:g} s after its end")
+    declared = words.duration_s
+    if declared is not None and abs(declared - duration_s) > FIT_TOLERANCE_S:
+        problems.append(f"the transcript was made for {declared:.2f} s of speech (its xmax), the audio is "
+                        f"{duration_s:.2f} s long")
+    if not problems:
+        return
+    text = f"does not fit the audio{of}: {'; '.join(problems)}"
+    if not accept_mismatch:
+        raise InputFileError(where, f"{text}. A transcript of another recording? To use it anyway pass "
+                                    "--accept-transcript-mismatch (accept_mismatch=True)")
+    ignored = "; words that start after the audio's end are ignored" if late else ""
+    warnings.warn(GestureDBWarning(f"{where}: {text} (accepted{ignored})"), stacklevel=2)
 
 
-def read_transcript(path) -> Words:
+def read_transcript(path, *, accept_mismatch: bool = False) -> Words:
     """Read word timings, choosing the reader by extension.
 
     ``.TextGrid`` -> `read_textgrid` (tier ``words``), ``.tsv`` ->
@@ -410,6 +458,9 @@ def read_transcript(path) -> Words:
     Parameters
     ----------
     path : str or os.PathLike
+    accept_mismatch : bool
+        Mark the words to be used even with speech they do not fit
+        (`check_words_fit` then warns instead of refusing them).
 
     Returns
     -------
@@ -425,4 +476,6 @@ def read_transcript(path) -> Words:
     if reader is None:
         raise InputFileError(path, f"unknown transcript extension {ext or '(none)'!r}; expected .TextGrid, .tsv "
                                    "or .json")
-    return reader(path)
+    words = reader(path)
+    words.accept_mismatch = bool(accept_mismatch)
+    return words
