@@ -110,7 +110,7 @@ def run(args) -> int:
                             root_positions=motion.root_positions)
         if abs(motion.fps - db.fps) > 1e-6:
             motion = motion.resample(db.fps)
-        samples, sr = read_audio(args.audio, sr=int(db.config.get("sample_rate", 16000)))
+        samples, sr = read_audio(args.audio, sr=db.sample_rate)
         query = Searcher(db).query_features(samples, sr)
         T = min(query.shape[0], motion.n_frames)
         if abs(query.shape[0] - motion.n_frames) > db.fps:

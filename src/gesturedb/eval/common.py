@@ -116,7 +116,7 @@ def _fmt(v, spec: str) -> str:
 def _read_samples(db, audio, sr):
     from gesturedb.io.audio import read_audio
 
-    rate = int(db.config.get("sample_rate", 16000))
+    rate = db.sample_rate
     if isinstance(audio, (str, os.PathLike)):
         y, r = read_audio(audio, sr=rate)
         return y, r, os.fspath(audio)

@@ -980,7 +980,7 @@ def evaluate_holdout(
     try:
         db = gesturedb.build(train, db_path, mirror=mirror, **(build_options or {}))
         with db:
-            rate = int(db.config.get("sample_rate", 16000))
+            rate = db.sample_rate
             y, sr = read_audio(held.audio, sr=rate)
             samples = y[int(round(holdout_start_s * sr)): int(round(end_s * sr))]
             words = _cut_words(read_transcript(held.transcript), holdout_start_s, end_s) if held.transcript else None
