@@ -45,6 +45,8 @@ setup(
     # checkout's parent, `import gesturedb` found the source folder as a namespace package)
     package_dir={"": "src"},
     packages=find_packages("src"),
+    # the browser studio's page, script and audio worklet (three.js comes from Debian's libjs-three)
+    package_data={"gesturedb.serve": ["studio/*"]},
     ext_modules=[core],
     cmdclass={"build_ext": build_ext},
     install_requires=[
@@ -79,6 +81,11 @@ setup(
                  'atheris>=2.3; platform_system == "Linux" and platform_machine == "x86_64"'],
         # the cGAN refiner; the CPU build of torch is pinned (a plain `torch` pulls GBs of CUDA)
         "refiner": ["torch==2.13.0"],
+        # gesturedb serve: the ASGI app (Starlette on uvicorn; websockets is uvicorn's WebSocket layer and the
+        # sync client of gesturedb.serve.client; python-multipart parses POST /synth uploads); httpx2 is what
+        # Starlette's in-process TestClient speaks, selenium drives Debian's chromium in tests/test_studio.py
+        "serve": ["starlette>=0.40", "uvicorn>=0.30", "websockets>=13", "python-multipart>=0.0.9",
+                  "httpx2>=2.0", "selenium>=4.20"],
         # the docs site (mkdocs.yml): built with --strict by scripts/test.sh, the API pages from the docstrings
         "docs": ["mkdocs==1.6.1", "mkdocstrings>=0.26", "mkdocstrings-python>=1.12", "mkdocs-material>=9.5"],
     },

@@ -9,7 +9,9 @@ cd "$(dirname "$0")/.."
 # VTK's PyPI wheel renders offscreen through EGL but ships no GL driver: it needs
 # Debian's EGL loader and Mesa's software rasterizer (see docs/rendering.md).
 need=()
-for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri; do
+# gesturedb serve's studio draws with Debian's three.js (libjs-three) and is tested in Debian's
+# chromium driven through chromium-driver (tests/test_studio.py): no browser or script from elsewhere.
+for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri chromium chromium-driver libjs-three; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if ((${#need[@]})); then

@@ -23,6 +23,7 @@ COMMANDS = {
     "refiner": "refiner",
     "graph": "graph",
     "shard": "shard",
+    "serve": "serve",
 }
 
 

@@ -1,0 +1,295 @@
+"""One WebSocket stream: audio and control messages in, frames and provenance out.
+
+A session owns its synthesizer and nothing else: whatever a client sends ends, at
+worst, its own stream with an error message and a close code; the other streams and
+the shared database never see it. Every blocking call into the synthesizer runs in
+a worker thread so that the event loop keeps serving the others.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+
+import anyio
+import numpy as np
+from starlette.concurrency import run_in_threadpool
+from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
+
+from gesturedb.errors import GestureDBError, ParameterError, echo
+from gesturedb.serve import protocol as P
+
+log = logging.getLogger("gesturedb.serve")
+
+#: Most words one ``words`` message may carry, and the longest word.
+MAX_WORDS_PER_MESSAGE = 10000
+MAX_WORD_CHARS = 100
+
+
+class _Close(Exception):
+    """End this session: send an error message (when ``code_name``), then close with ``close_code``."""
+
+    def __init__(self, close_code: int, code_name: str | None = None, message: str = ""):
+        super().__init__(message)
+        self.close_code, self.code_name, self.message = close_code, code_name, message
+
+
+class StreamSession:
+    """Serve one WebSocket connection (see ``docs/live.md`` for the protocol).
+
+    Parameters
+    ----------
+    state : gesturedb.serve.app.ServerState
+        What all sessions share: the database, the limits, the stream factory, the result store.
+    websocket : starlette.websockets.WebSocket
+        Accepted already.
+    """
+
+    def __init__(self, state, websocket: WebSocket):
+        self.state, self.ws = state, websocket
+        self.limits = state.limits
+        self.stream = None
+        self.fmt = None
+        self.sample_rate = None
+        self.n_samples = 0
+        self.errors = 0
+        self.n_sent = 0
+        self.control = None
+        self._roots: list[np.ndarray] = []
+        self._rots: list[np.ndarray] = []
+        self._steps: list[dict] = []
+
+    # -- the loop -------------------------------------------------------------
+    async def run(self) -> None:
+        try:
+            await self._serve()
+        except _Close as c:
+            await self._close(c)
+        except WebSocketDisconnect:
+            pass  # the client left; its stream is dropped with it
+        except Exception as exc:  # a bug in the synthesizer or here: this stream ends, the server goes on
+            log.exception("stream failed")
+            await self._close(_Close(P.CLOSE_INTERNAL, "internal", f"the synthesizer failed: {type(exc).__name__}: "
+                                                                   f"{echo(str(exc))}"))
+
+    async def _serve(self) -> None:
+        start = await self._receive()
+        await self._start(start)
+        while True:
+            msg = await self._receive()
+            if "bytes" in msg and msg["bytes"] is not None:
+                await self._audio(msg["bytes"])
+                continue
+            req = await self._json(msg.get("text"))
+            if req is None:
+                continue
+            kind = req.get("type")
+            if kind == "control":
+                await self._control(req)
+            elif kind == "words":
+                await self._words(req)
+            elif kind == "end":
+                await self._end()
+                return
+            elif kind == "ping":
+                await self._send_json({"type": "pong", "frames": self.n_sent})
+            else:
+                await self._reject("bad_message", f"unknown message type {echo(kind)!s}; expected control, words, "
+                                                  "end, ping or binary audio")
+
+    async def _receive(self) -> dict:
+        """The next client message, within the idle limit and the size limit."""
+        try:
+            with anyio.fail_after(self.limits.idle_s):
+                msg = await self.ws.receive()
+        except TimeoutError:
+            raise _Close(P.CLOSE_POLICY, "idle", f"no message for {self.limits.idle_s:g} s; the stream is closed") \
+                from None
+        if msg["type"] == "websocket.disconnect":
+            raise WebSocketDisconnect(msg.get("code", 1000))
+        data = msg.get("bytes") if msg.get("bytes") is not None else (msg.get("text") or "")
+        size = len(data) if isinstance(data, (bytes, bytearray)) else len(data.encode("utf-8", "surrogatepass"))
+        if size > self.limits.max_message_bytes:
+            raise _Close(P.CLOSE_TOO_BIG, "too_big", f"message of {size} bytes; the limit is "
+                                                     f"{self.limits.max_message_bytes} bytes (send audio in chunks)")
+        return msg
+
+    async def _json(self, text) -> dict | None:
+        """The JSON object of a text message; None (and an error message to the client) for anything else."""
+        try:
+            req = json.loads(text)
+            problem = None if isinstance(req, dict) else "a JSON object"
+        except (TypeError, ValueError, RecursionError) as exc:
+            req, problem = None, f"JSON text ({type(exc).__name__})"
+        if problem is None:
+            return req
+        if self.stream is None:
+            raise _Close(P.CLOSE_POLICY, "bad_message", f"expected a JSON start message; got {echo(text)}")
+        await self._reject("bad_message", f"expected {problem} or binary audio; got {echo(text)}")
+        return None
+
+    # -- messages -------------------------------------------------------------
+    async def _start(self, msg: dict) -> None:
+        if "bytes" in msg and msg["bytes"] is not None:
+            raise _Close(P.CLOSE_POLICY, "bad_message", f"expected a JSON start message first; got {len(msg['bytes'])} "
+                                                        "bytes of binary data")
+        req = await self._json(msg.get("text"))
+        if req.get("type") != "start":
+            raise _Close(P.CLOSE_POLICY, "bad_message", f"expected a start message first; got type {echo(req.get('type'))}")
+        proto = req.get("protocol", P.PROTOCOL_VERSION)
+        if proto != P.PROTOCOL_VERSION:
+            raise _Close(P.CLOSE_POLICY, "bad_protocol", f"protocol {echo(proto)} requested; this server speaks "
+                                                         f"{P.PROTOCOL_VERSION}")
+        rate = req.get("sample_rate")
+        if isinstance(rate, bool) or not isinstance(rate, int) or not P.MIN_SAMPLE_RATE <= rate <= P.MAX_SAMPLE_RATE:
+            raise _Close(P.CLOSE_POLICY, "bad_rate", f"sample_rate: expected an integer from {P.MIN_SAMPLE_RATE} to "
+                                                     f"{P.MAX_SAMPLE_RATE} Hz; got {echo(rate)}")
+        fmt = req.get("format", "pcm16")
+        if fmt not in P.AUDIO_FORMATS:
+            raise _Close(P.CLOSE_POLICY, "bad_format", f"format: expected one of {', '.join(P.AUDIO_FORMATS)}; "
+                                                       f"got {echo(fmt)}")
+        control = req.get("control")
+        try:
+            control = self.state.check_control(control)
+        except ParameterError as exc:
+            raise _Close(P.CLOSE_POLICY, "bad_control", str(exc)) from None
+        factory = self.state.stream_factory
+        if factory is None:
+            raise _Close(P.CLOSE_INTERNAL, "unavailable", self.state.stream_unavailable)
+        self.fmt, self.sample_rate = fmt, rate
+        try:
+            self.stream = await run_in_threadpool(factory, self.state.db, sample_rate=rate)
+        except GestureDBError as exc:
+            raise _Close(P.CLOSE_POLICY, "bad_start", str(exc)) from None
+        if control is not None:
+            await run_in_threadpool(self.stream.set_control, control)
+        self.control = control
+        if req.get("words") is not None:
+            await self._words({"words": req["words"]})
+        sk = self.state.db.skeleton
+        await self._send_json({
+            "type": "ready", "protocol": P.PROTOCOL_VERSION, "layout": P.LAYOUT_VERSION,
+            "fps": float(self.stream.fps), "sample_rate": rate, "format": fmt,
+            "latency_s": float(self.stream.latency_s), "joints": sk.n_joints,
+            "frame_floats": P.frame_width(sk.n_joints), "control": control,
+            "limits": {"max_message_bytes": self.limits.max_message_bytes, "idle_s": self.limits.idle_s,
+                       "max_audio_s": self.limits.max_audio_s},
+        })
+
+    async def _audio(self, data: bytes) -> None:
+        if self.stream is None:  # cannot happen: _start ran first; kept as a guard for refactors
+            raise _Close(P.CLOSE_POLICY, "bad_message", "audio before the start message")
+        try:
+            samples = P.decode_audio(data, self.fmt)
+        except ParameterError as exc:
+            await self._reject("bad_audio", str(exc))
+            return
+        self.n_samples += samples.shape[0]
+        if self.n_samples > self.limits.max_audio_s * self.sample_rate:
+            raise _Close(P.CLOSE_POLICY, "too_long", f"the stream passed the limit of {self.limits.max_audio_s:g} s "
+                                                     "of speech; start a new one")
+        if samples.shape[0]:
+            await self._send_chunk(await run_in_threadpool(self.stream.push, samples))
+
+    async def _control(self, req: dict) -> None:
+        try:
+            control = self.state.check_control(req.get("control"))
+        except ParameterError as exc:
+            await self._reject("bad_control", f"{exc}; the stream keeps {echo(self.control)}")
+            return
+        await run_in_threadpool(self.stream.set_control, control)
+        self.control = control
+        await self._send_json({"type": "control", "control": control, "from_frame": self.n_sent})
+
+    async def _words(self, req: dict) -> None:
+        try:
+            words = check_words(req.get("words"))
+        except ParameterError as exc:
+            await self._reject("bad_words", str(exc))
+            return
+        if words:
+            await run_in_threadpool(self.stream.push_words, words)
+
+    async def _end(self) -> None:
+        await self._send_chunk(await run_in_threadpool(self.stream.finish))
+        token = None
+        if self.n_sent:
+            token = self.state.results.put(self._result())
+        await self._send_json({"type": "done", "frames": self.n_sent,
+                               "result": None if token is None else f"/result/{token}"})
+        await self._close(_Close(P.CLOSE_NORMAL))
+
+    # -- out ------------------------------------------------------------------
+    async def _send_chunk(self, chunk) -> None:
+        motion = getattr(chunk, "motion", None)
+        steps = list(getattr(chunk, "steps", None) or [])
+        n = 0 if motion is None else int(motion.rotations.shape[0])
+        if n == 0 and not steps:
+            return
+        J = self.state.db.skeleton.n_joints
+        root = np.zeros((0, 3), np.float32) if n == 0 else np.asarray(motion.root_positions, np.float32)
+        rot = np.zeros((0, J, 4), np.float32) if n == 0 else np.asarray(motion.rotations, np.float32)
+        start = int(getattr(chunk, "start", self.n_sent))
+        await self.ws.send_bytes(P.pack_frames(start, root, rot, steps))
+        if n:
+            self._roots.append(root)
+            self._rots.append(rot)
+            self.n_sent = start + n
+        self._steps.extend(P.json_safe(steps))
+
+    def _result(self):
+        from gesturedb.motion import Motion
+
+        return {"motion": Motion(self.state.db.skeleton, float(self.stream.fps), np.concatenate(self._rots),
+                                 np.concatenate(self._roots)),
+                "steps": self._steps}
+
+    async def _send_json(self, obj: dict) -> None:
+        await self.ws.send_text(json.dumps(P.json_safe(obj), allow_nan=False))
+
+    async def _reject(self, code: str, message: str) -> None:
+        """A message refused; the stream goes on (until too many are)."""
+        self._count_error()
+        await self._send_json({"type": "error", "code": code, "message": message, "fatal": False})
+
+    def _count_error(self) -> None:
+        self.errors += 1
+        if self.errors > self.limits.max_errors:
+            raise _Close(P.CLOSE_POLICY, "too_many_errors", f"more than {self.limits.max_errors} rejected messages; "
+                                                            "the stream is closed")
+
+    async def _close(self, c: _Close) -> None:
+        if self.ws.client_state != WebSocketState.CONNECTED:
+            return
+        try:
+            if c.code_name is not None:
+                log.info("stream closed: %s: %s", c.code_name, c.message)
+                await self._send_json({"type": "error", "code": c.code_name, "message": c.message, "fatal": True})
+            # a close reason is at most 123 bytes (RFC 6455)
+            reason = (c.code_name or "")[:123]
+            await self.ws.close(code=c.close_code, reason=reason)
+        except (WebSocketDisconnect, RuntimeError, OSError):
+            pass  # the client is gone already
+
+
+def check_words(words) -> list[tuple[float, float, str]]:
+    """``[[start_s, end_s, text], ...]`` from a client, checked: finite times, end >= start, short text.
+
+    Raises
+    ------
+    ParameterError
+    """
+    if not isinstance(words, list):
+        raise ParameterError(f"words: expected a list of [start_s, end_s, text]; got {echo(words)}")
+    if len(words) > MAX_WORDS_PER_MESSAGE:
+        raise ParameterError(f"words: expected at most {MAX_WORDS_PER_MESSAGE} words per message; got {len(words)}")
+    out = []
+    for i, w in enumerate(words):
+        ok = (isinstance(w, (list, tuple)) and len(w) == 3 and isinstance(w[2], str) and len(w[2]) <= MAX_WORD_CHARS
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in w[:2])
+              and 0 <= w[0] <= w[1])
+        if not ok:
+            raise ParameterError(f"words[{i}]: expected [start_s, end_s, text] with 0 <= start_s <= end_s and text of "
+                                 f"at most {MAX_WORD_CHARS} characters; got {echo(w)}")
+        out.append((float(w[0]), float(w[1]), w[2]))
+    return out
