@@ -1,7 +1,8 @@
 """`gesturedb render INPUT... -o out.{mp4,gif,png}`: skeletons side by side, with speech and subtitles.
 
 Inputs: a BVH file, an npz of joint positions (``positions (T, J, 3)``,
-``parents``, ``fps`` [, ``names``], as written by ``gesturedb synth --npz``), a
+``parents``, ``fps`` [, ``names``]: `gesturedb.io.npz.read_joint_positions`, as
+written by ``gesturedb synth --npz``), a
 BEAT2/SMPL-X npz (``poses``, ``trans``), and/or a stretch of a database
 (``--db DB.h5 --recording NAME --start S --end E``). Several inputs render side
 by side under one camera, resampled to one frame rate.
@@ -66,26 +67,12 @@ def load_positions(path):
         m = read_gltf(path)
         return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
     if ext == ".npz":
-        from gesturedb.io.npz import npz_keys, read_npz  # memory bounded before numpy allocates
+        from gesturedb.io.npz import JOINT_POSITION_FIELDS, npz_keys, read_joint_positions  # memory bounded
 
         try:
             keys = set(npz_keys(path))
-            if "positions" in keys:
-                missing = [k for k in ("parents", "fps") if k not in keys]
-                if missing:
-                    raise InputFileError(path, f"joint-position npz: expected fields positions, parents, fps; "
-                                               f"missing {', '.join(missing)}")
-                z = read_npz(path, ("positions", "parents", "fps"), optional=("names",))
-                pos = np.asarray(z["positions"], dtype=np.float64)
-                par = np.asarray(z["parents"]).astype(np.int64)
-                fps = float(z["fps"])
-                names = [str(n) for n in z["names"]] if "names" in keys else None
-                if pos.ndim != 3 or pos.shape[2] != 3 or par.shape != (pos.shape[1],):
-                    raise InputFileError(path, f"positions: expected (T, J, 3) with parents (J,); got "
-                                               f"{pos.shape} and {par.shape}")
-                if not (fps > 0):
-                    raise InputFileError(path, f"fps: expected a positive frame rate; got {fps}")
-                return pos, par, fps, names
+            if JOINT_POSITION_FIELDS[0] in keys:
+                return tuple(read_joint_positions(path))
             smplx = "poses" in keys and "trans" in keys
         except InputFileError:
             raise

@@ -67,8 +67,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    import numpy as np
-
     import gesturedb
     from gesturedb.cli.retarget import apply_target, load_target
     from gesturedb.io import check_motion_output, write_motion
@@ -129,11 +127,10 @@ def run(args) -> int:
 
     written += [w for w in [speech_beside(args.output, args.audio)] if w]
     if args.npz:
-        from gesturedb.io.atomic import atomic_open
+        from gesturedb.io.npz import write_joint_positions
 
-        with atomic_open(args.npz, "wb") as f:
-            np.savez_compressed(f, positions=motion.positions.astype(np.float32), fps=motion.fps,
-                                parents=np.asarray(motion.skeleton.parents), names=np.asarray(motion.skeleton.names))
+        write_joint_positions(args.npz, motion.positions, parents=motion.skeleton.parents, fps=motion.fps,
+                              names=motion.skeleton.names)
         written.append(args.npz)
     if args.render:
         from gesturedb.render import render_file

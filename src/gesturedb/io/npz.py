@@ -17,13 +17,16 @@ import os
 import tokenize
 import zipfile
 import zlib
+from typing import NamedTuple
 
 import numpy as np
 import numpy.lib.format as npy_format
 
-from gesturedb.errors import InputFileError, echo, echo_list
+from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
+from gesturedb.io.atomic import atomic_open
 
-__all__ = ["MAX_NPZ_FREE_BYTES", "MAX_NPZ_INFLATE_RATIO", "npz_keys", "read_npz"]
+__all__ = ["JOINT_POSITION_FIELDS", "MAX_NPZ_FREE_BYTES", "MAX_NPZ_INFLATE_RATIO", "JointPositions", "npz_keys",
+           "read_joint_positions", "read_npz", "write_joint_positions"]
 
 #: an entry may inflate to this many bytes whatever its compression ratio (54 minutes of
 #: SMPL-X poses at 30 fps in float32); a larger one must compress no better than
@@ -170,3 +173,99 @@ def read_npz(path, keys, *, optional=()) -> dict[str, np.ndarray]:
                 raise InputFileError(path, f"{key}: unreadable ({echo(' '.join(str(exc).split()), 200)[1:-1]})") \
                     from None
         return out
+
+
+# --- joint positions: ``gesturedb synth --npz`` writes them, ``gesturedb render`` reads them ----------
+
+#: The fields of a joint-position npz that must be there; ``names`` (J,) is optional.
+JOINT_POSITION_FIELDS = ("positions", "parents", "fps")
+
+
+class JointPositions(NamedTuple):
+    """A joint-position npz: world positions of every joint with the hierarchy to draw them.
+
+    positions : ndarray [shape=(T, J, 3)], float64, metres
+    parents : ndarray [shape=(J,)], int64, -1 for the root
+    fps : float
+    names : list of str [length J] or None
+    """
+
+    positions: np.ndarray
+    parents: np.ndarray
+    fps: float
+    names: list | None
+
+
+def write_joint_positions(path, positions, *, parents, fps: float, names=None) -> None:
+    """Write joint positions to a compressed ``.npz``, atomically (`read_joint_positions` reads it).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    positions : array_like [shape=(T, J, 3)], metres
+        Stored as float32 (0.1 mm at 10 m).
+    parents : array_like [shape=(J,)], int, -1 for the root
+    fps : float
+    names : sequence of str [length J], optional
+
+    Raises
+    ------
+    ParameterError
+        Shapes that do not agree, or a frame rate that is not positive.
+    InputFileError
+        The file cannot be written (a previous file stays as it was).
+    """
+    pos = np.asarray(positions, dtype=np.float32)
+    par = np.asarray(parents, dtype=np.int64)
+    if pos.ndim != 3 or pos.shape[2] != 3 or par.shape != (pos.shape[1],):
+        raise ParameterError(f"positions, parents: expected (T, J, 3) and (J,); got {pos.shape} and {par.shape}")
+    if not (float(fps) > 0 and math.isfinite(float(fps))):
+        raise ParameterError(f"fps: expected a positive frame rate; got {fps!r}")
+    fields = dict(positions=pos, fps=np.float64(fps), parents=par)
+    if names is not None:
+        names = [str(n) for n in names]
+        if len(names) != pos.shape[1]:
+            raise ParameterError(f"names: expected one per joint ({pos.shape[1]}); got {len(names)}")
+        fields["names"] = np.asarray(names)
+    with atomic_open(path, "wb") as f:
+        np.savez_compressed(f, **fields)
+
+
+def read_joint_positions(path) -> JointPositions:
+    """Read a joint-position npz (`write_joint_positions`, ``gesturedb synth --npz``), memory bounded.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    JointPositions
+
+    Raises
+    ------
+    InputFileError
+        Not an npz, a missing field of `JOINT_POSITION_FIELDS` (the message lists those
+        missing), shapes that do not agree, a frame rate that is not positive, or a
+        damaged array.
+    """
+    keys = set(npz_keys(path))
+    missing = [k for k in JOINT_POSITION_FIELDS if k not in keys]
+    if missing:
+        raise InputFileError(path, f"joint-position npz: expected fields {', '.join(JOINT_POSITION_FIELDS)}; "
+                                   f"missing {', '.join(missing)}")
+    z = read_npz(path, JOINT_POSITION_FIELDS, optional=("names",))
+    try:
+        pos = np.asarray(z["positions"], dtype=np.float64)
+        par = np.asarray(z["parents"]).astype(np.int64)
+        fps = float(z["fps"])
+        names = [str(n) for n in z["names"]] if "names" in z else None
+    except (TypeError, ValueError) as exc:  # a string as fps, an array of several frame rates...
+        raise InputFileError(path, f"joint-position npz: not readable ({' '.join(str(exc).split())})") from None
+    if pos.ndim != 3 or pos.shape[2] != 3 or par.shape != (pos.shape[1],):
+        raise InputFileError(path, f"positions: expected (T, J, 3) with parents (J,); got {pos.shape} and {par.shape}")
+    if not (fps > 0):
+        raise InputFileError(path, f"fps: expected a positive frame rate; got {fps}")
+    if names is not None and len(names) != pos.shape[1]:
+        raise InputFileError(path, f"names: expected one per joint ({pos.shape[1]}); got {len(names)}")
+    return JointPositions(pos, par, fps, names)
