@@ -24,7 +24,8 @@ class Limits:
         Largest HTTP request body (a WAV for offline synthesis), 64 MiB: over
         half an hour of 16 kHz PCM16.
     max_audio_s : float
-        Longest speech one stream or one upload may carry, seconds.
+        Longest speech one stream or one upload may carry, seconds (20 minutes: a
+        stream keeps its frames for the download, 18 MB at 15 fps and 55 joints).
     idle_s : float
         A stream that sends nothing for this long is closed (code 1008).
     max_streams : int
@@ -41,7 +42,7 @@ class Limits:
 
     max_message_bytes: int = 1 << 20
     max_upload_bytes: int = 64 << 20
-    max_audio_s: float = 3600.0
+    max_audio_s: float = 1200.0
     idle_s: float = 30.0
     max_streams: int = 64
     max_errors: int = 20

@@ -70,7 +70,7 @@ class StreamSession:
         except Exception as exc:  # a bug in the synthesizer or here: this stream ends, the server goes on
             log.exception("stream failed")
             await self._close(_Close(P.CLOSE_INTERNAL, "internal", f"the synthesizer failed: {type(exc).__name__}: "
-                                                                   f"{echo(str(exc))}"))
+                                                                   f"{str(exc)[:300]}"))
 
     async def _serve(self) -> None:
         start = await self._receive()
@@ -231,9 +231,9 @@ class StreamSession:
         rot = np.zeros((0, J, 4), np.float32) if n == 0 else np.asarray(motion.rotations, np.float32)
         start = int(getattr(chunk, "start", self.n_sent))
         await self.ws.send_bytes(P.pack_frames(start, root, rot, steps))
-        if n:
-            self._roots.append(root)
-            self._rots.append(rot)
+        if n:  # kept as the synthesizer made them (float64): the download is its motion, not a rounded copy
+            self._roots.append(np.asarray(motion.root_positions))
+            self._rots.append(np.asarray(motion.rotations))
             self.n_sent = start + n
         self._steps.extend(P.json_safe(steps))
 
