@@ -196,3 +196,51 @@ def test_read_joint_map_takes_text_or_a_file_with_or_without_a_bom(tmp_path):
     big.write_text("{" + " " * (1 << 20) + "}")
     with pytest.raises(InputFileError, match=r"--joint-map: expected a JSON object of at most 1048576 bytes"):
         read_joint_map(str(big))
+
+
+def test_joint_roles_have_one_home():
+    """gesturedb.roles is the only module that spells a collection of role names or body-part keys:
+    the features, io, retargeting and eval read it (a second copy drifts: three did)."""
+    import ast
+    from pathlib import Path
+
+    import gesturedb
+    from gesturedb import roles
+    from gesturedb.eval import placement, strokes
+    from gesturedb.features import body, pose
+
+    assert pose.FEATURE_ROLES is roles.FEATURE_ROLES and body.BODY_ROLES is roles.BODY_ROLES
+    assert FEATURE_ROLES is roles.FEATURE_ROLES and BODY_ROLES is roles.BODY_ROLES
+    assert placement.JOINT_GROUPS is roles.JOINT_GROUPS and strokes.STROKE_GROUPS == tuple(roles.STROKE_JOINT_GROUPS)
+    vocab = set(roles.ROLES) | set(roles.FINGERS) | {k for g in (roles.JOINT_GROUPS, roles.STROKE_JOINT_GROUPS)
+                                                     for keys in g.values() if keys for k in keys}
+    pkg = Path(gesturedb.__file__).parent
+    copies = []
+    for path in sorted(pkg.rglob("*.py")):
+        if path == pkg / "roles.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.Tuple, ast.List, ast.Set)) and len(node.elts) >= 2 and all(
+                    isinstance(e, ast.Constant) and e.value in vocab for e in node.elts):
+                copies.append(f"{path.relative_to(pkg)}:{node.lineno}: {[e.value for e in node.elts]}")
+    assert copies == [], "joint roles spelled outside gesturedb/roles.py:\n" + "\n".join(copies)
+
+
+def test_group_joints_on_real_rigs(scott_dir, data_dir):
+    from gesturedb.io import read_smplx
+    from gesturedb.io.joints import body_keys, group_joints
+    from gesturedb.roles import JOINT_GROUPS, STROKE_JOINT_GROUPS
+
+    names = read_smplx(scott_dir / "2_scott_0_1_1.npz").skeleton.names
+    g = group_joints(names)
+    assert list(g) == list(JOINT_GROUPS)  # SMPL-X has every group, in table order
+    keys = body_keys(names)
+    assert sorted(keys[j] for j in g["head"]) == ["head", "neck"]
+    assert len(g["hands"]) == 30 and len(g["arms"]) == 6 and len(g["legs"]) == 8  # 15 finger joints a hand
+    assert set(group_joints(names, STROKE_JOINT_GROUPS)["arms"]) < set(g["arms"])
+    # another pipeline's BVH: a thumb stub per hand, no neck, toes
+    foreign = read_bvh(data_dir / "bvh-foreign" / "AV_8Walk_Meredith_HVHA_Rep1.bvh").skeleton.names
+    g = {k: [foreign[j] for j in v] for k, v in group_joints(foreign).items()}
+    assert g["hands"] == ["LeftHandThumb1", "RightHandThumb1"] and g["head"] == ["Head"]
+    assert g["arms"] == ["LeftArm", "LeftForeArm", "LeftHand", "RightArm", "RightForeArm", "RightHand"]
+    assert len(g["legs"]) == 8 and g["root"] == ["Hips"]

@@ -41,12 +41,11 @@ from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
 from gesturedb.io.bvh import MAX_FPS, MIN_FPS
 from gesturedb.io.joints import MESSAGE_JOINTS, body_keys
 from gesturedb.motion import Motion, Skeleton
+from gesturedb.roles import RETARGET_REQUIRED
 
 __all__ = ["RIG_EXTENSIONS", "RetargetResult", "load_rig", "match_joints", "retarget"]
 
 RIG_EXTENSIONS = (".bvh", ".glb", ".gltf")
-# body parts both rigs must have for a retarget to mean anything: the arms carry the gestures
-_REQUIRED = ("left_upperarm", "left_forearm", "left_hand", "right_upperarm", "right_forearm", "right_hand")
 
 
 def load_rig(path) -> Skeleton:
@@ -252,7 +251,7 @@ def retarget(motion: Motion, target: Skeleton, *, mapping=None) -> RetargetResul
     s_keys = body_keys(src.names)
     # a part counts as paired when either side of a pair has it (a mapping may pair an odd name)
     paired_keys = {t_keys.get(t) for t in pairs} | {s_keys.get(s) for s in pairs.values()}
-    missing = [k for k in _REQUIRED if k not in paired_keys]
+    missing = [k for k in RETARGET_REQUIRED if k not in paired_keys]
     if missing:
         no_t = [k for k in missing if k not in t_keys.values()]
         no_s = [k for k in missing if k not in s_keys.values()]

@@ -66,6 +66,7 @@ from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is whe
 from gesturedb.eval.controls import (  # noqa: F401
     DEFAULT_MIN_STD_RATIO, TABLE2_CASES, ControlCase, ControlRow, ControlsReport, evaluate_controls,
 )
+from gesturedb.roles import HIP_ROLES, JOINT_GROUPS
 from gesturedb.synth.matching import DEFAULT_INIT
 from gesturedb.synth.seams import SEAM_DECAY_S
 
@@ -123,7 +124,7 @@ WORLD_COLUMNS = (
     ("foot_skating_m_s", "skating m/s", ".3f"),
     ("max_abs_heading_deg", "max |heading| deg", ".1f"),
     *((f"jerk_{s}_{g}_m_s3", f"{g} jerk {s}", ".1f")
-      for g in ("root", "legs", "arms", "hands", "head") for s in ("world", "rel")),
+      for g in JOINT_GROUPS for s in ("world", "rel")),
 )
 
 
@@ -742,11 +743,11 @@ def _common(db, opts, controls, control_audio):
         opts["step"] = default_step(db.fps)
 
     fj = feature_joint_indices(db)
-    for role in ("root", "left_hip", "right_hip"):
+    for role in ("root", *HIP_ROLES):
         if role not in fj:
             raise InputFileError(db.path, f"feature_joints: expected role {role!r}, got {sorted(fj)}")
     root = fj["root"]
-    joints = upper_body_joints(db.skeleton.parents, root=root, hips=[fj["left_hip"], fj["right_hip"]])
+    joints = upper_body_joints(db.skeleton.parents, root=root, hips=[fj[r] for r in HIP_ROLES])
     reference = database_reference(db, joints=joints, root=root)
     from gesturedb.eval.fgd import SelfFGD
 

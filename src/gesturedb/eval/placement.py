@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.io.joints import group_joints as _group_joints
+from gesturedb.roles import JOINT_GROUPS
 
 __all__ = ["JOINT_GROUPS", "root_speed", "max_root_step", "foot_skating", "heading_deg", "placement_metrics",
            "group_joints", "root_relative", "mean_jerk", "world_metrics"]
@@ -85,31 +87,9 @@ def placement_metrics(positions, *, fps: float, root: int, feet, hips=None) -> d
     return out
 
 
-#: Joint groups of :func:`group_jerk`, by body-part key (:func:`gesturedb.io.joints.body_keys`).
-JOINT_GROUPS = {
-    "root": ("hips",),
-    "legs": ("left_upleg", "right_upleg", "left_leg", "right_leg", "left_foot", "right_foot",
-             "left_toe", "right_toe"),
-    "arms": ("left_upperarm", "right_upperarm", "left_forearm", "right_forearm", "left_hand", "right_hand"),
-    "hands": None,  # every finger joint
-    "head": ("neck", "head"),
-}
-
-
 def group_joints(names) -> dict[str, np.ndarray]:
-    """Joint indices of every group of :data:`JOINT_GROUPS` that the skeleton has (int64 arrays)."""
-    from gesturedb.io.joints import body_keys
-
-    keys = body_keys(names)
-    out = {}
-    for g, parts in JOINT_GROUPS.items():
-        if parts is None:
-            js = [j for j, k in keys.items() if any(f in k for f in ("thumb", "index", "middle", "ring", "pinky"))]
-        else:
-            js = [j for j, k in keys.items() if k in parts]
-        if js:
-            out[g] = np.asarray(sorted(js), dtype=np.int64)
-    return out
+    """Joint indices of every group of :data:`gesturedb.roles.JOINT_GROUPS` that the skeleton has (int64 arrays)."""
+    return _group_joints(names, JOINT_GROUPS)
 
 
 def root_relative(positions, *, root: int = 0) -> np.ndarray:

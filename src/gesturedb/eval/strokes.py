@@ -31,6 +31,8 @@ import numpy as np
 
 from gesturedb.errors import ParameterError
 from gesturedb.eval.placement import root_relative
+from gesturedb.io.joints import group_joints
+from gesturedb.roles import STROKE_JOINT_GROUPS
 
 __all__ = ["BANDS_HZ", "WELCH_SEGMENT_S", "STROKE_PERCENTILE", "band_groups", "band_psd", "band_power",
            "band_ratios", "stroke_strength", "band_key", "pooled_band_power", "stroke_metrics", "database_strokes",
@@ -43,8 +45,8 @@ WELCH_SEGMENT_S = 4.0
 #: Percentile of wrist speed reported as stroke strength.
 STROKE_PERCENTILE = 95.0
 
-#: Joint groups of the stroke tables, in table order.
-STROKE_GROUPS = ("arms", "hands", "head")
+#: Joint groups of the stroke tables, in table order (:data:`gesturedb.roles.STROKE_JOINT_GROUPS`).
+STROKE_GROUPS = tuple(STROKE_JOINT_GROUPS)
 
 
 def band_key(band: Sequence[float]) -> str:
@@ -61,29 +63,10 @@ STROKE_GT_COLUMNS = tuple(
     (f"band_{g}_{band_key(b)}_gt", f"{g} {band_key(b)}", ".2f") for g in STROKE_GROUPS for b in BANDS_HZ
 )
 
-#: Body-part keys (:func:`gesturedb.io.joints.body_keys`) of the band groups; ``None``: every finger joint.
-_GROUP_KEYS = {
-    "arms": ("left_forearm", "right_forearm", "left_hand", "right_hand"),
-    "hands": None,
-    "head": ("neck", "head"),
-}
-_FINGERS = ("thumb", "index", "middle", "ring", "pinky")
-
-
 def band_groups(names: Sequence[str]) -> dict[str, np.ndarray]:
-    """Joint indices (int64) of each band group the skeleton has: ``arms``, ``hands``, ``head``."""
-    from gesturedb.io.joints import body_keys
-
-    keys = body_keys(list(names))
-    out = {}
-    for g, parts in _GROUP_KEYS.items():
-        if parts is None:
-            js = [j for j, k in keys.items() if any(f in k for f in _FINGERS)]
-        else:
-            js = [j for j, k in keys.items() if k in parts]
-        if js:
-            out[g] = np.asarray(sorted(js), dtype=np.int64)
-    return out
+    """Joint indices (int64) of each band group the skeleton has: ``arms``, ``hands``, ``head``
+    (:data:`gesturedb.roles.STROKE_JOINT_GROUPS`)."""
+    return group_joints(list(names), STROKE_JOINT_GROUPS)
 
 
 def _check(positions, fps) -> tuple[np.ndarray, float]:

@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.roles import BODY_ROLES
 
 __all__ = [
     "BODY_ROLES",
@@ -30,9 +31,6 @@ __all__ = [
     "to_body_frame",
     "point_speeds",
 ]
-
-#: Joint roles that define the body frame.
-BODY_ROLES: tuple[str, ...] = ("root", "left_hip", "right_hip", "left_shoulder", "right_shoulder")
 
 #: Default Gaussian sigma (frames) of the facing-direction smoothing in :func:`body_frame`.
 FACING_SMOOTH_FRAMES: float = 2.0

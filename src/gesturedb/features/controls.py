@@ -22,6 +22,7 @@ from gesturedb.features.body import (
     point_speeds,
     to_body_frame,
 )
+from gesturedb.roles import WRIST_ROLES
 
 __all__ = ["CONTROL_NAMES", "CONTROL_UNITS", "CONTROL_DOCS", "control_features"]
 
@@ -60,8 +61,6 @@ CONTROL_DOCS: dict[str, str] = {
 #: Names of the control signals, in a fixed order.
 CONTROL_NAMES: tuple[str, ...] = tuple(CONTROL_UNITS)
 
-_WRISTS = ("left_wrist", "right_wrist")
-
 
 def control_features(
     positions: np.ndarray,
@@ -93,9 +92,9 @@ def control_features(
         :data:`CONTROL_UNITS`, meanings in :data:`CONTROL_DOCS`.
     """
     positions = check_positions(positions)
-    idx = check_joints(joints, _WRISTS + BODY_ROLES, n_joints=positions.shape[1])
+    idx = check_joints(joints, WRIST_ROLES + BODY_ROLES, n_joints=positions.shape[1])
     origin, rotation = body_frame(positions, joints=idx)
-    wrists = to_body_frame(positions[:, [idx[r] for r in _WRISTS]], origin, rotation)  # (F, 2, 3)
+    wrists = to_body_frame(positions[:, [idx[r] for r in WRIST_ROLES]], origin, rotation)  # (F, 2, 3)
     left, right = wrists[:, 0], wrists[:, 1]
     speeds = point_speeds(wrists, fps=fps, smooth_s=smooth_s)  # (F, 2)
     mirrored_right = right * np.array([-1.0, 1.0, 1.0])

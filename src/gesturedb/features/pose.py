@@ -20,20 +20,10 @@ from gesturedb.features.body import (
     check_joints,
     check_positions,
 )
+from gesturedb.roles import FEATURE_ROLES
 
 __all__ = ["FEATURE_ROLES", "pose_features", "pose_feature_size"]
 
-#: The 8 feature joints, in the order their coordinates appear in the feature.
-FEATURE_ROLES: tuple[str, ...] = (
-    "left_wrist",
-    "right_wrist",
-    "left_elbow",
-    "right_elbow",
-    "left_index1",
-    "right_index1",
-    "left_pinky1",
-    "right_pinky1",
-)
 
 # Frames per block: bounds the float64 temporaries to a few tens of MB however
 # long the recording is.

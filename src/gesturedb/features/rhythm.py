@@ -27,6 +27,7 @@ from gesturedb.features.body import (
     point_speeds,
     to_body_frame,
 )
+from gesturedb.roles import WRIST_ROLES
 
 __all__ = [
     "MINIMUM_PROMINENCE",
@@ -46,8 +47,6 @@ MINIMUM_PROMINENCE: float = 0.05
 #: Default width (seconds) of the window in which the prominence is measured, so a
 #: short pause inside a long slow stretch still counts.
 MINIMUM_WINDOW_S: float = 1.0
-
-_WRISTS = ("left_wrist", "right_wrist")
 
 
 def _check_bits(bits) -> int:
@@ -151,9 +150,9 @@ def hand_speed(
         gesturing).
     """
     positions = check_positions(positions)
-    idx = check_joints(joints, _WRISTS + BODY_ROLES, n_joints=positions.shape[1])
+    idx = check_joints(joints, WRIST_ROLES + BODY_ROLES, n_joints=positions.shape[1])
     origin, rotation = body_frame(positions, joints=idx)
-    wrists = to_body_frame(positions[:, [idx[r] for r in _WRISTS]], origin, rotation)
+    wrists = to_body_frame(positions[:, [idx[r] for r in WRIST_ROLES]], origin, rotation)
     return point_speeds(wrists, fps=fps, smooth_s=smooth_s).max(axis=1)
 
 

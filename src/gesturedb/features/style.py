@@ -21,6 +21,7 @@ from gesturedb.features.body import (
     point_speeds,
     to_body_frame,
 )
+from gesturedb.roles import WRIST_ROLES
 
 __all__ = ["STYLE_NAMES", "STYLE_UNITS", "style_signature", "style_signatures"]
 
@@ -28,8 +29,6 @@ __all__ = ["STYLE_NAMES", "STYLE_UNITS", "style_signature", "style_signatures"]
 STYLE_NAMES: tuple[str, str, str] = ("speed", "radius", "height")
 #: Units of the three components.
 STYLE_UNITS: tuple[str, str, str] = ("m/s", "m", "m")
-
-_WRISTS = ("left_wrist", "right_wrist")
 
 
 def style_signatures(
@@ -67,7 +66,7 @@ def style_signatures(
         the root, m; negative below it).
     """
     positions = check_positions(positions)
-    idx = check_joints(joints, _WRISTS + BODY_ROLES, n_joints=positions.shape[1])
+    idx = check_joints(joints, WRIST_ROLES + BODY_ROLES, n_joints=positions.shape[1])
     n = len(positions)
     st = np.atleast_1d(np.asarray(starts))
     ln = np.atleast_1d(np.asarray(lengths))
@@ -88,7 +87,7 @@ def style_signatures(
         )
 
     origin, rotation = body_frame(positions, joints=idx)
-    wrists = to_body_frame(positions[:, [idx[r] for r in _WRISTS]], origin, rotation)  # (F, 2, 3)
+    wrists = to_body_frame(positions[:, [idx[r] for r in WRIST_ROLES]], origin, rotation)  # (F, 2, 3)
     per_frame = np.stack(
         [
             point_speeds(wrists, fps=fps, smooth_s=smooth_s).mean(axis=1),

@@ -23,18 +23,17 @@ import json
 import os
 import re
 
-from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
+import numpy as np
 
-__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints", "leg_joints", "read_joint_map"]
+from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
+from gesturedb.roles import BODY_ROLES, FEATURE_ROLES, FINGERS, HIP_ROLES, JOINT_GROUPS, ROLES
+
+__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints", "group_joints", "leg_joints", "read_joint_map"]
 
 #: joint names a message lists before it counts the rest (a body with fingers has about 70)
 MESSAGE_JOINTS = 80
 #: largest joint-map file read: a map has at most a dozen roles
 MAX_JOINT_MAP_BYTES = 1 << 20
-
-FEATURE_ROLES = ("left_wrist", "right_wrist", "left_elbow", "right_elbow",
-                 "left_index1", "right_index1", "left_pinky1", "right_pinky1")
-BODY_ROLES = ("root", "left_hip", "right_hip", "left_shoulder", "right_shoulder")
 
 # Part names per role (side removed, words joined), best first.
 _PARTS = {
@@ -75,7 +74,7 @@ def _role_spec(role: str) -> tuple[str | None, tuple[str, ...]]:
     return side, _PARTS[part]
 
 
-def find_joints(names, roles=FEATURE_ROLES + BODY_ROLES, *, mapping=None, source=None) -> dict[str, int]:
+def find_joints(names, roles=ROLES, *, mapping=None, source=None) -> dict[str, int]:
     """Map roles to joint indices by name.
 
     Parameters
@@ -83,7 +82,7 @@ def find_joints(names, roles=FEATURE_ROLES + BODY_ROLES, *, mapping=None, source
     names : sequence of str [length J]
         Joint names, e.g. ``Skeleton.names`` (index 0 is the root).
     roles : sequence of str
-        Roles to find, from `FEATURE_ROLES` and `BODY_ROLES`.
+        Roles to find, from `gesturedb.roles.ROLES` (`FEATURE_ROLES` and `BODY_ROLES`).
     mapping : dict of str to str, optional
         ``{role: joint_name}`` overrides for roles the names do not reveal
         (exact joint names).
@@ -105,7 +104,7 @@ def find_joints(names, roles=FEATURE_ROLES + BODY_ROLES, *, mapping=None, source
         Unknown role, or a mapping that names a joint that does not exist.
     """
     names = [str(n) for n in names]
-    known = FEATURE_ROLES + BODY_ROLES
+    known = ROLES
     roles = tuple(roles)
     unknown = list(dict.fromkeys(r for r in roles if r not in known))
     mapping = dict(mapping or {})
@@ -222,7 +221,6 @@ _BODY_PARTS = {
     "foot": "foot", "ankle": "foot",
     "toebase": "toe", "toe": "toe", "toes": "toe", "ball": "toe",
 }
-_FINGERS = ("thumb", "index", "middle", "ring", "pinky")
 _FINGER_SYNONYMS = {"little": "pinky", "pinkie": "pinky"}
 # names that mark a joint as no anatomical joint of its own (End Site stand-ins, twist
 # helpers): they keep their rest rotation
@@ -242,7 +240,7 @@ def _canonical_part(side, part, has_part) -> str | None:
     if stem.endswith("finger") and len(stem) > len("finger"):
         stem = stem[:-len("finger")]
     stem = _FINGER_SYNONYMS.get(stem, stem)
-    if stem in _FINGERS and side is not None:
+    if stem in FINGERS and side is not None:
         return f"{side}_{stem}{int(digits) if digits else 1}"
     if side is None:
         if stem == "hip" or stem == "hips":
@@ -332,7 +330,34 @@ def _body_keys(names: tuple) -> dict[int, str]:
     return keys
 
 
-def leg_joints(names, parents) -> "np.ndarray":
+def group_joints(names, groups=JOINT_GROUPS) -> dict[str, np.ndarray]:
+    """Joint indices of every group that the skeleton has.
+
+    Parameters
+    ----------
+    names : sequence of str [length J]
+    groups : dict of str to (tuple of str or None)
+        Group -> body-part keys (`body_keys`), ``None`` for every finger joint;
+        default `gesturedb.roles.JOINT_GROUPS`.
+
+    Returns
+    -------
+    dict of str to ndarray [shape=(n,)], int64, ascending
+        Only the groups with at least one joint, in the order of ``groups``.
+    """
+    keys = body_keys(names)
+    out = {}
+    for g, parts in groups.items():
+        if parts is None:
+            js = [j for j, k in keys.items() if any(f in k for f in FINGERS)]
+        else:
+            js = [j for j, k in keys.items() if k in parts]
+        if js:
+            out[g] = np.asarray(sorted(js), dtype=np.int64)
+    return out
+
+
+def leg_joints(names, parents) -> np.ndarray:
     """The joints of both legs: each hip joint (role ``left_hip``/``right_hip``) and everything below it.
 
     Parameters
@@ -344,10 +369,8 @@ def leg_joints(names, parents) -> "np.ndarray":
     -------
     ndarray [shape=(L,)], int64, ascending; empty when the rig has no recognisable hips.
     """
-    import numpy as np
-
     try:
-        hips = set(find_joints(names, ("left_hip", "right_hip")).values())
+        hips = set(find_joints(names, HIP_ROLES).values())
     except (InputFileError, ParameterError):
         return np.zeros(0, dtype=np.int64)
     parents = [int(p) for p in parents]
