@@ -2,8 +2,8 @@
 
 It follows the agreed interface (push / push_words / set_control / finish, fps,
 sample_rate, latency_s; chunks with start, motion, steps) and replays database
-frames in order, one step of N frames whenever N frames of audio past the
-latency have arrived, so that the server's path can be tested before and apart
+frames in order, one step of N frames as soon as the audio covers it (so its first
+frame waits latency_s = N / fps), so that the server's path can be tested before and apart
 from the real synthesizer. Its provenance names the control in force at each
 step, as the real one does.
 """
@@ -46,7 +46,8 @@ class ReplayStream:
         if x.dtype != np.float32 or x.ndim != 1 or not np.all(np.abs(x) <= 1):
             raise ParameterError(f"samples: expected float32 mono in [-1, 1]; got {x.dtype} {x.shape}")
         self.n_samples += x.shape[0]
-        ready = int((self.n_samples / self.sample_rate - self.latency_s) * self.fps)
+        # a step of frames [t, t + STEP) is final once the audio reaches its end: frame t waits latency_s
+        ready = int(self.n_samples / self.sample_rate * self.fps)
         return self._emit(ready - ready % STEP)
 
     def finish(self) -> Chunk:
