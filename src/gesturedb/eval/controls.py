@@ -29,6 +29,7 @@ import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError, SearchError
 from gesturedb.eval.common import _fmt, _read_samples, _stats, feature_joint_indices, json_clean
+from gesturedb.eval.texttable import text_table
 from gesturedb.synth.matching import DEFAULT_INIT
 from gesturedb.synth.seams import SEAM_DECAY_S
 
@@ -225,10 +226,7 @@ class ControlsReport:
 
     def to_text(self) -> str:
         head, body = self._cells()
-        widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
-        line = lambda cells: "  ".join(c.ljust(w) for c, w in zip(cells, widths)).rstrip()  # noqa: E731
-        out = [self._title(), "", line(head), line(["-" * w for w in widths])]
-        out += [line(b) for b in body]
+        out = [self._title(), "", text_table(head, body, align="left")]
         out += [""] + self._notes()
         out.append("all checks passed" if self.passed else
                    "FAILED: " + ", ".join(f"{r.case.name} ({r.status})" for r in self.rows if r.status != "PASS"))

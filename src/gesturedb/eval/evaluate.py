@@ -66,6 +66,7 @@ from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is whe
 from gesturedb.eval.controls import (  # noqa: F401
     DEFAULT_MIN_STD_RATIO, TABLE2_CASES, ControlCase, ControlRow, ControlsReport, evaluate_controls,
 )
+from gesturedb.eval.texttable import text_table
 from gesturedb.roles import HIP_ROLES, JOINT_GROUPS
 from gesturedb.synth.matching import DEFAULT_INIT
 from gesturedb.synth.seams import SEAM_DECAY_S
@@ -439,10 +440,9 @@ def system_metrics(
 
 
 def _text_table(head: list[str], body: list[list[str]]) -> str:
-    """Aligned text columns: the first left-aligned, the others right-aligned, a rule under the head."""
-    widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
-    line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-    return "\n".join([line(head), line(["-" * w for w in widths])] + [line(b) for b in body])
+    """Aligned text columns, the first left-aligned, the others right-aligned, a rule under the head,
+    in parts that fit a terminal (:func:`gesturedb.eval.texttable.text_table`)."""
+    return text_table(head, body)
 
 
 @dataclass(eq=False)
