@@ -470,6 +470,16 @@ def test_python_client_streams_and_downloads(live, speech):
     assert np.array_equal(npz["rotations"], rot)
     with LiveClient(live.ws) as c:
         assert c.skeleton()["names"][0] == "pelvis"
+        c.set_control("no_such_mask")  # refused, the stream goes on
+        c.send_audio(speech[: 2 * SR])
+        got = []
+        for _ in range(10):
+            got += c.poll(2.0)
+            if got:
+                break
+        assert sum(len(f) for f in got) > 0 and c.errors[0]["code"] == "bad_control"
+    with pytest.raises(LiveError, match="bad_rate"):
+        LiveClient(live.ws, sample_rate=1).connect()
 
 
 def test_python_client_offline(live, speech):
@@ -507,6 +517,46 @@ def test_garbage_client_does_not_disturb_another(live, speech):
     assert codes == [P.CLOSE_POLICY, P.CLOSE_POLICY, P.CLOSE_TOO_BIG]
     root, rot, steps, _ = out["r"]
     assert np.array_equal(rot, alone[1]) and np.array_equal(root, alone[0]) and steps == alone[2]
+
+
+def test_many_connections_at_once(db, speech):
+    """More connections than streams allowed, all at once: the extra ones are told to come back, the others
+    stream, and once they are gone a new client is served."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    lim = Limits(max_streams=16)
+    with LiveServer(create_app(db, stream_factory=ReplayStream, limits=lim), lim) as srv:
+        outcome = []
+        lock = threading.Lock()
+        barrier = threading.Barrier(40)
+
+        def one():
+            with connect(srv.ws) as ws:
+                barrier.wait(30)
+                try:
+                    ws.send(json.dumps({"type": "start", "sample_rate": SR}))
+                    m = json.loads(ws.recv(timeout=30))
+                    if m["type"] == "ready":
+                        barrier.wait(30)  # hold the stream until every connection has its answer
+                        ws.send(P.encode_audio(speech[: 2 * SR]))
+                        P.unpack_frames(ws.recv(timeout=30))
+                        r = "served"
+                    else:
+                        r = m["code"]
+                        barrier.wait(30)
+                except ConnectionClosed as exc:  # told before it could send its start
+                    r = "busy" if exc.rcvd.code == P.CLOSE_TRY_LATER else f"closed {exc.rcvd.code}"
+                    barrier.wait(30)
+            with lock:
+                outcome.append(r)
+
+        threads = [threading.Thread(target=one) for _ in range(40)]
+        [t.start() for t in threads]
+        [t.join(60) for t in threads]
+        assert sorted(outcome) == sorted(["served"] * 16 + ["busy"] * 24)
+        root, rot, steps, _ = _stream_all(srv.ws, speech[: 2 * SR])
+        assert rot.shape[0] == 30
 
 
 def test_eight_concurrent_clients(live, speech):
@@ -561,6 +611,22 @@ def test_cli_serve_binds_localhost(scott_db_path):
         else:
             raise AssertionError("gesturedb serve did not answer")
         assert h["status"] == "ok" and h["database"] == "scott.h5"
+        # a 100 MB message is refused by the WebSocket layer before it is read: the server's memory stays put
+        from websockets.exceptions import ConnectionClosed
+        from websockets.sync.client import connect
+
+        def peak_kb():
+            with open(f"/proc/{p.pid}/status") as f:
+                return next(int(x.split()[1]) for x in f if x.startswith("VmHWM:"))
+
+        before = peak_kb()
+        with connect(f"ws://127.0.0.1:{port}/stream", max_size=None) as ws:
+            with pytest.raises(ConnectionClosed) as e:
+                ws.send(bytes(100 << 20))
+                ws.recv(timeout=30)
+        assert e.value.rcvd.code == P.CLOSE_TOO_BIG
+        assert peak_kb() - before < 20_000, "the server's peak memory grew by the size of the refused message"
+        assert json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5).read())["status"] == "ok"
         with socket.socket() as s:  # bound to 127.0.0.1 only: the machine's other addresses do not answer
             addr = socket.gethostbyname(socket.gethostname())
             if not addr.startswith("127."):
