@@ -135,3 +135,60 @@ def test_torch_outside_the_refiner_fails_the_contract(tmp_path):
     assert res.returncode != 0
     assert "gesturedb.eval is not allowed to import torch" in res.stdout, res.stdout
     assert "gesturedb.eval.metrics -> torch" in res.stdout
+
+
+def _storage_leaks(path: Path) -> list[str]:
+    """What in one module reaches past the database object into its storage: an import of
+    h5py, an ``.h5`` attribute (the raw file of a Database), or a dataset path literal."""
+    import ast
+
+    from gesturedb.db import schema
+
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    # a declared dataset, a member of a group named at run time, or the start of an f-string
+    # "<group>/{...}" (not any text with a slash: "audio/wav" is a MIME type)
+    groups = {f.path.split("/")[0] for f in schema.FIELDS} | {schema.CONTROLS_GROUP, schema.MASKS_GROUP,
+                                                              schema.SUBDB_GROUP}
+    named_at_run_time = tuple(g + "/" for g in (schema.CONTROLS_GROUP, schema.MASKS_GROUP, schema.SUBDB_GROUP))
+
+    def is_path(text: str, starts_fstring: bool) -> bool:
+        return (text in schema.FIELDS_BY_PATH or text.startswith(named_at_run_time)
+                or (starts_fstring and text.endswith("/") and text[:-1] in groups))
+
+    fstring_heads = {id(n.values[0]) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr) and n.values}
+    rel = path.relative_to(PKG.parent)
+    out = []
+    for node in ast.walk(tree):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
+        out += [f"{rel}:{node.lineno}: imports {n}" for n in names if n.split(".")[0] == "h5py"]
+        if isinstance(node, ast.Attribute) and node.attr == "h5":
+            out.append(f"{rel}:{node.lineno}: uses .h5 (ask the Database instead)")
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and is_path(node.value,
+                                                                                     id(node) in fstring_heads):
+            out.append(f"{rel}:{node.lineno}: dataset path literal {node.value!r} (use gesturedb.db.schema's constant)")
+    return out
+
+
+def test_storage_stays_inside_db():
+    """Only gesturedb.db knows the storage: no h5py, no ``Database.h5`` and no dataset path
+    literal elsewhere, so a second backend (Zarr, say) touches gesturedb/db/ alone."""
+    leaks = [leak for p in sorted(PKG.rglob("*.py")) if "db" not in p.relative_to(PKG).parts[:1]
+             for leak in _storage_leaks(p)]
+    assert leaks == [], "storage used outside gesturedb/db/:\n" + "\n".join(leaks)
+
+
+def test_dask_stays_in_the_cluster_module():
+    """Every use of Dask goes through gesturedb.db.cluster: no other module imports dask or distributed."""
+    import ast
+
+    found = []
+    for p in sorted(PKG.rglob("*.py")):
+        if p == PKG / "db" / "cluster.py":
+            continue
+        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
+            found += [f"{p.relative_to(PKG.parent)}:{node.lineno}: imports {n}" for n in names
+                      if n.split(".")[0] in ("dask", "distributed")]
+    assert found == [], "Dask used outside gesturedb/db/cluster.py:\n" + "\n".join(found)

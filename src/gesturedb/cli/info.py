@@ -35,8 +35,7 @@ def summary(db) -> dict:
         "words": len(db.words),
         "skeleton": {"joints": len(db.joint_names), "root": db.joint_names[0]},
         "feature_joints": db.feature_joints,
-        "features": {"pose": int(db.h5["frames/pose_features"].shape[1]),
-                     "audio": int(db.h5["frames/audio_features"].shape[1])},
+        "features": {"pose": db.frame_shape("pose_features")[1], "audio": db.frame_shape("audio_features")[1]},
         "controls": {k: db.control_units[k] for k in db.controls},
         "masks": db.mask_definitions,
         "keywords": {w: {"occurrences": len(sd), "seconds": round(sd.n_frames / db.fps, 3)}

@@ -14,6 +14,7 @@ HDF5 content.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from gesturedb.db import schema
+from gesturedb.db import schema, store
 from gesturedb._version import __version__
 from gesturedb.db.framewriter import FrameWriter
 from gesturedb.db.storage import check_writes, write_atomically
@@ -88,7 +89,7 @@ class BuildConfig:
     gap_s: float | str = "auto"
     pose_window: int = 4
     pose_stride: int = 2
-    sample_rate: int = 16000
+    sample_rate: int = schema.DEFAULT_SAMPLE_RATE
     n_mfcc: int = 13
     mirror: bool = False
     joint_map: dict | None = None
@@ -449,62 +450,60 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, fram
     F = int(sum(r.n_frames for r in recs))
     W = schema.write
 
-    h5.attrs["schema_version"] = schema.SCHEMA_VERSION
-    h5.attrs["gesturedb_version"] = __version__
-    h5.attrs["fps"] = float(cfg.fps)
-    h5.attrs["n_frames"] = F
+    store.set_attrs(h5, "", {"schema_version": schema.SCHEMA_VERSION, "gesturedb_version": __version__,
+                             "fps": float(cfg.fps), "n_frames": F})
     schema.write_json_attr(h5, "config", cfg.to_json())
     schema.write_json_attr(h5, "feature_joints", recs[0].feature_joints)
 
-    W(h5, "recordings/name", [r.name for r in recs], dims)
-    W(h5, "recordings/speaker", [r.speaker for r in recs], dims)
-    W(h5, "recordings/motion_path", [r.source.motion for r in recs], dims)
-    W(h5, "recordings/audio_path", [r.source.audio for r in recs], dims)
-    W(h5, "recordings/transcript_path", [r.source.transcript or "" for r in recs], dims)
-    W(h5, "recordings/start_frame", starts, dims)
-    W(h5, "recordings/n_frames", [r.n_frames for r in recs], dims)
-    W(h5, "recordings/duration_s", [r.n_frames / cfg.fps for r in recs], dims)
-    W(h5, "recordings/source_fps", [r.source_fps for r in recs], dims)
-    W(h5, "recordings/mirrored", [r.mirrored for r in recs], dims)
+    W(h5, schema.RECORDING_NAME, [r.name for r in recs], dims)
+    W(h5, schema.RECORDING_SPEAKER, [r.speaker for r in recs], dims)
+    W(h5, schema.RECORDING_MOTION_PATH, [r.source.motion for r in recs], dims)
+    W(h5, schema.RECORDING_AUDIO_PATH, [r.source.audio for r in recs], dims)
+    W(h5, schema.RECORDING_TRANSCRIPT_PATH, [r.source.transcript or "" for r in recs], dims)
+    W(h5, schema.RECORDING_START_FRAME, starts, dims)
+    W(h5, schema.RECORDING_N_FRAMES, [r.n_frames for r in recs], dims)
+    W(h5, schema.RECORDING_DURATION_S, [r.n_frames / cfg.fps for r in recs], dims)
+    W(h5, schema.RECORDING_SOURCE_FPS, [r.source_fps for r in recs], dims)
+    W(h5, schema.RECORDING_MIRRORED, [r.mirrored for r in recs], dims)
 
     # written as the recordings came (build); the audio is standardised now
     mean, std = frames.close(dims)
-    W(h5, "audio/mean", mean, dims)
-    W(h5, "audio/std", std, dims)
+    W(h5, schema.AUDIO_MEAN, mean, dims)
+    W(h5, schema.AUDIO_STD, std, dims)
 
     sk = recs[0].skeleton
-    W(h5, "skeleton/names", sk.names, dims)
-    W(h5, "skeleton/parents", np.asarray(sk.parents, dtype=np.int64), dims)
-    W(h5, "skeleton/offsets", np.asarray(sk.offsets, dtype=np.float64), dims)
-    W(h5, "skeleton/channel_orders", list(sk.channel_orders), dims)
+    W(h5, schema.SKELETON_NAMES, sk.names, dims)
+    W(h5, schema.SKELETON_PARENTS, np.asarray(sk.parents, dtype=np.int64), dims)
+    W(h5, schema.SKELETON_OFFSETS, np.asarray(sk.offsets, dtype=np.float64), dims)
+    W(h5, schema.SKELETON_CHANNEL_ORDERS, list(sk.channel_orders), dims)
     ej = sorted(sk.end_sites)
-    W(h5, "skeleton/end_site_joints", np.asarray(ej, dtype=np.int64), dims)
-    W(h5, "skeleton/end_site_offsets", np.asarray([sk.end_sites[j] for j in ej], dtype=np.float64).reshape(-1, 3), dims)
+    W(h5, schema.SKELETON_END_SITE_JOINTS, np.asarray(ej, dtype=np.int64), dims)
+    W(h5, schema.SKELETON_END_SITE_OFFSETS, np.asarray([sk.end_sites[j] for j in ej], dtype=np.float64).reshape(-1, 3), dims)
     # metres per length unit of the source files, so export writes BVH back in those units
-    h5["skeleton"].attrs["length_unit_m"] = float(getattr(sk, "length_unit_m", 1.0))
+    store.set_attrs(h5, schema.SKELETON, {schema.LENGTH_UNIT_ATTR: float(getattr(sk, "length_unit_m", 1.0))})
 
-    W(h5, "chunks/start", np.concatenate([r.chunks[0] + s for r, s in zip(recs, starts)]), dims)
-    W(h5, "chunks/length", np.concatenate([r.chunks[1] for r in recs]), dims)
-    W(h5, "chunks/recording", np.concatenate([np.full(len(r.chunks[0]), i, np.int32) for i, r in enumerate(recs)]), dims)
+    W(h5, schema.CHUNK_START, np.concatenate([r.chunks[0] + s for r, s in zip(recs, starts)]), dims)
+    W(h5, schema.CHUNK_LENGTH, np.concatenate([r.chunks[1] for r in recs]), dims)
+    W(h5, schema.CHUNK_RECORDING, np.concatenate([np.full(len(r.chunks[0]), i, np.int32) for i, r in enumerate(recs)]), dims)
 
     word_base = np.cumsum([0] + [len(r.words[0]) for r in recs])[:-1]
     cat = lambda key: np.concatenate([r.clips[key] for r in recs])  # noqa: E731
-    W(h5, "clips/start", np.concatenate([r.clips["start"] + s for r, s in zip(recs, starts)]), dims)
-    W(h5, "clips/length", cat("length"), dims)
-    W(h5, "clips/recording", np.concatenate([np.full(len(r.clips["start"]), i, np.int32) for i, r in enumerate(recs)]), dims)
-    W(h5, "clips/word_start", np.concatenate([r.clips["word_start"] + b for r, b in zip(recs, word_base)]), dims)
-    W(h5, "clips/word_end", np.concatenate([r.clips["word_end"] + b for r, b in zip(recs, word_base)]), dims)
-    W(h5, "clips/rhythm_audio", cat("rhythm_audio"), dims)
-    W(h5, "clips/rhythm_motion", cat("rhythm_motion"), dims)
-    W(h5, "clips/style", cat("style").astype(np.float32).reshape(-1, 3), dims)
+    W(h5, schema.CLIP_START, np.concatenate([r.clips["start"] + s for r, s in zip(recs, starts)]), dims)
+    W(h5, schema.CLIP_LENGTH, cat("length"), dims)
+    W(h5, schema.CLIP_RECORDING, np.concatenate([np.full(len(r.clips["start"]), i, np.int32) for i, r in enumerate(recs)]), dims)
+    W(h5, schema.CLIP_WORD_START, np.concatenate([r.clips["word_start"] + b for r, b in zip(recs, word_base)]), dims)
+    W(h5, schema.CLIP_WORD_END, np.concatenate([r.clips["word_end"] + b for r, b in zip(recs, word_base)]), dims)
+    W(h5, schema.CLIP_RHYTHM_AUDIO, cat("rhythm_audio"), dims)
+    W(h5, schema.CLIP_RHYTHM_MOTION, cat("rhythm_motion"), dims)
+    W(h5, schema.CLIP_STYLE, cat("style").astype(np.float32).reshape(-1, 3), dims)
 
-    W(h5, "words/recording", np.concatenate([np.full(len(r.words[0]), i, np.int32) for i, r in enumerate(recs)]), dims)
-    W(h5, "words/start_s", np.concatenate([r.words[0] for r in recs]), dims)
-    W(h5, "words/end_s", np.concatenate([r.words[1] for r in recs]), dims)
-    W(h5, "words/text", [t for r in recs for t in r.words[2]], dims)
+    W(h5, schema.WORD_RECORDING, np.concatenate([np.full(len(r.words[0]), i, np.int32) for i, r in enumerate(recs)]), dims)
+    W(h5, schema.WORD_START_S, np.concatenate([r.words[0] for r in recs]), dims)
+    W(h5, schema.WORD_END_S, np.concatenate([r.words[1] for r in recs]), dims)
+    W(h5, schema.WORD_TEXT, [t for r in recs for t in r.words[2]], dims)
 
     check_writes(h5)
-    write_default_masks(h5, h5[schema.CONTROLS_GROUP])
+    write_default_masks(h5, frames.controls)
     if cfg.graph:
         from gesturedb.db.graph import write_graph
 
@@ -519,12 +518,20 @@ def write_default_masks(h5, controls) -> None:
     """
     from gesturedb import control
 
-    g = h5.require_group(schema.MASKS_GROUP)
+    store.ensure_group(h5, schema.MASKS_GROUP)
     for feature in controls:
         for name, res in control.percentile_masks({feature: controls[feature][()]}).items():
-            ds = g.create_dataset(name, data=res.words)
-            ds.attrs["definition"] = res.expr
-            schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
+            save_mask_bits(h5, name, res)
+
+
+def save_mask_bits(h5, name: str, res, definition: str | None = None) -> None:
+    """Store a compiled mask ``res`` (:class:`gesturedb.control.MaskResult`) as ``masks/<name>``
+    with its definition (default: ``res.expr``) and thresholds (replacing a mask of that name)."""
+    path = f"{schema.MASKS_GROUP}/{name}"
+    store.delete(h5, path)
+    store.create(h5, path, res.words, attrs={
+        "definition": res.expr if definition is None else definition,
+        "thresholds": json.dumps({k: float(v) for k, v in res.thresholds.items()}, sort_keys=True)})
 
 
 def build(

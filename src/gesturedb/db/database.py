@@ -239,7 +239,10 @@ class Database:
     # -- scalars --------------------------------------------------------------
     @property
     def h5(self):
-        """The underlying read-only :class:`h5py.File`, for callers who want raw access."""
+        """The underlying read-only :class:`h5py.File`, for the modules of :mod:`gesturedb.db` only.
+
+        Other stages ask the database (:meth:`read`, :meth:`frame_shape`, :meth:`motion_graph`,
+        ...), so that the storage stays swappable (``tests/test_architecture.py`` checks it)."""
         return self._h5
 
     # cached: the file is open read-only, and reading an HDF5 attribute costs ~50 us, which the
@@ -271,11 +274,25 @@ class Database:
         return schema.shard_entries(self._h5, self.path)
 
     @property
+    def sample_rate(self) -> int:
+        """Audio sample rate (Hz) the features were computed at: speech for this database is read at it."""
+        return int(self.config.get("sample_rate", schema.DEFAULT_SAMPLE_RATE))
+
+    @property
     def gesturedb_version(self) -> str:
         return str(self._h5.attrs.get("gesturedb_version", "?"))
 
     def _read(self, path: str) -> np.ndarray:
         return schema.read(self._h5, path)
+
+    def read(self, path: str) -> np.ndarray:
+        """A declared dataset (a path of :mod:`gesturedb.db.schema`, e.g. ``schema.SKELETON_NAMES``),
+        read whole: an array of the declared dtype, or a list of str."""
+        return self._read(path)
+
+    def has(self, path: str) -> bool:
+        """Whether the file holds a dataset or group at ``path`` (a schema path or group)."""
+        return path in self._h5
 
     def frame_source(self, path: str):
         """The per-frame dataset at ``path`` (``"frames/pose_features"`` ...) to read rows from.
@@ -308,10 +325,10 @@ class Database:
 
     # -- per-frame arrays -----------------------------------------------------
     #: attribute -> dataset of the per-frame arrays :meth:`rows` reads
-    FRAME_ARRAYS = {"pose_features": "frames/pose_features", "audio_features": "frames/audio_features",
-                    "audio_deltas": "frames/audio_deltas", "joint_positions": "frames/joint_positions",
-                    "local_rotations": "frames/local_rotations", "root_positions": "frames/root_positions",
-                    "frame_recording": "frames/recording"}
+    FRAME_ARRAYS = {"pose_features": schema.POSE_FEATURES, "audio_features": schema.AUDIO_FEATURES,
+                    "audio_deltas": schema.AUDIO_DELTAS, "joint_positions": schema.JOINT_POSITIONS,
+                    "local_rotations": schema.LOCAL_ROTATIONS, "root_positions": schema.ROOT_POSITIONS,
+                    "frame_recording": schema.FRAME_RECORDING}
 
     def _frame_dataset(self, name: str):
         """The h5py dataset of a per-frame array, checked once against the schema (dtype, F rows)."""
@@ -328,6 +345,11 @@ class Database:
                 raise SchemaError(self.path, f"{path}: expected {self.n_frames} frames, got shape {ds.shape}")
             cache[path] = ds
         return cache[path]
+
+    def frame_shape(self, name: str) -> tuple[int, ...]:
+        """The shape of a per-frame array (a key of :attr:`FRAME_ARRAYS`), read from the file without
+        loading the array: ``(F, Dp)`` for ``"pose_features"``, ``(F, J, 4)`` for ``"local_rotations"``."""
+        return tuple(int(n) for n in self._frame_dataset(name).shape)
 
     def rows(self, name: str, frames, *, column: int | None = None) -> np.ndarray:
         """Rows of a per-frame array at database frames, without loading the whole array.
@@ -402,50 +424,50 @@ class Database:
     @functools.cached_property
     def pose_features(self) -> np.ndarray:
         """ndarray [shape=(F, Dp)], float32 C-contiguous, metres (body frame)."""
-        return self._frames("frames/pose_features")
+        return self._frames(schema.POSE_FEATURES)
 
     @functools.cached_property
     def audio_features(self) -> np.ndarray:
         """ndarray [shape=(F, 14)], float32: standardised 13 MFCC + log mean energy."""
-        return self._frames("frames/audio_features")
+        return self._frames(schema.AUDIO_FEATURES)
 
     @functools.cached_property
     def audio_deltas(self) -> np.ndarray:
         """ndarray [shape=(F, 14)], float32: first derivative of :attr:`audio_features`."""
-        return self._frames("frames/audio_deltas")
+        return self._frames(schema.AUDIO_DELTAS)
 
     @functools.cached_property
     def audio_mean(self) -> np.ndarray:
-        return self._read("audio/mean")
+        return self._read(schema.AUDIO_MEAN)
 
     @functools.cached_property
     def audio_std(self) -> np.ndarray:
-        return self._read("audio/std")
+        return self._read(schema.AUDIO_STD)
 
     @functools.cached_property
     def joint_positions(self) -> np.ndarray:
         """ndarray [shape=(F, J, 3)], float32, world metres, y up."""
-        return self._frames("frames/joint_positions")
+        return self._frames(schema.JOINT_POSITIONS)
 
     @functools.cached_property
     def local_rotations(self) -> np.ndarray:
         """ndarray [shape=(F, J, 4)], float32 unit quaternions (w, x, y, z)."""
-        return self._frames("frames/local_rotations")
+        return self._frames(schema.LOCAL_ROTATIONS)
 
     @functools.cached_property
     def root_positions(self) -> np.ndarray:
         """ndarray [shape=(F, 3)], float32, world metres."""
-        return self._frames("frames/root_positions")
+        return self._frames(schema.ROOT_POSITIONS)
 
     @functools.cached_property
     def frame_recording(self) -> np.ndarray:
         """ndarray [shape=(F,)], int32: recording index of every frame."""
-        return self._frames("frames/recording")
+        return self._frames(schema.FRAME_RECORDING)
 
     # -- tables ---------------------------------------------------------------
     @functools.cached_property
     def recordings(self) -> list[Recording]:
-        cols = {k: self._read(f"recordings/{k}") for k in (
+        cols = {k: self._read(f"{schema.RECORDINGS}/{k}") for k in (
             "name", "speaker", "motion_path", "audio_path", "transcript_path",
             "start_frame", "n_frames", "duration_s", "source_fps", "mirrored")}
         return [
@@ -485,7 +507,7 @@ class Database:
     @functools.cached_property
     def chunks(self) -> Segments:
         """Fixed-length chunks (default 64 frames), the paper's matching sequences."""
-        return Segments(self._read("chunks/start"), self._read("chunks/length"), self._read("chunks/recording"))
+        return Segments(self._read(schema.CHUNK_START), self._read(schema.CHUNK_LENGTH), self._read(schema.CHUNK_RECORDING))
 
     @property
     def segments(self) -> Segments:
@@ -497,36 +519,66 @@ class Database:
         """Word-gap clips with rhythm and style signatures."""
         r = self._read
         return Clips(
-            start=r("clips/start"), length=r("clips/length"), recording=r("clips/recording"),
-            word_start=r("clips/word_start"), word_end=r("clips/word_end"),
-            rhythm_audio=r("clips/rhythm_audio"), rhythm_motion=r("clips/rhythm_motion"),
-            style=r("clips/style"),
+            start=r(schema.CLIP_START), length=r(schema.CLIP_LENGTH), recording=r(schema.CLIP_RECORDING),
+            word_start=r(schema.CLIP_WORD_START), word_end=r(schema.CLIP_WORD_END),
+            rhythm_audio=r(schema.CLIP_RHYTHM_AUDIO), rhythm_motion=r(schema.CLIP_RHYTHM_MOTION),
+            style=r(schema.CLIP_STYLE),
         )
 
     @functools.cached_property
     def words(self) -> WordTable:
         r = self._read
-        return WordTable(r("words/recording"), r("words/start_s"), r("words/end_s"), r("words/text"))
+        return WordTable(r(schema.WORD_RECORDING), r(schema.WORD_START_S), r(schema.WORD_END_S), r(schema.WORD_TEXT))
 
     @functools.cached_property
     def joint_names(self) -> list[str]:
-        return self._read("skeleton/names")
+        return self._read(schema.SKELETON_NAMES)
 
     @functools.cached_property
     def skeleton(self):
         """The :class:`gesturedb.motion.Skeleton` of every recording in the database."""
         from gesturedb.motion import Skeleton
 
-        end_joints = self._read("skeleton/end_site_joints")
-        end_offsets = self._read("skeleton/end_site_offsets")
+        end_joints = self._read(schema.SKELETON_END_SITE_JOINTS)
+        end_offsets = self._read(schema.SKELETON_END_SITE_OFFSETS)
         return Skeleton(
             names=list(self.joint_names),
-            parents=self._read("skeleton/parents"),
-            offsets=self._read("skeleton/offsets"),
-            channel_orders=self._read("skeleton/channel_orders"),
+            parents=self._read(schema.SKELETON_PARENTS),
+            offsets=self._read(schema.SKELETON_OFFSETS),
+            channel_orders=self._read(schema.SKELETON_CHANNEL_ORDERS),
             end_sites={int(j): np.asarray(o, dtype=np.float64) for j, o in zip(end_joints, end_offsets)},
-            length_unit_m=float(self._h5["skeleton"].attrs.get("length_unit_m", 1.0)),
+            length_unit_m=float(self._h5[schema.SKELETON].attrs.get(schema.LENGTH_UNIT_ATTR, 1.0)),
         )
+
+    # -- motion graph (GestureMaster) -----------------------------------------
+    @property
+    def has_motion_graphs(self) -> bool:
+        """Whether the file holds both motion graphs and the style model (``gesturedb graph`` adds them)."""
+        return all(p in self._h5 for p in (schema.GRAPH_INDPTR, schema.GRAPH_LOWER_INDPTR, schema.STYLE_COEF))
+
+    def motion_graph(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One body part's motion graph as CSR arrays ``(indptr, indices, cost)``.
+
+        Parameters
+        ----------
+        part : {"upper", "lower"}
+            The upper body (rhythm, style and transitions) or the root and legs (transitions).
+
+        Returns
+        -------
+        indptr : ndarray [shape=(K + 1,)], int64
+        indices : ndarray [shape=(G,)], int64, target clip of each edge
+        cost : ndarray [shape=(G,)], float64, transition cost
+        """
+        groups = {"upper": schema.GRAPH_UPPER, "lower": schema.GRAPH_LOWER}
+        if part not in groups:
+            raise ParameterError(f"part: expected 'upper' or 'lower', got {part!r}")
+        return tuple(self._read(p) for p in schema.GRAPHS[groups[part]])
+
+    @functools.cached_property
+    def style_model(self) -> dict[str, np.ndarray]:
+        """The clip-style predictor: ``coef`` (P, S), ``intercept`` (S,), ``x_mean`` and ``x_std`` (P,), float64."""
+        return {k: self._read(p) for k, p in schema.STYLE_MODEL_FIELDS.items()}
 
     # -- controls and masks ---------------------------------------------------
     @functools.cached_property
@@ -550,6 +602,14 @@ class Database:
         """Saved masks as h5py datasets, read when an expression uses them (see :attr:`masks`)."""
         g = self._masks_group()
         return {} if g is None else {k: g[k] for k in sorted(g)}
+
+    def control_attrs(self, name: str) -> dict:
+        """The stored attributes (``unit``, ``doc``) of the control feature ``name``."""
+        return dict(self._h5[f"{schema.CONTROLS_GROUP}/{name}"].attrs)
+
+    def mask_attrs(self, name: str) -> dict:
+        """The stored attributes (``definition``, ``thresholds`` as JSON) of the saved mask ``name``."""
+        return dict(self._masks_group()[name].attrs)
 
     @functools.cached_property
     def control_units(self) -> dict[str, str]:

@@ -11,7 +11,8 @@ from __future__ import annotations
 import os
 import re
 
-from gesturedb.db import schema
+from gesturedb.db import schema, store
+from gesturedb.db.build import save_mask_bits, write_default_masks
 from gesturedb.db.storage import edit, locked
 
 
@@ -46,23 +47,22 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
 
 
 def _write_controls(path, controls: dict, replace: bool) -> None:
-    from gesturedb.db.build import write_default_masks
     from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
 
+    C, M = schema.CONTROLS_GROUP, schema.MASKS_GROUP
     with edit(path) as h5:
-        g = h5.require_group(schema.CONTROLS_GROUP)
+        store.ensure_group(h5, C)
         for k, v in controls.items():
-            if k in g:
+            if store.exists(h5, f"{C}/{k}"):
                 if not replace:
                     continue
-                del g[k]
-            ds = g.create_dataset(k, data=v)
-            ds.attrs["unit"] = CONTROL_UNITS.get(k, "")
-            ds.attrs["doc"] = CONTROL_DOCS.get(k, "")
-        masks = h5.require_group(schema.MASKS_GROUP)
-        for k in [k for k in masks if k.endswith(("_high", "_low")) and k.rsplit("_", 1)[0] in controls]:
-            del masks[k]
-        write_default_masks(h5, {k: g[k] for k in sorted(g)})
+                store.delete(h5, f"{C}/{k}")
+            store.create(h5, f"{C}/{k}", v, attrs={"unit": CONTROL_UNITS.get(k, ""), "doc": CONTROL_DOCS.get(k, "")})
+        store.ensure_group(h5, M)
+        for k in store.members(h5, M):
+            if k.endswith(("_high", "_low")) and k.rsplit("_", 1)[0] in controls:
+                store.delete(h5, f"{M}/{k}")
+        write_default_masks(h5, {k: store.array(h5, f"{C}/{k}") for k in store.members(h5, C)})
 
 
 def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = False):
@@ -136,13 +136,9 @@ def save_masks(path: str | os.PathLike, masks, *, replace: bool = False) -> dict
                     raise ParameterError(f"mask {name!r} = {expr!r} allows no frame of {path}: {res.describe()}")
                 results[name] = res
         with edit(path) as h5:
-            g = h5.require_group(schema.MASKS_GROUP)
+            store.ensure_group(h5, schema.MASKS_GROUP)
             for name, res in results.items():
-                if name in g:
-                    del g[name]
-                ds = g.create_dataset(name, data=res.words)
-                ds.attrs["definition"] = dict(items)[name]
-                schema.write_json_attr(ds, "thresholds", {k: float(v) for k, v in res.thresholds.items()})
+                save_mask_bits(h5, name, res, dict(items)[name])
     return results
 
 
@@ -192,14 +188,14 @@ def remove_mask(path: str | os.PathLike, name: str) -> None:
 
     if not isinstance(name, str) or not name or name.strip("/.") == "":
         raise ParameterError(f"mask name: expected a mask name, got {name!r}")
+    M = schema.MASKS_GROUP
     with edit(path) as h5:
-        g = h5.get(schema.MASKS_GROUP)
-        # the raw HDF5 group, not Database.masks: a damaged entry must still be removable
-        if g is None or name not in g:
-            names = sorted(g) if g is not None else []
+        # the stored objects, not Database.masks: a damaged entry (a group) must still be removable
+        if not store.exists(h5, M) or not store.exists(h5, f"{M}/{name}"):
+            names = store.members(h5, M)
             raise ParameterError(f"mask {name!r}: no such mask in {path}; masks: {', '.join(names) or 'none'}")
-        del g[name]
+        store.delete(h5, f"{M}/{name}")
         parent = name.rsplit("/", 1)[0] if "/" in name.strip("/") else None
-        while parent and parent in g and len(g[parent]) == 0:  # empty groups left by a nested name
-            del g[parent]
+        while parent and store.exists(h5, f"{M}/{parent}") and not store.members(h5, f"{M}/{parent}"):
+            store.delete(h5, f"{M}/{parent}")  # empty groups left by a nested name
             parent = parent.rsplit("/", 1)[0] if "/" in parent else None

@@ -10,7 +10,7 @@ from collections import Counter
 from dataclasses import dataclass
 import numpy as np
 
-from gesturedb.db import schema
+from gesturedb.db import schema, store
 from gesturedb.errors import ParameterError, SchemaError
 from gesturedb.db.keywords import SubDatabase, _check_int, _open, _tables, _write_subdb, get_subdatabase, time_to_frames
 
@@ -176,71 +176,65 @@ def _write_export(h5, db, sub: SubDatabase, p: _ExportPlan) -> None:
     fr = p.frames
     src = [recs[int(r)] for r in p.src_rec]
 
-    h5.attrs["schema_version"] = schema.SCHEMA_VERSION
-    h5.attrs["gesturedb_version"] = __version__
-    h5.attrs["fps"] = float(db.fps)
-    h5.attrs["n_frames"] = F
+    store.set_attrs(h5, "", {"schema_version": schema.SCHEMA_VERSION, "gesturedb_version": __version__,
+                             "fps": float(db.fps), "n_frames": F})
     schema.write_json_attr(h5, "config", db.config)
     schema.write_json_attr(h5, "feature_joints", db.feature_joints)
 
-    W(h5, "recordings/name", p.names, dims)
-    W(h5, "recordings/speaker", [r.speaker for r in src], dims)
-    W(h5, "recordings/motion_path", [r.motion_path for r in src], dims)
-    W(h5, "recordings/audio_path", [r.audio_path for r in src], dims)
-    W(h5, "recordings/transcript_path", [r.transcript_path for r in src], dims)
-    W(h5, "recordings/start_frame", p.starts, dims)
-    W(h5, "recordings/n_frames", p.lengths, dims)
-    W(h5, "recordings/duration_s", p.lengths / db.fps, dims)
-    W(h5, "recordings/source_fps", np.array([r.source_fps for r in src], dtype=np.float64), dims)
-    W(h5, "recordings/mirrored", np.array([r.mirrored for r in src], dtype=bool), dims)
+    W(h5, schema.RECORDING_NAME, p.names, dims)
+    W(h5, schema.RECORDING_SPEAKER, [r.speaker for r in src], dims)
+    W(h5, schema.RECORDING_MOTION_PATH, [r.motion_path for r in src], dims)
+    W(h5, schema.RECORDING_AUDIO_PATH, [r.audio_path for r in src], dims)
+    W(h5, schema.RECORDING_TRANSCRIPT_PATH, [r.transcript_path for r in src], dims)
+    W(h5, schema.RECORDING_START_FRAME, p.starts, dims)
+    W(h5, schema.RECORDING_N_FRAMES, p.lengths, dims)
+    W(h5, schema.RECORDING_DURATION_S, p.lengths / db.fps, dims)
+    W(h5, schema.RECORDING_SOURCE_FPS, np.array([r.source_fps for r in src], dtype=np.float64), dims)
+    W(h5, schema.RECORDING_MIRRORED, np.array([r.mirrored for r in src], dtype=bool), dims)
 
-    W(h5, "frames/pose_features", db.pose_features[fr], dims)
-    W(h5, "frames/audio_features", db.audio_features[fr], dims)
-    W(h5, "frames/audio_deltas", db.audio_deltas[fr], dims)
-    W(h5, "frames/joint_positions", db.joint_positions[fr], dims)
-    W(h5, "frames/local_rotations", db.local_rotations[fr], dims)
-    W(h5, "frames/root_positions", db.root_positions[fr], dims)
-    W(h5, "frames/recording", np.repeat(np.arange(len(p.names), dtype=np.int32), p.lengths), dims)
-    W(h5, "audio/mean", db.audio_mean, dims)
-    W(h5, "audio/std", db.audio_std, dims)
+    W(h5, schema.POSE_FEATURES, db.pose_features[fr], dims)
+    W(h5, schema.AUDIO_FEATURES, db.audio_features[fr], dims)
+    W(h5, schema.AUDIO_DELTAS, db.audio_deltas[fr], dims)
+    W(h5, schema.JOINT_POSITIONS, db.joint_positions[fr], dims)
+    W(h5, schema.LOCAL_ROTATIONS, db.local_rotations[fr], dims)
+    W(h5, schema.ROOT_POSITIONS, db.root_positions[fr], dims)
+    W(h5, schema.FRAME_RECORDING, np.repeat(np.arange(len(p.names), dtype=np.int32), p.lengths), dims)
+    W(h5, schema.AUDIO_MEAN, db.audio_mean, dims)
+    W(h5, schema.AUDIO_STD, db.audio_std, dims)
 
-    for path in ("skeleton/names", "skeleton/parents", "skeleton/offsets", "skeleton/channel_orders",
-                 "skeleton/end_site_joints", "skeleton/end_site_offsets"):
-        W(h5, path, schema.read(db.h5, path), dims)
+    for path in (schema.SKELETON_NAMES, schema.SKELETON_PARENTS, schema.SKELETON_OFFSETS, schema.SKELETON_CHANNEL_ORDERS,
+                 schema.SKELETON_END_SITE_JOINTS, schema.SKELETON_END_SITE_OFFSETS):
+        W(h5, path, db.read(path), dims)
 
-    W(h5, "chunks/start", p.chunks[0], dims)
-    W(h5, "chunks/length", p.chunks[1], dims)
-    W(h5, "chunks/recording", p.chunks[2], dims)
+    W(h5, schema.CHUNK_START, p.chunks[0], dims)
+    W(h5, schema.CHUNK_LENGTH, p.chunks[1], dims)
+    W(h5, schema.CHUNK_RECORDING, p.chunks[2], dims)
 
     for key in ("start", "length", "recording", "word_start", "word_end", "rhythm_audio", "rhythm_motion"):
-        W(h5, f"clips/{key}", p.clips[key], dims)
-    W(h5, "clips/style", p.clips["style"].astype(np.float32).reshape(-1, 3), dims)
+        W(h5, f"{schema.CLIPS}/{key}", p.clips[key], dims)
+    W(h5, schema.CLIP_STYLE, p.clips["style"].astype(np.float32).reshape(-1, 3), dims)
 
-    W(h5, "words/recording", np.concatenate([np.full(len(w[0]), i, np.int32) for i, w in enumerate(p.words)]), dims)
-    W(h5, "words/start_s", np.concatenate([w[1] for w in p.words]), dims)
-    W(h5, "words/end_s", np.concatenate([w[2] for w in p.words]), dims)
-    W(h5, "words/text", [x for w in p.words for x in w[3]], dims)
+    W(h5, schema.WORD_RECORDING, np.concatenate([np.full(len(w[0]), i, np.int32) for i, w in enumerate(p.words)]), dims)
+    W(h5, schema.WORD_START_S, np.concatenate([w[1] for w in p.words]), dims)
+    W(h5, schema.WORD_END_S, np.concatenate([w[2] for w in p.words]), dims)
+    W(h5, schema.WORD_TEXT, [x for w in p.words for x in w[3]], dims)
 
     controls = {k: np.ascontiguousarray(v[fr], dtype=np.float32) for k, v in db.controls.items()}
     if controls:
-        g = h5.create_group(schema.CONTROLS_GROUP)
-        src_g = db.h5[schema.CONTROLS_GROUP]
+        store.ensure_group(h5, schema.CONTROLS_GROUP)
         for k, v in controls.items():
-            ds = g.create_dataset(k, data=v)
-            for a in ("unit", "doc"):
-                if a in src_g[k].attrs:
-                    ds.attrs[a] = src_g[k].attrs[a]
+            src_attrs = db.control_attrs(k)
+            store.create(h5, f"{schema.CONTROLS_GROUP}/{k}", v,
+                         attrs={a: src_attrs[a] for a in ("unit", "doc") if a in src_attrs})
         write_default_masks(h5, controls)
-    src_masks = db.h5.get(schema.MASKS_GROUP)
-    if src_masks is not None:
-        g = h5.require_group(schema.MASKS_GROUP)
-        for name in sorted(src_masks):
-            if name in g:  # a default mask, recomputed above for the new frames
+    if db.has(schema.MASKS_GROUP):
+        store.ensure_group(h5, schema.MASKS_GROUP)
+        taken = set(store.members(h5, schema.MASKS_GROUP))
+        for name in sorted(db.masks):
+            if name in taken:  # a default mask, recomputed above for the new frames
                 continue
-            bits = control.unpack_bits(np.asarray(src_masks[name][()], dtype=np.uint64), db.n_frames)[fr]
-            ds = g.create_dataset(name, data=control.pack_bits(bits))
-            for a, v in src_masks[name].attrs.items():
-                ds.attrs[a] = v
+            bits = control.unpack_bits(db.masks[name], db.n_frames)[fr]
+            store.create(h5, f"{schema.MASKS_GROUP}/{name}", control.pack_bits(bits), attrs=db.mask_attrs(name))
 
     definition = dict(sub.definition)
     definition["exported_from"] = {"database": os.path.abspath(db.path), "occurrences": len(sub)}

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gesturedb.db import schema
+from gesturedb.db import schema, store
 
 #: standard deviations under this are taken as this, so a constant feature is not divided by zero
 MIN_AUDIO_STD = 1e-6
@@ -48,8 +48,8 @@ class FrameWriter:
     and returns its ``(mean, std)``, each of shape (Da,) float64.
     """
 
-    FIELDS = (("frames/pose_features", "pose"), ("frames/joint_positions", "positions"),
-              ("frames/local_rotations", "rotations"), ("frames/root_positions", "root"))
+    FIELDS = ((schema.POSE_FEATURES, "pose"), (schema.JOINT_POSITIONS, "positions"),
+              (schema.LOCAL_ROTATIONS, "rotations"), (schema.ROOT_POSITIONS, "root"))
 
     def __init__(self, h5):
         self.h5 = h5
@@ -68,22 +68,20 @@ class FrameWriter:
         for path, attr in self.FIELDS:
             shape = getattr(r, attr).shape[1:]
             self.rows.append(schema.RowWriter(self.h5, path, shape, chunk_rows=rows(shape)))
-        self.recording = schema.RowWriter(self.h5, "frames/recording", (), chunk_rows=rows(()))
+        self.recording = schema.RowWriter(self.h5, schema.FRAME_RECORDING, (), chunk_rows=rows(()))
         da = r.audio_raw.shape[1:]
-        self.audio = schema.RowWriter(self.h5, "frames/audio_features", da, chunk_rows=rows(da))
-        self.deltas = schema.RowWriter(self.h5, "frames/audio_deltas", da, chunk_rows=rows(da))
-        g = self.h5.create_group(schema.CONTROLS_GROUP)
+        self.audio = schema.RowWriter(self.h5, schema.AUDIO_FEATURES, da, chunk_rows=rows(da))
+        self.deltas = schema.RowWriter(self.h5, schema.AUDIO_DELTAS, da, chunk_rows=rows(da))
+        store.ensure_group(self.h5, schema.CONTROLS_GROUP)
         for k in sorted(r.controls):
-            ds = g.create_dataset(k, shape=(0,), maxshape=(None,), chunks=(rows(()),), dtype=np.float32)
-            ds.attrs["unit"] = CONTROL_UNITS.get(k, "")
-            ds.attrs["doc"] = CONTROL_DOCS.get(k, "")
-            self.controls[k] = ds
+            self.controls[k] = store.create(self.h5, f"{schema.CONTROLS_GROUP}/{k}", shape=(0,), dtype=np.float32,
+                                            chunk_rows=rows(()),
+                                            attrs={"unit": CONTROL_UNITS.get(k, ""), "doc": CONTROL_DOCS.get(k, "")})
 
     def add(self, r) -> None:
         """Append recording ``r`` (a :class:`gesturedb.db.build.RecordingData`)."""
         if not self.rows:
             self._open(r)
-        n0 = self.recording.n  # rows written before this recording
         for rows, (_, attr) in zip(self.rows, self.FIELDS):
             rows.write(getattr(r, attr))
             setattr(r, attr, None)
@@ -92,8 +90,7 @@ class FrameWriter:
         self.audio_sum = schema.add_rows(self.audio_sum, r.audio_raw)
         r.audio_raw = None
         for k, ds in self.controls.items():
-            ds.resize(n0 + r.n_frames, axis=0)
-            ds[n0:] = np.asarray(r.controls[k], dtype=np.float32)
+            store.append(ds, np.asarray(r.controls[k], dtype=np.float32))
         r.controls = None
         self.lengths.append(int(r.n_frames))
 

@@ -41,6 +41,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from gesturedb.db import schema, storage, store
+from gesturedb.db.cluster import optional_client
 from gesturedb.db.edges import DELTA_QUANTILE, MAX_OUT, MIN_OUT, _edges, _grid_unit, _GriddedCosts, _on_grid
 from gesturedb.errors import ParameterError
 
@@ -321,29 +323,25 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
     Called by the build (inside :func:`gesturedb.db.storage.write_atomically`) and by
     :func:`add_graph` (inside :func:`gesturedb.db.storage.edit`). Returns a summary dict.
     """
-    from gesturedb.db import schema
-
     if not isinstance(transition_frames, (int, np.integer)) or transition_frames < 1:
         raise ParameterError(f"transition_frames: expected a positive integer, got {transition_frames!r}")
     for name, v in (("l1", l1), ("l2", l2)):
         if not np.isfinite(v) or v < 0:
             raise ParameterError(f"{name}: expected a finite weight >= 0, got {v!r}")
     r = lambda p: schema.read(h5, p)  # noqa: E731
-    start, length = r("clips/start"), r("clips/length")
+    start, length = r(schema.CLIP_START), r(schema.CLIP_LENGTH)
     K = start.shape[0]
     m = int(transition_frames)
     off = np.arange(m)
     # clips shorter than m frames repeat their edge frames
     last = start[:, None] + np.maximum(length[:, None] - m + off, 0).clip(max=length[:, None] - 1)
     first = start[:, None] + np.minimum(off, length[:, None] - 1)
-    upper, lower = body_parts(schema.read(h5, "skeleton/names"), schema.read(h5, "skeleton/parents"))
-    parts = (("graph", "upper", upper, delta_T), ("graph_lower", "lower", lower, delta_T_lower))
+    upper, lower = body_parts(schema.read(h5, schema.SKELETON_NAMES), schema.read(h5, schema.SKELETON_PARENTS))
+    parts = ((schema.GRAPH_UPPER, "upper", upper, delta_T), (schema.GRAPH_LOWER, "lower", lower, delta_T_lower))
     # made one at a time, each dropped after its graph: one body part's grid in memory at a time
     grids = _gridded_features(h5, last, first, [(part, joints) for _, part, joints, _ in parts], l1=l1, l2=l2)
     dims = {"K": K}
     summary = {}
-    from gesturedb.db.cluster import optional_client
-
     with contextlib.ExitStack() as stack:
         scheduler = stack.enter_context(optional_client(scheduler))  # one cluster for both graphs
         bar = None
@@ -357,21 +355,18 @@ def write_graph(h5, *, l1: float = L1, l2: float = L2, transition_frames: int = 
                                          on_rows=bar.update if bar is not None else None, scheduler=scheduler)
             del g  # before the next part's grid is made
 
-    n_words = r("clips/word_end") - r("clips/word_start")
-    X = clip_audio_inputs(h5["frames/audio_features"][()], start, length, n_words)
+    n_words = r(schema.CLIP_WORD_END) - r(schema.CLIP_WORD_START)
+    X = clip_audio_inputs(store.array(h5, schema.AUDIO_FEATURES)[()], start, length, n_words)
     # a clip and its mirrored copy (same recording name but '~mirror', same offset) form one group
-    names = [nm.removesuffix("~mirror") for nm in r("recordings/name")]
-    rec = r("clips/recording")
-    rstart = r("recordings/start_frame")
+    names = [nm.removesuffix("~mirror") for nm in r(schema.RECORDING_NAME)]
+    rec = r(schema.CLIP_RECORDING)
+    rstart = r(schema.RECORDING_START_FRAME)
     keys = [(names[int(c)], int(s0 - rstart[int(c)])) for c, s0 in zip(rec, start)]
     uniq = {k: i for i, k in enumerate(dict.fromkeys(keys))}
-    model = fit_style_model(X, r("clips/style").astype(np.float64), groups=np.array([uniq[k] for k in keys]))
-    for k in ("coef", "intercept", "x_mean", "x_std"):
-        schema.write(h5, f"style_model/{k}", model[k], dims)
-    sm = h5["style_model"]
-    for k in ("heldout_rmse", "mean_rmse", "n_heldout"):
-        sm.attrs[k] = model[k]
-    sm.attrs["alpha"] = model["alpha"]
+    model = fit_style_model(X, r(schema.CLIP_STYLE).astype(np.float64), groups=np.array([uniq[k] for k in keys]))
+    for k, path in schema.STYLE_MODEL_FIELDS.items():
+        schema.write(h5, path, model[k], dims)
+    store.set_attrs(h5, schema.STYLE_MODEL, {k: model[k] for k in ("heldout_rmse", "mean_rmse", "n_heldout", "alpha")})
     return dict(n_nodes=K, n_edges=summary["upper"]["n_edges"], delta_T=summary["upper"]["delta_T"],
                 n_edges_lower=summary["lower"]["n_edges"], delta_T_lower=summary["lower"]["delta_T"],
                 heldout_rmse=model["heldout_rmse"], mean_rmse=model["mean_rmse"])
@@ -394,7 +389,7 @@ def _gridded_features(h5, last: np.ndarray, first: np.ndarray, parts, *, l1: flo
     1,000 hours); the values are those of the whole arrays at once. A caller that drops each
     grid before asking for the next holds one at a time (the lower body's is 1 kB per clip).
     """
-    pos, rot, root = h5["frames/joint_positions"], h5["frames/local_rotations"], h5["frames/root_positions"]
+    pos, rot, root = (store.array(h5, p) for p in (schema.JOINT_POSITIONS, schema.LOCAL_ROTATIONS, schema.ROOT_POSITIONS))
     K = last.shape[0]
 
     def features(which):  # (s0, [(end_x, start_x) per part in which]) per chunk
@@ -426,17 +421,13 @@ def _write_edges(h5, group: str, part: str, joints, g: _GriddedCosts, dims: dict
                  l2: float, m: int, delta_T, delta_quantile: float, min_out: int, max_out: int, on_rows,
                  scheduler=None) -> dict:
     """One body part's graph from its gridded transition features, written under ``group``."""
-    from gesturedb.db import schema
-
     indptr, indices, cost, dT = _edges(g, delta_T=delta_T, delta_quantile=delta_quantile, min_out=min_out,
                                        max_out=max_out, on_rows=on_rows, scheduler=scheduler)
-    schema.write(h5, f"{group}/indptr", indptr, dims)
-    schema.write(h5, f"{group}/indices", indices, dims)
-    schema.write(h5, f"{group}/cost", cost, dims)
-    g = h5[group]
-    for k, v in dict(body=part, n_joints=len(joints), l1=float(l1), l2=float(l2), transition_frames=m, delta_T=dT,
-                     delta_quantile=float(delta_quantile), min_out=int(min_out), max_out=int(max_out)).items():
-        g.attrs[k] = v
+    for path, arr in zip(schema.GRAPHS[group], (indptr, indices, cost)):
+        schema.write(h5, path, arr, dims)
+    store.set_attrs(h5, group, dict(body=part, n_joints=len(joints), l1=float(l1), l2=float(l2), transition_frames=m,
+                                    delta_T=dT, delta_quantile=float(delta_quantile), min_out=int(min_out),
+                                    max_out=int(max_out)))
     return dict(n_edges=int(indices.shape[0]), delta_T=dT)
 
 
@@ -446,16 +437,12 @@ def add_graph(path, **options) -> dict:
     Written through :func:`gesturedb.db.storage.edit` (temporary copy + rename). ``options``:
     those of :func:`write_graph` (``scheduler`` included).
     """
-    from gesturedb.db import schema, storage
-    from gesturedb.db.cluster import optional_client
-
     # connect (or start the cluster) before the database is copied: a wrong address fails at
     # once instead of after copying a large file
     with optional_client(options.pop("scheduler", None)) as client:
         with storage.edit(path, upgrade=True) as h5:
-            for grp in ("graph", "graph_lower", "style_model"):
-                if grp in h5:
-                    del h5[grp]
+            for grp in (*schema.GRAPHS, schema.STYLE_MODEL):
+                store.delete(h5, grp)
             summary = write_graph(h5, scheduler=client, **options)
-            h5.attrs["schema_version"] = schema.SCHEMA_VERSION
+            store.set_attrs(h5, "", {"schema_version": schema.SCHEMA_VERSION})
     return summary

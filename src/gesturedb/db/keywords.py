@@ -60,7 +60,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from gesturedb.db import schema
+from gesturedb.db import schema, store
 from gesturedb.db.subdatabase import SUBDB_FIELDS, SubDatabase, time_to_frames  # noqa: F401 (re-exported)
 from gesturedb.db.subdatabase import mask_of as _mask_of
 from gesturedb.db.subdatabase import read_all as _read_all
@@ -534,10 +534,9 @@ def drop_keyword(db_path, word: str) -> SubDatabase:
         with _open(db_path) as db:
             sub = get_subdatabase(db, word)
         with storage.edit(db_path) as h5:
-            g = h5[schema.SUBDB_GROUP]
-            del g[sub.word]
-            if len(g) == 0:
-                del h5[schema.SUBDB_GROUP]
+            store.delete(h5, f"{schema.SUBDB_GROUP}/{sub.word}")
+            if not store.members(h5, schema.SUBDB_GROUP):
+                store.delete(h5, schema.SUBDB_GROUP)
     return sub
 
 

@@ -1,8 +1,11 @@
 """The gesture-database file format: every HDF5 dataset, dtype, shape, unit and attribute.
 
-This module is the only place that knows dataset paths. Writers go through
-:func:`write`, which checks dtype and shape against the declaration; readers go
-through :func:`read` and :func:`check_version`.
+This module is the only place that knows dataset paths: every other module names a
+dataset by one of the constants below (``schema.POSE_FEATURES``), and modules outside
+:mod:`gesturedb.db` ask the :class:`~gesturedb.db.database.Database` instead (tested in
+``tests/test_architecture.py``). Writers go through :func:`write` and :class:`RowWriter`,
+which check dtype and shape against the declaration and store through
+:mod:`gesturedb.db.store`; readers go through :func:`read` and :func:`check_version`.
 
 Symbolic dimensions used in the shapes below:
 
@@ -36,6 +39,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from gesturedb.db import store
 from gesturedb.errors import SchemaError
 
 #: 2: adds graph/ and style_model/ (GestureMaster motion graph)
@@ -60,70 +64,154 @@ class Field:
     doc: str
 
 
+# --------------------------------------------------------------------------
+# dataset paths: every reader and writer names a dataset by one of these
+# --------------------------------------------------------------------------
+#: groups
+RECORDINGS = "recordings"
+FRAMES = "frames"
+AUDIO = "audio"
+SKELETON = "skeleton"
+CHUNKS = "chunks"
+CLIPS = "clips"
+GRAPH_UPPER = "graph"
+GRAPH_LOWER = "graph_lower"
+STYLE_MODEL = "style_model"
+WORDS = "words"
+
+RECORDING_NAME = f"{RECORDINGS}/name"
+RECORDING_SPEAKER = f"{RECORDINGS}/speaker"
+RECORDING_MOTION_PATH = f"{RECORDINGS}/motion_path"
+RECORDING_AUDIO_PATH = f"{RECORDINGS}/audio_path"
+RECORDING_TRANSCRIPT_PATH = f"{RECORDINGS}/transcript_path"
+RECORDING_START_FRAME = f"{RECORDINGS}/start_frame"
+RECORDING_N_FRAMES = f"{RECORDINGS}/n_frames"
+RECORDING_DURATION_S = f"{RECORDINGS}/duration_s"
+RECORDING_SOURCE_FPS = f"{RECORDINGS}/source_fps"
+RECORDING_MIRRORED = f"{RECORDINGS}/mirrored"
+
+POSE_FEATURES = f"{FRAMES}/pose_features"
+AUDIO_FEATURES = f"{FRAMES}/audio_features"
+AUDIO_DELTAS = f"{FRAMES}/audio_deltas"
+JOINT_POSITIONS = f"{FRAMES}/joint_positions"
+LOCAL_ROTATIONS = f"{FRAMES}/local_rotations"
+ROOT_POSITIONS = f"{FRAMES}/root_positions"
+FRAME_RECORDING = f"{FRAMES}/recording"
+
+AUDIO_MEAN = f"{AUDIO}/mean"
+AUDIO_STD = f"{AUDIO}/std"
+
+SKELETON_NAMES = f"{SKELETON}/names"
+SKELETON_PARENTS = f"{SKELETON}/parents"
+SKELETON_OFFSETS = f"{SKELETON}/offsets"
+SKELETON_CHANNEL_ORDERS = f"{SKELETON}/channel_orders"
+SKELETON_END_SITE_JOINTS = f"{SKELETON}/end_site_joints"
+SKELETON_END_SITE_OFFSETS = f"{SKELETON}/end_site_offsets"
+
+CHUNK_START = f"{CHUNKS}/start"
+CHUNK_LENGTH = f"{CHUNKS}/length"
+CHUNK_RECORDING = f"{CHUNKS}/recording"
+
+CLIP_START = f"{CLIPS}/start"
+CLIP_LENGTH = f"{CLIPS}/length"
+CLIP_RECORDING = f"{CLIPS}/recording"
+CLIP_WORD_START = f"{CLIPS}/word_start"
+CLIP_WORD_END = f"{CLIPS}/word_end"
+CLIP_RHYTHM_AUDIO = f"{CLIPS}/rhythm_audio"
+CLIP_RHYTHM_MOTION = f"{CLIPS}/rhythm_motion"
+CLIP_STYLE = f"{CLIPS}/style"
+
+GRAPH_INDPTR = f"{GRAPH_UPPER}/indptr"
+GRAPH_INDICES = f"{GRAPH_UPPER}/indices"
+GRAPH_COST = f"{GRAPH_UPPER}/cost"
+
+GRAPH_LOWER_INDPTR = f"{GRAPH_LOWER}/indptr"
+GRAPH_LOWER_INDICES = f"{GRAPH_LOWER}/indices"
+GRAPH_LOWER_COST = f"{GRAPH_LOWER}/cost"
+
+STYLE_COEF = f"{STYLE_MODEL}/coef"
+STYLE_INTERCEPT = f"{STYLE_MODEL}/intercept"
+STYLE_X_MEAN = f"{STYLE_MODEL}/x_mean"
+STYLE_X_STD = f"{STYLE_MODEL}/x_std"
+
+WORD_RECORDING = f"{WORDS}/recording"
+WORD_START_S = f"{WORDS}/start_s"
+WORD_END_S = f"{WORDS}/end_s"
+WORD_TEXT = f"{WORDS}/text"
+
+#: the two motion graphs: group -> (indptr, indices, cost)
+GRAPHS = {GRAPH_UPPER: (GRAPH_INDPTR, GRAPH_INDICES, GRAPH_COST),
+          GRAPH_LOWER: (GRAPH_LOWER_INDPTR, GRAPH_LOWER_INDICES, GRAPH_LOWER_COST)}
+#: the style model: key of :func:`gesturedb.db.graph.fit_style_model`'s result -> dataset
+STYLE_MODEL_FIELDS = {"coef": STYLE_COEF, "intercept": STYLE_INTERCEPT, "x_mean": STYLE_X_MEAN, "x_std": STYLE_X_STD}
+#: attribute of the skeleton group: metres per length unit of the source files
+LENGTH_UNIT_ATTR = "length_unit_m"
+
+
 FIELDS: tuple[Field, ...] = (
     # --- recordings table --------------------------------------------------
-    Field("recordings/name", STR, ("R",), "", "recording name (file stem; mirrored copies end in '~mirror')"),
-    Field("recordings/speaker", STR, ("R",), "", "speaker name"),
-    Field("recordings/motion_path", STR, ("R",), "", "source motion file (BVH or SMPL-X npz), as given"),
-    Field("recordings/audio_path", STR, ("R",), "", "source speech WAV"),
-    Field("recordings/transcript_path", STR, ("R",), "", "source transcript ('' if none)"),
-    Field("recordings/start_frame", "int64", ("R",), "frame", "first database frame of the recording"),
-    Field("recordings/n_frames", "int64", ("R",), "frame", "number of database frames"),
-    Field("recordings/duration_s", "float64", ("R",), "s", "n_frames / fps"),
-    Field("recordings/source_fps", "float64", ("R",), "Hz", "frame rate of the source motion"),
-    Field("recordings/mirrored", "bool", ("R",), "", "left/right mirrored copy of another recording"),
+    Field(RECORDING_NAME, STR, ("R",), "", "recording name (file stem; mirrored copies end in '~mirror')"),
+    Field(RECORDING_SPEAKER, STR, ("R",), "", "speaker name"),
+    Field(RECORDING_MOTION_PATH, STR, ("R",), "", "source motion file (BVH or SMPL-X npz), as given"),
+    Field(RECORDING_AUDIO_PATH, STR, ("R",), "", "source speech WAV"),
+    Field(RECORDING_TRANSCRIPT_PATH, STR, ("R",), "", "source transcript ('' if none)"),
+    Field(RECORDING_START_FRAME, "int64", ("R",), "frame", "first database frame of the recording"),
+    Field(RECORDING_N_FRAMES, "int64", ("R",), "frame", "number of database frames"),
+    Field(RECORDING_DURATION_S, "float64", ("R",), "s", "n_frames / fps"),
+    Field(RECORDING_SOURCE_FPS, "float64", ("R",), "Hz", "frame rate of the source motion"),
+    Field(RECORDING_MIRRORED, "bool", ("R",), "", "left/right mirrored copy of another recording"),
     # --- per-frame arrays --------------------------------------------------
-    Field("frames/pose_features", "float32", ("F", "Dp"), "m",
+    Field(POSE_FEATURES, "float32", ("F", "Dp"), "m",
           "feature joints in the body frame of the current frame, stacked over the past window; "
           "attr `mean`: float64 (Dp,), its mean over frames"),
-    Field("frames/audio_features", "float32", ("F", "Da"), "1",
+    Field(AUDIO_FEATURES, "float32", ("F", "Da"), "1",
           "13 MFCC + log mean energy per frame, standardised with audio/mean and audio/std"),
-    Field("frames/audio_deltas", "float32", ("F", "Da"), "1/frame",
+    Field(AUDIO_DELTAS, "float32", ("F", "Da"), "1/frame",
           "first time derivative of the standardised audio features (refiner input)"),
-    Field("frames/joint_positions", "float32", ("F", "J", 3), "m", "world joint positions, y up"),
-    Field("frames/local_rotations", "float32", ("F", "J", 4), "1",
+    Field(JOINT_POSITIONS, "float32", ("F", "J", 3), "m", "world joint positions, y up"),
+    Field(LOCAL_ROTATIONS, "float32", ("F", "J", 4), "1",
           "local joint rotations as unit quaternions w, x, y, z"),
-    Field("frames/root_positions", "float32", ("F", 3), "m", "world position of the root joint"),
-    Field("frames/recording", "int32", ("F",), "", "index into the recordings table"),
+    Field(ROOT_POSITIONS, "float32", ("F", 3), "m", "world position of the root joint"),
+    Field(FRAME_RECORDING, "int32", ("F",), "", "index into the recordings table"),
     # --- audio normalisation ----------------------------------------------
-    Field("audio/mean", "float64", ("Da",), "1", "per-dimension mean of the raw audio features"),
-    Field("audio/std", "float64", ("Da",), "1", "per-dimension standard deviation of the raw audio features"),
+    Field(AUDIO_MEAN, "float64", ("Da",), "1", "per-dimension mean of the raw audio features"),
+    Field(AUDIO_STD, "float64", ("Da",), "1", "per-dimension standard deviation of the raw audio features"),
     # --- skeleton ----------------------------------------------------------
-    Field("skeleton/names", STR, ("J",), "", "joint names"),
-    Field("skeleton/parents", "int64", ("J",), "", "parent joint index, -1 for the root"),
-    Field("skeleton/offsets", "float64", ("J", 3), "m", "rest offset of each joint from its parent"),
-    Field("skeleton/channel_orders", STR, ("J",), "", "Euler order of the rotation channels for BVH export"),
-    Field("skeleton/end_site_joints", "int64", ("E",), "", "joints that carry an End Site"),
-    Field("skeleton/end_site_offsets", "float64", ("E", 3), "m", "End Site offsets"),
+    Field(SKELETON_NAMES, STR, ("J",), "", "joint names"),
+    Field(SKELETON_PARENTS, "int64", ("J",), "", "parent joint index, -1 for the root"),
+    Field(SKELETON_OFFSETS, "float64", ("J", 3), "m", "rest offset of each joint from its parent"),
+    Field(SKELETON_CHANNEL_ORDERS, STR, ("J",), "", "Euler order of the rotation channels for BVH export"),
+    Field(SKELETON_END_SITE_JOINTS, "int64", ("E",), "", "joints that carry an End Site"),
+    Field(SKELETON_END_SITE_OFFSETS, "float64", ("E", 3), "m", "End Site offsets"),
     # --- fixed-length chunks (Habibie et al. 2022: T_match = 64) ----------
-    Field("chunks/start", "int64", ("C",), "frame", "first database frame"),
-    Field("chunks/length", "int64", ("C",), "frame", "length in frames (the last chunk of a recording may be shorter)"),
-    Field("chunks/recording", "int32", ("C",), "", "index into the recordings table"),
+    Field(CHUNK_START, "int64", ("C",), "frame", "first database frame"),
+    Field(CHUNK_LENGTH, "int64", ("C",), "frame", "length in frames (the last chunk of a recording may be shorter)"),
+    Field(CHUNK_RECORDING, "int32", ("C",), "", "index into the recordings table"),
     # --- word-gap clips (GestureMaster) ------------------------------------
-    Field("clips/start", "int64", ("K",), "frame", "first database frame"),
-    Field("clips/length", "int64", ("K",), "frame", "length in frames"),
-    Field("clips/recording", "int32", ("K",), "", "index into the recordings table"),
-    Field("clips/word_start", "int64", ("K",), "", "first word of the clip (index into words/)"),
-    Field("clips/word_end", "int64", ("K",), "", "one past the last word of the clip"),
-    Field("clips/rhythm_audio", "uint32", ("K",), "", "32-bit rhythm signature of word onsets (bin 0 = LSB)"),
-    Field("clips/rhythm_motion", "uint32", ("K",), "", "32-bit rhythm signature of hand-speed minima (bin 0 = LSB)"),
-    Field("clips/style", "float32", ("K", "S"), "m/s, m, m", "mean hand speed, radius and height"),
+    Field(CLIP_START, "int64", ("K",), "frame", "first database frame"),
+    Field(CLIP_LENGTH, "int64", ("K",), "frame", "length in frames"),
+    Field(CLIP_RECORDING, "int32", ("K",), "", "index into the recordings table"),
+    Field(CLIP_WORD_START, "int64", ("K",), "", "first word of the clip (index into words/)"),
+    Field(CLIP_WORD_END, "int64", ("K",), "", "one past the last word of the clip"),
+    Field(CLIP_RHYTHM_AUDIO, "uint32", ("K",), "", "32-bit rhythm signature of word onsets (bin 0 = LSB)"),
+    Field(CLIP_RHYTHM_MOTION, "uint32", ("K",), "", "32-bit rhythm signature of hand-speed minima (bin 0 = LSB)"),
+    Field(CLIP_STYLE, "float32", ("K", "S"), "m/s, m, m", "mean hand speed, radius and height"),
     # --- motion graph over the clips (GestureMaster Sec. 4.1; gesturedb/db/graph.py) ----------
-    Field("graph/indptr", "int64", ("K1",), "", "upper-body graph: CSR row pointer over the source clip; attrs body, l1, l2, delta_T, min_out, max_out, transition_frames"),
-    Field("graph/indices", "int64", ("G",), "", "upper-body graph: target clip of each edge, strictly increasing within a row, no self-edges"),
-    Field("graph/cost", "float64", ("G",), "1", "upper-body graph: transition cost T = l1 * T_p (m^2) + l2 * T_r over the joints above the pelvis, in the pelvis frame"),
-    Field("graph_lower/indptr", "int64", ("K1",), "", "lower-body graph (root and legs): CSR row pointer, attrs as graph/"),
-    Field("graph_lower/indices", "int64", ("GL",), "", "lower-body graph: target clip of each edge, strictly increasing within a row, no self-edges"),
-    Field("graph_lower/cost", "float64", ("GL",), "1", "lower-body graph: transition cost over the legs (heading frame) and the pelvis tilt"),
-    Field("style_model/coef", "float64", ("P", "S"), "", "ridge weights: standardised clip audio inputs -> style"),
-    Field("style_model/intercept", "float64", ("S",), "m/s, m, m", "style of the mean input"),
-    Field("style_model/x_mean", "float64", ("P",), "", "input mean (audio mean, audio std, words/frame)"),
-    Field("style_model/x_std", "float64", ("P",), "", "input standard deviation; attrs heldout_rmse, mean_rmse"),
+    Field(GRAPH_INDPTR, "int64", ("K1",), "", "upper-body graph: CSR row pointer over the source clip; attrs body, l1, l2, delta_T, min_out, max_out, transition_frames"),
+    Field(GRAPH_INDICES, "int64", ("G",), "", "upper-body graph: target clip of each edge, strictly increasing within a row, no self-edges"),
+    Field(GRAPH_COST, "float64", ("G",), "1", "upper-body graph: transition cost T = l1 * T_p (m^2) + l2 * T_r over the joints above the pelvis, in the pelvis frame"),
+    Field(GRAPH_LOWER_INDPTR, "int64", ("K1",), "", "lower-body graph (root and legs): CSR row pointer, attrs as graph/"),
+    Field(GRAPH_LOWER_INDICES, "int64", ("GL",), "", "lower-body graph: target clip of each edge, strictly increasing within a row, no self-edges"),
+    Field(GRAPH_LOWER_COST, "float64", ("GL",), "1", "lower-body graph: transition cost over the legs (heading frame) and the pelvis tilt"),
+    Field(STYLE_COEF, "float64", ("P", "S"), "", "ridge weights: standardised clip audio inputs -> style"),
+    Field(STYLE_INTERCEPT, "float64", ("S",), "m/s, m, m", "style of the mean input"),
+    Field(STYLE_X_MEAN, "float64", ("P",), "", "input mean (audio mean, audio std, words/frame)"),
+    Field(STYLE_X_STD, "float64", ("P",), "", "input standard deviation; attrs heldout_rmse, mean_rmse"),
     # --- words -------------------------------------------------------------
-    Field("words/recording", "int32", ("W",), "", "index into the recordings table"),
-    Field("words/start_s", "float64", ("W",), "s", "word start, relative to the recording"),
-    Field("words/end_s", "float64", ("W",), "s", "word end, relative to the recording"),
-    Field("words/text", STR, ("W",), "", "the word, lower case, no punctuation"),
+    Field(WORD_RECORDING, "int32", ("W",), "", "index into the recordings table"),
+    Field(WORD_START_S, "float64", ("W",), "s", "word start, relative to the recording"),
+    Field(WORD_END_S, "float64", ("W",), "s", "word end, relative to the recording"),
+    Field(WORD_TEXT, STR, ("W",), "", "the word, lower case, no punctuation"),
 )
 
 FIELDS_BY_PATH: dict[str, Field] = {f.path: f for f in FIELDS}
@@ -139,17 +227,21 @@ SUBDB_GROUP = "subdatabases"  # subdatabases/<name>/{start,length,recording} + a
 #: Files written before it existed lack it; readers then compute it (Database.frame_mean).
 MEAN_ATTR = "mean"
 #: the per-frame arrays that carry MEAN_ATTR
-MEAN_FIELDS = ("frames/pose_features",)
+MEAN_FIELDS = (POSE_FEATURES,)
 
 #: A database split over several files (``gesturedb shard``): the per-frame arrays below live in shard
 #: files of whole recordings; the index file holds everything else and these arrays as HDF5 virtual
 #: datasets over the shards, so the index reads exactly like the single file (gesturedb/db/shardfiles.py).
-SHARDED_FIELDS = ("frames/pose_features", "frames/audio_features", "frames/audio_deltas", "frames/joint_positions",
-                  "frames/local_rotations", "frames/root_positions", "frames/recording")
+SHARDED_FIELDS = (POSE_FEATURES, AUDIO_FEATURES, AUDIO_DELTAS, JOINT_POSITIONS, LOCAL_ROTATIONS, ROOT_POSITIONS,
+                  FRAME_RECORDING)
 #: root attribute of an index file: JSON list of {"file": name beside the index, "frames": [f0, f1], "token": str}
 SHARDS_ATTR = "shards"
 #: root attribute of a shard file: JSON {"token", "part" (1-based), "parts", "frames": [f0, f1], "index": name}
 SHARD_OF_ATTR = "shard_of"
+
+#: the audio sample rate (Hz) of the build configuration's default, and of a database whose
+#: ``config`` names none (:attr:`gesturedb.db.database.Database.sample_rate`)
+DEFAULT_SAMPLE_RATE = 16000
 
 #: Root attributes (name -> meaning). `config` and `feature_joints` are JSON.
 ROOT_ATTRS = {
@@ -161,7 +253,7 @@ ROOT_ATTRS = {
     "feature_joints": "JSON: role -> joint name used for the features",
     SHARDS_ATTR: "JSON (index files only): the shard files holding the per-frame arrays, in frame order",
     SHARD_OF_ATTR: "JSON (shard files only): which part of which index the file is",
-    "skeleton/length_unit_m": "float (attribute of the skeleton group): metres per length unit of the source files",
+    f"{SKELETON}/{LENGTH_UNIT_ATTR}": "float (attribute of the skeleton group): metres per length unit of the source files",
 }
 
 
@@ -246,10 +338,9 @@ class RowWriter:
         dtype = _np_dtype(self.field.dtype)
         row_bytes = max(1, int(np.prod(row_shape, dtype=np.int64)) * np.dtype(dtype).itemsize)
         n = self.CHUNK_BYTES // row_bytes if chunk_rows is None else min(int(chunk_rows), self.CHUNK_BYTES // row_bytes)
-        self.ds = h5.create_dataset(path, shape=(0,) + row_shape, maxshape=(None,) + row_shape,
-                                    chunks=(max(1, n),) + row_shape, dtype=dtype)
-        self.ds.attrs["unit"] = self.field.unit
-        self.ds.attrs["doc"] = self.field.doc
+        self.h5, self.path = h5, path
+        self.ds = store.create(h5, path, shape=(0,) + row_shape, dtype=dtype, chunk_rows=n,
+                               attrs={"unit": self.field.unit, "doc": self.field.doc})
         self.n = 0
         self.sum = None
 
@@ -261,8 +352,7 @@ class RowWriter:
                                            f"got {arr.shape} at row {self.n}")
         if arr.shape[0] == 0:
             return
-        self.ds.resize(self.n + arr.shape[0], axis=0)
-        self.ds[self.n:self.n + arr.shape[0]] = arr
+        store.append(self.ds, arr)
         self.n += arr.shape[0]
         if self.field.path in MEAN_FIELDS:
             self.sum = add_rows(self.sum, arr)
@@ -271,7 +361,7 @@ class RowWriter:
         """After the last rows: their number checked against (and recorded in) ``dims``."""
         _check_shape(self.field, np.broadcast_to(np.zeros((), np.uint8), self.ds.shape), dims)
         if self.sum is not None:
-            self.ds.attrs[MEAN_ATTR] = self.sum / self.n
+            store.set_attrs(self.h5, self.path, {MEAN_ATTR: self.sum / self.n})
 
 
 def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str, Any] | None = None) -> None:
@@ -291,13 +381,9 @@ def write(h5, path: str, data: Any, dims: dict[str, int], *, attrs: Mapping[str,
     field = FIELDS_BY_PATH[path]
     arr = _checked(field, data)
     _check_shape(field, arr, dims)
-    ds = h5.create_dataset(path, data=arr, dtype=_np_dtype(field.dtype))
-    ds.attrs["unit"] = field.unit
-    ds.attrs["doc"] = field.doc
-    if path in MEAN_FIELDS and arr.shape[0] > 0:
-        ds.attrs[MEAN_ATTR] = arr.mean(axis=0, dtype=np.float64)
-    for k, v in (attrs or {}).items():
-        ds.attrs[k] = v
+    extra = {MEAN_ATTR: arr.mean(axis=0, dtype=np.float64)} if path in MEAN_FIELDS and arr.shape[0] > 0 else {}
+    store.create(h5, path, arr, dtype=_np_dtype(field.dtype),
+                 attrs={"unit": field.unit, "doc": field.doc, **extra, **(attrs or {})})
 
 
 def read(h5, path: str) -> np.ndarray:

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gesturedb.db import schema
+from gesturedb.db import schema, store
 from gesturedb.errors import SchemaError
 
 __all__ = ["SUBDB_FIELDS", "SubDatabase", "time_to_frames", "read_subdb", "read_all", "write_subdb", "mask_of"]
@@ -161,12 +161,9 @@ def mask_of(start: np.ndarray, length: np.ndarray, n_frames: int) -> np.ndarray:
 
 def write_subdb(h5, sub: SubDatabase) -> None:
     """Create ``subdatabases/<word>/`` (replacing an existing one) in an open writable file."""
-    g = h5.require_group(schema.SUBDB_GROUP)
-    if sub.word in g:
-        del g[sub.word]
-    sg = g.create_group(sub.word)
+    group = f"{schema.SUBDB_GROUP}/{sub.word}"
+    store.delete(h5, group)
     for name, (dtype, unit, doc) in SUBDB_FIELDS.items():
-        ds = sg.create_dataset(name, data=np.ascontiguousarray(getattr(sub, name), dtype=dtype))
-        ds.attrs["unit"] = unit
-        ds.attrs["doc"] = doc
-    schema.write_json_attr(sg, "definition", sub.definition)
+        store.create(h5, f"{group}/{name}", np.ascontiguousarray(getattr(sub, name), dtype=dtype),
+                     attrs={"unit": unit, "doc": doc})
+    store.set_json_attr(h5, group, "definition", sub.definition)
