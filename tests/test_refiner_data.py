@@ -140,7 +140,7 @@ def test_training_data_on_workers_started_by_hand(scott_db, serial, hand_started
 
     address, _ = hand_started_workers
     with distributed.Client(address) as client:
-        _same(serial, D.make_training_data(scott_db, seed=2, stride=10, client=client))
+        _same(serial, D.make_training_data(scott_db, seed=2, stride=10, scheduler=client))
         # checking the database's identity read the features' widths, not the pose features
         loaded = client.run(lambda: sorted({k for db in D._OPEN.values() for k in vars(db)} & {"pose_features",
                                                                                              "local_rotations"}))

@@ -96,7 +96,7 @@ def test_sharded_search_random_data(dask_client, parts):
     P, A, st, ln = continuous_db(rng, Dp=24, n_segments=40)
     F, M = P.shape[0], st.shape[0]
     q = rng.standard_normal((50, A.shape[1])).astype(np.float32)
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=parts)
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=parts)
     try:
         assert len(sh.shards) == parts
         allowed = pack_bits(rng.random(F) < 0.3)
@@ -123,7 +123,7 @@ def test_steps_call_each_shard_directly(dask_client):
     rng = np.random.default_rng(31)
     P, A, st, ln = continuous_db(rng, Dp=24, n_segments=40)
     q = rng.standard_normal((50, A.shape[1])).astype(np.float32)
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=2, top_rows=2)  # lists too short to settle all
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=2, top_rows=2)  # lists too short to settle all
     try:
         sh.search(q[:8], P[5])
         with distributed.get_task_stream(dask_client) as stream:
@@ -155,7 +155,7 @@ def test_a_shard_takes_its_workers_threads():
     with distributed.LocalCluster(n_workers=1, threads_per_worker=3, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         for threads, used in ((None, 3), (1, 1), (2, 2)):
-            sh = ShardedSearch(P, A, st, ln, client=client, parts=2, threads=threads)
+            sh = ShardedSearch(P, A, st, ln, scheduler=client, parts=2, threads=threads)
             try:
                 for a, b in zip(sh.search_batch(qs, init), ref):
                     assert_same_search(a, b)
@@ -165,7 +165,7 @@ def test_a_shard_takes_its_workers_threads():
                 sh.close()
         for bad in (0, 1.5, True):
             with pytest.raises(ParameterError, match="threads: expected None or an int >= 1"):
-                ShardedSearch(P, A, st, ln, client=client, parts=2, threads=bad)
+                ShardedSearch(P, A, st, ln, scheduler=client, parts=2, threads=bad)
 
 
 def test_shards_with_equal_segment_arrays_keep_their_own_data():
@@ -186,7 +186,7 @@ def test_shards_with_equal_segment_arrays_keep_their_own_data():
     ref = search.rank_sum_search(P, A, st, ln, q, P[1])
     with local_cluster(2, memory_limit=0) as cluster, Client(cluster) as client:
         for _ in range(30):
-            sh = ShardedSearch(P, A, st, ln, client=client, parts=2)
+            sh = ShardedSearch(P, A, st, ln, scheduler=client, parts=2)
             try:
                 assert_same_search(sh.search(q, P[1]), ref)
             finally:
@@ -209,7 +209,7 @@ def test_a_lost_worker_gives_its_shards_to_the_others():
     q = rng.standard_normal((24, A.shape[1])).astype(np.float32)
     ref = search.rank_sum_search(P, A, st, ln, q, P[5])
     with local_cluster(2, memory_limit=0) as cluster, Client(cluster) as client:
-        sh = ShardedSearch(P, A, st, ln, client=client, parts=2)
+        sh = ShardedSearch(P, A, st, ln, scheduler=client, parts=2)
         assert_same_search(sh.search(q, P[5]), ref)
         dead = client.who_has(sh.shards[1])[sh.shards[1].key][0]
         os.kill(client.run(os.getpid, workers=[dead])[dead], signal.SIGKILL)
@@ -233,7 +233,7 @@ def test_no_worker_left_is_a_one_line_error():
     q = rng.standard_normal((16, A.shape[1])).astype(np.float32)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        sh = ShardedSearch(P, A, st, ln, client=client, parts=2)
+        sh = ShardedSearch(P, A, st, ln, scheduler=client, parts=2)
         sh.search(q, P[1])
         cluster.scale(0)
         for _ in range(300):
@@ -253,7 +253,7 @@ def test_sharded_search_real_database(dask_client, scott_db, parts):
     ln = np.ascontiguousarray(scott_db.h5["chunks/length"][:], dtype=np.int64)
     rng = np.random.default_rng(20)
     q = rng.standard_normal((120, A.shape[1])).astype(np.float32)
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=parts)
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=parts)
     try:
         for kw in (dict(), dict(k=2)):
             assert_same_search(sh.search(q, P[10], **kw), search.rank_sum_search(P, A, st, ln, q, P[10], **kw))
@@ -352,7 +352,7 @@ def test_sharded_search_top_lists_settle_or_fall_back_exactly(dask_client, top):
     rng = np.random.default_rng(31)
     P, A, st, ln = continuous_db(rng, Dp=24, n_segments=60)
     q = rng.standard_normal((80, A.shape[1])).astype(np.float32)
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=3, top_rows=top)
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=3, top_rows=top)
     try:
         for kw in (dict(), dict(k=2), dict(preselect="audio")):
             assert_same_search(sh.search(q, P[7], **kw), search.rank_sum_search(P, A, st, ln, q, P[7], **kw),
@@ -365,7 +365,7 @@ def test_sharded_search_top_lists_settle_or_fall_back_exactly(dask_client, top):
     finally:
         sh.close()
     with pytest.raises(Exception, match="top_rows"):
-        ShardedSearch(P, A, st, ln, client=dask_client, parts=2, top_rows=0)
+        ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=2, top_rows=0)
 
 
 @pytest.mark.parametrize("isa", search.kernels())
@@ -457,7 +457,7 @@ def test_sharded_batch_advances_all_queries_together_exactly(dask_client, top):
     ks = rng.integers(1, 4, Q)
     ex = rng.random((Q, M)) < 0.15
     allowed = pack_bits(rng.random(F) < 0.7)
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=3, top_rows=top)
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=3, top_rows=top)
     try:
         for kw in (dict(k=ks, exclude=ex), dict(preselect="audio", allowed=allowed)):
             got = sh.search_batch(qs, init, **kw)
@@ -480,7 +480,7 @@ def test_sharded_batch_on_the_real_database_and_its_errors(dask_client, scott_db
     qs = [A[s:s + 64] for s in st]
     init = P[st]
     ex = np.eye(M, dtype=bool)
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=2)
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=2)
     try:
         for a, b in zip(sh.search_batch(qs, init, exclude=ex),
                         search.rank_sum_search_batch(P, A, st, ln, qs, init, exclude=ex)):
@@ -516,7 +516,7 @@ def test_sharded_search_with_rows_sent_sparse(dask_client, monkeypatch):
         nearly_full[a:a + 8] = False
         nearly_empty[a:a + 200] = True
     per_step = np.stack([pack_bits(rng.random(F) < 0.5 if i % 3 else nearly_full) for i in range(-(-50 // 8))])
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=3)
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=3)
     try:
         for kw in (dict(allowed=pack_bits(nearly_full)), dict(allowed=pack_bits(nearly_empty), k=2),
                    dict(allowed=per_step, preselect="audio")):
@@ -560,7 +560,7 @@ def test_allowed_of_the_wrong_width_is_refused(dask_client):
 
     rng = np.random.default_rng(4)
     P, A, st, ln = continuous_db(rng, Dp=24, n_segments=10)
-    sh = ShardedSearch(P, A, st, ln, client=dask_client, parts=2)
+    sh = ShardedSearch(P, A, st, ln, scheduler=dask_client, parts=2)
     try:
         with pytest.raises(ParameterError, match=r"allowed: expected packed bitsets of \d+ words .*got shape \(3,\)"):
             sh.search(rng.standard_normal((16, A.shape[1])).astype(np.float32), P[0],

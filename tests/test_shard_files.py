@@ -408,11 +408,11 @@ def test_refiner_training_data_over_shards_is_the_local_data(db_copy, dask_clien
     with gesturedb.open(db_copy) as db:
         local = make_training_data(db, seed=3, stride=20)  # every 4th window: the assembly is the slow part
         calls = []
-        cut = make_training_data(db, seed=3, stride=20, client=dask_client, parts=3, chunk=50,
+        cut = make_training_data(db, seed=3, stride=20, scheduler=dask_client, parts=3, chunk=50,
                                  progress=lambda *a: calls.append(a))
     rep = shard_database(db_copy, 2)
     with gesturedb.open(rep.index) as idx:
-        files = make_training_data(idx, seed=3, stride=20, client=dask_client)
+        files = make_training_data(idx, seed=3, stride=20, scheduler=dask_client)
     W = local.n_windows
     assert W > 150 and (local.ks > 1).any()
     # searched 50 windows at a time, then assembled 32 at a time (in whatever order the workers finish)

@@ -244,7 +244,7 @@ def test_refiner_training_data_needs_the_database_on_both_hosts(two_hosts, scott
         here = D.make_training_data(db, seed=2, stride=10)
         with distributed.Client(two_hosts.address) as client, \
                 distributed.get_task_stream(two_hosts.watch) as stream:
-            there = D.make_training_data(db, seed=2, stride=10, client=client)
+            there = D.make_training_data(db, seed=2, stride=10, scheduler=client)
     idx = np.arange(here.n_windows)
     for name in ("frame_audio", "frame_real", "starts", "ks", "joints"):
         np.testing.assert_array_equal(getattr(there, name), getattr(here, name), err_msg=name)

@@ -1,6 +1,10 @@
 """Dask for the build and the search: tasks on a cluster, the client the only writer.
 
-``scheduler`` is ``"local:N"`` (a :class:`distributed.LocalCluster` of N
+The one module of gesturedb that uses Dask (``tests/test_architecture.py`` keeps it so):
+the build's recordings, the motion graphs' edge blocks and the refiner's windows run
+through :func:`iter_on_cluster`; the sharded search (:mod:`gesturedb.db.shards`) places
+its shards and their actors through :func:`place` and :func:`place_actor`. Every caller
+names the cluster the same way, ``scheduler``: ``"local:N"`` (a :class:`distributed.LocalCluster` of N
 single-threaded worker processes, started and shut down here: :func:`local_cluster`),
 ``"tcp://HOST:PORT"`` (an existing scheduler), or a ``distributed.Client``
 the caller owns. Workers only compute: in a build each returns the
@@ -26,12 +30,15 @@ from collections.abc import Callable, Iterator, Sequence
 
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError
 
-__all__ = ["check_on_worker", "check_scheduler", "check_workers_code", "code_identity", "completed", "dask_client", "iter_on_cluster",
-           "local_cluster", "optional_client", "worker_address"]
+__all__ = ["cancel", "check_on_worker", "check_scheduler", "check_workers_code", "code_identity", "completed",
+           "dask_client", "iter_on_cluster", "live_workers", "local_cluster", "optional_client", "place", "place_actor",
+           "this_worker_threads", "worker_address", "worker_addresses", "worker_threads"]
 
 _LOCAL = re.compile(r"^local:(\d+)$")
 #: the most worker processes ``local:N`` starts on this machine (as ``build -j``)
 MAX_LOCAL_WORKERS = 256
+#: the default of :func:`iter_on_cluster`'s ``shared``: no object shared by the tasks
+_NOTHING = object()
 #: seconds the tasks may wait without any worker before the work stops with an error (a worker
 #: that its nanny restarts is back within seconds; a lost one's tasks would wait forever)
 NO_WORKER_TIMEOUT_S = 30.0
@@ -215,18 +222,25 @@ def local_cluster(n_workers: int, **kwargs) -> Iterator[object]:
         yield cluster
 
 
-def iter_on_cluster(fn: Callable, items: Sequence, scheduler, *, what: str = "the tasks") -> Iterator[tuple[int, object]]:
+def iter_on_cluster(fn: Callable, items: Sequence, scheduler, *, what: str = "the tasks",
+                    shared: object = _NOTHING) -> Iterator[tuple[int, object]]:
     """``(i, fn(items[i]))`` as each Dask task finishes, for callers that store each
     result as it comes rather than holding them all (the build's recordings, the refiner's
-    training windows).
+    training windows, the motion graphs' blocks of rows).
+
+    ``shared``: an object every task needs (the motion graphs' features), sent once to
+    every worker (``scatter``, broadcast) instead of with each task; the tasks are then
+    ``fn(shared, items[i])``.
 
     The first failed task's exception is raised after the others were cancelled; a cluster
     that fails under the tasks is a :class:`ClusterError` (see :func:`completed`, where
     ``what`` names the tasks).
     """
     with dask_client(scheduler) as client:
+        data = None if shared is _NOTHING else client.scatter([shared], broadcast=True, hash=False)[0]
         # pure=False: every item is computed even if two compare equal
-        futures = client.map(fn, list(items), pure=False)
+        futures = (client.map(fn, list(items), pure=False) if data is None
+                   else [client.submit(fn, data, item, pure=False) for item in items])
         index = {f.key: i for i, f in enumerate(futures)}
         try:
             for fut in completed(client, futures, what=what):
@@ -236,6 +250,56 @@ def iter_on_cluster(fn: Callable, items: Sequence, scheduler, *, what: str = "th
             with contextlib.suppress(Exception):  # a lost scheduler has nothing left to cancel
                 client.cancel(futures)
             raise
+        finally:
+            if data is not None:
+                with contextlib.suppress(Exception):
+                    client.cancel([data])
+
+
+def worker_threads(scheduler) -> int:
+    """The threads of all the workers of ``scheduler`` (a client, ``"local:N"`` or an address) now."""
+    with dask_client(scheduler) as client:
+        return max(1, sum(client.nthreads().values()))
+
+
+# -- objects kept on chosen workers (the sharded search: gesturedb.db.shards) ------------------
+
+def worker_addresses(client) -> list[str]:
+    """The addresses of the workers the client knows of, sorted."""
+    return sorted(client.scheduler_info()["workers"])
+
+
+def live_workers(client) -> set[str]:
+    """The scheduler's workers now (the client's own view lags behind by seconds)."""
+    return set(client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.workers)))
+
+
+def place(client, fn: Callable, *args, worker: str | None = None, send: Sequence = ()):
+    """A future of ``fn(*send, *args)`` computed on ``worker`` (an address; None: where Dask likes)
+    and kept there. The arrays of ``send`` go to that worker first, each under a key of its own
+    (two equal arrays are two objects: a key made from the content made the second copy the
+    first's, which the first one's release could take away)."""
+    w = None if worker is None else [worker]
+    sent = [client.scatter(x, workers=w, hash=False) for x in send]
+    return client.submit(fn, *sent, *args, workers=w, pure=False)
+
+
+def place_actor(client, cls: type, *args, worker: str | None = None):
+    """A future of a Dask actor ``cls(*args)`` on ``worker``: its methods are called straight from the
+    client to that worker (no round trip through the scheduler), one call at a time."""
+    return client.submit(cls, *args, actor=True, pure=False, workers=None if worker is None else [worker])
+
+
+def cancel(client, futures: Sequence) -> None:
+    """Release ``futures`` (and what they hold on the workers)."""
+    client.cancel(list(futures))
+
+
+def this_worker_threads() -> int:
+    """The threads of the Dask worker running the caller (an actor's constructor, a task)."""
+    from distributed import get_worker
+
+    return get_worker().state.nthreads
 
 
 def worker_address() -> str:

@@ -27,6 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from gesturedb.db.cluster import iter_on_cluster, optional_client, worker_threads
 from gesturedb.errors import ParameterError
 from gesturedb.threads import available_cpus
 
@@ -277,9 +278,10 @@ def _edges_here(shared: _Shared, step: int, delta_T: float, min_out: int, max_ou
 TASKS_PER_THREAD = 4
 
 
-def _range_task(shared: _Shared, r0: int, r1: int, step: int, delta_T: float, min_out: int, max_out: int):
+def _range_task(shared: _Shared, rows: tuple):
     """A Dask task: the edges of rows r0..r1, a block of ``step`` rows at a time, concatenated
-    (one :func:`_block_csr` piece)."""
+    (one :func:`_block_csr` piece); ``rows`` is ``(r0, r1, step, delta_T, min_out, max_out)``."""
+    r0, r1, step, delta_T, min_out, max_out = rows
     parts = [shared.block(b0, min(r1, b0 + step), delta_T, min_out, max_out) for b0 in range(r0, r1, step)]
     return tuple(np.concatenate(x) for x in zip(*parts))
 
@@ -287,33 +289,21 @@ def _range_task(shared: _Shared, r0: int, r1: int, step: int, delta_T: float, mi
 def _edges_on_cluster(shared: _Shared, step: int, delta_T: float, min_out: int, max_out: int, scheduler,
                       on_rows) -> list:
     """Every block's edges as Dask tasks: the features and bounds are sent once to every worker
-    (``scatter``, broadcast), each task computes a range of whole blocks, and the ranges are put
-    back in order. A block's edges do not depend on where it runs, so they are the local ones."""
-    from gesturedb.db.cluster import completed, dask_client
-
+    (:func:`gesturedb.db.cluster.iter_on_cluster`'s ``shared``), each task computes a range of
+    whole blocks, and the ranges are put back in order. A block's edges do not depend on where
+    it runs, so they are the local ones."""
     K = shared.g.K
-    with dask_client(scheduler) as client:
-        threads = max(1, sum(client.nthreads().values()))
+    with optional_client(scheduler) as client:
         n_blocks = -(-K // step)
-        per = step * max(1, -(-n_blocks // (TASKS_PER_THREAD * threads)))
-        ranges = [(r0, min(K, r0 + per)) for r0 in range(0, K, per)]
-        [data] = client.scatter([shared], broadcast=True, hash=False)
-        futures = [client.submit(_range_task, data, r0, r1, step, delta_T, min_out, max_out, pure=False)
-                   for r0, r1 in ranges]
-        index = {f.key: i for i, f in enumerate(futures)}
+        per = step * max(1, -(-n_blocks // (TASKS_PER_THREAD * worker_threads(client))))
+        ranges = [(r0, min(K, r0 + per), step, delta_T, min_out, max_out) for r0 in range(0, K, per)]
         parts = [None] * len(ranges)
-        try:
-            for fut in completed(client, futures, what="the motion graph's edge search"):  # never waits forever
-                i = index[fut.key]
-                parts[i] = fut.result()  # re-raises the task's exception
-                fut.release()
-                if on_rows is not None:
-                    on_rows(ranges[i][1] - ranges[i][0])
-        except BaseException:
-            client.cancel(futures)
-            raise
-        finally:
-            client.cancel([data])
+        # never waits forever (see gesturedb.db.cluster.completed)
+        for i, part in iter_on_cluster(_range_task, ranges, client, shared=shared,
+                                       what="the motion graph's edge search"):
+            parts[i] = part
+            if on_rows is not None:
+                on_rows(ranges[i][1] - ranges[i][0])
     return parts
 
 

@@ -22,6 +22,7 @@ second round trip for the next pose.
 """
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 
 import numpy as np
@@ -29,6 +30,7 @@ import numpy as np
 from gesturedb import search, tables
 from gesturedb.control.bitsets import StepBitsets, full_mask, n_words, slice_bits
 from gesturedb.db import schema
+from gesturedb.db import cluster
 from gesturedb.db.cluster import worker_address
 from gesturedb.errors import ParameterError, SchemaError, SearchError
 
@@ -79,13 +81,13 @@ def _load_shard(path, expected, n_frames, Dp, Da, seg_start, seg_len, projection
     """
     import h5py
 
-    shapes = {"frames/pose_features": (n_frames, Dp), "frames/audio_features": (n_frames, Da)}
+    shapes = {schema.POSE_FEATURES: (n_frames, Dp), schema.AUDIO_FEATURES: (n_frames, Da)}
     problem = schema.shard_file_problem(path, expected, shapes)
     if problem is not None:
         raise SchemaError(path, f"on Dask worker {worker_address()}: {problem}. Every worker must see the "
                                 f"index's shard files at the same paths as the client (a shared or copied folder)")
     with h5py.File(path, "r") as h5:
-        pose, audio = h5["frames/pose_features"][()], h5["frames/audio_features"][()]
+        pose, audio = h5[schema.POSE_FEATURES][()], h5[schema.AUDIO_FEATURES][()]
     return _Shard(pose, audio, seg_start, seg_len, projection)
 
 
@@ -225,12 +227,10 @@ class _ShardActor:
     nthreads: int = 1  # the worker's threads, set there (declared here for the client's proxy)
 
     def __init__(self, shard: _Shard):
-        from distributed import get_worker
-
         self.shard = shard
         # an actor's calls run one at a time on a thread of its own, not on the worker's
         # threads as tasks do: the kernel takes the worker's threads instead
-        self.nthreads = get_worker().state.nthreads
+        self.nthreads = cluster.this_worker_threads()
 
     def top_batch(self, prevs, wins, preselect, allowed_row, exclude, threads, top):
         return _shard_top_batch(self.shard, prevs, wins, preselect, allowed_row, exclude,
@@ -273,7 +273,10 @@ class ShardedSearch:
         The whole database, as for :func:`gesturedb.search.rank_sum_search`
         (cut here into shards, each sent to one worker; kept by reference, not
         copied, to send a shard again should its worker be lost).
-    client : distributed.Client
+    scheduler : distributed.Client or str
+        The Dask cluster: a client the caller owns, or ``"local:N"`` / ``"tcp://HOST:PORT"``
+        (connected, or started, here and let go by :meth:`close`), as everywhere in gesturedb
+        (:mod:`gesturedb.db.cluster`).
     parts : int >= 1
         Number of shards: contiguous runs of segments of about equal frame counts.
     projection : bool
@@ -294,14 +297,13 @@ class ShardedSearch:
         Steps searched so far, and those the top lists did not settle.
     """
 
-    def __init__(self, pose, audio, seg_start, seg_len, *, client, parts: int = 2,
+    def __init__(self, pose, audio, seg_start, seg_len, *, scheduler, parts: int = 2,
                  projection: bool = True, threads: int | None = None, top_rows: int | None = None):
         seg_start = np.ascontiguousarray(seg_start, dtype=np.int64)
         seg_len = np.ascontiguousarray(seg_len, dtype=np.int64)
         M = seg_start.shape[0]
         if isinstance(parts, bool) or not isinstance(parts, (int, np.integer)) or not 1 <= parts <= max(M, 1):
             raise ParameterError(f"parts: expected an int in [1, {M}] (segments); got {parts!r}")
-        self.client = client
         self.F, self.Dp, self.Da = pose.shape[0], pose.shape[1], audio.shape[1]
         self.seg_start, self.seg_len = seg_start, seg_len
         self._set_options(threads, top_rows)
@@ -317,10 +319,20 @@ class ShardedSearch:
             self.frame_ranges.append((f0, f1))
             # the caller's arrays, not copies: sliced (and sent) again if the shard's worker is lost
             self._recipes.append(("arrays", (pose, audio, f0, f1, seg_start[a:b] - f0, seg_len[a:b], projection)))
-        self._place_all()
+        self._start(scheduler)
+
+    def _start(self, scheduler) -> None:
+        """Connect to (or start) the cluster and place every shard on it."""
+        self._cluster = contextlib.ExitStack()
+        try:
+            self.client = self._cluster.enter_context(cluster.dask_client(scheduler))
+            self._place_all()
+        except BaseException:
+            self._cluster.close()
+            raise
 
     @classmethod
-    def from_shard_files(cls, entries, seg_start, seg_len, *, n_frames: int, Dp: int, Da: int, client,
+    def from_shard_files(cls, entries, seg_start, seg_len, *, n_frames: int, Dp: int, Da: int, scheduler,
                          projection: bool = True, threads: int | None = None,
                          top_rows: int | None = None) -> "ShardedSearch":
         """One shard per shard file of an index (``gesturedb shard``), each read by its worker.
@@ -352,7 +364,6 @@ class ShardedSearch:
         if (np.diff(owner) < 0).any():
             raise ParameterError("seg_start: expected segments in frame order for a sharded search")
         self = cls.__new__(cls)
-        self.client = client
         self.F, self.Dp, self.Da = int(n_frames), int(Dp), int(Da)
         self.seg_start, self.seg_len = seg_start, seg_len
         self._set_options(threads, top_rows)
@@ -366,12 +377,12 @@ class ShardedSearch:
             self.frame_ranges.append((f0, int(e["frames"][1])))
             self._recipes.append(("file", (e["file"], schema.shard_expected(entries, i), int(e["frames"][1]) - f0,
                                            self.Dp, self.Da, seg_start[a:b] - f0, seg_len[a:b], projection)))
-        self._place_all()
+        self._start(scheduler)
         return self
 
     def _place_all(self) -> None:
         """Every shard on a worker, in turn by address (as many shards per worker as it takes)."""
-        workers = sorted(self.client.scheduler_info()["workers"])
+        workers = cluster.worker_addresses(self.client)
         n = len(self._recipes)
         self.shards, self._actor_futures, self._workers = [None] * n, [None] * n, [None] * n
         for j in range(n):
@@ -381,20 +392,15 @@ class ShardedSearch:
         """Set shard ``j`` up on ``worker`` (an address; None: where Dask likes) from its recipe,
         and its actor beside it, holding the shard without a copy. Both are resolved at the
         first call, so that a shard's own error (a stale file, say) is raised there."""
-        w = None if worker is None else [worker]
         kind, args = self._recipes[j]
         if kind == "arrays":
             pose, audio, f0, f1, st, ln, projection = args
-            # keys of their own (hash=False): two shards' segment arrays are often equal, and a
-            # key made from the content made the second shard's copy the first's, which the
-            # first shard's release could take away
-            fn, args = _make_shard, [self.client.scatter(x, workers=w, hash=False)
-                                     for x in (pose[f0:f1], audio[f0:f1], st, ln)]
-            args.append(projection)
+            # the frames and segments are sent to the worker, each as an object of its own
+            self.shards[j] = cluster.place(self.client, _make_shard, projection, worker=worker,
+                                           send=(pose[f0:f1], audio[f0:f1], st, ln))
         else:
-            fn = _load_shard
-        self.shards[j] = self.client.submit(fn, *args, workers=w, pure=False)
-        self._actor_futures[j] = self.client.submit(_ShardActor, self.shards[j], actor=True, pure=False, workers=w)
+            self.shards[j] = cluster.place(self.client, _load_shard, *args, worker=worker)
+        self._actor_futures[j] = cluster.place_actor(self.client, _ShardActor, self.shards[j], worker=worker)
         self._workers[j] = worker
         self._actors = None
 
@@ -411,7 +417,7 @@ class ShardedSearch:
 
     def _live_workers(self) -> set:
         """The scheduler's workers now (the client's own view lags behind by seconds)."""
-        return set(self.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.workers)))
+        return cluster.live_workers(self.client)
 
     def _replace_lost(self, j: int, timeout: float = 30.0) -> bool:
         """After a call to shard ``j`` failed for want of its worker: once the scheduler has
@@ -465,7 +471,7 @@ class ShardedSearch:
         raise AssertionError("unreachable")
 
     @classmethod
-    def for_database(cls, db, seg_start, seg_len, *, client, parts: int = 2, **kw) -> "ShardedSearch":
+    def for_database(cls, db, seg_start, seg_len, *, scheduler, parts: int = 2, **kw) -> "ShardedSearch":
         """The shards of an open database: an index file (``gesturedb shard``) is searched
         over its own shard files, each read by a worker (:meth:`from_shard_files`);
         a single file is cut into ``parts`` shards sent from this process.
@@ -475,14 +481,14 @@ class ShardedSearch:
         db : gesturedb.db.database.Database
         seg_start, seg_len : ndarray of int64, shape (M,)
             The segments searched (e.g. ``db.chunks``' starts and lengths).
-        client, parts, **kw
+        scheduler, parts, **kw
             As for the constructor.
         """
         if db.shard_entries:
             return cls.from_shard_files(db.shard_entries, seg_start, seg_len, n_frames=db.n_frames,
-                                        Dp=db.h5["frames/pose_features"].shape[1],
-                                        Da=db.h5["frames/audio_features"].shape[1], client=client, **kw)
-        return cls(db.pose_features, db.audio_features, seg_start, seg_len, client=client, parts=parts, **kw)
+                                        Dp=db.frame_shape("pose_features")[1],
+                                        Da=db.frame_shape("audio_features")[1], scheduler=scheduler, **kw)
+        return cls(db.pose_features, db.audio_features, seg_start, seg_len, scheduler=scheduler, parts=parts, **kw)
 
     def _set_options(self, threads, top) -> None:
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
@@ -633,5 +639,8 @@ class ShardedSearch:
 
     def close(self) -> None:
         """Release the shards on the workers."""
-        self.client.cancel(self._actor_futures + self.shards)
-        self.shards, self._actor_futures, self._workers, self._actors = [], [], [], None
+        try:
+            cluster.cancel(self.client, self._actor_futures + self.shards)
+        finally:
+            self.shards, self._actor_futures, self._workers, self._actors = [], [], [], None
+            self._cluster.close()

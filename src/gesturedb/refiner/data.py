@@ -44,6 +44,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gesturedb.db import arrayfile
+from gesturedb.db.cluster import check_on_worker, iter_on_cluster, worker_address
+from gesturedb.db.shards import ShardedSearch
+from gesturedb.db.workers import single_threaded_worker
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.refiner.representation import moving_joints, to_channels
 
@@ -60,7 +64,7 @@ def database_identity(db) -> str:
     h.update(np.asarray(sk.parents, dtype=np.int64).tobytes())
     # the widths from the datasets' shapes: reading the arrays for them would load the pose
     # features into every Dask worker that checks the identity (and into an index's client)
-    Dp, Da = (db.h5[f"frames/{k}"].shape[1] for k in ("pose_features", "audio_features"))
+    Dp, Da = (db.frame_shape(k)[1] for k in ("pose_features", "audio_features"))
     h.update(f"{db.n_frames}|{db.fps}|{Dp}|{Da}".encode())
     h.update(np.asarray(db.audio_mean, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
@@ -175,25 +179,17 @@ def load_cache(path, db, settings: dict) -> TrainingData | None:
     database, a non-finite fake, which made every weight NaN) is refused with an
     :class:`InputFileError` naming the file and the dataset.
     """
-    import h5py
-
     path = os.fspath(path)
-    if not os.path.isfile(path):
+    attrs = arrayfile.read_attrs(path)
+    if attrs is None or any(attrs.get(k) != v for k, v in settings.items()):
         return None
-    try:
-        with h5py.File(path, "r") as h5:
-            if any(_attr(h5.attrs.get(k)) != v for k, v in settings.items()):
-                return None
-            starts, ks, joints = (np.asarray(h5[k][()], dtype=np.int64) for k in ("starts", "ks", "joints"))
-            ds = h5["knn"]
-            shape = (len(starts), 6 * len(joints), int(settings["window"]))
-            if ds.shape != shape or ds.dtype != np.float32 or ks.shape != starts.shape:
-                return None
-            offset = ds.id.get_offset()
-            knn = None if offset is None else np.memmap(path, dtype=np.float32, mode="r", offset=offset, shape=shape)
-            if knn is None:  # not contiguous (written by something else): read it whole
-                knn = ds[()]
-    except (OSError, KeyError, ValueError):
+    got = arrayfile.read(path, ("starts", "ks", "joints"), "knn")
+    if got is None:
+        return None
+    arrays, knn = got
+    starts, ks, joints = (arrays[k].astype(np.int64, copy=False) for k in ("starts", "ks", "joints"))
+    shape = (len(starts), 6 * len(joints), int(settings["window"]))
+    if knn.shape != shape or knn.dtype != np.float32 or ks.shape != starts.shape:
         return None
     _check_cache(path, db, knn, starts, ks, joints, int(settings["window"]))
     audio, real = frame_arrays(db, joints)
@@ -223,10 +219,6 @@ def _check_cache(path: str, db, knn, starts: np.ndarray, ks: np.ndarray, joints:
             w, c, t = (int(i) for i in np.argwhere(~finite)[0])
             raise bad("knn", f"expected finite values, got {block[w, c, t]} in window {a + w} (channel {c}, "
                              f"frame {t})")
-
-
-def _attr(v):
-    return v.item() if isinstance(v, np.generic) else v.decode() if isinstance(v, bytes) else v
 
 
 def _worker_database(path):
@@ -288,8 +280,6 @@ def assemble_windows(db, frame_maps: np.ndarray, seams, joints: np.ndarray) -> n
 def _assemble_task(args):
     """:func:`assemble_windows` on a Dask worker, which opens the database by the client's
     path: on another machine that may be another copy, so it must be the client's."""
-    from gesturedb.db.cluster import check_on_worker, worker_address
-
     path, identity, *rest = args
     check_on_worker(path, "the database")
     db = _worker_database(path)
@@ -337,11 +327,12 @@ def exclusion(db, starts: np.ndarray, *, window: int = WINDOW) -> np.ndarray:
 
 
 def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int = STRIDE,
-                       progress=None, client=None, parts: int = 2, chunk: int | None = None,
+                       progress=None, scheduler=None, parts: int = 2, chunk: int | None = None,
                        workers: int = 1, cache=None) -> TrainingData:
     """Search the database for its own audio and pair every window with its k-NN synthesis.
 
-    With a Dask ``client`` the self-search runs over ``parts`` shards resident on its
+    With a Dask ``scheduler`` (a ``distributed.Client``, ``"local:N"`` or ``"tcp://HOST:PORT"``,
+    :mod:`gesturedb.db.cluster`) the self-search runs over ``parts`` shards resident on its
     workers (:meth:`gesturedb.db.shards.ShardedSearch.search_batch`; an index file
     over its own shard files) and the assembly runs on the same workers; without
     one, the assembly runs on ``workers`` local processes. Either way the data is
@@ -374,10 +365,8 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     per = chunk if chunk is not None else max(256, (256 << 20) // max(1, seg_start.shape[0]))
     if isinstance(per, bool) or not isinstance(per, (int, np.integer)) or per < 1:
         raise ParameterError(f"chunk: expected None or an int >= 1; got {chunk!r}")
-    if client is not None:
-        from gesturedb.db.shards import ShardedSearch
-
-        sharded = ShardedSearch.for_database(db, seg_start, seg_len, client=client, parts=parts)
+    if scheduler is not None:
+        sharded = ShardedSearch.for_database(db, seg_start, seg_len, scheduler=scheduler, parts=parts)
 
         def search_chunk(q, p, k, ex):
             return sharded.search_batch(q, p, step=8, k=k, exclude=ex)
@@ -411,37 +400,29 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     shape = (W, 6 * len(joints), window)
     if cache is None:
         knn = np.empty(shape, np.float32)
-        _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, client=client, workers=workers)
+        _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, scheduler=scheduler, workers=workers)
         audio, real = frame_arrays(db, joints)
         return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks)
-    from gesturedb.db.storage import write_atomically
-
     cache = os.fspath(cache)
     settings = cache_settings(db, seed=seed, window=window, stride=stride)
-
-    def fill(h5):
-        for k, v in settings.items():
-            h5.attrs[k] = v
-        h5.attrs["content"] = ("fakes of the gesturedb refiner's training windows: knn[w] is the k-NN "
-                               "synthesis (channels x frames) of the audio of frames starts[w] + 0..window-1")
-        for k, v in (("starts", starts), ("ks", ks), ("joints", joints)):
-            h5[k] = v
-        # contiguous (no chunks, no filters), so that load_cache can memory-map it
-        knn = h5.create_dataset("knn", shape=shape, dtype=np.float32)
-        _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, client=client, workers=workers)
-
+    content = ("fakes of the gesturedb refiner's training windows: knn[w] is the k-NN synthesis (channels x "
+               "frames) of the audio of frames starts[w] + 0..window-1")
     # a temporary sibling renamed on success, removed on any failure, Ctrl-C or SIGTERM
-    write_atomically(cache, fill)
+    arrayfile.write(cache, attrs={**settings, "content": content},
+                    arrays={"starts": starts, "ks": ks, "joints": joints}, block="knn", shape=shape,
+                    dtype=np.float32,
+                    fill=lambda knn: _assemble_all(db, frame_maps, seams, joints, knn, progress=progress,
+                                                   scheduler=scheduler, workers=workers))
     data = load_cache(cache, db, settings)
     if data is None:  # pragma: no cover - the file was just written
         raise InputFileError(cache, "the training-data cache just written could not be read back")
     return data
 
 
-def _assemble_all(db, frame_maps, seams, joints, out, *, progress, client, workers, chunk: int = 32) -> None:
+def _assemble_all(db, frame_maps, seams, joints, out, *, progress, scheduler, workers, chunk: int = 32) -> None:
     """Assemble every window's path into ``out[w]`` (an array or an HDF5 dataset), in
     chunks of ``chunk`` windows: in this process, on ``workers`` local processes, or
-    on the Dask ``client``'s workers (which open the database by its path)."""
+    on the Dask ``scheduler``'s workers (which open the database by its path)."""
     W = len(frame_maps)
     pieces = [(a, min(W, a + chunk)) for a in range(0, W, chunk)]
     done = 0
@@ -454,22 +435,18 @@ def _assemble_all(db, frame_maps, seams, joints, out, *, progress, client, worke
         if progress is not None:
             progress("assembly", done, W)
 
-    if client is None and (workers == 1 or len(pieces) == 1):
+    if scheduler is None and (workers == 1 or len(pieces) == 1):
         for k, (a, b) in enumerate(pieces):
             store(k, assemble_windows(db, frame_maps[a:b], seams[a:b], joints))
         return
-    if client is not None:
-        from gesturedb.db.cluster import iter_on_cluster
-
+    if scheduler is not None:
         path, identity = os.path.abspath(db.path), database_identity(db)
         tasks = [(path, identity, frame_maps[a:b], seams[a:b], joints) for a, b in pieces]
-        for k, block in iter_on_cluster(_assemble_task, tasks, client):
+        for k, block in iter_on_cluster(_assemble_task, tasks, scheduler):
             store(k, block)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
-
-    from gesturedb.db.workers import single_threaded_worker
 
     # The first chunk in this process loads every array the assembly reads; forked
     # workers then share them (copy-on-write: a paper-scale database's rotations

@@ -498,7 +498,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
             bars[stage].update(done - bars[stage].n)
 
         try:
-            data = make_training_data(db, seed=config.seed, stride=config.stride, client=client, parts=parts,
+            data = make_training_data(db, seed=config.seed, stride=config.stride, scheduler=client, parts=parts,
                                       workers=workers, progress=report if progress else None, cache=cache)
         finally:
             for b in bars.values():
