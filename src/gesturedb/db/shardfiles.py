@@ -166,7 +166,6 @@ def shard_database(path, parts: int, *, index=None, progress: bool = False) -> S
                       "index": os.path.basename(index)}
                 storage.write_atomically(out, lambda h5, f0=f0, f1=f1, of=of: _fill_shard(h5, db, f0, f1, of, bar))
                 written.append(out)
-                _drop_lock(out)  # a fresh name no other writer can want: its lock file is clutter
             storage.write_atomically(index, lambda h5: _fill_index(h5, db.h5, shards, frame_ranges, token))
         except BaseException:
             for f in written:
@@ -182,13 +181,7 @@ def shard_database(path, parts: int, *, index=None, progress: bool = False) -> S
                 with contextlib.suppress(OSError):
                     os.unlink(f)
                     removed.append(f)
-                _drop_lock(f)
     return ShardingReport(index=index, shards=shards, frames=frame_ranges, recordings=rec_ranges, removed=removed)
-
-
-def _drop_lock(path: str) -> None:
-    with contextlib.suppress(OSError):
-        os.unlink(storage.lock_path(path))
 
 
 def _bar(progress, total):
@@ -228,13 +221,13 @@ def _fill_index(h5, src, shards: list[str], frame_ranges: list, token: str) -> N
         {"file": os.path.basename(f), "frames": [int(a), int(b)], "token": token}
         for f, (a, b) in zip(shards, frame_ranges)])
     for name in src:
-        if name != "frames":
+        if name != schema.FRAMES:
             src.copy(src[name], h5, name)
-    frames = h5.require_group("frames")
-    for k, v in src["frames"].attrs.items():
+    frames = h5.require_group(schema.FRAMES)
+    for k, v in src[schema.FRAMES].attrs.items():
         frames.attrs[k] = v
-    for name, s in src["frames"].items():
-        p = f"frames/{name}"
+    for name, s in src[schema.FRAMES].items():
+        p = f"{schema.FRAMES}/{name}"
         if p not in schema.SHARDED_FIELDS:
             src.copy(s, frames, name)
             continue

@@ -2,19 +2,22 @@
 
 The one place that creates or replaces database files. A failed or interrupted
 build or edit leaves the previous file exactly as it was and no half-written
-file behind: the temporary file lives in the same folder, so the rename is
-atomic, and it is removed on any failure (including KeyboardInterrupt and
-SIGTERM, which is turned into the same interruption).
+file behind: the temporary file and its rename are those of every output of
+gesturedb (:func:`gesturedb.io.atomic.replacing`, which also turns SIGTERM into
+the same interruption as Ctrl-C); this module adds the lock, the HDF5 file on
+top of it and the edit of an existing file.
 
 Concurrency: every write (a build to a path, an edit of a database) holds an
 exclusive lock on ``.<name>.lock`` beside the database for its whole
-read-modify-rename, so two concurrent ``masks add`` both survive. An edit that
-decides from the file's contents (is this mask name taken? which occurrences
-does this keyword have?) reads them while holding the same lock
-(:func:`locked` is re-entrant, so ``with locked(p): read...; with edit(p): ...``
-is one transaction): a concurrent edit is then refused, or applied on top of
-the other, exactly as when the two run one after the other. Readers take no
-lock: they open either the old or the new file, never a half-written one.
+read-modify-rename, so two concurrent ``masks add`` both survive. The lock file
+exists only while a writer holds it (it is removed on release, see
+:func:`_acquire`), so nothing is left beside the database. An edit that decides
+from the file's contents (is this mask name taken? which occurrences does this
+keyword have?) reads them while holding the same lock (:func:`locked` is
+re-entrant, so ``with locked(p): read...; with edit(p): ...`` is one
+transaction): a concurrent edit is then refused, or applied on top of the
+other, exactly as when the two run one after the other. Readers take no lock:
+they open either the old or the new file, never a half-written one.
 
 Links: a database reached through a symbolic link is edited where it lives:
 the lock, the temporary file and the rename are those of the real file, so the
@@ -24,26 +27,24 @@ Space: an edit writes a compact copy (every object copied into a fresh file,
 :func:`compact_copy`), so the space of replaced or deleted objects never piles
 up from edit to edit, at about the cost of the byte copy it replaces.
 
-Kills: temporary files are named ``.<name>.<pid>.<random>.tmp``. A process
-killed with SIGKILL cannot remove its own; the next writer of the same path
-(holding the lock) removes those whose pid is no longer alive.
+Kills: a process killed with SIGKILL cannot remove its temporary file; the next
+writer of the same path (holding the lock) removes those whose process is no
+longer alive (:func:`gesturedb.io.atomic.remove_stale_temporaries`).
 """
 from __future__ import annotations
 
 import contextlib
 import errno
-import glob
+import fcntl
 import io
 import os
-import re
-import shutil
-import signal
-import tempfile
 import threading
+import time
 from typing import Callable
 
 from gesturedb.db import schema
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError
+from gesturedb.io.atomic import is_temporary_of, os_error, remove_stale_temporaries, replacing
 
 #: seconds a writer waits for another writer of the same database before giving up
 LOCK_TIMEOUT_S = 600.0
@@ -71,9 +72,9 @@ def locked(path: str | os.PathLike, *, timeout_s: float | None = None):
 
     Re-entrant within a thread: an edit's checks and its :func:`edit` share one hold,
     so nothing can change the file between what the checks read and what is written.
+    The lock file exists only while it is held (see :func:`_acquire`): nothing is left
+    beside the database.
     """
-    import filelock
-
     lp = lock_path(path)
     key = (lp, os.getpid(), threading.get_ident())
     if key in _held:
@@ -83,121 +84,62 @@ def locked(path: str | os.PathLike, *, timeout_s: float | None = None):
         finally:
             _held[key] -= 1
         return
-    lock = filelock.FileLock(lp, timeout=LOCK_TIMEOUT_S if timeout_s is None else timeout_s)
-    try:
-        lock.acquire()
-    except filelock.Timeout:
-        raise InputFileError(path, f"another gesturedb process is writing this database (lock {lp} held "
-                             f"for more than {lock.timeout:g} s)") from None
-    except OSError as exc:
-        raise InputFileError(path, f"cannot create the lock file {lp}: {exc.strerror or exc}") from None
+    timeout_s = LOCK_TIMEOUT_S if timeout_s is None else float(timeout_s)
+    fd = _acquire(path, lp, timeout_s)
     _held[key] = 1
     try:
         yield
     finally:
         del _held[key]
-        lock.release()
-
-
-def _tmp_prefix(path: str) -> str:
-    return "." + os.path.basename(path) + "."
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
-    """Remove temporary files of ``path`` left by dead processes (call with the lock held).
-
-    Returns the files removed.
-    """
-    path = os.path.abspath(os.fspath(path))
-    folder = os.path.dirname(path)
-    pat = re.compile(re.escape(_tmp_prefix(path)) + r"(\d+)\.[^.]+\.tmp$")
-    removed = []
-    for f in glob.glob(os.path.join(glob.escape(folder), glob.escape(_tmp_prefix(path)) + "*.tmp")):
-        m = pat.match(os.path.basename(f))
-        if m and int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1))):
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(f)
-                removed.append(f)
-    return removed
-
-
-def _remove_own_temporaries(path: str) -> None:
-    """Remove every temporary file of ``path`` made by this process (also one whose name a signal lost)."""
-    path = os.path.abspath(path)
-    pattern = os.path.join(glob.escape(os.path.dirname(path)), glob.escape(f"{_tmp_prefix(path)}{os.getpid()}.") + "*.tmp")
-    for f in glob.glob(pattern):
+        # unlinked while still held, then closed: a writer waiting on this file wakes up, sees that
+        # it is no longer the file at ``lp`` and locks a fresh one (see _acquire)
         with contextlib.suppress(FileNotFoundError):
-            os.unlink(f)
+            os.unlink(lp)
+        os.close(fd)
 
 
-def _mkstemp(path: str) -> str:
-    folder = os.path.dirname(os.path.abspath(path))
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}.", suffix=".tmp", dir=folder)
-    except OSError as exc:
-        raise _os_error(path, exc) from None
-    os.close(fd)
-    return tmp
+#: seconds between two tries of a held lock
+_LOCK_POLL_S = 0.05
 
 
-def _os_error(path: str, exc: OSError) -> GestureDBError:
-    """One line for an OSError while writing ``path``; ENOSPC says so in plain words."""
-    if exc.errno == errno.ENOSPC or "No space left" in str(exc):
-        return InputFileError(path, "no space left on device while writing it; the previous file (if any) is "
-                              "unchanged")
-    if exc.errno == errno.EDQUOT:
-        return InputFileError(path, "disk quota exceeded while writing it; the previous file (if any) is unchanged")
-    return InputFileError(path, f"cannot write: {exc.strerror or exc}")
+def _acquire(path, lp: str, timeout_s: float) -> int:
+    """Lock the file ``lp`` (``flock``, exclusive), creating it; the open descriptor that holds it.
 
-
-@contextlib.contextmanager
-def sigterm_as_interrupt():
-    """Turn SIGTERM into KeyboardInterrupt in the main thread, so cleanup runs as for Ctrl-C.
-
-    Yields a list that records the signals received: a KeyboardInterrupt raised inside a
-    finalizer (h5py closing objects) is swallowed by Python, so writers check the list
-    once more before their rename.
+    A lock file removed on release could be locked by a waiter after its removal (the waiter
+    opened it before): a hold counts only if the file locked is still the one at ``lp`` (same
+    device and inode), otherwise the descriptor is closed and the lock tried again on the new file.
     """
-    got: list[int] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield got
-        return
-
-    def handler(signum, frame):
-        got.append(signum)
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    try:
-        old = signal.signal(signal.SIGTERM, handler)
-    except (ValueError, OSError):  # not settable here (embedded interpreter): nothing to restore
-        yield got
-        return
-    try:
-        yield got
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
-def _reraise_interrupt(signals: list[int], exc: BaseException) -> None:
-    """After a SIGTERM, whatever failed failed because of it: raise it as the interrupt.
-
-    The handler's KeyboardInterrupt can surface as another error: raised inside
-    an h5py type-conversion callback it comes out as ``TypeError: Operation not
-    defined for data type class`` (seen in CI), which would exit 1 with a
-    misleading message instead of 130.
-    """
-    if signals and not isinstance(exc, KeyboardInterrupt):
-        raise KeyboardInterrupt(f"signal {signals[0]}") from exc
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            try:
+                fd = os.open(lp, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            except PermissionError:  # another user's lock file: a read-only descriptor locks as well
+                fd = os.open(lp, os.O_RDONLY | os.O_CLOEXEC)
+        except FileNotFoundError:  # removed between the two opens: try again
+            continue
+        except OSError as exc:
+            raise InputFileError(path, f"cannot create the lock file {lp}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            if time.monotonic() >= deadline:
+                raise InputFileError(path, f"another gesturedb process is writing this database (lock {lp} held "
+                                           f"for more than {timeout_s:g} s)") from None
+            time.sleep(_LOCK_POLL_S)
+            continue
+        except OSError as exc:
+            os.close(fd)
+            raise InputFileError(path, f"cannot lock the lock file {lp}: {exc.strerror or exc}") from None
+        held = os.fstat(fd)
+        try:
+            now = os.stat(lp)
+        except FileNotFoundError:
+            now = None
+        if now is not None and (now.st_dev, now.st_ino) == (held.st_dev, held.st_ino):
+            return fd
+        os.close(fd)  # the previous holder removed it after this open: lock the new one
 
 
 def _is_disk_error(exc: BaseException) -> OSError | None:
@@ -368,8 +310,9 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
 
     The temporary file is in the same folder so the rename is atomic; it is
     removed on any failure (including KeyboardInterrupt and SIGTERM), so a
-    failed build leaves nothing behind and an existing database untouched. The
-    write lock of ``out_path`` is held throughout.
+    failed build leaves nothing behind and an existing database untouched
+    (:func:`gesturedb.io.atomic.replacing`). The write lock of ``out_path`` is
+    held throughout.
     """
     import h5py
 
@@ -379,12 +322,10 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
         raise ParameterError(f"output: folder {folder} does not exist")
     if os.path.isdir(out_path):
         raise ParameterError(f"output: {out_path} is a folder; expected a file name such as DB.h5")
-    with sigterm_as_interrupt() as signals, locked(out_path):
+    with locked(out_path):
         remove_stale_temporaries(out_path)
-        tmp = None
         try:
-            tmp = _mkstemp(out_path)
-            with _GuardedFile(tmp) as guard:
+            with replacing(out_path) as tmp, _GuardedFile(tmp) as guard:
                 h5 = h5py.File(guard, "w", track_order=True)
                 try:
                     fill(h5)
@@ -393,39 +334,31 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
                     guard.close_h5(h5, check=isinstance(exc, Exception))
                     raise
                 guard.close_h5(h5)
-            if signals:
-                raise KeyboardInterrupt("SIGTERM")
-            # mkstemp makes the file 0600; give it the mode a plain open() would
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)
-            os.replace(tmp, out_path)
-        except BaseException as exc:
-            # by pattern, not by name: a SIGTERM inside mkstemp leaves a file whose name we never got
-            _remove_own_temporaries(out_path)
-            _reraise_interrupt(signals, exc)
+        except Exception as exc:
+            if isinstance(exc, GestureDBError):
+                raise
             disk = _is_disk_error(exc)
             if disk is not None:
-                raise _os_error(out_path, disk) from None
+                raise os_error(out_path, disk) from None
             if isinstance(exc, OSError) and type(exc).__module__.split(".")[0] in ("distributed", "tornado"):
                 raise  # a lost Dask connection (CommClosedError), not this file: "cannot write" misled
-            if isinstance(exc, OSError) and not isinstance(exc, GestureDBError):
-                other = _other_file(exc, (out_path, tmp))
+            if isinstance(exc, OSError):
+                other = _other_file(exc, out_path)
                 if other is not None:
                     # an input that ``fill`` read (on a Dask worker, say) is not the output
                     raise InputFileError(other, f"{exc.strerror or exc} (while writing {out_path}, which is left "
                                                 f"as it was)") from None
-                raise _os_error(out_path, exc) from None
+                raise os_error(out_path, exc) from None
             raise
 
 
-def _other_file(exc: OSError, own) -> str | None:
-    """The file an OSError names when it is none of ``own`` (the output and its temporary)."""
+def _other_file(exc: OSError, out_path: str) -> str | None:
+    """The file an OSError names when it is neither ``out_path`` nor one of its temporaries."""
     name = exc.filename
     if name is None or isinstance(name, int):
         return None
     name = os.fsdecode(name)
-    return None if any(p is not None and os.path.abspath(name) == os.path.abspath(p) for p in own) else name
+    return None if os.path.abspath(name) == os.path.abspath(out_path) or is_temporary_of(name, out_path) else name
 
 
 def compact_copy(src_path: str, dst) -> None:
@@ -483,35 +416,30 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
     if not os.path.isfile(shown):
         raise InputFileError(shown, "no such file")
     path = real_path(shown)
-    with sigterm_as_interrupt() as signals, locked(path):
+    with locked(path):
         remove_stale_temporaries(path)
         try:
-            tmp = _mkstemp(path)
-            with h5py.File(path, "r") as h5:  # before the copy: a file of another version is refused as it is
-                schema.check_version(h5, shown, upgradable=upgrade)
-            # the copy and the edit are one session of HDF5 on a guarded file (see _GuardedFile):
-            # a full disk is one error, not a failed close inside HDF5
-            with _GuardedFile(tmp) as guard:
-                h5 = h5py.File(guard, "w", track_order=True)
-                try:
+            # the database's own permissions, not mkstemp's 0600
+            with replacing(path, mode_of=path) as tmp:
+                with h5py.File(path, "r") as h5:  # before the copy: a file of another version is refused as it is
+                    schema.check_version(h5, shown, upgradable=upgrade)
+                # the copy and the edit are one session of HDF5 on a guarded file (see _GuardedFile):
+                # a full disk is one error, not a failed close inside HDF5
+                with _GuardedFile(tmp) as guard:
+                    h5 = h5py.File(guard, "w", track_order=True)
                     try:
-                        compact_copy(path, h5)
-                        guard.check()
-                    except OSError as exc:
-                        raise _os_error(shown, _is_disk_error(exc) or exc) from None
-                    yield h5
-                except BaseException as exc:
-                    guard.close_h5(h5, check=isinstance(exc, Exception))
-                    raise
-                guard.close_h5(h5)
-            shutil.copymode(path, tmp)  # mkstemp made it 0600: keep the database's own permissions
-            if signals:
-                raise KeyboardInterrupt("SIGTERM")
-            os.replace(tmp, path)
-        except BaseException as exc:
-            _remove_own_temporaries(path)
-            _reraise_interrupt(signals, exc)
+                        try:
+                            compact_copy(path, h5)
+                            guard.check()
+                        except OSError as exc:
+                            raise os_error(shown, _is_disk_error(exc) or exc) from None
+                        yield h5
+                    except BaseException as exc:
+                        guard.close_h5(h5, check=isinstance(exc, Exception))
+                        raise
+                    guard.close_h5(h5)
+        except Exception as exc:
             disk = _is_disk_error(exc)
             if disk is not None and not isinstance(exc, GestureDBError):
-                raise _os_error(shown, disk) from None
+                raise os_error(shown, disk) from None
             raise
