@@ -56,6 +56,10 @@ __all__ = [
 ]
 
 PRESELECT = ("pose", "audio")
+#: N, the frames one search step copies: the paper's 8 at its 15 fps (Habibie et al. 2022, Sec. 3.1).
+#: The kernel's default; a synthesis steps as often in time at any frame rate
+#: (:func:`gesturedb.synth.options.default_step`).
+STEP_FRAMES = 8
 
 
 def _core():
@@ -503,7 +507,7 @@ def _result(d, T, sl=slice(None)) -> SearchResult:
         audio_rank=d["audio_rank"][sl], n_candidates=d["n_candidates"][sl], n_frames=T)
 
 
-def rank_sum_search(pose, audio, seg_start, seg_len, query_audio, init_pose, *, step=8, k=1,
+def rank_sum_search(pose, audio, seg_start, seg_len, query_audio, init_pose, *, step=STEP_FRAMES, k=1,
                     preselect="pose", allowed=None, exclude=None, threads=None,
                     pose_f16=None, pose_proj=None) -> SearchResult:
     """Synthesize a sequence of database windows for a query's audio.
@@ -563,7 +567,7 @@ def rank_sum_search(pose, audio, seg_start, seg_len, query_audio, init_pose, *, 
 
 
 def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, init_poses, *,
-                          step=8, k=1, preselect="pose", allowed=None, exclude=None,
+                          step=STEP_FRAMES, k=1, preselect="pose", allowed=None, exclude=None,
                           threads=None, method="auto", pose_f16=None,
                           pose_proj=None) -> list[SearchResult]:
     """Run many independent searches in one call.

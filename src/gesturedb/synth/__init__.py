@@ -1,6 +1,11 @@
 """Synthesis: speech -> gesture motion by searching an open database.
 
 =================  ==========================================================
+``methods``        the registry of synthesis methods (k-NN, graph) that the CLI, eval and server read;
+                   ``protocol``: the contract a method keeps
+``options``        :class:`SynthOptions`, :class:`SearchOptions`: a synthesis's options, named defaults
+``inputs``         what every method does with its speech: samples, minimum length, query
+                   features, control masks per step, excluded recordings
 ``matching``       :class:`Searcher`: Habibie et al. k-NN motion matching
 ``assemble``       pieces of source motion -> one Motion (placement, seams, smoothing)
 ``result``         :class:`SynthResult`: the motion and its provenance
@@ -14,7 +19,9 @@
 from __future__ import annotations
 
 from gesturedb.synth.assemble import savgol_smooth
+from gesturedb.synth.inputs import MIN_SPEECH_S
 from gesturedb.synth.matching import Searcher
+from gesturedb.synth.options import SearchOptions, SynthOptions
 from gesturedb.synth.result import SynthResult
 
-__all__ = ["Searcher", "SynthResult", "savgol_smooth"]
+__all__ = ["Searcher", "SearchOptions", "SynthOptions", "SynthResult", "MIN_SPEECH_S", "savgol_smooth"]

@@ -49,18 +49,23 @@ heading, :func:`join_upper_body`), root and legs from the second (feet planted o
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 
 import numpy as np
 
 from gesturedb.db.graph import body_parts
 from gesturedb.errors import ParameterError, SchemaError
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
+from gesturedb.io.transcripts import Words
+from gesturedb.synth import inputs
 from gesturedb.synth.assemble import SMOOTH_WINDOW_S, Piece, assemble_pieces, placed_frames, typical_accelerations
-from gesturedb.synth.seams import LEAD_FRAMES, SEAM_DECAY_S, check_decay_s
+from gesturedb.synth.options import SynthOptions
+from gesturedb.synth.protocol import EvalSystem, Method
+from gesturedb.synth.seams import LEAD_FRAMES, check_decay_s
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.viterbi import viterbi
 
-__all__ = ["viterbi", "GraphSynthesizer", "voiced_segments", "MAX_SPEED"]
+__all__ = ["viterbi", "GraphSynthesizer", "GraphOptions", "voiced_segments", "MAX_SPEED", "METHOD"]
 
 #: bounded speed range of the time warp: 1/MAX_SPEED .. MAX_SPEED times the source speed
 MAX_SPEED = 1.25
@@ -130,6 +135,35 @@ def _split_long(bounds: list[int], w_start, w_end, fps: float, max_len: int) -> 
     return out
 
 
+@dataclass(frozen=True)
+class GraphOptions(SynthOptions):
+    """The motion graph's options (:meth:`GraphSynthesizer.synthesize`): the shared ones and
+
+    Attributes
+    ----------
+    gap_s : float or "auto", optional
+        Pause that splits the input (None: the database's ``gap_s``; "auto": from the
+        input's own pauses, clips of about 3 s, :func:`gesturedb.db.graph.suggest_gap_s`).
+    vad : "silero" or "energy"
+        The detector :func:`voiced_segments` uses when there is no transcript.
+    w_data, w_trans, l5, l6 : float
+        lambda_3, lambda_4, lambda_5, lambda_6 (Sec. 5: 1, 3, 1, 0.1).
+    l_dur : float
+        Weight of the duration term ``|log(len_d / len_i)|``.
+
+    ``control``, ``keywords``, ``exclude`` and ``speaker`` restrict nodes by the rules in the
+    module doc; ``smooth`` is GestureMaster's Savitzky-Golay filter per joint group.
+    """
+
+    gap_s: float | str | None = None
+    vad: str = DEFAULT_VAD
+    w_data: float = 1.0
+    w_trans: float = 3.0
+    l5: float = 1.0
+    l6: float = 0.1
+    l_dur: float = 0.5
+
+
 class GraphSynthesizer:
     """GestureMaster synthesis over an open database that has a motion graph.
 
@@ -139,18 +173,14 @@ class GraphSynthesizer:
     """
 
     def __init__(self, db):
-        from gesturedb.db import schema
-
         self.db = db
-        h5 = db.h5
-        if "graph/indptr" not in h5 or "graph_lower/indptr" not in h5 or "style_model/coef" not in h5:
+        if not db.has_motion_graphs:
             raise SchemaError(db.path, f"graph: no motion graphs in this database; run `gesturedb graph {db.path}`")
         # (indptr, indices, cost) of each: upper body = rhythm, style and transitions; lower body
         # (root and legs) = transitions only
-        self.upper_graph, self.lower_graph = (tuple(schema.read(h5, f"{g}/{k}") for k in ("indptr", "indices", "cost"))
-                                              for g in ("graph", "graph_lower"))
+        self.upper_graph, self.lower_graph = db.motion_graph("upper"), db.motion_graph("lower")
         self.upper_joints, self.lower_joints = body_parts(db.skeleton.names, db.skeleton.parents)
-        self.style_model = {k: schema.read(h5, f"style_model/{k}") for k in ("coef", "intercept", "x_mean", "x_std")}
+        self.style_model = db.style_model
         c = db.clips
         self.start = np.asarray(c.start, dtype=np.int64)
         self.length = np.asarray(c.length, dtype=np.int64)
@@ -202,12 +232,8 @@ class GraphSynthesizer:
             if not ok:
                 raise ParameterError(f"gap_s: expected a positive number of seconds or 'auto', got {gap_s!r}")
         if transcript is not None:
-            from gesturedb.io.transcripts import Words, read_transcript
-
-            from gesturedb.io.transcripts import check_words_fit
-
-            words = transcript if isinstance(transcript, Words) else read_transcript(transcript)
-            check_words_fit(words, samples.shape[0] / sr)
+            # Words come checked (synthesize read them); a file is read and checked here
+            words = transcript if isinstance(transcript, Words) else inputs.read_words(transcript, samples.shape[0] / sr)
             ws, we = np.asarray(words.start_s, float), np.asarray(words.end_s, float)
         else:
             ws, we = voiced_segments(samples, sr, method=vad)
@@ -249,32 +275,22 @@ class GraphSynthesizer:
                            style_in=style_in, rhythm_in=rhythm_in)
 
     # -- synthesis ------------------------------------------------------------
-    def synthesize(self, audio, *, sr=None, transcript=None, gap_s=None, w_data=1.0, w_trans=3.0,
-                   l5=1.0, l6=0.1, l_dur=0.5, seam_decay_s=SEAM_DECAY_S, smooth=False, control=None, keywords=True,
-                   exclude=None, vad=DEFAULT_VAD) -> SynthResult:
+    def synthesize(self, audio, *, sr=None, transcript=None, options: "GraphOptions | None" = None,
+                   **changes) -> SynthResult:
         """Synthesize gestures for speech by the best path through the motion graph.
 
         Parameters
         ----------
         audio : path or ndarray [shape=(n,)]
+            At least :data:`gesturedb.synth.inputs.MIN_SPEECH_S` long.
         transcript : path, Words or None
             Word timings; without them pauses come from :func:`voiced_segments`.
-        vad : "silero" or "energy"
-            The detector :func:`voiced_segments` uses when there is no transcript.
-        gap_s : float or "auto", optional
-            Pause that splits the input (default: the database's ``gap_s``; "auto": from the
-            input's own pauses, clips of about 3 s, :func:`gesturedb.db.graph.suggest_gap_s`).
-        w_data, w_trans, l5, l6 : float
-            lambda_3, lambda_4, lambda_5, lambda_6 (Sec. 5: 1, 3, 1, 0.1).
-        l_dur : float
-            Weight of the duration term ``|log(len_d / len_i)|``.
-        seam_decay_s : float
-            Seconds over which the offset at a seam decays (0: clips back to back);
-            :mod:`gesturedb.synth.seams`.
-        smooth : bool
-            GestureMaster's Savitzky-Golay filter per joint group (window in seconds); off by default.
-        control, keywords, exclude
-            As for :meth:`gesturedb.synth.Searcher.synthesize` (node rule in the module doc).
+        options : GraphOptions, optional
+            ``gap_s``, ``vad``, ``w_data``, ``w_trans``, ``l5``, ``l6``, ``l_dur`` and the
+            options every method shares (``seam_decay_s``, ``smooth``, ``control``,
+            ``keywords``, ``exclude``, ``speaker``); see :class:`GraphOptions`.
+        **changes
+            Any of those fields as keywords, over ``options``.
 
         Returns
         -------
@@ -284,18 +300,22 @@ class GraphSynthesizer:
             ``rhythm_cost``, ``duration_cost``, ``data_cost``, ``transition_cost`` (into it),
             ``control``, ``keyword``.
         """
-        from gesturedb.synth.matching import Searcher, speech_samples
-
+        opts = GraphOptions.of(options, **changes)
+        gap_s, vad, w_data, w_trans = opts.gap_s, opts.vad, opts.w_data, opts.w_trans
+        l5, l6, l_dur, smooth = opts.l5, opts.l6, opts.l_dur, opts.smooth
+        control, keywords = opts.control, opts.keywords
         db = self.db
-        samples, sr, audio_path = speech_samples(db, audio, sr)
-        seam_decay_s = check_decay_s(seam_decay_s)
-        searcher = Searcher(db, segments="clips")
-        query = searcher.query_features(samples, sr)
+        samples, sr, audio_path = inputs.speech_samples(db, audio, sr)
+        seam_decay_s = check_decay_s(opts.seam_decay_s)
+        transcript = inputs.read_words(transcript, samples.shape[0] / sr, audio=audio_path)
+        inputs.check_speech(samples.shape[0], sr, db.fps, audio=audio_path)
+        query = inputs.query_features(db, samples, sr)
         T = query.shape[0]
         bounds, onsets, n_words = self.input_clips(samples, sr, T, transcript=transcript, gap_s=gap_s, vad=vad)
         unary, terms = self.data_terms(query, bounds, onsets, n_words, l5=l5, l6=l6, l_dur=l_dur)
-        labels, kw_ok = self._apply_masks(unary, searcher, bounds, T, control=control, transcript=transcript,
-                                          keywords=keywords, exclude=exclude)
+        excl = inputs.excluded(db, self.recording, opts.exclude, opts.speaker)  # bool per node
+        labels, kw_ok = self._apply_masks(unary, bounds, T, control=control, transcript=transcript,
+                                          keywords=keywords, exclude=excl)
         path, total = viterbi(unary, *self.upper_graph, w_data=w_data, w_trans=w_trans)
         for i, ok in enumerate(kw_ok):
             if ok is not None and not ok[path[i]]:  # no path through a node with the keyword: say so
@@ -306,8 +326,8 @@ class GraphSynthesizer:
         lens = np.diff(bounds)
         unary_low = (l_dur * (terms["duration"] + self.stepping[None, :])
                      + UNFIT_PENALTY * (lens[:, None] > self.avail[None, :]))
-        if exclude:
-            unary_low[:, searcher.exclude_recordings(exclude)] = np.inf
+        if excl is not None:
+            unary_low[:, excl] = np.inf
         path_low, total_low = viterbi(unary_low, *self.lower_graph, w_data=w_data, w_trans=w_trans)
         motion, source, steps = self._assemble(path, path_low, bounds, terms, unary, unary_low, labels,
                                                seam_decay_s=seam_decay_s, smooth=smooth)
@@ -316,11 +336,11 @@ class GraphSynthesizer:
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        transcript=transcript is not None, vad=None if transcript is not None else vad,
-                       database=db.path)
+                       database=db.path, **({"speaker": opts.speaker} if opts.speaker is not None else {}))
         return SynthResult(motion=motion, source_frames=source, boundaries=bounds[1:-1], steps=steps,
                            fps=db.fps, audio_path=audio_path, options=options)
 
-    def _apply_masks(self, unary, searcher, bounds, T, *, control, transcript, keywords, exclude):
+    def _apply_masks(self, unary, bounds, T, *, control, transcript, keywords, exclude):
         """Set ``+inf`` where a control/keyword mask or an excluded recording forbids a node; labels per clip.
 
         Control: node ``d`` is allowed for clip ``i`` when at least half of its frames are in the
@@ -331,14 +351,14 @@ class GraphSynthesizer:
         graph two keyword clips in a row can leave no edge between allowed nodes). A clip is a
         phrase, so the keyword decides which phrase, not where in it the gesture falls.
 
+        ``exclude``: bool per node (:func:`gesturedb.synth.inputs.excluded`) or None.
         Returns the labels per clip and, per clip, the bool array of nodes that overlap one of
         its keywords (None for a clip without keyword).
         """
         n = unary.shape[0]
         labels = [None] * n
-        excl = searcher.exclude_recordings(exclude) if exclude else None
-        if excl is not None:  # bool per clip (the searcher is over clips)
-            unary[:, excl] = np.inf
+        if exclude is not None:
+            unary[:, exclude] = np.inf
         F = self.db.n_frames
 
         def node_frames_in(bits):
@@ -349,7 +369,7 @@ class GraphSynthesizer:
 
         ctl_labels = [None] * n
         if control:
-            allowed, lab, _ = searcher._step_masks(control, None, False, n_steps=T, step=1, T=T)
+            allowed, lab, _ = inputs.step_masks(self.db, control, None, False, n_steps=T, step=1, T=T)
             if allowed is not None:
                 mid = (bounds[:-1] + bounds[1:]) // 2
                 for i, t in enumerate(mid):
@@ -358,7 +378,7 @@ class GraphSynthesizer:
         kw_labels = [None] * n
         kw_ok = [None] * n
         if keywords and transcript is not None:
-            _, lab, bits = searcher._step_masks(None, transcript, keywords, n_steps=T, step=1, T=T)
+            _, lab, bits = inputs.step_masks(self.db, None, transcript, keywords, n_steps=T, step=1, T=T)
             if bits is not None:
                 word = [x[1] if x else None for x in lab]  # the keyword said at each output frame
                 for i in range(n):
@@ -500,3 +520,13 @@ class GraphSynthesizer:
         r1, root1 = savgol_smooth(rot[:, ~o2], root, fps=motion.fps, window_s=SMOOTH_WINDOW_S, order=1)
         rot[:, o2], rot[:, ~o2] = r2, r1
         return Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=rot, root_positions=root1)
+
+
+#: The motion-graph method in the registry (:mod:`gesturedb.synth.methods`).
+METHOD = Method(
+    name="graph",
+    summary="GestureMaster motion-graph path search (Zhou et al. 2022); plans over whole phrases, so it does not stream",
+    options=GraphOptions,
+    open=GraphSynthesizer,
+    systems=(EvalSystem("graph", "motion graph (GestureMaster)", "#8c564b"),),
+)
