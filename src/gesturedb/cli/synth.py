@@ -5,6 +5,7 @@ import os
 
 from gesturedb.cli._args import add_init_argument, float_range, int_range
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
+from gesturedb.synth import methods
 from gesturedb.synth.seams import SEAM_DECAY_S
 
 
@@ -25,8 +26,9 @@ def add_parser(sub) -> None:
     p.add_argument("--npz", default=None, metavar="OUT.npz", help="also write joint positions (T, J, 3) in metres")
     p.add_argument("--provenance", default=None, metavar="OUT.json",
                    help="where every step came from (default: OUT.provenance.json)")
-    p.add_argument("--method", choices=("knn", "graph"), default="knn",
-                   help="knn: rank-sum motion matching (default); graph: GestureMaster motion-graph path search")
+    p.add_argument("--method", choices=methods.names(), default=methods.names()[0],
+                   help="; ".join(f"{m.name}: {m.summary}" for m in methods.all_methods())
+                   + " (default: %(default)s)")
     p.add_argument("--gap", type=lambda t: t if t == "auto" else float(t), default=None, dest="gap_s",
                    help="--method graph: input pause that splits clips, s, or 'auto' (default: the database's)")
     p.add_argument("--vad", choices=VAD_METHODS, default=DEFAULT_VAD,
@@ -87,6 +89,8 @@ def run(args) -> int:
         args.transcript = read_transcript(args.transcript, accept_mismatch=True)
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
+    method = methods.get(args.method)
+    options = method_options(method, args, keywords=keywords)  # a flag the method cannot use fails now
     from gesturedb.db.cluster import optional_client
 
     with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
@@ -95,29 +99,10 @@ def run(args) -> int:
             from gesturedb.refiner import load_refiner
 
             refiner = load_refiner(args.refiner, db)
-        if args.method == "graph":
-            from gesturedb.errors import ParameterError
-            from gesturedb.synth.graph import GraphSynthesizer
-
-            if refiner is not None or args.scheduler or args.repeat_guard_s is not None:
-                raise ParameterError("--method graph: --refiner, --scheduler and --repeat-guard work with the k-NN "
-                                     "method only")
-            exclude = args.exclude.split(",") if args.exclude else None
-            if args.speaker is not None:  # the graph leaves recordings out by name
-                mine = {r.name for r in db.speaker_recordings(args.speaker)}
-                exclude = (exclude or []) + [r.name for r in db.recordings if r.name not in mine]
-            res = GraphSynthesizer(db).synthesize(
-                args.audio, transcript=args.transcript, gap_s=args.gap_s, vad=args.vad,
-                seam_decay_s=args.seam_decay_s, smooth=args.smooth, control=args.control, keywords=keywords, exclude=exclude)
-        else:
-            res = Searcher(db, segments=args.segments, client=client, parts=args.parts).synthesize(
-                args.audio, transcript=args.transcript, k=args.k, preselect=args.preselect, init=args.init,
-                seed=args.seed, step=args.step, seam_decay_s=args.seam_decay_s, smooth=args.smooth,
-                control=args.control,
-                keywords=keywords, exclude=args.exclude.split(",") if args.exclude else None, refiner=refiner,
-                speaker=args.speaker,
-                **({} if args.repeat_guard_s is None else {"repeat_guard_s": args.repeat_guard_s}),
-            )
+        settings = dict(segments=args.segments, client=client, parts=args.parts)
+        synth = method.open(db, **{k: v for k, v in settings.items() if k in method.settings})
+        res = synth.synthesize(args.audio, transcript=args.transcript, options=options,
+                               **({"refiner": refiner} if refiner is not None else {}))
     motion = res.motion if args.export_fps is None else res.motion.resample(args.export_fps)
     motion = apply_target(args, motion)
     write_motion(args.output, motion)
@@ -142,7 +127,45 @@ def run(args) -> int:
     n_kw = sum(1 for s in res.steps if s["keyword"])
     rep = res.repeats
     again = "" if rep is None else (f"; {rep['distinct']} distinct windows, {rep['repeats']} repeats (a window "
-                                    f"at most {rep['max_plays']} times, repeat guard {rep['guard_s']:g} s)")
+                                    f"at most {rep['max_plays']} times, {guard_summary(rep)})")
     print(f"synthesized {res.n_frames} frames ({res.n_frames / res.fps:.2f} s at {res.fps:g} fps) in "
           f"{len(res.steps)} steps ({n_ctl} controlled, {n_kw} keyword{again}); wrote {', '.join(written)}")
     return 0
+
+
+#: The option flags that a method without the option refuses (their default, None, means "not given").
+_METHOD_FLAGS = {"step": "--step", "repeat_guard_s": "--repeat-guard", "gap_s": "--gap"}
+
+
+def method_options(method, args, *, keywords):
+    """The method's options object from the command line; a flag the method cannot use is an error."""
+    from gesturedb.errors import ParameterError
+
+    given = dict(seam_decay_s=args.seam_decay_s, smooth=args.smooth, control=args.control, keywords=keywords,
+                 exclude=args.exclude.split(",") if args.exclude else None, speaker=args.speaker,
+                 k=args.k, preselect=args.preselect, init=args.init, seed=args.seed, step=args.step,
+                 repeat_guard_s=args.repeat_guard_s, gap_s=args.gap_s, vad=args.vad)
+
+    def unusable(m) -> list[str]:
+        """The flags given that method ``m`` has no use for."""
+        fields = set(m.options.field_names())
+        out = [flag for name, flag in _METHOD_FLAGS.items() if given[name] is not None and name not in fields]
+        out += ["--refiner"] if args.refiner and not m.refines else []
+        return out + (["--scheduler"] if args.scheduler and "client" not in m.settings else [])
+
+    unused = unusable(method)
+    if unused:
+        able = [m.name for m in methods.all_methods() if m is not method and not unusable(m)]
+        raise ParameterError(f"--method {method.name}: {', '.join(unused)} {'work' if len(unused) > 1 else 'works'} "
+                             + (f"with --method {' or '.join(able)} only" if able else "with no single method"))
+    fields = set(method.options.field_names())
+    return method.options(**{k: v for k, v in given.items() if k in fields and v is not None})
+
+
+def guard_summary(rep: dict) -> str:
+    """The repeat guard as it ran: its span, and on how many steps it was relaxed (the search ran without it)."""
+    if not rep.get("guard_s"):
+        return "repeat guard off"
+    n = int(rep.get("guard_relaxed", 0))
+    relaxed = f", relaxed on {n} of {rep['steps']} steps where it left no candidate" if n else ""
+    return f"repeat guard {rep['guard_s']:g} s{relaxed}"
