@@ -21,6 +21,7 @@ if ((${#need[@]})); then
 fi
 
 . scripts/venv.sh
+. scripts/pip_install.sh
 if [ ! -x "$GESTUREDB_VENV/bin/python" ]; then
   echo "setup: creating the virtual environment $GESTUREDB_VENV" >&2
   python3 -m venv "$GESTUREDB_VENV"
@@ -44,20 +45,10 @@ want=$( { echo "extras=$extras"; "$PY" -c 'import sys; print(sys.version)';
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && "$PY" -c 'import gesturedb._core' 2>/dev/null; then
   echo "setup: gesturedb is up to date in $GESTUREDB_VENV (nothing changed since the last install)" >&2
 else
-  echo "setup: installing gesturedb[$extras] into $GESTUREDB_VENV" >&2
+  # the first time: about 2.6 GB installed (torch 0.75 GB and VTK 0.57 GB are half of it), a few minutes
+  echo "setup: installing gesturedb[$extras] into $GESTUREDB_VENV (the first time about 2.6 GB, mostly torch" \
+    "and VTK, for a few minutes); a line per package pip downloads:" >&2
   rm -f "$stamp"
-  "$PY" -m pip install --quiet --disable-pip-version-check -e ".${extras:+[$extras]}"
+  pip_install setup "$PY" -e ".${extras:+[$extras]}"
   echo "$want" > "$stamp"
-fi
-
-# Blender as a Python module (bpy, for tests/test_blender.py): it pins numpy < 2 and needs
-# Python 3.11, so it gets an environment of its own; where it cannot install, that test skips and says why.
-if python3 -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
-  if [ -x .venv-blender/bin/python ] && .venv-blender/bin/python -c 'import bpy' 2>/dev/null; then
-    :
-  else
-    { [ -x .venv-blender/bin/python ] || python3 -m venv .venv-blender; } &&
-      .venv-blender/bin/python -m pip install --quiet --disable-pip-version-check "bpy>=4.2,<6" ||
-      echo "setup: bpy did not install; tests/test_blender.py will be skipped" >&2
-  fi
 fi

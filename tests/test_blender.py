@@ -1,7 +1,7 @@
 """Our .glb and .bvh in real Blender (the `bpy` module from PyPI), through Blender's own importers.
 
 bpy pins numpy < 2 and needs Python 3.11, so it lives in an environment of its own
-(`.venv-blender`, made by scripts/setup.sh); the test runs tests/blender_check.py there
+(`.venv-blender`, made by scripts/blender.sh, which scripts/test.sh runs); the test runs tests/blender_check.py there
 and compares what Blender computes with our forward kinematics. Where bpy cannot be
 installed the test is skipped and says why. GESTUREDB_BLENDER_PYTHON names another
 interpreter that has bpy; GESTUREDB_BLENDER_PICTURE=path keeps the rendered picture
@@ -30,7 +30,7 @@ CHECK = Path(__file__).with_name("blender_check.py")
 def _blender_python() -> str:
     exe = os.environ.get("GESTUREDB_BLENDER_PYTHON") or str(ROOT / ".venv-blender" / "bin" / "python")
     if not Path(exe).exists():
-        pytest.skip(f"Blender's bpy is not installed: no {exe} (scripts/setup.sh makes it with `pip install bpy`, "
+        pytest.skip(f"Blender's bpy is not installed: no {exe} (scripts/blender.sh makes it with `pip install bpy`, "
                     f"which needs Python 3.11; this is Python {sys.version_info[0]}.{sys.version_info[1]})")
     probe = subprocess.run([exe, "-c", "import bpy; print(bpy.app.version_string)"], capture_output=True, text=True,
                            timeout=300)
