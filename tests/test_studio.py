@@ -169,3 +169,34 @@ def test_studio_streams_the_microphone_and_a_wav(server, browser, speech_wav):
     _wait(d, "window.studio.done", what="done of the WAV")
     errors = d.execute_script("return window.studio.errors")
     assert errors == [] and _severe(d) == []
+
+
+def test_studio_without_live_streaming_synthesizes_a_wav_offline(scott_db_path, browser, speech_wav, monkeypatch):
+    """Where the installation cannot stream, the page says so and a WAV file is synthesized by POST /synth
+    (the real k-NN search) and played in sync: real provenance in the timeline."""
+    import gesturedb
+    import gesturedb.serve.app as appmod
+    from gesturedb.serve import Limits, create_app
+    from test_serve import LiveServer
+
+    monkeypatch.setattr(appmod, "default_stream_factory",
+                        lambda: (None, "live streaming is not available in this installation (test)."))
+    lim = Limits()
+    with gesturedb.open(scott_db_path) as db, LiveServer(create_app(db, limits=lim), lim) as srv:
+        d = browser
+        d.get(srv.http + "/")
+        _wait(d, "window.studio && window.studio.idlePose", what="the page")
+        assert "not available" in d.find_element("id", "banner").text
+        d.find_element("id", "wav").send_keys(str(speech_wav))
+        n = int(np.ceil(25 * db.fps))
+        _wait(d, f"window.studio.framesReceived === {n} && window.studio.shownFrame > 30", timeout_s=120,
+              what="the offline result playing")
+        a = _canvas_pixels(d, OUT / "studio-offline-1.png")
+        time.sleep(1.5)
+        b = _canvas_pixels(d, OUT / "studio-offline-2.png")
+        assert (np.abs(a - b).sum(axis=2) > 40).mean() > 0.001, "the body did not move"
+        steps = d.execute_script("return window.studio.steps")
+        assert len(steps) == int(np.ceil(n / 8)) and {s["recording"] for s in steps} <= {r.name for r in db.recordings}
+        assert all(s["pose_rank"] >= 0 and s["audio_rank"] >= 0 for s in steps)
+        assert d.find_element("id", "dl-bvh").get_attribute("class") == "button"
+        assert d.execute_script("return window.studio.errors") == [] and _severe(d) == []

@@ -42,6 +42,7 @@ S.health = health; S.skeleton = skel;
 const fps = skel.fps, J = skel.names.length, W = skel.frame_floats;
 $('status').textContent = `${health.database} · ${(health.frames / health.fps / 60).toFixed(1)} min of motion · ` +
   `${J} joints · ${fps} fps` + (health.stream ? '' : ' · offline only');
+if (!health.stream) $('mic').disabled = true;
 if (!health.stream) banner(`${health.stream_error || 'Live streaming is not available.'} A WAV file is synthesized ` +
                            'offline instead; the microphone needs live streaming.');
 
@@ -170,7 +171,8 @@ function takeFrames(buf) {
 }
 
 // ---- the timeline ------------------------------------------------------------------------
-const hue = (name) => { let h = 0; for (const c of name) h = (h * 31 + c.charCodeAt(0)) % 360; return h; };
+// one hue per recording, spread by the golden angle so that neighbours differ (a mirrored copy too)
+const hue = (name) => { const i = ctrls.recordings.indexOf(name); return i < 0 ? 0 : (150 + i * 137.508) % 360; };
 let lastCtl = null;
 function addStep(st) {
   S.steps.push(st);
@@ -184,7 +186,7 @@ function addStep(st) {
   // colour: the recording (hue) and the moment in it (lightness); text: moment, ranks, recording
   el.innerHTML = '';
   for (const line of [`${src.toFixed(1)} s`, `p${st.pose_rank ?? '-'} a${st.audio_rank ?? '-'}`,
-                      (st.recording || '?').replace(/~mirror$/, ' ~m')]) {
+                      (st.recording || '?').endsWith('~mirror') ? `mirror ${st.recording.replace(/~mirror$/, '')}` : st.recording || '?']) {
     const d = document.createElement('div'); d.textContent = line; el.appendChild(d);
   }
   el.title = `step ${st.step}: output ${(st.out_start / fps).toFixed(2)}-${(st.out_end / fps).toFixed(2)} s\n` +
@@ -344,7 +346,7 @@ function stop() {
   }, 150);
   $('stop').disabled = true;
 }
-function endUi() { S.streaming = false; $('stop').disabled = true; $('mic').disabled = false; }
+function endUi() { S.streaming = false; $('stop').disabled = true; $('mic').disabled = !health.stream; }
 
 $('mic').addEventListener('click', async () => {
   if (!health.stream) { log('the microphone needs live streaming, which this server does not have', true); return; }
