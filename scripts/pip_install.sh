@@ -22,11 +22,13 @@ _pip_lines() {
         line="Processing ${n##*/}"
         if [ -f "$n" ]; then
           n=$(stat -c %s "$n")
-          if ((n >= 1000000)); then line+=" ($(((n + 500000) / 1000000)) MB)"; else line+=" ($(((n + 500) / 1000)) kB)"; fi
+          if ((n >= 1000000)); then line+=" ($(((n + 500000) / 1000000)) MB)"
+          else line+=" ($(((n + 500) / 1000)) kB)"; fi
         fi ;;
       "Installing collected packages: "*)
         n=${line//[!,]/}
-        line="installing $((${#n} + 1)) packages" ;;
+        n=$((${#n} + 1))
+        line="installing $n package$( ((n == 1)) || echo s)" ;;
       "Building "* | "Successfully built "* | ERROR:* | error:*) ;;
       *) continue ;;
     esac

@@ -259,8 +259,9 @@ def test_a_checkpoint_for_another_skeleton_is_refused(scott_db, tmp_path):
     tr.save(tmp_path / "other.pt")
     last = feats["joint_names"][-1]
     n = len(feats["joint_names"])
-    with pytest.raises(InputFileError, match=rf"other.pt.*skeleton joints: the refiner was trained for {n - 1} entries, "
-                                             rf"database .* has {n}; only in the database: entry {n - 1} '{last}'; "):
+    with pytest.raises(InputFileError, match=rf"other.pt.*skeleton joints: the refiner was trained for {n - 1} "
+                                             rf"entries, database .* has {n}; only in the database: entry {n - 1} "
+                                             rf"'{last}'; "):
         Refiner.load(tmp_path / "other.pt", db=scott_db)
     # same length, one joint renamed: the message names it, not "different entries"
     names = list(feats["joint_names"])

@@ -23,7 +23,10 @@ ROOT = Path(__file__).resolve().parents[1]
 FAKE = """#!/usr/bin/env bash
 echo "$0 $*" >> "$SETUP_LOG"
 if [ "$1" = "-m" ] && [ "$2" = "venv" ]; then mkdir -p "$3/bin"; cp "$0" "$3/bin/python"; exit 0; fi
-if [ "$1" = "-m" ] && [ "$2" = "pip" ]; then [ -n "${{PIP_OUTPUT:-}}" ] && cat "$PIP_OUTPUT"; exit "${{PIP_EXIT:-0}}"; fi
+if [ "$1" = "-m" ] && [ "$2" = "pip" ]; then
+  [ -n "${{PIP_OUTPUT:-}}" ] && cat "$PIP_OUTPUT"
+  exit "${{PIP_EXIT:-0}}"
+fi
 exec {real} "$@"
 """
 

@@ -411,7 +411,8 @@ def check_compatible(ck: dict, db, path) -> None:
 def _list_difference(trained: list, database: list) -> str:
     """Which entries of two lists differ, for a message: by position, then what only one side has.
 
-    ``1 of the first 55 differ: entry 3: 'LeftHand' (refiner) vs 'L_Hand' (database); only in the database: entry 55 'Jaw'``;
+    ``1 of the first 55 differ: entry 3: 'LeftHand' (refiner) vs 'L_Hand' (database); only in the
+    database: entry 55 'Jaw'``;
     `echo_list` names the first `MAX_ECHO_ITEMS` of each kind and counts the rest.
     """
     n = min(len(trained), len(database))
@@ -420,7 +421,8 @@ def _list_difference(trained: list, database: list) -> str:
     parts = [f"{len(changed)} of the first {n} differ: {echo_list(changed)}"] if changed else []
     for side, longer in (("the refiner", trained), ("the database", database)):
         if len(longer) > n:
-            parts.append(f"only in {side}: {echo_list([f'entry {i} {echo(longer[i])}' for i in range(n, len(longer))])}")
+            extra = [f"entry {i} {echo(longer[i])}" for i in range(n, len(longer))]
+            parts.append(f"only in {side}: {echo_list(extra)}")
     return "; ".join(parts) or "same entries"
 
 
