@@ -17,6 +17,7 @@ names chosen here, recordings are named as the database names them.
 """
 from __future__ import annotations
 
+import inspect
 import io
 import json
 import logging
@@ -106,10 +107,14 @@ class ServerState:
     def __init__(self, db, limits: Limits, stream_factory):
         self.db = db
         self.limits = limits
+        why = None
         if stream_factory is None:
             stream_factory, why = default_stream_factory()
-        else:
-            why = None
+            if stream_factory is not None and "searcher" in inspect.signature(stream_factory).parameters:
+                cls = stream_factory
+                # one Searcher (segments, pose projection) serves every stream instead of one each
+                stream_factory = lambda d, *, sample_rate: cls(d, sample_rate=sample_rate,  # noqa: E731
+                                                              searcher=self.searcher())
         self.stream_factory, self.stream_unavailable = stream_factory, why
         self.results = ResultStore(limits.max_results, limits.result_ttl_s)
         self.streams = 0
@@ -147,11 +152,19 @@ class ServerState:
         return control
 
     def searcher(self):
-        if self._searcher is None:
-            from gesturedb.synth.matching import Searcher
+        """The k-NN Searcher every stream and upload shares (built once: its segments and pose projection)."""
+        with self._control_lock:
+            if self._searcher is None:
+                from gesturedb.synth.matching import Searcher
 
-            self._searcher = Searcher(self.db)
+                self._searcher = Searcher(self.db)
         return self._searcher
+
+    def warm(self) -> float:
+        """Build what the first step would otherwise build (the searcher's pose projection); seconds taken."""
+        t = time.perf_counter()
+        self.searcher().pose_projection()
+        return time.perf_counter() - t
 
     def synthesize(self, wav: bytes, transcript: tuple[str, bytes] | None, control: str | None, seed: int):
         """Offline synthesis of an uploaded WAV, one at a time (the streams keep the other core)."""

@@ -162,7 +162,7 @@ class StreamSession:
         except GestureDBError as exc:
             raise _Close(P.CLOSE_POLICY, "bad_start", str(exc)) from None
         if control is not None:
-            await run_in_threadpool(self.stream.set_control, control)
+            await self._synth(self.stream.set_control, control)
         self.control = control
         if req.get("words") is not None:
             await self._words({"words": req["words"]})
@@ -189,7 +189,7 @@ class StreamSession:
             raise _Close(P.CLOSE_POLICY, "too_long", f"the stream passed the limit of {self.limits.max_audio_s:g} s "
                                                      "of speech; start a new one")
         if samples.shape[0]:
-            await self._send_chunk(await run_in_threadpool(self.stream.push, samples))
+            await self._send_chunk(await self._synth(self.stream.push, samples))
 
     async def _control(self, req: dict) -> None:
         try:
@@ -197,7 +197,11 @@ class StreamSession:
         except ParameterError as exc:
             await self._reject("bad_control", f"{exc}; the stream keeps {echo(self.control)}")
             return
-        await run_in_threadpool(self.stream.set_control, control)
+        try:
+            await run_in_threadpool(self.stream.set_control, control)
+        except GestureDBError as exc:
+            await self._reject("bad_control", f"{exc}; the stream keeps {echo(self.control)}")
+            return
         self.control = control
         await self._send_json({"type": "control", "control": control, "from_frame": self.n_sent})
 
@@ -208,16 +212,24 @@ class StreamSession:
             await self._reject("bad_words", str(exc))
             return
         if words:
-            await run_in_threadpool(self.stream.push_words, words)
+            await self._synth(self.stream.push_words, words)
 
     async def _end(self) -> None:
-        await self._send_chunk(await run_in_threadpool(self.stream.finish))
+        await self._send_chunk(await self._synth(self.stream.finish))
         token = None
         if self.n_sent:
             token = self.state.results.put(self._result())
         await self._send_json({"type": "done", "frames": self.n_sent,
                                "result": None if token is None else f"/result/{token}"})
         await self._close(_Close(P.CLOSE_NORMAL))
+
+    async def _synth(self, call, *args):
+        """A synthesizer call in a worker thread; its deliberate errors (a control that leaves a step no
+        candidate, say) end this stream with their message."""
+        try:
+            return await run_in_threadpool(call, *args)
+        except GestureDBError as exc:
+            raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
 
     # -- out ------------------------------------------------------------------
     async def _send_chunk(self, chunk) -> None:
