@@ -10,6 +10,7 @@ import os
 import sys
 
 from gesturedb.cli._args import add_init_argument, float_range
+from gesturedb.eval.common import SYSTEM_LABELS, SYSTEMS, eval_options
 from gesturedb.synth.seams import SEAM_DECAY_S
 
 
@@ -66,7 +67,7 @@ def add_parser(sub) -> None:
         description="Either hold out a stretch of a recording (--data-dir, --holdout-start, --holdout-end): build a "
         "database from the rest and compare every system with the held-out motion capture; or take a database "
         "and new speech (DB.h5 --audio ...) and compute the metrics that need no ground truth. Systems: "
-        "random windows, pose-only, audio-only, rank-sum with pose and with audio pre-selection, motion graph.",
+        + "; ".join(SYSTEM_LABELS[s] for s in SYSTEMS[1:]) + ".",
     )
     m.add_argument("db", nargs="?", default=None, metavar="DB.h5", help="database to search (not with --data-dir)")
     m.add_argument("--audio", action="append", default=[], metavar="SPEECH.wav",
@@ -82,7 +83,7 @@ def add_parser(sub) -> None:
                    help="keep the training database here (default: OUT/train.h5)")
     m.add_argument("-o", "--output", required=True, metavar="DIR", help="report folder")
     m.add_argument("--systems", default=None,
-                   help="comma-separated subset of random,pose_only,audio_only,ranksum_pose,ranksum_audio,graph")
+                   help=f"comma-separated subset of {','.join(SYSTEMS[1:])}")
     m.add_argument("--controls", action="store_true", help="also run `eval controls` and add it to the report")
     m.add_argument("--no-render", action="store_true", help="no contact sheets or video")
     m.add_argument("--video", choices=("mp4", "gif", "none"), default="mp4",
@@ -100,9 +101,11 @@ def add_parser(sub) -> None:
     m.set_defaults(run=run_motion)
 
 
-def _search_kwargs(args) -> dict:
-    return dict(k=args.k, init=args.init, seed=args.seed, step=args.step, seam_decay_s=args.seam_decay_s,
-                segments=args.segments)
+def _search_kwargs(args, **more) -> dict:
+    """``segments`` and the shared search options (:class:`gesturedb.synth.options.SearchOptions`)."""
+    options = eval_options(k=args.k, init=args.init, seed=args.seed, step=args.step,
+                           seam_decay_s=args.seam_decay_s, **more)
+    return dict(segments=args.segments, options=options)
 
 
 def run_controls(args) -> int:
@@ -114,9 +117,9 @@ def run_controls(args) -> int:
     check_outputs({"--json": args.json, "--md": args.md, "--plot": args.plot}, [args.db, args.audio])
     with gesturedb.open(args.db) as db:
         rep = evaluate_controls(
-            db, args.audio, preselect=args.preselect, min_std_ratio=args.min_std_ratio,
-            freeze_reference=args.freeze_reference, exclude=args.exclude.split(",") if args.exclude else None,
-            **_search_kwargs(args),
+            db, args.audio, min_std_ratio=args.min_std_ratio, freeze_reference=args.freeze_reference,
+            **_search_kwargs(args, preselect=args.preselect,
+                             exclude=args.exclude.split(",") if args.exclude else None),
         )
     print(rep.to_text())
     written = write_controls_report(rep, json_path=args.json, md_path=args.md, plot_path=args.plot)
@@ -135,7 +138,7 @@ def _beside(audio: str) -> str | None:
 
 def run_motion(args) -> int:
     from gesturedb.errors import ParameterError
-    from gesturedb.eval.evaluate import SYSTEMS, evaluate_holdout, evaluate_inputs
+    from gesturedb.eval.evaluate import evaluate_holdout, evaluate_inputs
 
     systems = None
     if args.systems:
@@ -160,7 +163,7 @@ def run_motion(args) -> int:
             args.data_dir, args.holdout_start, args.holdout_end, recording=args.recording,
             db_path=args.train_db or os.path.join(args.output, "train.h5"), mirror=not args.no_mirror,
             systems=["ground_truth"] + (systems or list(SYSTEMS[1:])), controls=args.controls,
-            keywords=args.keywords, refiner=refiner, starts=args.starts, **_search_kwargs(args),
+            refiner=refiner, starts=args.starts, **_search_kwargs(args, keywords=args.keywords),
         )
     else:
         if not args.db or not args.audio:
@@ -171,8 +174,8 @@ def run_motion(args) -> int:
         with gesturedb.open(args.db) as db:
             ev = evaluate_inputs(
                 db, args.audio, transcripts=[_beside(a) for a in args.audio], systems=systems or list(SYSTEMS[1:]),
-                controls=args.controls, keywords=args.keywords, refiner=refiner, starts=args.starts,
-                **_search_kwargs(args),
+                controls=args.controls, refiner=refiner, starts=args.starts,
+                **_search_kwargs(args, keywords=args.keywords),
             )
     written = ev.write(args.output, render=not args.no_render, video=None if args.video == "none" else args.video,
                        video_seconds=args.video_seconds)

@@ -2,15 +2,21 @@
 from __future__ import annotations
 
 import math
-import os
 from typing import Sequence
 
 import numpy as np
 
-from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.errors import InputFileError
+from gesturedb.synth import methods
+from gesturedb.synth.inputs import speech_samples
+from gesturedb.synth.options import SearchOptions
 
-#: Systems of the objective evaluation, in table order.
-SYSTEMS = ("ground_truth", "random", "pose_only", "audio_only", "ranksum_pose", "ranksum_audio", "graph")
+#: The evaluation's baselines (:mod:`gesturedb.eval.baselines`): windows chosen without the search.
+BASELINES = ("random", "pose_only", "audio_only")
+
+#: Systems of the objective evaluation, in table order: the ground truth, the baselines, then what every
+#: registered synthesis method contributes (:func:`gesturedb.synth.methods.eval_systems`).
+SYSTEMS = ("ground_truth", *BASELINES, *(s.name for s in methods.eval_systems()))
 
 SYSTEM_LABELS = {
     "reference": "database motion (reference)",
@@ -18,11 +24,17 @@ SYSTEM_LABELS = {
     "random": "random windows (mismatched audio)",
     "pose_only": "pose-only matching",
     "audio_only": "audio-only matching",
-    "ranksum_pose": "rank-sum, pose pre-selection",
-    "ranksum_audio": "rank-sum, audio pre-selection",
+    **{s.name: s.label for s in methods.eval_systems()},
     "ranksum_refined": "rank-sum + cGAN refiner",
-    "graph": "motion graph (GestureMaster)",
 }
+
+
+def eval_options(options: SearchOptions | None = None, **changes) -> SearchOptions:
+    """The search options an evaluation shares across its systems: ``options`` (default: no keyword
+    sub-databases, the evaluation compares the search itself) with ``changes``."""
+    if options is None:
+        options = SearchOptions(keywords=False)
+    return SearchOptions.of(options, **changes)
 
 
 def feature_joint_indices(db) -> dict[str, int]:
@@ -114,21 +126,5 @@ def _fmt(v, spec: str) -> str:
 
 
 def _read_samples(db, audio, sr):
-    from gesturedb.io.audio import read_audio
-
-    rate = db.sample_rate
-    if isinstance(audio, (str, os.PathLike)):
-        y, r = read_audio(audio, sr=rate)
-        return y, r, os.fspath(audio)
-    if sr is None:
-        raise ParameterError("sr: expected the sample rate of the samples given as audio, got None")
-    y = np.asarray(audio, dtype=np.float32)
-    if y.ndim != 1 or y.size == 0:
-        raise ParameterError(f"audio: expected mono samples (n,), got shape {y.shape}")
-    if int(sr) != rate:
-        import soxr
-
-        y = soxr.resample(y, int(sr), rate).astype(np.float32)
-    return y, rate, None
-
-
+    """Speech at the database's analysis rate (:func:`gesturedb.synth.inputs.speech_samples`, resampled)."""
+    return speech_samples(db, audio, sr, resample=True)

@@ -30,8 +30,8 @@ import numpy as np
 from gesturedb.errors import InputFileError, ParameterError, SearchError
 from gesturedb.eval.common import _fmt, _read_samples, _stats, feature_joint_indices, json_clean
 from gesturedb.eval.texttable import text_table
-from gesturedb.synth.matching import DEFAULT_INIT
-from gesturedb.synth.seams import SEAM_DECAY_S
+from gesturedb.synth.matching import Searcher
+from gesturedb.synth.options import SearchOptions
 
 #: Default share of the unconstrained standard deviation a controlled synthesis must keep.
 DEFAULT_MIN_STD_RATIO = 0.3
@@ -246,16 +246,11 @@ def evaluate_controls(
     *,
     sr: int | None = None,
     cases: Sequence[ControlCase] = TABLE2_CASES,
-    k: int = 1,
-    preselect: str = "pose",
-    init: str = DEFAULT_INIT,
-    seed: int | None = 0,
-    step: int | None = None,
-    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
-    exclude=None,
     min_std_ratio: float = DEFAULT_MIN_STD_RATIO,
     freeze_reference: str = "allowed",
+    options: SearchOptions | None = None,
+    **changes,
 ) -> ControlsReport:
     """Reproduce Table 2 of Habibie et al. 2022 on one speech input.
 
@@ -266,9 +261,14 @@ def evaluate_controls(
         Speech (a WAV file, or mono samples with ``sr``).
     cases : sequence of ControlCase
         Controls to evaluate (default: the paper's six).
-    k, preselect, init, seed, step, seam_decay_s, segments, exclude
+    segments : {"chunks", "clips"}
+        What the search runs over (:class:`gesturedb.synth.Searcher`).
+    options : SearchOptions, optional
         Search settings, the same for the unconstrained and every controlled
-        synthesis (see :meth:`gesturedb.synth.matching.Searcher.synthesize`).
+        synthesis (``k``, ``preselect``, ``init``, ``seed``, ``step``, ``seam_decay_s``,
+        ``exclude``, ...; see :class:`gesturedb.synth.options.SearchOptions`); any of its
+        fields may also be given as keywords. Keyword sub-databases and a control of
+        the options' own are not used: each row sets its control.
     min_std_ratio : float
         The no-freeze check: controlled std >= ``min_std_ratio`` x the reference std.
     freeze_reference : {"allowed", "unconstrained"}
@@ -284,7 +284,6 @@ def evaluate_controls(
     """
     from gesturedb import control
     from gesturedb.features.controls import control_features
-    from gesturedb.synth import Searcher
 
     if not (isinstance(min_std_ratio, (int, float)) and 0 <= min_std_ratio):
         raise ParameterError(f"min_std_ratio: expected a number >= 0, got {min_std_ratio!r}")
@@ -300,13 +299,12 @@ def evaluate_controls(
     samples, rate, audio_path = _read_samples(db, audio, sr)
     joints = feature_joint_indices(db)
     searcher = Searcher(db, segments=segments)
-    opts = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s,
-                keywords=False, exclude=exclude)
+    opts = SearchOptions.of(options, **changes).replace(keywords=False, control=None)
 
     def measure(res) -> dict[str, np.ndarray]:
         return control_features(res.positions, joints=joints, fps=db.fps)
 
-    free = searcher.synthesize(samples, sr=rate, **opts)
+    free = searcher.synthesize(samples, sr=rate, options=opts)
     free_c = measure(free)
     feats = sorted({c.feature for c in cases})
     unconstrained = {f: _stats(free_c[f]) for f in feats}
@@ -334,7 +332,7 @@ def evaluate_controls(
         row.free_mean, row.free_std = fm, fs
         row.free_in_range = float(np.mean(_OPS[op](free_c[case.feature].astype(np.float64), thr)))
         try:
-            res = searcher.synthesize(samples, sr=rate, control=case.expr, **opts)
+            res = searcher.synthesize(samples, sr=rate, options=opts.replace(control=case.expr))
         except SearchError as exc:
             row.status, row.error = "EMPTY", f"no synthesis: {exc}"
             rows.append(row)
@@ -355,8 +353,9 @@ def evaluate_controls(
         row.status = "PASS" if row.direction_ok and row.no_freeze_ok else "FAIL"
         rows.append(row)
 
-    settings = dict(opts, segments=segments, min_std_ratio=float(min_std_ratio), freeze_reference=freeze_reference,
-                    exclude=exclude)
+    settings = dict(k=opts.k, preselect=opts.preselect, init=opts.init, seed=opts.seed, step=opts.step,
+                    seam_decay_s=opts.seam_decay_s, keywords=False, exclude=opts.exclude, segments=segments,
+                    min_std_ratio=float(min_std_ratio), freeze_reference=freeze_reference)
     return ControlsReport(database=db.path, audio=audio_path, fps=db.fps, n_frames=free.n_frames,
                           settings=settings, rows=rows, unconstrained=unconstrained, series=series)
 

@@ -60,7 +60,7 @@ import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError, SearchError
 from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is where callers look)
-    SYSTEM_LABELS, SYSTEMS, _centred, _fmt, _read_samples, _stats, feature_joint_indices,
+    BASELINES, SYSTEM_LABELS, SYSTEMS, _centred, _fmt, _read_samples, _stats, eval_options, feature_joint_indices,
     json_clean, metric_positions, upper_body_joints,
 )
 from gesturedb.eval.controls import (  # noqa: F401
@@ -68,8 +68,10 @@ from gesturedb.eval.controls import (  # noqa: F401
 )
 from gesturedb.eval.texttable import text_table
 from gesturedb.roles import HIP_ROLES, JOINT_GROUPS
-from gesturedb.synth.matching import DEFAULT_INIT
-from gesturedb.synth.seams import SEAM_DECAY_S
+from gesturedb.synth import methods
+from gesturedb.synth.inputs import check_speech
+from gesturedb.synth.matching import Searcher
+from gesturedb.synth.options import SearchOptions
 
 __all__ = [
     "SYSTEMS",
@@ -178,16 +180,11 @@ def synthesize_systems(
     systems: Sequence[str] = SYSTEMS,
     ground_truth: np.ndarray | None = None,
     transcript=None,
-    keywords: bool = False,
-    k: int = 1,
-    init: str = DEFAULT_INIT,
-    seed: int | None = 0,
-    step: int | None = None,
-    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
-    exclude=None,
     refiner=None,
     searcher=None,
+    options: SearchOptions | None = None,
+    **changes,
 ) -> dict[str, SystemOutput]:
     """Motion of every system for the same speech.
 
@@ -208,6 +205,11 @@ def synthesize_systems(
         Recorded joint positions at the database fps for this speech.
     transcript : Words, optional
         Passed to the search (keyword sub-databases) when ``keywords``.
+    options : SearchOptions, optional
+        The search options every system shares (:func:`gesturedb.eval.common.eval_options`:
+        no keyword sub-databases unless asked); any of its fields may be given as keywords.
+        Each method's systems read the fields of its own options (the motion graph the
+        shared ones); a system may set some of its own (``ranksum_audio``: ``preselect``).
     refiner : object with ``refine(motion, audio)``, optional
         Adds the system ``ranksum_refined``: the ``ranksum_pose`` motion refined
         (e.g. a :class:`gesturedb.refiner.train.Refiner`).
@@ -221,8 +223,8 @@ def synthesize_systems(
         (the shorter of the speech and the ground truth).
     """
     from gesturedb.eval import baselines as B
-    from gesturedb.synth import Searcher
 
+    opts = eval_options(options, **changes)
     unknown = [s for s in systems if s not in SYSTEMS]
     if unknown:
         raise ParameterError(f"systems: expected names from {list(SYSTEMS)}, got {unknown}")
@@ -230,19 +232,17 @@ def synthesize_systems(
         raise ParameterError("systems: 'ground_truth' needs the ground_truth positions")
     if searcher is None:
         searcher = Searcher(db, segments=segments)
-    if step is None:
-        from gesturedb.synth.matching import default_step
-
-        step = default_step(db.fps)
+    step, seed, init = opts.step_at(db.fps), opts.seed, opts.init
+    check_speech(samples.shape[0], sr, db.fps)
     query = searcher.query_features(samples, sr)
     T = query.shape[0]
-    if T < step:
-        raise ParameterError(f"audio: expected at least one step ({step} frames = {step / db.fps:.2f} s), got {T} frames")
-    excl = searcher.exclude_recordings(exclude)
+    excl = searcher.exclude_recordings(opts.exclude, opts.speaker)
     out: dict[str, SystemOutput] = {}
+    # each method opened once; the k-NN's is the searcher the baselines use
+    opened = {m.name: searcher for m in methods.all_methods() if m.open is Searcher}
 
     def assembled(name, choice):
-        motion = searcher.assemble(choice.source_frames, choice.out_frames, seam_decay_s=seam_decay_s)
+        motion = searcher.assemble(choice.source_frames, choice.out_frames, seam_decay_s=opts.seam_decay_s)
         out[name] = SystemOutput(name, motion.positions, choice.boundaries, choice.source_frames, motion)
 
     for name in systems:
@@ -258,16 +258,12 @@ def synthesize_systems(
         elif name == "audio_only":
             assembled(name, B.audio_only_windows(db.audio_features, searcher.seg_start, searcher.seg_len, query,
                                                  step=step, exclude=excl))
-        elif name == "graph":
-            from gesturedb.synth.graph import GraphSynthesizer
-
-            res = GraphSynthesizer(db).synthesize(samples, sr=sr, transcript=transcript, keywords=keywords,
-                                                  seam_decay_s=seam_decay_s, exclude=exclude)
-            out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
-        else:
-            res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k,
-                                      preselect=name.split("_", 1)[1], init=init, seed=seed, step=step,
-                                      seam_decay_s=seam_decay_s, exclude=exclude)
+        else:  # a synthesis method's system (gesturedb.synth.methods)
+            method, system = methods.system_method(name)
+            if method.name not in opened:
+                opened[method.name] = method.open(db)
+            res = opened[method.name].synthesize(samples, sr=sr, transcript=transcript,
+                                                 options=method.options.of(opts, **system.options))
             out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
     if refiner is not None:
         from gesturedb.features.audio import audio_deltas
@@ -276,8 +272,7 @@ def synthesize_systems(
             refiner.check(db)
         base = out.get("ranksum_pose")
         if base is None:
-            res = searcher.synthesize(samples, sr=sr, transcript=transcript, keywords=keywords, k=k, init=init,
-                                      seed=seed, step=step, seam_decay_s=seam_decay_s, exclude=exclude)
+            res = searcher.synthesize(samples, sr=sr, transcript=transcript, options=opts.replace(preselect="pose"))
             base = SystemOutput("ranksum_pose", res.positions, res.boundaries, res.source_frames, res.motion)
         m = refiner.refine(base.motion, np.concatenate([query, audio_deltas(query)], axis=1))
         out["ranksum_refined"] = SystemOutput("ranksum_refined", m.positions, base.boundaries, base.source_frames, m)
@@ -659,7 +654,6 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
     against the same ground truth."""
     from gesturedb.eval import conventions as CV
     from gesturedb.eval.placement import world_metrics
-    from gesturedb.synth import Searcher
 
     # with the ground truth among the systems, synthesize_systems cuts every output to its length
     gt = outputs["ground_truth"].positions if "ground_truth" in outputs else None
@@ -670,7 +664,8 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
         for seed in range(starts):
             outs = synthesize_systems(db, samples, sr, systems=(["ground_truth"] if gt is not None else []) + [n],
                                       ground_truth=gt, transcript=transcript, searcher=searcher,
-                                      **dict(opts, init="random", seed=seed, refiner=None))
+                                      **dict(opts, options=opts["options"].replace(init="random", seed=seed),
+                                             refiner=None))
             r, _ = system_metrics(outs, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
                                   names=db.joint_names, reference_counts=reference["speed_counts"])
             rel = {k: metric_positions(v.positions, root) for k, v in outs.items()}
@@ -737,10 +732,9 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
 
 def _common(db, opts, controls, control_audio):
     from gesturedb import control
-    from gesturedb.synth.matching import default_step
 
-    if opts.get("step") is None:  # the default step is the paper's in seconds: frames at this database's rate
-        opts["step"] = default_step(db.fps)
+    # the default step is the paper's in seconds: frames at this database's rate, resolved once for the report
+    opts["options"] = opts["options"].replace(step=opts["options"].step_at(db.fps))
 
     fj = feature_joint_indices(db)
     for role in ("root", *HIP_ROLES):
@@ -760,8 +754,8 @@ def _common(db, opts, controls, control_audio):
                                         "p85": control.percentile_threshold(lwh, 85.0)}}
     ctl = None
     if controls:
-        ctl = evaluate_controls(db, control_audio[0], sr=control_audio[1],
-                                **{k: v for k, v in opts.items() if k not in ("keywords", "refiner")})
+        ctl = evaluate_controls(db, control_audio[0], sr=control_audio[1], segments=opts["segments"],
+                                options=opts["options"])
     return root, joints, reference, thresholds, ctl
 
 
@@ -771,9 +765,15 @@ def _starts(v) -> int:
     return int(v)
 
 
+def _options(options, segments, refiner, changes) -> dict:
+    """The internal options of an evaluation: the shared search options, the segments searched, the refiner."""
+    return dict(options=eval_options(options, **changes), segments=segments, refiner=refiner)
+
+
 def _settings(opts, joints, names, **more):
-    opts = dict(opts, refiner=getattr(opts.get("refiner"), "path", None))
-    return dict(opts, joints=[int(j) for j in joints], joint_names=[names[j] for j in joints], **more)
+    """The report's ``settings``: every search option, the segments and the refiner's file."""
+    flat = dict(opts["options"].as_dict(), segments=opts["segments"], refiner=getattr(opts["refiner"], "path", None))
+    return dict(flat, joints=[int(j) for j in joints], joint_names=[names[j] for j in joints], **more)
 
 
 def evaluate_inputs(
@@ -783,16 +783,11 @@ def evaluate_inputs(
     transcripts: Sequence | None = None,
     systems: Sequence[str] = SYSTEMS[1:],
     controls: bool = False,
-    k: int = 1,
-    init: str = DEFAULT_INIT,
-    seed: int | None = 0,
-    step: int | None = None,
-    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
-    keywords: bool = False,
     refiner=None,
     starts: int = 0,
-    exclude=None,
+    options: SearchOptions | None = None,
+    **changes,
 ) -> MotionEvaluation:
     """Every system on new speech without motion capture (metrics that need no ground truth).
 
@@ -808,8 +803,12 @@ def evaluate_inputs(
         From :data:`SYSTEMS` without ``"ground_truth"``.
     controls : bool
         Also run :func:`evaluate_controls` on the first input.
-    k, init, seed, step, seam_decay_s, segments, keywords, exclude
-        Search settings shared by all systems.
+    segments : {"chunks", "clips"}
+        What the k-NN searches (:class:`gesturedb.synth.Searcher`).
+    options : SearchOptions, optional
+        Search settings shared by all systems (``k``, ``init``, ``seed``, ``step``,
+        ``seam_decay_s``, ``keywords``, ``exclude``, ...; default: no keyword
+        sub-databases); any of its fields may also be given as keywords.
     starts : int
         Also run every rank-sum system from this many random starting poses
         (seeds 0..starts-1; Habibie et al. evaluate with random starts) and keep
@@ -833,8 +832,7 @@ def evaluate_inputs(
     transcripts = list(transcripts) if transcripts is not None else [None] * len(audio)
     if len(transcripts) != len(audio):
         raise ParameterError(f"transcripts: expected one per audio file ({len(audio)}), got {len(transcripts)}")
-    opts = dict(k=k, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s, segments=segments, refiner=refiner,
-                keywords=keywords, exclude=exclude)
+    opts = _options(options, segments, refiner, changes)
     first = _read_samples(db, audio[0], None)
     root, joints, reference, thresholds, ctl = _common(db, opts, controls, (first[0], first[1]))
     inputs = []
@@ -903,16 +901,12 @@ def evaluate_holdout(
     mirror: bool = True,
     systems: Sequence[str] = SYSTEMS,
     controls: bool = False,
-    k: int = 1,
-    init: str = DEFAULT_INIT,
-    seed: int | None = 0,
-    step: int | None = None,
-    seam_decay_s: float = SEAM_DECAY_S,
     segments: str = "chunks",
-    keywords: bool = False,
     refiner=None,
     starts: int = 0,
     build_options: dict | None = None,
+    options: SearchOptions | None = None,
+    **changes,
 ) -> MotionEvaluation:
     """Hold a stretch of a recording out, build a database from the rest, and compare with its motion.
 
@@ -932,8 +926,9 @@ def evaluate_holdout(
         Where to write the training database (default: a temporary file that is removed).
     mirror : bool
         Add mirrored copies to the training database (doubles a small database).
-    systems, controls, k, init, seed, step, seam_decay_s, segments, keywords, starts
-        As in :func:`evaluate_inputs`; ``"ground_truth"`` is the held-out motion capture.
+    systems, controls, segments, refiner, starts, options
+        As in :func:`evaluate_inputs` (no recording is excluded: the held-out stretch is
+        not in the database); ``"ground_truth"`` is the held-out motion capture.
     build_options : dict, optional
         Further :class:`gesturedb.db.build.BuildConfig` fields.
 
@@ -972,8 +967,7 @@ def evaluate_holdout(
         raise ParameterError(f"holdout: nothing left to build a database from once {holdout_start_s}-{end_s} s of "
                              f"{held.name} is held out")
 
-    opts = dict(k=k, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s, segments=segments, refiner=refiner,
-                keywords=keywords, exclude=None)
+    opts = _options(options, segments, refiner, dict(changes, exclude=None))
     tmp = None
     if db_path is None:
         tmp = tempfile.TemporaryDirectory(prefix="gesturedb-holdout-")

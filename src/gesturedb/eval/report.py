@@ -30,6 +30,7 @@ import numpy as np
 from gesturedb.errors import ParameterError
 from gesturedb.eval.strokes import BANDS_HZ, STROKE_COLUMNS, band_key
 from gesturedb.io.atomic import write_text
+from gesturedb.synth import methods
 
 __all__ = [
     "plot_speed_histograms",
@@ -49,9 +50,7 @@ _COLORS = {
     "random": "#d62728",
     "pose_only": "#9467bd",
     "audio_only": "#ff7f0e",
-    "ranksum_pose": "#1f77b4",
-    "ranksum_audio": "#2ca02c",
-    "graph": "#8c564b",
+    **{s.name: s.color for s in methods.eval_systems()},
     "ranksum_refined": "#17becf",
 }
 
