@@ -1,0 +1,88 @@
+// Exact pre-selection of one segment (preselect.h): the scans that define the
+// result every filter must reproduce.
+#include "preselect.h"
+#include "allowed.h"
+#include "order.h"
+
+#include <cstring>
+
+namespace gesturedb {
+
+void cosine_distances(const float* __restrict qa, const float* __restrict qq, const float* __restrict aa,
+                      double* __restrict out, int64_t n) {
+    for (int64_t i = 0; i < n; ++i) {
+        const double q2 = qq[i], a2 = aa[i];
+        const double den = std::sqrt(q2 * a2);
+        const double d = 1.0 - double(qa[i]) / den;
+        // 1 when either norm is 0, by masks: a ?: here is control flow to the vectoriser
+        const uint64_t zero = -uint64_t((q2 == 0.0) | (a2 == 0.0));
+        uint64_t bits, one_bits;
+        const double one = 1.0;
+        std::memcpy(&bits, &d, 8);
+        std::memcpy(&one_bits, &one, 8);
+        bits = (bits & ~zero) | (one_bits & zero);
+        std::memcpy(&out[i], &bits, 8);
+    }
+}
+
+int64_t preselect_exact(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
+                        Preselect pre, const BitsetView& allowed, float* scratch_a,
+                        float* scratch_b, Selection& sel) {
+    const int64_t n = qs.n;
+    const int64_t n_cand = db.seg_len[m] - n;  // s = 1 .. seg_len - n
+    if (n_cand < 1) return -1;
+    const int64_t seg0 = db.seg_start[m];
+    const int64_t Dp = db.pose.cols, Da = db.audio.cols;
+    int64_t best = -1;
+    if (pre == Preselect::Pose) {
+        float best_dp = 0.0f;
+        for_each_allowed_run(allowed, seg0 + 1, n_cand, n - 1, [&](int64_t i0, int64_t i1) {
+            // the entry frame of candidate i is g - 1 = seg0 + i
+            kern.l2sq_rows_f32(db.pose.row(seg0 + i0), i1 - i0, Dp, qs.prev, scratch_a);
+            for (int64_t i = i0; i < i1; ++i) {
+                const float d = scratch_a[i - i0];
+                // strict: an equal distance later in the segment never wins
+                if (best < 0 || nan_last_less(d, best_dp)) {
+                    best = i;
+                    best_dp = d;
+                }
+            }
+        });
+        if (best >= 0) sel.dp[m] = best_dp;
+    } else {
+        double best_da = 0.0;
+        for_each_allowed_run(allowed, seg0 + 1, n_cand, n - 1, [&](int64_t i0, int64_t i1) {
+            // the window of candidate i starts at g = seg0 + 1 + i
+            kern.cosdots_f32(db.audio.row(seg0 + 1 + i0), i1 - i0, Da, n * Da, qs.q, scratch_a,
+                             scratch_b);
+            for (int64_t i = i0; i < i1; ++i) {
+                const double d = cosine_distance(scratch_a[i - i0], qs.qq, scratch_b[i - i0]);
+                if (best < 0 || nan_last_less(d, best_da)) {
+                    best = i;
+                    best_da = d;
+                }
+            }
+        });
+        if (best >= 0) sel.da[m] = best_da;
+    }
+    return best;
+}
+
+int64_t argmin_kept(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
+                    const int32_t* first, const int32_t* last, Selection& sel) {
+    const int64_t seg0 = db.seg_start[m];
+    int64_t best = -1;
+    float best_dp = 0.0f;
+    for (const int32_t* it = first; it != last; ++it) {
+        float d;
+        kern.l2sq_rows_f32(db.pose.row(seg0 + *it), 1, db.pose.cols, qs.prev, &d);
+        if (best < 0 || nan_last_less(d, best_dp)) {
+            best = *it;
+            best_dp = d;
+        }
+    }
+    if (best >= 0) sel.dp[m] = best_dp;
+    return best;
+}
+
+}  // namespace gesturedb
