@@ -375,9 +375,9 @@ def test_synthesizer_failure_ends_only_that_stream(db, speech):
 
     def factory(d, *, sample_rate):
         made.append(None)
-        return (Broken if len(made) == 1 else ReplayStream)(d, sample_rate=sample_rate)
+        return (Broken if len(made) == 2 else ReplayStream)(d, sample_rate=sample_rate)
 
-    with TestClient(create_app(db, stream_factory=factory)) as c:
+    with TestClient(create_app(db, stream_factory=factory)) as c:  # made[0]: the server's warm-up stream
         with c.websocket_connect("/stream") as bad, c.websocket_connect("/stream") as good:
             _start(bad), _start(good)
             bad.send_bytes(P.encode_audio(speech[:SR]))
@@ -594,6 +594,37 @@ def test_real_stream_through_the_server_is_the_stream(db, speech):
         root, rot, steps, _ = _stream_all(srv.ws, x, fmt="f32")
     assert np.array_equal(rot, np.concatenate(direct))
     assert steps and all("recording" in st and "pose_rank" in st for st in steps)
+
+
+@real_stream
+@pytest.mark.slow
+def test_eight_real_time_clients_no_frame_late(db, speech):
+    """Eight clients stream speech in real time through the real Stream at once: every frame arrives
+    within its latency (plus the client's 0.1 s chunks and a 0.15 s allowance for this shared machine)."""
+    lim = Limits()
+    chunk_s, allowance_s = 0.1, 0.15
+    x = speech[: 8 * SR]
+    late = [None] * 8
+
+    def run(i):
+        with LiveClient(srv.ws, sample_rate=SR) as live:
+            arrivals = []
+            t0 = time.monotonic()
+            n = int(chunk_s * SR)
+            for a in range(0, x.shape[0], n):
+                time.sleep(max(0.0, t0 + a / SR - time.monotonic()))
+                live.send_audio(x[a:a + n])
+                for f in live.poll():
+                    arrivals += [(f.start + k, time.monotonic()) for k in range(len(f))]
+            deadline = live.latency_s + chunk_s + allowance_s
+            late[i] = [round(t - t0 - (j / live.fps + deadline), 3) for j, t in arrivals if t - t0 > j / live.fps + deadline]
+            live.end()
+
+    with LiveServer(create_app(db, limits=lim), lim) as srv:
+        threads = [threading.Thread(target=run, args=(i,)) for i in range(8)]
+        [t.start() for t in threads]
+        [t.join(120) for t in threads]
+    assert all(v == [] for v in late), f"late frames (seconds past their deadline) per client: {late}"
 
 
 # -- the command ---------------------------------------------------------------------

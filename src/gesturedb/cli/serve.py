@@ -45,8 +45,7 @@ def run(args) -> int:
                     max_upload_bytes=int(args.max_upload_mb * 2**20))
     with gesturedb.open(args.db) as db:
         app = create_app(db, limits=limits)
-        # the first stream's first step should not pay for what every step shares
-        warm_s = app.state.gesturedb.warm()
+        warm_s = app.state.gesturedb.warm_s  # create_app paid what the first stream would pay
         shown = f"[{args.host}]" if ":" in args.host else args.host
         print(f"gesturedb serve: {db.path} ({db.n_frames} frames at {db.fps:g} fps); studio at "
               f"http://{shown}:{args.port}/ , stream at ws://{shown}:{args.port}/stream (ready in {warm_s:.2f} s; Ctrl-C "
