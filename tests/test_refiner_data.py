@@ -31,8 +31,8 @@ def _same(a: D.TrainingData, b: D.TrainingData) -> None:
 
 
 def _files(folder) -> list[str]:
-    """What a folder holds, but the write locks (they stay, as beside every database)."""
-    return sorted(n for n in os.listdir(folder) if not n.endswith(".lock"))
+    """What a folder holds (a write lock file exists only while it is held: none is left)."""
+    return sorted(os.listdir(folder))
 
 
 def test_windows_are_the_database_frames(scott_db, serial):
