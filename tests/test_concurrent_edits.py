@@ -363,3 +363,35 @@ def test_a_huge_word_in_a_word_list_is_a_short_line(db_copy, tmp_path):
     assert msg.startswith(f"{words}: line 2: keyword: expected a single word") and len(msg) < 600, msg[:700]
     with pytest.raises(ParameterError, match=r"keywords: 2 of the 3 words .*'zz+'\.\.\. \(100000 characters\)"):
         kw.add_keywords(db_copy, ["like", "z" * 100_000, "qq" * 50_000])
+
+
+def test_the_lock_file_exists_only_while_a_writer_holds_it(tmp_path):
+    """No ``.NAME.lock`` is left beside a database, and a writer waiting for the lock gets it when
+    the holder removes the file on release (it then locks the new file, not the removed one)."""
+    import threading
+    import time
+
+    db = tmp_path / "db.h5"
+    lp = storage.lock_path(db)
+    held, release, seen = threading.Event(), threading.Event(), []
+
+    def holder():
+        with storage.locked(db):
+            held.set()
+            release.wait(30)
+
+    def waiter():
+        with storage.locked(db, timeout_s=30):
+            seen.append(os.path.exists(lp))
+
+    a = threading.Thread(target=holder)
+    a.start()
+    assert held.wait(30) and os.path.exists(lp)
+    b = threading.Thread(target=waiter)
+    b.start()
+    time.sleep(0.3)
+    assert seen == []  # a second writer waits (another thread holds the lock through its own descriptor)
+    release.set()
+    a.join(30)
+    b.join(30)
+    assert seen == [True] and os.listdir(tmp_path) == []
