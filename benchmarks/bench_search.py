@@ -34,7 +34,9 @@ Prints, in one run:
 Usage:  python benchmarks/bench_search.py [--reps 41] [--loop-subset 24] [--skip-batch]
                                           [--batch-reps 1] [--data motion|random]
 The machine is shared: every timing is a median over interleaved repetitions,
-and (e) also reports CPU time, which other processes do not inflate.
+and (e) also reports CPU time, which other processes do not inflate. The C++
+floors of (c) are benchmark code (benchmarks/floors.cpp, not in gesturedb._core):
+floors.py compiles them on the first run, a few seconds.
 """
 from __future__ import annotations
 
@@ -46,8 +48,9 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # floors.py, beside this file
 
+from floors import load as load_floors  # noqa: E402
 from gesturedb import _core, search  # noqa: E402
 
 M, L, DP, DA, N = 9624, 64, 96, 14, 8
@@ -160,6 +163,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     threads = _core.default_threads()
+    floors = load_floors()
     print(f"gesturedb search benchmark: {M} segments x {L} frames = {M * L} frames, "
           f"pose {DP}, audio {DA}, N = {N}; simd = {search.get_simd()} "
           f"(available {search.kernels()}), threads = {threads}, data = {args.data}")
@@ -191,11 +195,11 @@ def main(argv=None):
     flat24 = proj.blocks.reshape(-1)
     flat24h = proj16.blocks.view(np.float32).reshape(-1)  # the same bytes: only the read is timed
     fns = {
-        "floor C++ 2 threads": lambda: _core.stream_sum_f32(pose, 2),
-        "floor C++ 1 thread": lambda: _core.stream_sum_f32(pose, 1),
+        "floor C++ 2 threads": lambda: floors.stream_sum_f32(pose, 2),
+        "floor C++ 1 thread": lambda: floors.stream_sum_f32(pose, 1),
         "floor numpy sum": lambda: pose.sum(),
-        "floor 24-wide 2 thr": lambda: _core.stream_sum_f32(flat24, 2),
-        "floor 24 f16 2 thr": lambda: _core.stream_sum_f32(flat24h, 2),
+        "floor 24-wide 2 thr": lambda: floors.stream_sum_f32(flat24, 2),
+        "floor 24 f16 2 thr": lambda: floors.stream_sum_f32(flat24h, 2),
         "step pose": step("pose"),
         "step pose 1 thread": step("pose", 1),
         "step pose HalfPose": step("pose", f16=half),
@@ -206,8 +210,8 @@ def main(argv=None):
         "step audio": step("audio"),
         # what every exact step must read besides the stream, once a filter has named each
         # segment's pre-selected candidate: its audio window (and, to rank by pose, its row)
-        "floor 1 window/seg": lambda: _core.gather_sum_f32(audio, win_starts, N, 2),
-        "floor 1 pose row/seg": lambda: _core.gather_sum_f32(pose, win_starts - 1, 1, 2),
+        "floor 1 window/seg": lambda: floors.gather_sum_f32(audio, win_starts, N, 2),
+        "floor 1 pose row/seg": lambda: floors.gather_sum_f32(pose, win_starts - 1, 1, 2),
         "rank a table": lambda: _core.rank_table(st, table_dp, table_da, 1),
     }
     res = interleaved(fns, args.reps)

@@ -423,37 +423,6 @@ PYBIND11_MODULE(_core, m) {
     }, py::arg("audio").noconvert(), py::arg("q").noconvert(), py::arg("isa"),
        "(<q, w>, <w, w>) for every window w of len(q) frames of audio (flattened).");
 
-    m.def("stream_sum_f32", [](const F32& a, int threads) {
-        const float* p = a.data();
-        const int64_t n = int64_t(a.size());
-        double s;
-        {
-            py::gil_scoped_release release;
-            s = stream_sum_f32(p, n, threads);
-        }
-        return s;
-    }, py::arg("a").noconvert(), py::arg("threads") = 0,
-       "Sum of a float32 array read once by `threads` threads: the memory-bandwidth\n"
-       "floor of any kernel that must read the same bytes (benchmarks/bench_search.py).");
-
-    m.def("gather_sum_f32", [](const F32& a, const I64& starts, int64_t rows_each, int threads) {
-        if (a.ndim() != 2) throw std::invalid_argument("a: expected a 2-D array");
-        if (starts.ndim() != 1) throw std::invalid_argument("starts: expected a 1-D array");
-        if (rows_each < 1) throw std::invalid_argument("rows_each: expected >= 1");
-        const float* p = a.data();
-        const int64_t rows = a.shape(0), cols = a.shape(1), n = starts.shape(0);
-        const int64_t* st = starts.data();
-        double s;
-        {
-            py::gil_scoped_release release;
-            s = gather_sum_f32(p, rows, cols, st, n, rows_each, threads);
-        }
-        return s;
-    }, py::arg("a").noconvert(), py::arg("starts").noconvert(), py::arg("rows_each"), py::arg("threads") = 0,
-       "Sum of rows [s, s + rows_each) of a (rows, cols) float32 array for every s in starts, read\n"
-       "in parallel with the step's prefetching: the floor of a scattered pass that reads one\n"
-       "window per segment (benchmarks/bench_search.py).");
-
     // --- search -------------------------------------------------------------
     m.def("step", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
                      const F32& prev, const F32& query, int64_t k, const std::string& preselect,

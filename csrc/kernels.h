@@ -48,7 +48,7 @@ using CosDotsFn = void (*)(const float* base, int64_t n_win, int64_t stride,
 // Half-precision rows, for the optional pose filter of a single-query step:
 //   d[r] = sum_j (h[r][j] - v[j])^2
 // with h = rows (IEEE binary16 bit patterns, (n_rows, dim)) converted exactly to
-// float32. Only a filter (see half_filter in search.cpp): any summation order
+// float32. Only a filter (see half_filter in filters.cpp): any summation order
 // is fine, the caller's bound covers float32 rounding of any order.
 using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
                                float* d);
@@ -58,7 +58,7 @@ using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim
 //   out[f - f0] = sum_j (blocks[(f/16) * 16 dim + 16 j + f%16] - v[j])^2   for f in [f0, f1)
 // A block holds 16 frames column by column, so 16 frames are one vector per
 // column and no row needs a horizontal sum. Only a filter (see proj_filter in
-// search.cpp): any summation order and FMA contraction are fine, the caller's
+// filters.cpp): any summation order and FMA contraction are fine, the caller's
 // bound covers the float32 rounding of any order.
 // With up = (a, b, c) (or null: returns +inf), also the filter's smallest upper
 // bound, fused so that the rows are read once:
@@ -126,8 +126,8 @@ using L2sqPairsFn = void (*)(const float* const* rows, const float* const* vs, i
 using CosDotsPairsFn = void (*)(const float* const* wins, const float* const* qs, int64_t n, int64_t len,
                                 float* qa);
 
-// The pose projection filter of the blocked batch (see proj_query in search.cpp
-// for the constants and BlockedBatch for the bound). Per lane j (qp of them):
+// The pose projection filter of the blocked batch (see proj_query in filters.cpp
+// for the constants and BlockedBatch::lane_bounds for the bound). Per lane j (qp of them):
 struct ProjLanes {
     const float* nq;   // |z_x|^2
     const float* aup;  // upper bound: aup Dh + bup r_f + cup

@@ -15,7 +15,7 @@ inline void prefetch_bytes(const void* p, int64_t bytes) {
 }
 
 // How many segments ahead a step's scattered passes prefetch (12 measured no
-// faster, docs/scaling.md); gather_sum_f32, their floor, uses the same.
+// faster, docs/scaling.md); the benchmark's gather floor uses the same.
 constexpr int64_t kScatterAhead = 6;
 
 }  // namespace gesturedb

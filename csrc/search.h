@@ -216,16 +216,4 @@ private:
     std::unique_ptr<Impl> impl_;
 };
 
-// Sum of n floats, read once in parallel: a streaming read at memory bandwidth,
-// the floor against which the benchmark measures the step.
-double stream_sum_f32(const float* data, int64_t n, int threads);
-
-// Sum of the rows_each consecutive rows of a (rows, cols) matrix that start at
-// each of starts[0..n), read in parallel with the step's prefetching: the
-// latency-bound floor of a scattered pass (one audio window or one pose row per
-// segment, as every exact step must read), for the benchmark. Throws
-// std::invalid_argument when a start reaches outside the matrix.
-double gather_sum_f32(const float* data, int64_t rows, int64_t cols, const int64_t* starts, int64_t n,
-                      int64_t rows_each, int threads);
-
 }  // namespace gesturedb
