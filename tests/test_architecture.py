@@ -110,8 +110,11 @@ def test_no_import_loop_between_modules():
 
 
 def test_no_file_over_800_lines_without_a_stated_reason():
+    # the C++ core too: a concept per file there as well (search.cpp had grown to 1,779 lines)
+    cpp = [f for f in (ROOT / "csrc").iterdir() if f.suffix in (".cpp", ".h")]
+    assert cpp, "csrc/ has no .cpp or .h files: the C++ core moved and this test lost sight of it"
     long = []
-    for f in sorted(PKG.rglob("*.py")):
+    for f in sorted(PKG.rglob("*.py")) + sorted(cpp):
         text = f.read_text()
         n = text.count("\n")
         head = text[:3000]
