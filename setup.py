@@ -76,6 +76,7 @@ setup(
     extras_require={
         # import-linter: the layers contract of .importlinter (stages import only the stages below them)
         "test": ["pytest>=7", "import-linter>=2.0",
+                 "clang-format>=23,<24",  # scripts/test.sh checks the C++ against .clang-format
                  # coverage-guided fuzzing of every parser (tests/fuzz/); wheels exist for Linux x86_64 only,
                  # elsewhere tests/test_fuzz.py skips with a warning that the fuzzers did not run
                  'atheris>=2.3; platform_system == "Linux" and platform_machine == "x86_64"'],
