@@ -7,6 +7,8 @@
 ``inputs``         what every method does with its speech: samples, minimum length, query
                    features, control masks per step, excluded recordings
 ``matching``       :class:`Searcher`: Habibie et al. k-NN motion matching
+``stream``         :class:`Stream`: the k-NN search as speech arrives (``Searcher.stream``);
+                   ``Searcher.synthesize`` is a stream fed the whole file
 ``assemble``       pieces of source motion -> one Motion (placement, seams, smoothing)
 ``result``         :class:`SynthResult`: the motion and its provenance
 ``graph``          :class:`GraphSynthesizer`: GestureMaster motion-graph search;
@@ -23,5 +25,7 @@ from gesturedb.synth.inputs import MIN_SPEECH_S
 from gesturedb.synth.matching import Searcher
 from gesturedb.synth.options import SearchOptions, SynthOptions
 from gesturedb.synth.result import SynthResult
+from gesturedb.synth.stream import Stream, StreamChunk
 
-__all__ = ["Searcher", "SearchOptions", "SynthOptions", "SynthResult", "MIN_SPEECH_S", "savgol_smooth"]
+__all__ = ["Searcher", "SearchOptions", "Stream", "StreamChunk", "SynthOptions", "SynthResult", "MIN_SPEECH_S",
+           "savgol_smooth"]

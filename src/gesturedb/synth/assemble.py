@@ -60,14 +60,15 @@ import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.motion import Motion
-from gesturedb.synth.contacts import foot_contacts, foot_joints, plant_feet
+from gesturedb.synth.contacts import FootPlanter, foot_contacts, foot_joints
 from gesturedb.synth.seams import (
     LEAD_FRAMES, SEAM_DECAY_S, adaptive_decays, apply_rotation_offsets, check_decay_s, decay_frames, extend_constant_velocity,
     quintic_offsets, rotation_offsets, seam_derivatives,
 )
 
-__all__ = ["Piece", "SEAM_DECAY_S", "SMOOTH_WINDOW_S", "assemble_frames", "assemble_pieces", "continuation",
-           "continuations", "foot_contacts", "foot_joints", "placed_frames", "savgol_smooth"]
+__all__ = ["Piece", "PieceAssembler", "SEAM_DECAY_S", "SMOOTH_WINDOW_S", "assemble_frames", "assemble_pieces",
+           "continuation", "continuations", "floor_height", "foot_contacts", "foot_joints", "placed_frames",
+           "savgol_smooth"]
 
 #: Time constant (s) of the pull of the heading towards +z.
 HEADING_PULL_S = 2.0
@@ -210,36 +211,58 @@ def _place(rot: np.ndarray, root: np.ndarray, tf) -> tuple[np.ndarray, np.ndarra
     return rot, out
 
 
+class _Pull:
+    """Leaky integration of the root's turning and horizontal velocity towards +z and the origin,
+    a block of frames at a time (causal: a frame's pull depends only on the frames before it)."""
+
+    def __init__(self, fps: float):
+        self.kh = 1.0 / (HEADING_PULL_S * fps)
+        self.kp = 1.0 / (POSITION_PULL_S * fps)
+        self.last = None  # (yaw, root (x, z), pulled heading, pulled (x, z)) of the last frame
+
+    def run(self, rot: np.ndarray, root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        T = root.shape[0]
+        if T == 0:
+            return rot, root
+        yaw = _yaw_of(rot[:, 0])
+        xz = root[:, [0, 2]]
+        h = np.empty(T)
+        y = np.empty((T, 2))
+        if self.last is None:
+            h_prev, y_prev = yaw[0], xz[0]
+            h[0], y[0] = h_prev, y_prev
+            dyaw, dx, first = _wrap(np.diff(yaw)), np.diff(xz, axis=0), 1
+        else:
+            yaw0, xz0, h_prev, y_prev = self.last
+            dyaw = _wrap(np.diff(np.concatenate([[yaw0], yaw])))
+            dx, first = np.diff(np.concatenate([xz0[None], xz]), axis=0), 0
+        kh, kp = self.kh, self.kp
+        for t in range(first, T):
+            i = t - 1 + (1 - first)  # index of frame t's difference
+            h[t] = h_prev + dyaw[i] - kh * _wrap(h_prev)
+            delta = h[t] - yaw[t]
+            c, s = np.cos(delta), np.sin(delta)
+            # rotation about +y by delta maps (x, z) -> (x cos + z sin, -x sin + z cos)
+            v = np.array([c * dx[i, 0] + s * dx[i, 1], -s * dx[i, 0] + c * dx[i, 1]])
+            y[t] = y_prev + v - kp * y_prev
+            h_prev, y_prev = h[t], y[t]
+        self.last = (yaw[-1], xz[-1], h[-1], y[-1])
+        delta = h - yaw
+        rot = rot.copy()
+        rot[:, 0] = R.multiply(_yaw_quat(delta), rot[:, 0])
+        root = root.copy()
+        root[:, 0], root[:, 2] = y[:, 0], y[:, 1]
+        return rot, root
+
+
 def _pull(rot, root, fps):
     """Leaky integration of the root's turning and horizontal velocity towards +z and the origin."""
-    T = root.shape[0]
-    yaw = _yaw_of(rot[:, 0])
-    kh = 1.0 / (HEADING_PULL_S * fps)
-    kp = 1.0 / (POSITION_PULL_S * fps)
-    h = np.empty(T)
-    y = np.empty((T, 2))
-    h[0] = yaw[0]
-    y[0] = root[0, [0, 2]]
-    dyaw = _wrap(np.diff(yaw))
-    dx = np.diff(root[:, [0, 2]], axis=0)
-    for t in range(1, T):
-        h[t] = h[t - 1] + dyaw[t - 1] - kh * _wrap(h[t - 1])
-        delta = h[t] - yaw[t]
-        c, s = np.cos(delta), np.sin(delta)
-        # rotation about +y by delta maps (x, z) -> (x cos + z sin, -x sin + z cos)
-        v = np.array([c * dx[t - 1, 0] + s * dx[t - 1, 1], -s * dx[t - 1, 0] + c * dx[t - 1, 1]])
-        y[t] = y[t - 1] + v - kp * y[t - 1]
-    delta = h - yaw
-    rot = rot.copy()
-    rot[:, 0] = R.multiply(_yaw_quat(delta), rot[:, 0])
-    root = root.copy()
-    root[:, 0], root[:, 2] = y[:, 0], y[:, 1]
-    return rot, root
+    return _Pull(fps).run(rot, root)
 
 
 def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int | None = None,
                     seam_decay_s: float = SEAM_DECAY_S, smooth: bool = False, placement: str = "continue",
-                    lock_feet: bool = True, seam_accel: tuple | None = None) -> Motion:
+                    lock_feet: bool = True, seam_accel: tuple | None = None, floor_y: float | None = None) -> Motion:
     """Place pieces one after the other and inertialize each seam (:mod:`gesturedb.synth.seams`).
 
     Parameters
@@ -269,30 +292,86 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
         acceleration (:func:`typical_accelerations`): a seam's offset on a joint then decays
         over at least ``seam_decay_s`` and long enough not to accelerate that joint more than
         this (:func:`gesturedb.synth.seams.adaptive_decays`). None: ``seam_decay_s`` for all.
+    floor_y : float, optional
+        Floor height (m) for the foot contacts (:func:`floor_height` of the database); None:
+        the lowest foot point of all pieces (known only once every piece is in).
+
+    The pieces go through a :class:`PieceAssembler` (``batch=True``): placement and seams piece
+    by piece as a live synthesis places them, the kinematics of all frames at once.
     """
     if not pieces:
         raise ValueError("assemble_pieces: expected at least one piece")
-    if placement not in ("continue", "source"):
-        raise ValueError(f"assemble_pieces: placement: expected 'continue' or 'source'; got {placement!r}")
-    decay_s = check_decay_s(seam_decay_s)
-    n_decay = decay_frames(decay_s, fps)
     T = pieces[-1].out_start + pieces[-1].n_frames if n_frames is None else int(n_frames)
-    J = pieces[0].rotations.shape[1]
-    rot = np.empty((T, J, 4))
-    root = np.empty((T, 3))
+    asm = PieceAssembler(skeleton, fps, seam_decay_s=seam_decay_s, smooth=smooth, placement=placement,
+                         lock_feet=lock_feet, seam_accel=seam_accel, floor_y=floor_y, batch=True)
     ends = [p.out_start for p in pieces[1:]] + [T]
-    cont = placement == "continue"
-    feet = foot_joints(skeleton) if cont and lock_feet else np.zeros((0, 2), dtype=np.int64)
-    contacts = np.zeros((T, 2), dtype=bool)
-    src_pos = []
-    tf_prev = None
-    active = None  # the _Offset being decayed
-    for i, (p, b) in enumerate(zip(pieces, ends)):
+    blocks = [asm.add(p, end=b) for p, b in zip(pieces, ends)] + [asm.finish()]
+    rot = np.concatenate([r for r, _ in blocks])
+    root = np.concatenate([x for _, x in blocks])
+    return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
+
+
+class PieceAssembler:
+    """:func:`assemble_pieces` one piece at a time: each :meth:`add` returns the output frames that
+    no later piece can change, :meth:`finish` the rest.
+
+    Placement and seams are causal (a piece's frames are set when it comes; a seam's offset changes
+    only the frames after it), the pulls too; the feet are planted :attr:`lag` frames behind
+    (:class:`gesturedb.synth.contacts.FootPlanter`). Whatever the pieces' timing, the frames are the
+    same bits as one :func:`assemble_pieces` call over the same pieces (that call is this class with
+    ``batch=True``, which runs the kinematics once over all frames at :meth:`finish`: every decision is
+    taken frame by frame in the same order, and forward and inverse kinematics, the pulls and the
+    contacts are per-frame numpy operations, which give the same bits in blocks of any size;
+    ``tests/test_stream.py`` checks both on the real inputs). With ``floor_y=None`` (the floor of all
+    pieces) or ``smooth=True`` nothing is final before :meth:`finish` either.
+    """
+
+    def __init__(self, skeleton, fps: float, *, seam_decay_s: float = SEAM_DECAY_S, smooth: bool = False,
+                 placement: str = "continue", lock_feet: bool = True, seam_accel: tuple | None = None,
+                 floor_y: float | None = None, batch: bool = False):
+        if placement not in ("continue", "source"):
+            raise ValueError(f"assemble_pieces: placement: expected 'continue' or 'source'; got {placement!r}")
+        self.skeleton, self.fps = skeleton, float(fps)
+        self.decay_s = check_decay_s(seam_decay_s)
+        self.n_decay = decay_frames(self.decay_s, fps)
+        self.smooth, self.seam_accel, self.floor_y = bool(smooth), seam_accel, floor_y
+        self.cont = placement == "continue"
+        self.feet = foot_joints(skeleton) if self.cont and lock_feet else np.zeros((0, 2), dtype=np.int64)
+        J = len(skeleton.names)
+        # the placed output (before the pulls and the feet) from frame _base on: every frame when
+        # deferred to finish(), else the last two (a seam without lead-in extrapolates them)
+        self._rot, self._root = np.zeros((0, J, 4)), np.zeros((0, 3))
+        self._contacts = np.zeros((0, 2), dtype=bool)
+        self._base = 0
+        self._src_pos = []  # floor_y=None: (a, b, rotations, root, given contacts) of every piece, for finish()
+        self._tf_prev = None
+        self._active = None  # the _Offset being decayed
+        self._deferred = batch or self.smooth or (self.feet.shape[0] > 0 and floor_y is None)
+        self._pull = _Pull(fps) if self.cont else None
+        self._planter = FootPlanter(skeleton, fps) if self.feet.shape[0] and not self._deferred else None
+        self._pulled_root = np.zeros((0, 3))  # pulled root of the frames the planter holds back
+        self.n_placed = 0
+        self.n_out = 0
+        self._finished = False
+
+    @property
+    def lag(self) -> int:
+        """Frames an output frame may wait after its piece came (0 without planted feet)."""
+        return 0 if self._planter is None else self._planter.lag
+
+    def add(self, p: Piece, *, end: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Place piece ``p`` over output frames ``[p.out_start, end)`` (default: its own length; it must
+        start where the last one ended); return the rotations ``(k, J, 4)`` and root ``(k, 3)`` of the
+        frames that became final (output frames ``n_out - k .. n_out - 1``)."""
         a = p.out_start
+        b = a + p.n_frames if end is None else int(end)
         if p.n_frames < b - a:
             raise ValueError(f"assemble_pieces: piece at frame {a} has {p.n_frames} frames, needs {b - a}")
         if b <= a:
-            continue
+            return self._empty()
+        if a != self.n_placed:
+            raise ValueError(f"assemble_pieces: piece at frame {a}, expected one at frame {self.n_placed}")
+        fps = self.fps
         # the piece's first LEAD_FRAMES frames (where it is shorter, its own continuation is unknown:
         # it is extended at its last velocity) define the offset at its seam
         m = min(p.n_frames, max(b - a, LEAD_FRAMES))
@@ -301,7 +380,12 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
         lead = p.lead_in if (p.lead_in is not None and a > 0) else None
         if lead is not None and lead[0].shape[0] == 0:
             lead = None
-        if cont:
+        o = self._base  # rot[i] is output frame o + i
+        rot = np.concatenate([self._rot, np.empty((b - a,) + self._rot.shape[1:])])
+        root = np.concatenate([self._root, np.empty((b - a, 3))])
+        contacts = np.zeros((b - a, 2), dtype=bool)
+        if self.cont:
+            tf_prev = self._tf_prev
             if tf_prev is None or a == 0:
                 tf = (0.0, np.zeros(3), np.zeros(3))
             else:
@@ -310,47 +394,98 @@ def assemble_pieces(skeleton, fps: float, pieces: list[Piece], *, n_frames: int 
                                            np.asarray(lead[1][:1], dtype=np.float64), tf_prev)
                     target, target_yaw = l_root[0], float(_yaw_of(l_rot[0, 0]))
                 else:
-                    target = 2 * root[a - 1] - root[a - 2] if a >= 2 else root[a - 1]
-                    target_yaw = float(_yaw_of(rot[a - 1, 0]))
+                    target = 2 * root[a - o - 1] - root[a - o - 2] if a >= 2 else root[a - o - 1]
+                    target_yaw = float(_yaw_of(rot[a - o - 1, 0]))
                 tf = (target_yaw - float(_yaw_of(p_rot[0, 0])), p_root[0], target)
-            if feet.shape[0]:
-                src_pos.append((a, b, p_rot[: b - a], p_root[: b - a], p.contacts))
+            if self.feet.shape[0]:
+                given = p.contacts
+                if self._deferred:
+                    self._src_pos.append((a, b, p_rot[: b - a], p_root[: b - a], given))
+                elif given is not None:
+                    contacts[:] = np.asarray(given[: b - a], dtype=bool)
+                else:
+                    # contacts need only heights and speeds, which placement keeps: the piece's own poses
+                    pos = Motion(skeleton=self.skeleton, fps=fps, rotations=p_rot[: b - a],
+                                 root_positions=p_root[: b - a]).positions
+                    contacts[:] = foot_contacts(pos, fps=fps, feet=self.feet, floor_y=self.floor_y)
             if lead is not None:
                 lead = _place(np.asarray(lead[0], dtype=np.float64), np.asarray(lead[1], dtype=np.float64), tf_prev)
             p_rot, p_root = _place(p_rot, p_root, tf)
-            tf_prev = tf
+            self._tf_prev = tf
         elif lead is not None:
             lead = (np.asarray(lead[0], dtype=np.float64), np.asarray(lead[1], dtype=np.float64))
-        if n_decay > 0 and a > 0 and (lead is not None or a >= 2):
-            active = _seam_offset(rot, root, a, lead, p_rot, p_root, active, fps=fps, decay_s=decay_s,
-                                  accel=seam_accel)
-        rot[a:b] = p_rot[: b - a]
-        root[a:b] = p_root[: b - a]
+        if self.n_decay > 0 and a > 0 and (lead is not None or a >= 2):
+            # _seam_offset reads at most the two output frames before the seam, which are kept
+            self._active = _seam_offset(rot, root, a, lead, p_rot, p_root, self._active, fps=fps,
+                                        decay_s=self.decay_s, accel=self.seam_accel, base=o)
+        rot[a - o:] = p_rot[: b - a]
+        root[a - o:] = p_root[: b - a]
+        active = self._active
         if active is not None and active.seam + active.n_frames > a:
             k = np.arange(a, min(b, active.seam + active.n_frames))
-            rot[k], root[k] = active.apply(rot[k], root[k], (k - active.seam) / fps)
-    if src_pos:
-        # the pieces' own (unplaced) poses, by one forward kinematics over all of them (one call per piece
-        # was a fifth of a k-NN synthesis); contacts need only heights and speeds, which placement keeps
-        pos = Motion(skeleton=skeleton, fps=fps, rotations=np.concatenate([q[2] for q in src_pos]),
-                     root_positions=np.concatenate([q[3] for q in src_pos])).positions
-        cuts = np.cumsum([q[1] - q[0] for q in src_pos])[:-1]
-        pieces_pos = np.split(pos, cuts)
-        floor_y = min(float(pp[:, feet, 1].min()) for pp in pieces_pos if pp.shape[0])
-        for (a, b, _, _, given), pp in zip(src_pos, pieces_pos):
-            contacts[a:b] = (np.asarray(given[: b - a], dtype=bool) if given is not None
-                             else foot_contacts(pp, fps=fps, feet=feet, floor_y=floor_y))
-    if smooth:
-        rot, root = savgol_smooth(rot, root, fps=fps)
-    if cont:
-        rot, root = _pull(rot, root, fps)
-        if feet.shape[0]:
-            rot = plant_feet(skeleton, fps, rot, root, contacts)
-    return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
+            rot[k - o], root[k - o] = active.apply(rot[k - o], root[k - o], (k - active.seam) / fps)
+        self.n_placed = b
+        if self._deferred:
+            self._rot, self._root = rot, root
+            self._contacts = np.concatenate([self._contacts, contacts])
+            return self._empty()
+        out = self._emit(rot[a - o:], root[a - o:], contacts, final=False)
+        keep = min(2, rot.shape[0])
+        self._rot, self._root, self._base = rot[-keep:], root[-keep:], b - keep
+        return out
+
+    def _empty(self):
+        return np.zeros((0,) + self._rot.shape[1:]), np.zeros((0, 3))
+
+    def _emit(self, rot, root, contacts, *, final: bool):
+        """Pull the next placed frames, plant the feet; the frames now final."""
+        if self._pull is not None:
+            rot, root = self._pull.run(rot, root)
+        if self._planter is None:
+            self.n_out += rot.shape[0]
+            return rot, root
+        self._pulled_root = np.concatenate([self._pulled_root, root])
+        out = self._planter.push(rot, root, contacts, final=final)
+        k = out.shape[0]
+        done_root, self._pulled_root = self._pulled_root[:k], self._pulled_root[k:]
+        self.n_out += k
+        return out, done_root
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """The frames still held back (all of them with ``floor_y=None`` or ``smooth=True``)."""
+        if self._finished:
+            raise ValueError("PieceAssembler.finish: already finished")
+        self._finished = True
+        if not self._deferred:
+            if self._planter is None:
+                return self._empty()
+            e_rot, e_root = self._empty()
+            return self._emit(e_rot, e_root, np.zeros((0, 2), dtype=bool), final=True)
+        rot, root, fps = self._rot, self._root, self.fps
+        if self._src_pos:
+            # the pieces' own (unplaced) poses, by one forward kinematics over all of them
+            pos = Motion(skeleton=self.skeleton, fps=fps, rotations=np.concatenate([q[2] for q in self._src_pos]),
+                         root_positions=np.concatenate([q[3] for q in self._src_pos])).positions
+            cuts = np.cumsum([q[1] - q[0] for q in self._src_pos])[:-1]
+            pieces_pos = np.split(pos, cuts)
+            floor_y = self.floor_y
+            if floor_y is None:
+                floor_y = min(float(pp[:, self.feet, 1].min()) for pp in pieces_pos if pp.shape[0])
+            for (a, b, _, _, given), pp in zip(self._src_pos, pieces_pos):
+                self._contacts[a:b] = (np.asarray(given[: b - a], dtype=bool) if given is not None
+                                       else foot_contacts(pp, fps=fps, feet=self.feet, floor_y=floor_y))
+        if self.smooth:
+            rot, root = savgol_smooth(rot, root, fps=fps)
+        if self.cont:
+            rot, root = self._pull.run(rot, root)
+            if self.feet.shape[0]:
+                rot = FootPlanter(self.skeleton, fps).push(rot, root, self._contacts, final=True)
+        self.n_out = rot.shape[0]
+        return rot, root
 
 
-def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, accel=None) -> "_Offset":
-    """The offset that the seam at output frame ``a`` starts.
+def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, accel=None, base=0) -> "_Offset":
+    """The offset that the seam at output frame ``a`` starts (``rot[i]``, ``root[i]``: output frame ``base + i``).
 
     The old motion over frames ``a .. a+2`` is its own continuation (``lead``, placed in output
     coordinates), extended at its last velocity where it has fewer frames (from the output's
@@ -367,11 +502,13 @@ def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, acc
         if got >= n:
             old_rot, old_root = l_rot, l_root
         else:  # the old recording ends within the stencil: on at its last velocity (the output's last frame first)
-            seq_rot, seq_root = np.concatenate([rot[a - 1:a], l_rot]), np.concatenate([root[a - 1:a], l_root])
+            i = a - base
+            seq_rot, seq_root = np.concatenate([rot[i - 1:i], l_rot]), np.concatenate([root[i - 1:i], l_root])
             e_rot, e_root = extend_constant_velocity(seq_rot, seq_root, n - got)
             old_rot, old_root = np.concatenate([l_rot, e_rot]), np.concatenate([l_root, e_root])
     else:  # no continuation at all: the output (offset included) goes on at its last velocity
-        old_rot, old_root = extend_constant_velocity(rot[a - 2:a], root[a - 2:a], n)
+        i = a - base
+        old_rot, old_root = extend_constant_velocity(rot[i - 2:i], root[i - 2:i], n)
     new_rot, new_root = p_rot[:n], p_root[:n]
     if new_rot.shape[0] < n:
         if new_rot.shape[0] < 2:
@@ -450,6 +587,78 @@ def typical_accelerations(db) -> tuple[np.ndarray, float]:
     return cached
 
 
+def window_piece(db, frames: np.ndarray, out_start: int, *, prev_frame: int | None, seam_decay_s: float) -> Piece:
+    """The :class:`Piece` of one window of database frames (the k-NN's).
+
+    Parameters
+    ----------
+    frames : ndarray [shape=(n,)], int64
+        Database frame of each output frame of the window.
+    out_start : int
+        Its first output frame.
+    prev_frame : int or None
+        The previous window's last database frame: the piece's lead-in is how that window goes
+        on in its recording (read when ``seam_decay_s > 0``).
+
+    A window shorter than the seam's stencil (:data:`LEAD_FRAMES`) reads its own recording's
+    next frames too (the output ends or the next seam comes first).
+    """
+    return window_pieces(db, [(frames, out_start, prev_frame)], seam_decay_s=seam_decay_s)[0]
+
+
+def window_pieces(db, windows, *, seam_decay_s: float) -> list[Piece]:
+    """:func:`window_piece` of many windows ``(frames, out_start, prev_frame)`` with one read of the
+    database: a database that is not loaded (Database.rows) costs one read per run of frames, not
+    several per piece. The same pieces as one window at a time (placement is per frame)."""
+    windows = [(np.asarray(f, dtype=np.int64), int(a), p) for f, a, p in windows]
+    heads = [(i, p, LEAD_FRAMES) for i, (f, a, p) in enumerate(windows)
+             if p is not None and a > 0 and seam_decay_s > 0]
+    tails = [(i, int(f[-1]), LEAD_FRAMES - f.shape[0]) for i, (f, a, p) in enumerate(windows)
+             if 0 < f.shape[0] < LEAD_FRAMES]
+    asked = heads + tails
+    got = continuations(db, [x[1] for x in asked], [x[2] for x in asked]) if asked else []
+    cont = {i: c for (i, _, _), c in zip(heads, got[:len(heads)])}
+    tail = {i: c for (i, _, _), c in zip(tails, got[len(heads):])}
+    none = np.zeros(0, np.int64)
+    parts = [(f, cont.get(i, none), tail.get(i, none)) for i, (f, _, _) in enumerate(windows)]
+    rot_all, root_all = placed_frames(db, np.concatenate([x for part in parts for x in part]))
+    out, at = [], 0
+    for (f, c, t), (_, a, _) in zip(parts, windows):
+        n, c1, t1 = f.shape[0], f.shape[0] + c.shape[0], f.shape[0] + c.shape[0] + t.shape[0]
+        rot, root = rot_all[at:at + t1], root_all[at:at + t1]
+        at += t1
+        out.append(Piece(out_start=a, rotations=np.concatenate([rot[:n], rot[c1:]]),
+                         root=np.concatenate([root[:n], root[c1:]]),
+                         lead_in=(rot[n:c1], root[n:c1]) if c.shape[0] else None))
+    return out
+
+
+# One floor height per open database (reads a bounded sample of frames once).
+_FLOOR: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def floor_height(db) -> float:
+    """The floor of the database's motion (m): the lowest ankle or toe over up to
+    :data:`ACCEL_SAMPLE_FRAMES` frames spread over the database (all of a small one).
+
+    Foot contacts are measured against it, so that a piece's contacts are known when the
+    piece comes (the lowest foot of all pieces, the floor before, is known only at the end).
+    """
+    cached = _FLOOR.get(db)
+    if cached is None:
+        feet = np.unique(foot_joints(db.skeleton).ravel())
+        if feet.size == 0 or db.n_frames == 0:
+            cached = 0.0
+        else:
+            frames = np.arange(db.n_frames)
+            if db.n_frames > ACCEL_SAMPLE_FRAMES:
+                frames = np.unique(np.linspace(0, db.n_frames - 1, ACCEL_SAMPLE_FRAMES).astype(np.int64))
+            cached = min(float(np.asarray(db.rows("joint_positions", frames, column=int(j)))[:, 1].min())
+                         for j in feet)
+        _FLOOR[db] = cached
+    return cached
+
+
 def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, seam_decay_s: float = SEAM_DECAY_S,
                     smooth: bool = False, placement: str = "continue", lock_feet: bool = True) -> Motion:
     """Copy chosen database frames into one :class:`Motion` (the k-NN path).
@@ -462,39 +671,17 @@ def assemble_frames(db, source: np.ndarray, starts: np.ndarray, *, seam_decay_s:
     starts : ndarray, int64
         Output frame where each window starts (the first is 0).
     seam_decay_s, smooth, placement, lock_feet
-        See :func:`assemble_pieces`.
+        See :func:`assemble_pieces`; contacts are measured against :func:`floor_height`.
     """
     source = np.asarray(source, dtype=np.int64)
     starts = [int(s) for s in starts]
     ends = starts[1:] + [source.shape[0]]
     decay_s = check_decay_s(seam_decay_s)
-    # every frame the pieces and their lead-ins use, read at once: a database
-    # that is not loaded (Database.rows) costs one read per run of frames, not
-    # several per piece. A piece shorter than the seam's stencil reads its own
-    # recording's next frames too (the output ends or the next seam comes first).
-    seams = [i for i, a in enumerate(starts) if a > 0 and decay_s > 0]
-    conts = [np.zeros(0, np.int64)] * len(starts)
-    for i, c in zip(seams, continuations(db, [source[starts[i] - 1] for i in seams], [LEAD_FRAMES] * len(seams))):
-        conts[i] = c
-    tails = [np.zeros(0, np.int64)] * len(starts)
-    short = [i for i, (a, b) in enumerate(zip(starts, ends)) if 0 < b - a < LEAD_FRAMES]
-    for i, c in zip(short, continuations(db, [source[ends[i] - 1] for i in short],
-                                         [LEAD_FRAMES - (ends[i] - starts[i]) for i in short])):
-        tails[i] = c
-    used = np.concatenate([source] + conts + tails)
-    rot_all, root_all = placed_frames(db, used)
-    # where each piece's lead-in and tail sit in the one read
-    cont_at = source.size + np.cumsum([0] + [c.size for c in conts])
-    tail_at = cont_at[-1] + np.cumsum([0] + [t.size for t in tails])
-    out = []
-    for i, (a, b) in enumerate(zip(starts, ends)):
-        c0, c1, t0, t1 = cont_at[i], cont_at[i + 1], tail_at[i], tail_at[i + 1]
-        out.append(Piece(out_start=a, rotations=np.concatenate([rot_all[a:b], rot_all[t0:t1]]),
-                         root=np.concatenate([root_all[a:b], root_all[t0:t1]]),
-                         lead_in=(rot_all[c0:c1], root_all[c0:c1]) if c1 > c0 else None))
-    return assemble_pieces(db.skeleton, db.fps, out, n_frames=source.shape[0],
+    pieces = window_pieces(db, [(source[a:b], a, int(source[a - 1]) if a > 0 else None)
+                                for a, b in zip(starts, ends)], seam_decay_s=decay_s)
+    return assemble_pieces(db.skeleton, db.fps, pieces, n_frames=source.shape[0],
                            seam_decay_s=decay_s, smooth=smooth, placement=placement, lock_feet=lock_feet,
-                           seam_accel=typical_accelerations(db) if decay_s > 0 else None)
+                           seam_accel=typical_accelerations(db) if decay_s > 0 else None, floor_y=floor_height(db))
 
 
 #: Savitzky-Golay window (s) of the optional smoothing: GestureMaster's 7 frames at its 30 fps (Sec. 4.2).

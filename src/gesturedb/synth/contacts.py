@@ -13,8 +13,8 @@ import numpy as np
 from gesturedb import rotations as R
 from gesturedb.motion import Motion
 
-__all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "fill_non_steps", "foot_contacts", "foot_joints", "leg_joints",
-           "plant_feet", "smoothstep", "two_bone_ik"]
+__all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "MAX_FILL_GAP_S", "FootPlanter", "fill_non_steps", "foot_contacts",
+           "foot_joints", "leg_joints", "plant_feet", "smoothstep", "two_bone_ik"]
 
 #: A foot's lowest point within this height (m) of the floor can be planted.
 CONTACT_HEIGHT_M = 0.05
@@ -186,6 +186,130 @@ def smoothstep(x):
     return x * x * (3 - 2 * x)
 
 
+#: The longest gap between two contacts (s) that :func:`fill_non_steps` may fill: a flicker of contact
+#: detection, a heel lifting. Longer gaps are steps whatever the foot does, so whether a frame is planted
+#: is known this long after it (a live stream's feet lag by this plus a step).
+MAX_FILL_GAP_S = 0.4
+
+
+class _Fill:
+    """:func:`fill_non_steps` one frame at a time: ``planted[:n_done]`` is final once the frames after it
+    have come (a gap is decided at its end or when it is longer than ``max_gap`` frames)."""
+
+    def __init__(self, min_step_m: float, max_gap: int | None):
+        self.min_step_m, self.max_gap = min_step_m, max_gap
+        self.anchor = None
+        self.n_done = 0
+
+    def run(self, planted: np.ndarray, free: np.ndarray, out: np.ndarray, *, final: bool, base: int = 0) -> None:
+        """Decide frames from ``n_done`` on, writing ``out`` (filled contacts) in place; ``planted``,
+        ``free`` and ``out`` hold frames ``base ..`` of every frame so far (``T`` = the end)."""
+        T = base + planted.shape[0]
+        t = self.n_done
+        while t < T:
+            if planted[t - base]:
+                if self.anchor is None:
+                    self.anchor = free[t - base]
+                out[t - base] = True
+                t += 1
+                continue
+            g0, e = t, t
+            cap = T if self.max_gap is None else min(T, g0 + self.max_gap + 1)
+            while e < cap and not planted[e - base]:
+                e += 1
+            if e < T and planted[e - base]:  # the gap ended at e
+                fill = (self.anchor is not None
+                        and np.linalg.norm((free[e - base] - self.anchor)[[0, 2]]) < self.min_step_m)
+                out[g0 - base:e - base] = fill
+                if not fill:
+                    self.anchor = None
+            elif e < T or final:  # longer than max_gap, or the motion ends in it: not filled
+                out[g0 - base:e - base] = False
+                self.anchor = None
+            else:  # undecided until more frames come
+                break
+            t = e
+        self.n_done = t
+
+
+def fill_non_steps(planted: np.ndarray, free: np.ndarray, min_step_m: float, max_gap: int | None = None) -> np.ndarray:
+    """Contacts (T,) bool with every gap that is not a step filled.
+
+    A gap between two contacts is a step when the foot comes down at least ``min_step_m``
+    (horizontally) from where its previous contact began, the place a planted foot is held;
+    a shorter gap (contact detection flickering while the foot rests, a heel lifting, the
+    body shifting its weight) keeps the foot planted where it was, instead of easing it to
+    where the motion puts it and planting it again there. A gap longer than ``max_gap``
+    frames (None: no limit) is a step.
+
+    planted : ndarray [shape=(T,)], bool
+    free : ndarray [shape=(T, 3)], metres: the ankle where the motion puts it
+    """
+    out = np.zeros(planted.shape[0], dtype=bool)
+    _Fill(min_step_m, max_gap).run(np.asarray(planted, dtype=bool), free, out, final=True)
+    return out
+
+
+class _Targets:
+    """:func:`_ankle_targets` one frame at a time: a step needs the frames up to its end, so
+    ``target[:n_done]`` is final ``step_frames`` frames after the contacts are."""
+
+    def __init__(self, *, max_drift_m: float, step_frames: int, release_frames: int, step_height_m: float):
+        self.max_drift_m, self.step_frames = max_drift_m, step_frames
+        self.release_frames, self.step_height_m = release_frames, step_height_m
+        self.anchor = None
+        self.since_release = release_frames + 1
+        self.n_done = 0
+
+    def run(self, free: np.ndarray, planted: np.ndarray, target: np.ndarray, weight: np.ndarray, *,
+            final: bool, base: int = 0) -> None:
+        """Targets and weights from ``n_done`` up to the frames ``planted`` decides (its end), written in
+        place; the arrays hold frames ``base ..`` (``base < n_done`` once a frame is done: a re-plant reads
+        the target before it); ``free``, ``target`` and ``weight`` are at least as long as ``planted``,
+        and ``target`` starts as a copy of ``free``. ``final``: ``planted`` covers the whole motion."""
+        T = base + planted.shape[0]
+        t = self.n_done
+        while t < T:
+            i = t - base
+            if planted[i]:
+                anchor = self.anchor
+                if anchor is None:
+                    anchor = free[i].copy()
+                elif self.since_release > 0:
+                    # planted again while easing back from the last anchor: the new contact starts where the
+                    # ankle is now (going back to the old anchor would be a jump)
+                    anchor = target[i - 1].copy()
+                if np.linalg.norm((free[i] - anchor)[[0, 2]]) > self.max_drift_m:
+                    # a step: from the anchor to where the motion has the foot at the step's end
+                    if not final and t + self.step_frames >= T:
+                        break  # its end has not come yet: the state stays as it was before frame t
+                    end = min(t + self.step_frames, T - 1) - base
+                    n = end - i + 1
+                    u = np.arange(1, n + 1) / n
+                    w = smoothstep(u)[:, None]
+                    target[i:end + 1, [0, 2]] = (1 - w) * anchor[[0, 2]] + w * free[end, [0, 2]]
+                    target[i:end + 1, 1] = free[i:end + 1, 1] + self.step_height_m * np.sin(np.pi * u)
+                    weight[i:end + 1] = True
+                    self.anchor = free[end].copy()
+                    self.since_release = 0 if planted[end] else 1
+                    t = end + base + 1
+                    continue
+                self.anchor = anchor
+                target[i, [0, 2]] = anchor[[0, 2]]
+                weight[i] = True
+                self.since_release = 0
+            elif self.anchor is not None:
+                self.since_release += 1
+                w = 1.0 - smoothstep(self.since_release / (self.release_frames + 1))
+                if self.since_release <= self.release_frames:
+                    target[i, [0, 2]] = w * self.anchor[[0, 2]] + (1 - w) * free[i, [0, 2]]
+                    weight[i] = True
+                else:
+                    self.anchor = None
+            t += 1
+        self.n_done = t
+
+
 def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float = MAX_ANCHOR_DRIFT_M,
                    step_frames: int = STEP_FRAMES, release_frames: int = RELEASE_FRAMES,
                    step_height_m: float = STEP_HEIGHT_M) -> tuple[np.ndarray, np.ndarray]:
@@ -195,78 +319,119 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
     targets only, except during a step, which also lifts the ankle. The defaults are the
     15 fps values; :func:`plant_feet` derives them from the frame rate and the rig.
     """
-    T = free.shape[0]
-    target = free.copy()
-    weight = np.zeros(T, dtype=bool)
-    anchor = None
-    since_release = release_frames + 1
-    t = 0
-    while t < T:
-        if planted[t]:
-            if anchor is None:
-                anchor = free[t].copy()
-            elif since_release > 0:
-                # planted again while easing back from the last anchor: the new contact starts where the
-                # ankle is now (going back to the old anchor would be a jump)
-                anchor = target[t - 1].copy()
-            if np.linalg.norm((free[t] - anchor)[[0, 2]]) > max_drift_m:
-                # a step: from the anchor to where the motion has the foot at the step's end
-                end = min(t + step_frames, T - 1)
-                n = end - t + 1
-                u = np.arange(1, n + 1) / n
-                w = smoothstep(u)[:, None]
-                target[t:end + 1, [0, 2]] = (1 - w) * anchor[[0, 2]] + w * free[end, [0, 2]]
-                target[t:end + 1, 1] = free[t:end + 1, 1] + step_height_m * np.sin(np.pi * u)
-                weight[t:end + 1] = True
-                anchor = free[end].copy()
-                since_release = 0 if planted[end] else 1
-                t = end + 1
-                continue
-            target[t, [0, 2]] = anchor[[0, 2]]
-            weight[t] = True
-            since_release = 0
-        elif anchor is not None:
-            since_release += 1
-            w = 1.0 - smoothstep(since_release / (release_frames + 1))
-            if since_release <= release_frames:
-                target[t, [0, 2]] = w * anchor[[0, 2]] + (1 - w) * free[t, [0, 2]]
-                weight[t] = True
-            else:
-                anchor = None
-        t += 1
+    target = np.array(free, dtype=np.float64, copy=True)
+    weight = np.zeros(free.shape[0], dtype=bool)
+    _Targets(max_drift_m=max_drift_m, step_frames=step_frames, release_frames=release_frames,
+             step_height_m=step_height_m).run(free, planted, target, weight, final=True)
     return target, weight
 
 
-def fill_non_steps(planted: np.ndarray, free: np.ndarray, min_step_m: float) -> np.ndarray:
-    """Contacts (T,) bool with every gap that is not a step filled.
+class FootPlanter:
+    """:func:`plant_feet` over motion that arrives a block at a time (a live synthesis).
 
-    A gap between two contacts is a step when the foot comes down at least ``min_step_m``
-    (horizontally) from where its previous contact began, the place a planted foot is held;
-    a shorter gap (contact detection flickering while the foot rests, a heel lifting, the
-    body shifting its weight) keeps the foot planted where it was, instead of easing it to
-    where the motion puts it and planting it again there.
-
-    planted : ndarray [shape=(T,)], bool
-    free : ndarray [shape=(T, 3)], metres: the ankle where the motion puts it
+    :meth:`push` takes the next frames (local rotations, root, contacts) and returns the
+    frames that no later frame can change any more, with the legs adjusted: whether a
+    frame is planted is known :data:`MAX_FILL_GAP_S` after it, and a step needs the
+    motion up to its end, so frames come out :attr:`lag` frames behind (all of them at
+    ``final=True``). Pushing the same frames in blocks of any size gives the same bits as
+    pushing them at once: every decision is taken frame by frame in order, the forward
+    and inverse kinematics are per frame.
     """
-    out = planted.copy()
-    T = planted.shape[0]
-    t = 0
-    anchor = None
-    while t < T:
-        if out[t]:
-            if anchor is None:
-                anchor = free[t]
-            t += 1
-            continue
-        g0 = t
-        while t < T and not out[t]:
-            t += 1
-        if anchor is not None and t < T and np.linalg.norm((free[t] - anchor)[[0, 2]]) < min_step_m:
-            out[g0:t] = True  # not a step: the foot stays where it is
-        else:
-            anchor = None
-    return out
+
+    def __init__(self, skeleton, fps: float, *, max_gap_s: float = MAX_FILL_GAP_S):
+        self.skeleton, self.fps = skeleton, float(fps)
+        self.legs, self.feet = leg_joints(skeleton), foot_joints(skeleton)
+        # frames from seconds, distances from the rig: the same behaviour at any frame rate and body size
+        self.steps = dict(step_frames=max(2, int(round(STEP_S * fps))), release_frames=max(1, int(round(RELEASE_S * fps))))
+        self.max_gap = max(1, int(round(max_gap_s * fps)))
+        #: frames a pushed frame may wait before it is final
+        self.lag = self.max_gap + 1 + self.steps["step_frames"]
+        J = len(skeleton.names)
+        self._rot = np.zeros((0, J, 4))
+        self._contacts = np.zeros((0, 2), dtype=bool)
+        self._base = 0  # the arrays below hold frames _base ..
+        self._pos, self._grot = np.zeros((0, J, 3)), np.zeros((0, J, 4))
+        self._sides = None  # per leg: (fill, targets, filled, target, weight), made at the first frame
+        self.n_out = 0  # frames returned so far
+
+    def _first_frame(self) -> None:
+        pos = self._pos
+        self._sides = []
+        for side in range(self.legs.shape[0]):
+            hip, knee, ankle = (int(j) for j in self.legs[side])
+            leg_m = float(np.linalg.norm(pos[0, knee] - pos[0, hip]) + np.linalg.norm(pos[0, ankle] - pos[0, knee]))
+            # a step moves a foot by at least its own length (ankle to toe on this rig)
+            foot_len = (float(np.linalg.norm(pos[0, self.feet[side, 1]] - pos[0, self.feet[side, 0]]))
+                        if self.feet.shape[0] and self.feet[side, 1] != self.feet[side, 0] else 0.0)
+            fill = _Fill(foot_len, self.max_gap) if foot_len > 0 else None
+            targets = _Targets(max_drift_m=STEP_DRIFT_LEG_FRACTION * leg_m, step_height_m=STEP_HEIGHT_LEG_FRACTION * leg_m,
+                               **self.steps)
+            self._sides.append([fill, targets, np.zeros(0, bool), np.zeros((0, 3)), np.zeros(0, bool)])
+
+    def push(self, rotations: np.ndarray, root: np.ndarray, contacts: np.ndarray, *, final: bool = False) -> np.ndarray:
+        """Add frames ``(n, J, 4)``, ``(n, 3)``, contacts ``(n, 2)`` bool; return the local rotations
+        ``(k, J, 4)`` of the frames that became final (frames ``n_out - k .. n_out - 1``)."""
+        n = rotations.shape[0]
+        if n:
+            pos, grot = Motion(skeleton=self.skeleton, fps=self.fps, rotations=rotations,
+                               root_positions=root).forward_kinematics()
+            self._rot = np.concatenate([self._rot, rotations])
+            self._contacts = np.concatenate([self._contacts, np.asarray(contacts, dtype=bool)])
+            self._pos, self._grot = np.concatenate([self._pos, pos]), np.concatenate([self._grot, grot])
+        base = self._base  # the arrays hold frames base ..
+        T = base + self._rot.shape[0]
+        done = T
+        if self.legs.shape[0] and T:
+            if self._sides is None:
+                self._first_frame()
+            for side, st in enumerate(self._sides):
+                fill, targets = st[0], st[1]
+                free = self._pos[:, int(self.legs[side, 2])]
+                grow = T - base - st[2].shape[0]
+                st[2] = np.concatenate([st[2], np.zeros(grow, bool)])
+                st[3] = np.concatenate([st[3], free[free.shape[0] - grow:]])
+                st[4] = np.concatenate([st[4], np.zeros(grow, bool)])
+                if fill is not None:
+                    fill.run(self._contacts[:, side], free, st[2], final=final, base=base)
+                    decided = fill.n_done
+                else:
+                    st[2][:] = self._contacts[:, side]
+                    decided = T
+                targets.run(free, st[2][:decided - base], st[3], st[4], final=final, base=base)
+                done = min(done, targets.n_done)
+        if final:
+            done = T
+        a, b = self.n_out - base, done - base
+        out = np.array(self._rot[a:b], copy=True)
+        if self._sides is not None:
+            for side, st in enumerate(self._sides):
+                sel = np.flatnonzero(st[4][a:b])
+                if sel.size == 0:
+                    continue
+                hip, knee, ankle = (int(j) for j in self.legs[side])
+                # the other leg's chain does not depend on this one: positions of the other side stay valid
+                out[sel] = two_bone_ik(out[sel], self._grot[a + sel], self._pos[a + sel], hip=hip, knee=knee,
+                                       ankle=ankle, target=st[3][a + sel])
+        self.n_out = done
+        self._trim()
+        return out
+
+    def _trim(self) -> None:
+        """Drop the frames nothing reads again (a live stream's memory stays bounded): those returned and
+        decided, less the one a re-plant reads."""
+        keep = self.n_out
+        if self._sides is not None:
+            for fill, targets, *_ in self._sides:
+                keep = min(keep, targets.n_done - 1, fill.n_done - 1 if fill is not None else keep)
+        drop = keep - self._base
+        if drop <= 0:
+            return
+        self._rot, self._contacts = self._rot[drop:], self._contacts[drop:]
+        self._pos, self._grot = self._pos[drop:], self._grot[drop:]
+        if self._sides is not None:
+            for st in self._sides:
+                st[2], st[3], st[4] = st[2][drop:], st[3][drop:], st[4][drop:]
+        self._base = keep
 
 
 def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, contacts: np.ndarray) -> np.ndarray:
@@ -285,38 +450,17 @@ def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, co
     -------
     ndarray [shape=(T, J, 4)]
         Local rotations with the legs adjusted; the root and every other joint unchanged.
-        After a contact the ankle returns to the motion's own path over
-        ``RELEASE_FRAMES`` frames (smoothstep). When the motion carries a planted
-        foot more than ``MAX_ANCHOR_DRIFT_M`` from its anchor (the body moved
-        over it, or a seam changed the stance), the foot steps: over
+        A gap of up to :data:`MAX_FILL_GAP_S` between two contacts that is not a step keeps
+        the foot planted (:func:`fill_non_steps`). After a contact the ankle returns to the
+        motion's own path over ``RELEASE_FRAMES`` frames (smoothstep). When the motion
+        carries a planted foot more than ``MAX_ANCHOR_DRIFT_M`` from its anchor (the body
+        moved over it, or a seam changed the stance), the foot steps: over
         ``STEP_FRAMES`` frames the ankle follows a smoothstep from the anchor to
         where the motion puts it at the end of the step, lifted by up to
         ``STEP_HEIGHT_M``, and is planted again there (before, it was re-anchored
-        in one frame: a jump of up to 0.3 m).
+        in one frame: a jump of up to 0.3 m). :class:`FootPlanter` does the same a block
+        of frames at a time.
     """
-    legs = leg_joints(skeleton)
-    T = rotations.shape[0]
-    if legs.shape[0] == 0 or T == 0 or not contacts.any():
+    if leg_joints(skeleton).shape[0] == 0 or rotations.shape[0] == 0 or not np.asarray(contacts).any():
         return rotations
-    pos, grot = Motion(skeleton=skeleton, fps=fps, rotations=rotations, root_positions=root).forward_kinematics()
-    out = rotations
-    feet = foot_joints(skeleton)
-    # frames from seconds, distances from the rig: the same behaviour at any frame rate and body size
-    steps = dict(step_frames=max(2, int(round(STEP_S * fps))), release_frames=max(1, int(round(RELEASE_S * fps))))
-    for side in range(2):
-        hip, knee, ankle = (int(j) for j in legs[side])
-        leg_m = float(np.linalg.norm(pos[0, knee] - pos[0, hip]) + np.linalg.norm(pos[0, ankle] - pos[0, knee]))
-        steps.update(max_drift_m=STEP_DRIFT_LEG_FRACTION * leg_m, step_height_m=STEP_HEIGHT_LEG_FRACTION * leg_m)
-        # a step moves a foot by at least its own length (ankle to toe on this rig)
-        foot_len = (float(np.linalg.norm(pos[0, feet[side, 1]] - pos[0, feet[side, 0]]))
-                    if feet.shape[0] and feet[side, 1] != feet[side, 0] else 0.0)
-        planted = fill_non_steps(contacts[:, side], pos[:, ankle], foot_len) if foot_len > 0 else contacts[:, side]
-        target, weight = _ankle_targets(pos[:, ankle], planted, **steps)
-        sel = np.flatnonzero(weight > 0)
-        if sel.size == 0:
-            continue
-        new = two_bone_ik(out[sel], grot[sel], pos[sel], hip=hip, knee=knee, ankle=ankle, target=target[sel])
-        out = out.copy()
-        out[sel] = new
-        # the other leg's chain does not depend on this one: positions of the other side stay valid
-    return out
+    return FootPlanter(skeleton, fps).push(np.asarray(rotations), np.asarray(root), contacts, final=True)

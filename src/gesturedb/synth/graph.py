@@ -46,6 +46,12 @@ not time-warped: each node plays at its own speed, trimmed or run on into its re
 0.085 against 0.064 m/s unwarped). The two motions are joined: upper-body local rotations
 from the first (the spine's first joint keeping its own orientation in the world, less the
 heading, :func:`join_upper_body`), root and legs from the second (feet planted on those).
+
+Offline only (``METHOD.streams`` is False): an input clip ends at the next pause longer than
+``gap_s``, its style comes from its whole audio and its node is warped to its whole length,
+and the exact path search (:func:`viterbi`) chooses every clip knowing all the others; a
+live graph would wait a phrase (seconds) before its first frame. The k-NN streams
+(:class:`gesturedb.synth.stream.Stream`).
 """
 from __future__ import annotations
 
@@ -58,7 +64,9 @@ from gesturedb.errors import ParameterError, SchemaError
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
 from gesturedb.io.transcripts import Words
 from gesturedb.synth import inputs
-from gesturedb.synth.assemble import SMOOTH_WINDOW_S, Piece, assemble_pieces, placed_frames, typical_accelerations
+from gesturedb.synth.assemble import (
+    SMOOTH_WINDOW_S, Piece, assemble_pieces, floor_height, placed_frames, typical_accelerations,
+)
 from gesturedb.synth.options import SynthOptions
 from gesturedb.synth.protocol import EvalSystem, Method
 from gesturedb.synth.seams import LEAD_FRAMES, check_decay_s
@@ -473,7 +481,7 @@ class GraphSynthesizer:
         upper = assemble_pieces(db.skeleton, db.fps, up_pieces, n_frames=T, seam_decay_s=seam_decay_s, smooth=False,
                                 lock_feet=False, seam_accel=accel)  # its legs are dropped
         lower = assemble_pieces(db.skeleton, db.fps, low_pieces, n_frames=T, seam_decay_s=seam_decay_s, smooth=False,
-                                seam_accel=accel)
+                                seam_accel=accel, floor_y=floor_height(db))
         rot = np.array(lower.rotations, dtype=np.float64, copy=True)
         rot[:, self.upper_joints] = upper.rotations[:, self.upper_joints]
         rot = join_upper_body(db.skeleton, rot, upper.rotations, self.upper_joints)

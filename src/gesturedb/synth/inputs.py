@@ -23,7 +23,7 @@ from gesturedb.io.audio import read_audio
 from gesturedb.io.transcripts import Words, check_words_fit, read_transcript
 from gesturedb.synth.options import STEP_S, default_step
 
-__all__ = ["MIN_SPEECH_S", "min_speech_frames", "speech_samples", "check_speech",
+__all__ = ["MIN_SPEECH_S", "min_speech_frames", "speech_samples", "check_speech", "check_frames",
            "query_features", "read_words", "excluded", "step_masks"]
 
 #: The shortest speech any synthesis method takes: one k-NN search step (8 frames at 15 fps,
@@ -70,7 +70,11 @@ def speech_samples(db, audio, sr: int | None = None, *, resample: bool = False):
 
 def check_speech(n_samples: int, sr: int, fps: float, *, audio: str | None = None) -> int:
     """The speech's length in output frames, at least :data:`MIN_SPEECH_S`; ParameterError otherwise."""
-    T = n_frames_for_duration(n_samples / sr, fps)
+    return check_frames(n_frames_for_duration(n_samples / sr, fps), fps, audio=audio)
+
+
+def check_frames(T: int, fps: float, *, audio: str | None = None) -> int:
+    """``T`` output frames of speech, at least :data:`MIN_SPEECH_S`; ParameterError otherwise."""
     need = min_speech_frames(fps)
     if T < need:
         raise ParameterError(

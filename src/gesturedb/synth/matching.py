@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from gesturedb.control import candidate_counts, full_mask, mask_and, suggest_percentiles
+from gesturedb.control import candidate_counts, mask_and, suggest_percentiles
 from gesturedb.errors import ParameterError, SearchError
 from gesturedb.features.audio import audio_deltas
-from gesturedb.search import HalfPose, PoseProjection, SearchResult, _no_candidate_error, rank_sum_search
+from gesturedb.search import HalfPose, PoseProjection, rank_sum_search
 from gesturedb.synth import inputs
 from gesturedb.synth.assemble import assemble_frames
 from gesturedb.synth.inputs import speech_samples  # noqa: F401  (its old home; every method's now)
@@ -33,8 +33,9 @@ from gesturedb.synth.options import (  # noqa: F401  (re-exported from their old
     DEFAULT_INIT, INIT_CHOICES, STEP_S, SearchOptions, default_step,
 )
 from gesturedb.synth.protocol import EvalSystem, Method
-from gesturedb.synth.repeats import check_guard_s, guarded_search, repeat_of, repeat_stats
+from gesturedb.synth.repeats import check_guard_s
 from gesturedb.synth.result import SynthResult
+from gesturedb.synth.stream import Stream
 from gesturedb.synth.seams import SEAM_DECAY_S, check_decay_s
 
 
@@ -162,35 +163,74 @@ class Searcher:
             (:func:`gesturedb.synth.repeats.repeat_stats`).
         """
         opts = SearchOptions.of(options, **changes)
-        k, preselect, init, seed = opts.k, opts.preselect, opts.init, opts.seed
-        control, keywords, exclude, speaker = opts.control, opts.keywords, opts.exclude, opts.speaker
         db = self.db
         samples, sr, audio_path = speech_samples(db, audio, sr)
-        step = opts.step_at(db.fps)
+        self._check_options(opts)
+        transcript = inputs.read_words(transcript, samples.shape[0] / sr, audio=audio_path)
+        T = inputs.check_speech(samples.shape[0], sr, db.fps, audio=audio_path)
+        self._check_window(min(opts.step_at(db.fps), T))
+        if opts.control:
+            # a schedule item that no step's centre falls in is an error before any search (the stream,
+            # which does not know the length, takes each step's control as it comes)
+            step = opts.step_at(db.fps)
+            self._step_masks(opts.control, None, False, n_steps=-(-T // step), step=step, T=T)
+        stream = Stream(db, opts.replace(smooth=False), sample_rate=sr, searcher=self, _whole=True)
+        if transcript is not None and opts.keywords:
+            stream.push_words(transcript)
+        stream.push(samples)
+        stream.finish()
+        control, keywords, guard_s = opts.control, opts.keywords, stream.guard_s
+        options = dict(k=opts.k, preselect=opts.preselect, init=opts.init, seed=opts.seed, step=stream.step,
+                       seam_decay_s=stream.seam_decay_s, smooth=opts.smooth,
+                       control=control if isinstance(control, (str, type(None))) else str(control),
+                       keywords=keywords if isinstance(keywords, bool) else list(keywords),
+                       segments=self.segments_kind, database=db.path,
+                       refiner=None if refiner is None else str(getattr(refiner, "path", None) or type(refiner).__name__),
+                       speaker=opts.speaker, repeat_guard_s=guard_s)
+        res = stream.result(audio_path=audio_path, options=options)
+        if opts.smooth:  # the smoothing needs frames on both sides: the whole motion again, smoothed
+            res.motion = self.assemble(res.source_frames, np.r_[0, res.boundaries], seam_decay_s=stream.seam_decay_s,
+                                       smooth=True)
+        if refiner is not None:
+            query = stream.query
+            res.motion = refiner.refine(res.motion, np.concatenate([query, audio_deltas(query)], axis=1))
+        return res
+
+    def stream(self, options: SearchOptions | None = None, *, sample_rate: int) -> Stream:
+        """A live synthesis over this searcher (:class:`gesturedb.synth.stream.Stream`)."""
+        return Stream(self.db, options, sample_rate=sample_rate, searcher=self)
+
+    # -- the pieces a synthesis is made of ---------------------------------------
+    def _check_options(self, opts: SearchOptions) -> tuple[int, float, float]:
+        """The step (frames), seam decay (s) and repeat guard (s) of valid options; ParameterError otherwise."""
+        k, seed = opts.k, opts.seed
+        step = opts.step_at(self.db.fps)
         if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
             raise ParameterError(f"step: expected a positive number of frames, got {step!r}")
-        seam_decay_s = check_decay_s(opts.seam_decay_s)
+        decay_s = check_decay_s(opts.seam_decay_s)
         n_seg = len(self.seg_start)
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= max(n_seg, 1):
             raise ParameterError(f"k: expected an integer from 1 to the number of {self.segments_kind} of "
-                                 f"{db.path} ({n_seg}), got {k!r}")
+                                 f"{self.db.path} ({n_seg}), got {k!r}")
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
                                  or not 0 <= seed < 2**63):
             raise ParameterError(f"seed: expected an integer from 0 to 2**63-1, got {seed!r}")
-        transcript = inputs.read_words(transcript, samples.shape[0] / sr, audio=audio_path)
-        inputs.check_speech(samples.shape[0], sr, db.fps, audio=audio_path)
-        query = self.query_features(samples, sr)
-        T = query.shape[0]
-        if int(self.seg_len.max(initial=0)) < min(step, T) + 1:
-            raise ParameterError(
-                f"database {db.path}: no {self.segments_kind} segment is long enough for a window of "
-                f"{min(step, T)} frames plus its entry frame (longest: {int(self.seg_len.max(initial=0))} frames)"
-            )
-        n_steps = (T + step - 1) // step
-        allowed, labels, keyword_bits = self._step_masks(control, transcript, keywords, n_steps=n_steps, step=step, T=T)
+        if opts.init not in INIT_CHOICES:
+            raise ParameterError(f"init: expected {' or '.join(map(repr, INIT_CHOICES))}, got {opts.init!r}")
+        return int(step), decay_s, check_guard_s(opts.repeat_guard_s)
+
+    def _check_window(self, n: int) -> None:
+        """A segment must hold a window of ``n`` frames and its entry frame."""
+        longest = int(self.seg_len.max(initial=0))
+        if longest < n + 1:
+            raise ParameterError(f"database {self.db.path}: no {self.segments_kind} segment is long enough for a "
+                                 f"window of {n} frames plus its entry frame (longest: {longest} frames)")
+
+    def _step_search(self, *, step: int, k: int, preselect: str, exclude=None, speaker=None):
+        """One search step ``(query (n, Da), prev (Dp,), allowed (1, W)) -> SearchResult`` over this database
+        (the kernel, or the shards of the Dask client); ``.exclude`` is its bool per segment."""
         excl = self.exclude_recordings(exclude, speaker)
-        guard_s = check_guard_s(opts.repeat_guard_s)
-        init_pose = self.initial_pose(init, seed=seed)
+        db = self.db
 
         def search(q, prev, allowed_now):
             if self._client is not None:
@@ -204,72 +244,12 @@ class Searcher:
             return rank_sum_search(
                 db.pose_features, db.audio_features, self.seg_start, self.seg_len, q, prev,
                 step=step, k=k, preselect=preselect, exclude=excl, pose_f16=self._half,
-                allowed=None if allowed_now is None else np.ascontiguousarray(allowed_now),  # StepBitsets: the array
+                allowed=None if allowed_now is None else np.ascontiguousarray(allowed_now),
                 pose_proj=self.pose_projection() if preselect == "pose" else None,
             )
 
-        relaxed = np.zeros(n_steps, dtype=bool)
-        try:
-            if guard_s > 0:
-                # the guard's mask for a step depends on the windows before it: one kernel call per step
-                d = guarded_search(search, query=query, init_pose=init_pose, step=step,
-                                   pose_row=lambda f: db.rows("pose_features", [f])[0],
-                                   allowed=allowed, full=full_mask(db.n_frames),
-                                   guard_frames=int(round(guard_s * db.fps)),
-                                   no_candidate=lambda i, t, n, row: _no_candidate_error(
-                                       i, t, n, self.seg_len, excl, None if allowed is None else row))
-                relaxed = d.pop("relaxed")
-                res = SearchResult(n_frames=T, **d)
-            else:
-                res = search(query, init_pose, allowed)
-        except SearchError as exc:
-            raise self._explain(exc, labels, keyword_bits=keyword_bits, exclude=excl, step=step, T=T) from None
-        rep_of = repeat_of(res.frames, res.lengths)
-
-        source = res.frame_map()
-        steps = []
-        recs = db.recordings
-        rec_of = db.rows("frame_recording", np.asarray(res.frames, dtype=np.int64))
-        for i in range(len(res.segments)):
-            t, g, n = int(res.out_frames[i]), int(res.frames[i]), int(res.lengths[i])
-            rec = recs[int(rec_of[i])]
-            label = labels[i] if labels is not None else None
-            steps.append({
-                "step": i,
-                "out_start": t,
-                "out_end": t + n,
-                "time_s": round(t / db.fps, 4),
-                "recording": rec.name,
-                "source_start_s": round((g - rec.start_frame) / db.fps, 4),
-                "source_end_s": round((g + n - rec.start_frame) / db.fps, 4),
-                "segment": int(res.segments[i]),
-                "segment_start": int(res.starts[i]),
-                "db_frame": g,
-                "pose_dist": float(res.pose_dist[i]),
-                "audio_dist": float(res.audio_dist[i]),
-                "pose_rank": int(res.pose_rank[i]),
-                "audio_rank": int(res.audio_rank[i]),
-                "candidates": int(res.n_candidates[i]),
-                "control": label[0] if label else None,
-                "keyword": label[1] if label else None,
-                "repeat_of": rep_of[i],
-                "guard_relaxed": bool(relaxed[i]),
-            })
-        starts = np.asarray(res.out_frames, dtype=np.int64)
-        motion = self.assemble(source, starts, seam_decay_s=seam_decay_s, smooth=opts.smooth)
-        if refiner is not None:
-            motion = refiner.refine(motion, np.concatenate([query, audio_deltas(query)], axis=1))
-        options = dict(k=k, preselect=preselect, init=init, seed=seed, step=step, seam_decay_s=seam_decay_s,
-                       smooth=opts.smooth,
-                       control=control if isinstance(control, (str, type(None))) else str(control),
-                       keywords=keywords if isinstance(keywords, bool) else list(keywords),
-                       segments=self.segments_kind, database=db.path,
-                       refiner=None if refiner is None else str(getattr(refiner, "path", None) or type(refiner).__name__),
-                       speaker=speaker, repeat_guard_s=guard_s)
-        repeats = dict(repeat_stats(res.frames, res.lengths, out_frames=res.out_frames, fps=db.fps),
-                       guard_s=guard_s, guard_relaxed=int(relaxed.sum()))
-        return SynthResult(motion=motion, source_frames=source, boundaries=starts[1:], steps=steps,
-                           fps=db.fps, audio_path=audio_path, options=options, repeats=repeats)
+        search.exclude = excl
+        return search
 
     # -- masks ------------------------------------------------------------------
     def _step_masks(self, control, transcript, keywords, *, n_steps, step, T):
@@ -319,7 +299,7 @@ METHOD = Method(
     options=SearchOptions,
     open=Searcher,
     settings=("segments", "client", "parts"),
-    streams=False,
+    streams=True,
     refines=True,
     systems=(
         EvalSystem("ranksum_pose", "rank-sum, pose pre-selection", "#1f77b4", {"preselect": "pose"}),
