@@ -93,11 +93,11 @@ def test_frames_layout_round_trip():
         root = rng.normal(size=(count, 3)).astype(np.float32)
         rot = rng.normal(size=(count, J, 4)).astype(np.float32)
         msg = P.pack_frames(12, root, rot, [{"a": float("nan"), "b": np.int64(3)}] if count else [])
-        start, r, q, steps = P.unpack_frames(msg)
-        assert start == 12 and np.array_equal(r, root) and np.array_equal(q, rot)
+        start, r, q, steps, samples = P.unpack_frames(msg)
+        assert samples == 0 and start == 12 and np.array_equal(r, root) and np.array_equal(q, rot)
         assert steps == ([{"a": None, "b": 3}] if count else [])
     with pytest.raises(ParameterError, match="magic"):
-        P.unpack_frames(b"XXXX" + bytes(20))
+        P.unpack_frames(b"XXXX" + bytes(24))
     with pytest.raises(ParameterError, match="header says"):
         P.unpack_frames(P.pack_frames(0, np.zeros((2, 3)), np.zeros((2, 2, 4)))[:-4])
 
@@ -146,7 +146,7 @@ def test_studio_page_and_three_js(client):
 def test_source_stretch_is_the_database_motion(client, db):
     rec = db.recordings[0].name
     r = client.get("/source", params={"recording": rec, "start_s": 1, "end_s": 3})
-    start, root, rot, _ = P.unpack_frames(r.content)
+    start, root, rot, _, _ = P.unpack_frames(r.content)
     m = db.motion(rec, 1, 3)
     assert start == 0 and np.array_equal(root, m.root_positions.astype(np.float32))
     assert np.array_equal(rot, m.rotations.astype(np.float32))
@@ -311,8 +311,8 @@ def test_bad_messages_mid_stream_are_refused_and_the_stream_goes_on(client, spee
             assert m["type"] == "error" and m["code"] == code and not m["fatal"], m
         ws.send_text(json.dumps({"type": "words", "words": [[0.1, 0.4, "hello"]]}))
         ws.send_bytes(P.encode_audio(speech[: 2 * SR], "f32"))
-        start, root, rot, steps = P.unpack_frames(ws.receive_bytes())
-        assert start == 0 and root.shape[0] > 0 and {s["control"] for s in steps} == {None}
+        start, root, rot, steps, samples = P.unpack_frames(ws.receive_bytes())
+        assert samples == 2 * SR and start == 0 and root.shape[0] > 0 and {s["control"] for s in steps} == {None}
 
 
 def test_too_many_errors_close_the_stream(db):

@@ -57,12 +57,16 @@ class Frames:
         Local unit quaternions (w, x, y, z) per joint, in the order of ``skeleton()["names"]``.
     steps : list of dict
         One per search step completed here: recording, source_start_s, ranks, control, ...
+    samples : int
+        Audio samples the server had received when these frames became final: they answer the
+        audio message that brought its count there (how a client measures its latency).
     """
 
     start: int
     root_positions: np.ndarray
     rotations: np.ndarray
     steps: list = field(default_factory=list)
+    samples: int = 0
 
     def __len__(self) -> int:
         return int(self.root_positions.shape[0])
@@ -212,8 +216,8 @@ class LiveClient:
 
     def _handle(self, msg, out: list) -> None:
         if isinstance(msg, bytes):
-            start, root, rot, steps = P.unpack_frames(msg)
-            out.append(Frames(start, root, rot, steps))
+            m = P.unpack_frames(msg)
+            out.append(Frames(m.start, m.root_positions, m.rotations, m.steps, m.samples))
             return
         m = json.loads(msg)
         kind = m.get("type")

@@ -12,7 +12,9 @@ Frames message (binary, little-endian), sent by the server::
     12      4   uint32      count: frames in this message (may be 0)
     16      4   uint32      J: joints of the skeleton (``GET /skeleton``)
     20      4   uint32      P: bytes of the provenance JSON at the end
-    24      count*(3+4J)*4  float32 frames, row-major: per frame the root position
+    24      4   uint32      samples: audio samples of the stream the server had received when
+                            these frames became final (0 outside a stream)
+    28      count*(3+4J)*4  float32 frames, row-major: per frame the root position
                             (x, y, z metres, y up) then J local unit quaternions
                             (w, x, y, z) in skeleton order
     ...     P               UTF-8 JSON list: the steps whose frames are final now,
@@ -27,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from typing import NamedTuple
 
 import numpy as np
 
@@ -37,7 +40,7 @@ PROTOCOL_VERSION = 1
 #: Version of the binary frames layout (the second header field).
 LAYOUT_VERSION = 1
 FRAMES_MAGIC = b"GDBF"
-_HEADER = struct.Struct("<4sIIIII")
+_HEADER = struct.Struct("<4sIIIIII")
 #: Bytes before the float32 frames; a multiple of 4, so the frames can be viewed in place (Float32Array).
 HEADER_BYTES = _HEADER.size
 #: Audio sample formats a client may declare: name -> numpy dtype of one sample.
@@ -59,7 +62,17 @@ def frame_width(n_joints: int) -> int:
     return 3 + 4 * int(n_joints)
 
 
-def pack_frames(start: int, root_positions: np.ndarray, rotations: np.ndarray, steps=()) -> bytes:
+class FramesMessage(NamedTuple):
+    """A decoded frames message (:func:`unpack_frames`)."""
+
+    start: int
+    root_positions: np.ndarray
+    rotations: np.ndarray
+    steps: list
+    samples: int
+
+
+def pack_frames(start: int, root_positions: np.ndarray, rotations: np.ndarray, steps=(), *, samples: int = 0) -> bytes:
     """Encode frames and their steps' provenance as one binary frames message.
 
     Parameters
@@ -72,6 +85,9 @@ def pack_frames(start: int, root_positions: np.ndarray, rotations: np.ndarray, s
     steps : list of dict
         Provenance of the steps completed with these frames; values that JSON
         cannot hold as finite numbers become null.
+    samples : int
+        Audio samples of the stream received when the frames became final (what a
+        client times its latency from; 0 outside a stream).
     """
     root = np.asarray(root_positions, dtype="<f4")
     rot = np.asarray(rotations, dtype="<f4")
@@ -80,18 +96,19 @@ def pack_frames(start: int, root_positions: np.ndarray, rotations: np.ndarray, s
     count, n_joints = rot.shape[0], rot.shape[1]
     data = np.concatenate([root, rot.reshape(count, 4 * n_joints)], axis=1)
     tail = json.dumps(json_safe(list(steps)), allow_nan=False, separators=(",", ":")).encode()
-    return _HEADER.pack(FRAMES_MAGIC, LAYOUT_VERSION, int(start), count, n_joints, len(tail)) + data.tobytes() + tail
+    return (_HEADER.pack(FRAMES_MAGIC, LAYOUT_VERSION, int(start), count, n_joints, len(tail), int(samples))
+            + data.tobytes() + tail)
 
 
-def unpack_frames(message: bytes) -> tuple[int, np.ndarray, np.ndarray, list]:
+def unpack_frames(message: bytes) -> FramesMessage:
     """Decode a binary frames message.
 
     Returns
     -------
-    start : int
-    root_positions : ndarray [shape=(F, 3)], float32, metres
-    rotations : ndarray [shape=(F, J, 4)], float32, (w, x, y, z)
-    steps : list of dict
+    FramesMessage
+        ``start`` (int), ``root_positions`` (ndarray [shape=(F, 3)], float32, metres),
+        ``rotations`` (ndarray [shape=(F, J, 4)], float32, w x y z), ``steps`` (list of
+        dict), ``samples`` (int).
 
     Raises
     ------
@@ -101,7 +118,7 @@ def unpack_frames(message: bytes) -> tuple[int, np.ndarray, np.ndarray, list]:
     message = bytes(message)
     if len(message) < HEADER_BYTES:
         raise ParameterError(f"frames message: expected at least {HEADER_BYTES} bytes; got {len(message)}")
-    magic, layout, start, count, n_joints, n_tail = _HEADER.unpack_from(message)
+    magic, layout, start, count, n_joints, n_tail, samples = _HEADER.unpack_from(message)
     if magic != FRAMES_MAGIC or layout != LAYOUT_VERSION:
         raise ParameterError(f"frames message: expected magic {FRAMES_MAGIC!r} layout {LAYOUT_VERSION}; "
                              f"got {magic!r} layout {layout}")
@@ -112,7 +129,7 @@ def unpack_frames(message: bytes) -> tuple[int, np.ndarray, np.ndarray, list]:
     data = np.frombuffer(message, dtype="<f4", count=count * frame_width(n_joints), offset=HEADER_BYTES)
     data = data.reshape(count, frame_width(n_joints))
     steps = json.loads(message[HEADER_BYTES + n_data:].decode()) if n_tail else []
-    return start, data[:, :3].copy(), data[:, 3:].reshape(count, n_joints, 4).copy(), steps
+    return FramesMessage(start, data[:, :3].copy(), data[:, 3:].reshape(count, n_joints, 4).copy(), steps, samples)
 
 
 def json_safe(value):

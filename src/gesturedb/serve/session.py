@@ -242,7 +242,7 @@ class StreamSession:
         root = np.zeros((0, 3), np.float32) if n == 0 else np.asarray(motion.root_positions, np.float32)
         rot = np.zeros((0, J, 4), np.float32) if n == 0 else np.asarray(motion.rotations, np.float32)
         start = int(getattr(chunk, "start", self.n_sent))
-        await self.ws.send_bytes(P.pack_frames(start, root, rot, steps))
+        await self.ws.send_bytes(P.pack_frames(start, root, rot, steps, samples=self.n_samples))
         if n:  # kept as the synthesizer made them (float64): the download is its motion, not a rounded copy
             self._roots.append(np.asarray(motion.root_positions))
             self._rots.append(np.asarray(motion.rotations))

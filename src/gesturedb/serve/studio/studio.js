@@ -155,9 +155,9 @@ function parseFrames(buf) {
   const magic = String.fromCharCode(dv.getUint8(0), dv.getUint8(1), dv.getUint8(2), dv.getUint8(3));
   if (magic !== 'GDBF' || dv.getUint32(4, true) !== 1) throw new Error('not a frames message of layout 1');
   const start = dv.getUint32(8, true), count = dv.getUint32(12, true), nj = dv.getUint32(16, true);
-  const tail = dv.getUint32(20, true), w = 3 + 4 * nj;
-  const data = new Float32Array(buf, 24, count * w);
-  const steps = tail ? JSON.parse(decoder.decode(new Uint8Array(buf, 24 + count * w * 4, tail))) : [];
+  const tail = dv.getUint32(20, true), w = 3 + 4 * nj;   // header field 24: the samples received (unused here)
+  const data = new Float32Array(buf, 28, count * w);
+  const steps = tail ? JSON.parse(decoder.decode(new Uint8Array(buf, 28 + count * w * 4, tail))) : [];
   const rows = [];
   for (let i = 0; i < count; i++) rows.push(data.subarray(i * w, (i + 1) * w));
   return { start, rows, steps };
