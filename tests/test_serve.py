@@ -280,6 +280,16 @@ def test_control_switches_from_the_next_step(client, speech):
     assert {s["control"] for s in later[3]} == {"right_wrist_speed_low"}
 
 
+def test_control_schedules_are_checked_item_by_item(client):
+    with client.websocket_connect("/stream") as ws:
+        _start(ws, control="0-2: left_wrist_height_high; 2-: hand_speed_low")
+        ws.send_text(json.dumps({"type": "control", "control": "0-1: left_wrist_height_high; 1-: nope_low"}))
+        m = ws.receive_json()
+        assert m["code"] == "bad_control" and "nope_low" in m["message"] and not m["fatal"]
+        ws.send_text(json.dumps({"type": "control", "control": "0-1: x > p5; 0-2: y < p3"}))
+        assert ws.receive_json()["code"] == "bad_control"
+
+
 @pytest.mark.parametrize("first, code, error", [
     (b"\x00\xff garbage", P.CLOSE_POLICY, "bad_message"),
     ("not json {", P.CLOSE_POLICY, "bad_message"),

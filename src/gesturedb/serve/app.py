@@ -125,8 +125,9 @@ class ServerState:
         self._searcher = None
 
     def check_control(self, control) -> str | None:
-        """A client's control: None (no control) or a mask expression or saved mask name that compiles
-        against this database.
+        """A client's control: None (no control), a mask expression or saved mask name, or a schedule of
+        them over output seconds (``"0-12: left_wrist_high; 12-: symmetric"``), every expression of
+        which compiles against this database.
 
         Raises
         ------
@@ -142,10 +143,13 @@ class ServerState:
             if control in self._controls_ok:
                 return control
             from gesturedb.control.compile import compile_mask
+            from gesturedb.control.schedule import parse_schedule
 
             db = self.db
-            compile_mask(control, controls=db.control_datasets, named=db.mask_datasets, units=db.control_units,
-                         n_frames=db.n_frames)
+            exprs = [item.expr for item in parse_schedule(control)] if ":" in control else [control]
+            for expr in exprs:
+                compile_mask(expr, controls=db.control_datasets, named=db.mask_datasets, units=db.control_units,
+                             n_frames=db.n_frames)
             self._controls_ok[control] = None
             while len(self._controls_ok) > 256:
                 self._controls_ok.popitem(last=False)
