@@ -353,6 +353,20 @@ def test_message_size_and_idle_limits(db):
             _closed_with(ws, P.CLOSE_POLICY, "idle")
 
 
+def test_audio_faster_than_real_time_is_slowed(db, speech):
+    """A client that feeds audio at full speed gets real time once past the allowance."""
+    with TestClient(create_app(db, stream_factory=ReplayStream, limits=Limits(max_ahead_s=0.5))) as c:
+        with c.websocket_connect("/stream") as ws:
+            _start(ws)
+            t = time.monotonic()
+            for k in range(4):
+                ws.send_bytes(P.encode_audio(speech[k * SR // 2:(k + 1) * SR // 2]))
+            ws.send_text(json.dumps({"type": "ping"}))
+            while ws.receive().get("text") is None:
+                pass
+            assert time.monotonic() - t >= 2.0 - 0.5 - 0.1  # 2 s of speech, 0.5 s ahead allowed
+
+
 def test_too_much_audio_closes_the_stream(db):
     with TestClient(create_app(db, stream_factory=ReplayStream, limits=Limits(max_audio_s=1.0))) as c:
         with c.websocket_connect("/stream") as ws:

@@ -38,6 +38,11 @@ class Limits:
         How long a finished stream's result stays downloadable.
     max_source_s : float
         Longest database stretch ``GET /source`` returns.
+    max_ahead_s : float
+        How far a stream's audio may run ahead of real time (from its start): a client
+        sending faster is slowed to real time after this much (its next message waits),
+        so that one client feeding audio at full speed cannot take the CPU the others
+        need for their steps. POST /synth is the way for a whole file at once.
     """
 
     max_message_bytes: int = 1 << 20
@@ -49,13 +54,14 @@ class Limits:
     max_results: int = 16
     result_ttl_s: float = 600.0
     max_source_s: float = 60.0
+    max_ahead_s: float = 30.0
 
     def __post_init__(self):
         for name in ("max_message_bytes", "max_upload_bytes", "max_streams", "max_errors", "max_results"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ParameterError(f"Limits.{name}: expected a positive integer; got {v!r}")
-        for name in ("max_audio_s", "idle_s", "result_ttl_s", "max_source_s"):
+        for name in ("max_audio_s", "idle_s", "result_ttl_s", "max_source_s", "max_ahead_s"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
                 raise ParameterError(f"Limits.{name}: expected a positive number of seconds; got {v!r}")

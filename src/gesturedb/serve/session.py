@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import time
 
 import anyio
 import numpy as np
@@ -157,6 +158,7 @@ class StreamSession:
         if factory is None:
             raise _Close(P.CLOSE_INTERNAL, "unavailable", self.state.stream_unavailable)
         self.fmt, self.sample_rate = fmt, rate
+        self.t_start = time.monotonic()
         try:
             self.stream = await run_in_threadpool(factory, self.state.db, sample_rate=rate)
         except GestureDBError as exc:
@@ -188,6 +190,10 @@ class StreamSession:
         if self.n_samples > self.limits.max_audio_s * self.sample_rate:
             raise _Close(P.CLOSE_POLICY, "too_long", f"the stream passed the limit of {self.limits.max_audio_s:g} s "
                                                      "of speech; start a new one")
+        # faster than real time beyond the allowance: this stream waits (TCP pushes back on its client)
+        ahead_s = self.n_samples / self.sample_rate - (time.monotonic() - self.t_start) - self.limits.max_ahead_s
+        if ahead_s > 0:
+            await anyio.sleep(ahead_s)
         if samples.shape[0]:
             await self._send_chunk(await self._synth(self.stream.push, samples))
 
