@@ -152,7 +152,7 @@ def recording(scott_dir, tmp_path):
 
 
 def _assert_nothing_left(folder: Path, keep=()):
-    left = sorted(p.name for p in folder.iterdir() if p.name not in keep and not p.name.endswith(".lock"))
+    left = sorted(p.name for p in folder.iterdir() if p.name not in keep)  # no temporary, no lock file
     assert left == [], left
 
 
