@@ -71,7 +71,9 @@ double gather_sum_f32(const float* data, int64_t rows, int64_t cols, const int64
     std::vector<double> partial(n_chunks, 0.0);
     parallel_for(n_chunks, threads, [&](int64_t c, int) {
         const int64_t i0 = c * chunk, i1 = std::min(n, i0 + chunk);
-        auto prefetch = [&](int64_t i) { prefetch_bytes(data + starts[i] * cols, len * int64_t(sizeof(float))); };
+        auto prefetch = [&](int64_t i) {
+            prefetch_bytes(data + starts[i] * cols, len * int64_t(sizeof(float)));
+        };
         for (int64_t i = i0; i < std::min(i1, i0 + kScatterAhead); ++i) prefetch(i);
         float acc[16] = {0};
         double s = 0.0;

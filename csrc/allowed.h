@@ -25,8 +25,8 @@ inline uint64_t bits64(const BitsetView& b, int64_t f) {
 // whose window [first + i, first + i + last_off] has both its first and its last
 // frame allowed (spec step 1: only those two frames are checked).
 template <class Fn>
-void for_each_allowed_run(const BitsetView& allowed, int64_t first, int64_t count,
-                          int64_t last_off, Fn&& fn) {
+void for_each_allowed_run(const BitsetView& allowed, int64_t first, int64_t count, int64_t last_off,
+                          Fn&& fn) {
     if (count <= 0) return;
     if (allowed.all()) {
         fn(int64_t(0), count);

@@ -2,9 +2,9 @@
 // returning exactly what it would alone. Chooses per batch between the
 // per-query path (one single-threaded StepEngine per worker) and the blocked
 // path (blocked.h), and cuts the queries into blocks for the pool.
-#include "search.h"
 #include "blocked.h"
 #include "pool.h"
+#include "search.h"
 #include "search_loop.h"
 #include "threads.h"
 
@@ -53,8 +53,8 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
                                         q.table_da);
                 return;
             }
-            q.failed_step = run_search(*engines[tid], db, q.audio, q.init_pose, window, q.k,
-                                       preselect, allowed, q.exclude, q.out);
+            q.failed_step = run_search(*engines[tid], db, q.audio, q.init_pose, window, q.k, preselect,
+                                       allowed, q.exclude, q.out);
         });
         return;
     }
@@ -66,7 +66,8 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
     // blocks of up to 256 queries, at least one block per thread, and at most
     // ~64 MB of per-segment pre-selection state (20 bytes per query and segment)
     // per block, so a database of many short segments does not exhaust memory
-    const int64_t by_memory = std::max<int64_t>(16, (int64_t(64) << 20) / (20 * std::max<int64_t>(1, db.n_segments())));
+    const int64_t by_memory =
+        std::max<int64_t>(16, (int64_t(64) << 20) / (20 * std::max<int64_t>(1, db.n_segments())));
     const int64_t per_block =
         std::max<int64_t>(1, std::min({int64_t(256), by_memory, (Q + threads - 1) / threads}));
     const int64_t n_blocks = (Q + per_block - 1) / per_block;
@@ -79,10 +80,12 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
 }
 
 // BatchPlan::preselect's checks; returns the windows' common length n.
-int64_t check_table_queries(const Database& db, std::vector<BatchQuery>& queries, const AllowedSchedule& allowed) {
+int64_t check_table_queries(const Database& db, std::vector<BatchQuery>& queries,
+                            const AllowedSchedule& allowed) {
     const int64_t n = queries[0].audio.rows;
     if (n < 1) throw std::invalid_argument("queries: expected windows of >= 1 rows");
-    if (allowed.per_step) throw std::invalid_argument("allowed: expected one bitset for a pre-selection table");
+    if (allowed.per_step)
+        throw std::invalid_argument("allowed: expected one bitset for a pre-selection table");
     for (auto& q : queries) {
         if (q.audio.rows != n)
             throw std::invalid_argument("queries: expected windows of equal length " + std::to_string(n) +
@@ -97,9 +100,9 @@ int64_t check_table_queries(const Database& db, std::vector<BatchQuery>& queries
 
 }  // namespace
 
-void rank_sum_search_batch(const Kernels& kernels, const Database& db,
-                           std::vector<BatchQuery>& queries, int64_t window, Preselect preselect,
-                           const AllowedSchedule& allowed, int threads, BatchMethod method) {
+void rank_sum_search_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries,
+                           int64_t window, Preselect preselect, const AllowedSchedule& allowed, int threads,
+                           BatchMethod method) {
     for (auto& q : queries) {
         check_search_args(db, q.audio, window, q.k, allowed);
         q.table_s = nullptr;

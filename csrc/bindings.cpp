@@ -67,7 +67,8 @@ Database make_db(const F32& pose, const F32& audio, const I64& seg_start, const 
         if (!(half || py::isinstance<F32>((*pose_proj)[0])) || !py::isinstance<F64>((*pose_proj)[1]) ||
             !py::isinstance<F64>((*pose_proj)[2]))
             throw std::invalid_argument(
-                "pose_proj: expected float32 (or binary16 as uint16) blocks and float64 basis and mean, C-contiguous");
+                "pose_proj: expected float32 (or binary16 as uint16) blocks and float64 basis and mean, "
+                "C-contiguous");
         const F64 basis = (*pose_proj)[1].cast<F64>();
         const F64 mean = (*pose_proj)[2].cast<F64>();
         // the tuple's arrays are owned by the caller's PoseProjection; cast
@@ -76,7 +77,8 @@ Database make_db(const F32& pose, const F32& audio, const I64& seg_start, const 
         auto set_blocks = [&](const auto& rows, auto& span) {
             require_ndim(rows, 3, "pose_proj blocks");
             if (rows.shape(2) != kFrameBlock)
-                throw std::invalid_argument("pose_proj blocks: expected (ceil(F/16), J, 16); got " + shape_str(rows));
+                throw std::invalid_argument("pose_proj blocks: expected (ceil(F/16), J, 16); got " +
+                                            shape_str(rows));
             span = {rows.data(), int64_t(rows.shape(0)), int64_t(rows.shape(1)) * kFrameBlock};
             db.proj_dim = int64_t(rows.shape(1));
         };
@@ -143,8 +145,8 @@ BatchExclude batch_exclude(const std::optional<Bool>& exclude, int64_t Q, int64_
         b.data = e.data();
         b.per_query = true;
     } else {
-        throw std::invalid_argument("exclude: expected (" + std::to_string(M) + ",) or (" + std::to_string(Q) +
-                                    ", " + std::to_string(M) + "); got " + shape_str(e));
+        throw std::invalid_argument("exclude: expected (" + std::to_string(M) + ",) or (" +
+                                    std::to_string(Q) + ", " + std::to_string(M) + "); got " + shape_str(e));
     }
     return b;
 }
@@ -183,8 +185,8 @@ struct SearchArrays {
     I64 pose_rank, audio_rank, n_candidates;
 
     explicit SearchArrays(int64_t S)
-        : segment(S), start(S), frame(S), length(S), out_frame(S), pose_dist(S), audio_dist(S),
-          pose_rank(S), audio_rank(S), n_candidates(S) {}
+        : segment(S), start(S), frame(S), length(S), out_frame(S), pose_dist(S), audio_dist(S), pose_rank(S),
+          audio_rank(S), n_candidates(S) {}
 
     SearchOutput view(int64_t offset = 0) {
         return {segment.mutable_data() + offset,    start.mutable_data() + offset,
@@ -232,16 +234,21 @@ PYBIND11_MODULE(_core, m) {
     // choose the kernel table now so that a bad GESTUREDB_SIMD fails the import
     active_kernels();
 
-    m.def("kernels", []() {
-        const char* names[8];
-        const int n = available_isas(names, 8);
-        std::vector<std::string> out(names, names + std::min(n, 8));
-        return out;
-    }, "Instruction sets this build and CPU can run, narrowest first.");
-    m.def("get_simd", []() { return std::string(active_kernels().isa); },
-          "The instruction set the next search will use.");
-    m.def("set_simd", [](const std::string& isa) { set_simd(isa.c_str()); }, py::arg("isa"),
-          "Switch the instruction set for subsequent searches ('scalar', 'avx2', 'avx512').");
+    m.def(
+        "kernels",
+        []() {
+            const char* names[8];
+            const int n = available_isas(names, 8);
+            std::vector<std::string> out(names, names + std::min(n, 8));
+            return out;
+        },
+        "Instruction sets this build and CPU can run, narrowest first.");
+    m.def(
+        "get_simd", []() { return std::string(active_kernels().isa); },
+        "The instruction set the next search will use.");
+    m.def(
+        "set_simd", [](const std::string& isa) { set_simd(isa.c_str()); }, py::arg("isa"),
+        "Switch the instruction set for subsequent searches ('scalar', 'avx2', 'avx512').");
     m.def("default_threads", &default_threads,
           "Threads used when a call passes threads <= 0: the CPUs in this process's affinity mask, "
           "bounded by the cgroup CPU quota, at least 1.");
@@ -249,34 +256,40 @@ PYBIND11_MODULE(_core, m) {
           "The CPU quota of the cgroup mounted at root, in whole CPUs rounded up; 0 when there is none.");
 
     // --- raw kernels, for tests and benchmarks --------------------------------
-    m.def("l2sq_rows_f32", [](const F32& rows, const F32& v, const std::string& isa) {
-        const Kernels& k = kernels_for(isa.c_str());
-        const Span2<const float> r = span2(rows, "rows");
-        check_vector(v, r.cols, "v");
-        py::array_t<float> out(r.rows);
-        float* o = out.mutable_data();
-        {
-            py::gil_scoped_release release;
-            k.l2sq_rows_f32(r.data, r.rows, r.cols, v.data(), o);
-        }
-        return out;
-    }, py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
-       "out[r] = ||rows[r] - v||^2 with the kernel of one instruction set.");
+    m.def(
+        "l2sq_rows_f32",
+        [](const F32& rows, const F32& v, const std::string& isa) {
+            const Kernels& k = kernels_for(isa.c_str());
+            const Span2<const float> r = span2(rows, "rows");
+            check_vector(v, r.cols, "v");
+            py::array_t<float> out(r.rows);
+            float* o = out.mutable_data();
+            {
+                py::gil_scoped_release release;
+                k.l2sq_rows_f32(r.data, r.rows, r.cols, v.data(), o);
+            }
+            return out;
+        },
+        py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
+        "out[r] = ||rows[r] - v||^2 with the kernel of one instruction set.");
 
-    m.def("l2sq_rows_f16", [](const U16& rows, const F32& v, const std::string& isa) {
-        const Kernels& k = kernels_for(isa.c_str());
-        require_ndim(rows, 2, "rows");
-        const int64_t R = rows.shape(0), D = rows.shape(1);
-        check_vector(v, D, "v");
-        py::array_t<float> d(R);
-        float* pd = d.mutable_data();
-        {
-            py::gil_scoped_release release;
-            k.l2sq_rows_f16(rows.data(), R, D, v.data(), pd);
-        }
-        return d;
-    }, py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
-       "||h - v||^2 per row of binary16 bit patterns h, with one instruction set.");
+    m.def(
+        "l2sq_rows_f16",
+        [](const U16& rows, const F32& v, const std::string& isa) {
+            const Kernels& k = kernels_for(isa.c_str());
+            require_ndim(rows, 2, "rows");
+            const int64_t R = rows.shape(0), D = rows.shape(1);
+            check_vector(v, D, "v");
+            py::array_t<float> d(R);
+            float* pd = d.mutable_data();
+            {
+                py::gil_scoped_release release;
+                k.l2sq_rows_f16(rows.data(), R, D, v.data(), pd);
+            }
+            return d;
+        },
+        py::arg("rows").noconvert(), py::arg("v").noconvert(), py::arg("isa"),
+        "||h - v||^2 per row of binary16 bit patterns h, with one instruction set.");
 
     // float32 or binary16 blocks: the same checks and call, only the kernel differs
     auto blocks_fn = [](auto kernel_of) {
@@ -304,265 +317,289 @@ PYBIND11_MODULE(_core, m) {
     const char* blocks_doc =
         "(||z_f - v||^2 for frames f in [f0, f1) stored in blocks of 16, and with up = (a, b, c) the\n"
         "smallest a d_f + b z_f[-1] + c, +inf without), with one instruction set.";
-    m.def("l2sq_blocks_f32",
-          [f = blocks_fn([](const Kernels& k) { return k.l2sq_blocks_f32; })](
-              const F32& blocks, int64_t f0, int64_t f1, const F32& v, const std::string& isa,
-              std::optional<std::array<float, 3>> up) { return f(blocks, f0, f1, v, isa, up); },
-          py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(), py::arg("isa"),
-          py::arg("up") = py::none(), blocks_doc);
-    m.def("l2sq_blocks_f16",
-          [f = blocks_fn([](const Kernels& k) { return k.l2sq_blocks_f16; })](
-              const U16& blocks, int64_t f0, int64_t f1, const F32& v, const std::string& isa,
-              std::optional<std::array<float, 3>> up) { return f(blocks, f0, f1, v, isa, up); },
-          py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(), py::arg("isa"),
-          py::arg("up") = py::none(), "The same over binary16 bit patterns (uint16 blocks).");
+    m.def(
+        "l2sq_blocks_f32",
+        [f = blocks_fn([](const Kernels& k) { return k.l2sq_blocks_f32; })](
+            const F32& blocks, int64_t f0, int64_t f1, const F32& v, const std::string& isa,
+            std::optional<std::array<float, 3>> up) { return f(blocks, f0, f1, v, isa, up); },
+        py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(), py::arg("isa"),
+        py::arg("up") = py::none(), blocks_doc);
+    m.def(
+        "l2sq_blocks_f16",
+        [f = blocks_fn([](const Kernels& k) { return k.l2sq_blocks_f16; })](
+            const U16& blocks, int64_t f0, int64_t f1, const F32& v, const std::string& isa,
+            std::optional<std::array<float, 3>> up) { return f(blocks, f0, f1, v, isa, up); },
+        py::arg("blocks").noconvert(), py::arg("f0"), py::arg("f1"), py::arg("v").noconvert(), py::arg("isa"),
+        py::arg("up") = py::none(), "The same over binary16 bit patterns (uint16 blocks).");
 
-    m.def("l2sq_pairs_f32", [](const F32& rows, const F32& vs, const I64& ri, const I64& vi,
-                               const std::string& isa) {
-        const Kernels& k = kernels_for(isa.c_str());
-        const Span2<const float> r = span2(rows, "rows"), v = span2(vs, "vs");
-        if (v.cols != r.cols) throw std::invalid_argument("vs: expected " + std::to_string(r.cols) + " columns");
-        require_ndim(ri, 1, "ri");
-        require_ndim(vi, 1, "vi");
-        const int64_t n = ri.shape(0);
-        if (vi.shape(0) != n) throw std::invalid_argument("vi: expected the length of ri");
-        std::vector<const float*> pr(n), pv(n);
-        for (int64_t i = 0; i < n; ++i) {
-            if (ri.data()[i] < 0 || ri.data()[i] >= r.rows || vi.data()[i] < 0 || vi.data()[i] >= v.rows)
-                throw std::invalid_argument("ri/vi: index out of range");
-            pr[i] = r.row(ri.data()[i]);
-            pv[i] = v.row(vi.data()[i]);
-        }
-        py::array_t<float> out(n);
-        float* o = out.mutable_data();
-        {
-            py::gil_scoped_release release;
-            k.l2sq_pairs_f32(pr.data(), pv.data(), n, r.cols, o);
-        }
-        return out;
-    }, py::arg("rows").noconvert(), py::arg("vs").noconvert(), py::arg("ri").noconvert(),
-       py::arg("vi").noconvert(), py::arg("isa"),
-       "out[i] = ||rows[ri[i]] - vs[vi[i]]||^2 through the batch's pair kernel of one instruction set.");
+    m.def(
+        "l2sq_pairs_f32",
+        [](const F32& rows, const F32& vs, const I64& ri, const I64& vi, const std::string& isa) {
+            const Kernels& k = kernels_for(isa.c_str());
+            const Span2<const float> r = span2(rows, "rows"), v = span2(vs, "vs");
+            if (v.cols != r.cols)
+                throw std::invalid_argument("vs: expected " + std::to_string(r.cols) + " columns");
+            require_ndim(ri, 1, "ri");
+            require_ndim(vi, 1, "vi");
+            const int64_t n = ri.shape(0);
+            if (vi.shape(0) != n) throw std::invalid_argument("vi: expected the length of ri");
+            std::vector<const float*> pr(n), pv(n);
+            for (int64_t i = 0; i < n; ++i) {
+                if (ri.data()[i] < 0 || ri.data()[i] >= r.rows || vi.data()[i] < 0 || vi.data()[i] >= v.rows)
+                    throw std::invalid_argument("ri/vi: index out of range");
+                pr[i] = r.row(ri.data()[i]);
+                pv[i] = v.row(vi.data()[i]);
+            }
+            py::array_t<float> out(n);
+            float* o = out.mutable_data();
+            {
+                py::gil_scoped_release release;
+                k.l2sq_pairs_f32(pr.data(), pv.data(), n, r.cols, o);
+            }
+            return out;
+        },
+        py::arg("rows").noconvert(), py::arg("vs").noconvert(), py::arg("ri").noconvert(),
+        py::arg("vi").noconvert(), py::arg("isa"),
+        "out[i] = ||rows[ri[i]] - vs[vi[i]]||^2 through the batch's pair kernel of one instruction set.");
 
-    m.def("cosdots_pairs_f32", [](const F32& audio, const I64& starts, const F32& qs, const I64& qi,
-                                  const std::string& isa) {
-        const Kernels& k = kernels_for(isa.c_str());
-        const Span2<const float> a = span2(audio, "audio"), q = span2(qs, "qs");
-        require_ndim(starts, 1, "starts");
-        require_ndim(qi, 1, "qi");
-        const int64_t n = starts.shape(0), len = q.cols;
-        if (qi.shape(0) != n) throw std::invalid_argument("qi: expected the length of starts");
-        std::vector<const float*> pw(n), pq(n);
-        for (int64_t i = 0; i < n; ++i) {
-            const int64_t g = starts.data()[i];
-            if (g < 0 || g * a.cols + len > a.rows * a.cols || qi.data()[i] < 0 || qi.data()[i] >= q.rows)
-                throw std::invalid_argument("starts/qi: index out of range");
-            pw[i] = a.row(g);
-            pq[i] = q.row(qi.data()[i]);
-        }
-        py::array_t<float> out(n);
-        float* o = out.mutable_data();
-        {
-            py::gil_scoped_release release;
-            k.cosdots_pairs_f32(pw.data(), pq.data(), n, len, o);
-        }
-        return out;
-    }, py::arg("audio").noconvert(), py::arg("starts").noconvert(), py::arg("qs").noconvert(),
-       py::arg("qi").noconvert(), py::arg("isa"),
-       "qa[i] = <qs[qi[i]], the len(qs[0]) values of audio from frame starts[i]> through the batch's pair kernel.");
+    m.def(
+        "cosdots_pairs_f32",
+        [](const F32& audio, const I64& starts, const F32& qs, const I64& qi, const std::string& isa) {
+            const Kernels& k = kernels_for(isa.c_str());
+            const Span2<const float> a = span2(audio, "audio"), q = span2(qs, "qs");
+            require_ndim(starts, 1, "starts");
+            require_ndim(qi, 1, "qi");
+            const int64_t n = starts.shape(0), len = q.cols;
+            if (qi.shape(0) != n) throw std::invalid_argument("qi: expected the length of starts");
+            std::vector<const float*> pw(n), pq(n);
+            for (int64_t i = 0; i < n; ++i) {
+                const int64_t g = starts.data()[i];
+                if (g < 0 || g * a.cols + len > a.rows * a.cols || qi.data()[i] < 0 || qi.data()[i] >= q.rows)
+                    throw std::invalid_argument("starts/qi: index out of range");
+                pw[i] = a.row(g);
+                pq[i] = q.row(qi.data()[i]);
+            }
+            py::array_t<float> out(n);
+            float* o = out.mutable_data();
+            {
+                py::gil_scoped_release release;
+                k.cosdots_pairs_f32(pw.data(), pq.data(), n, len, o);
+            }
+            return out;
+        },
+        py::arg("audio").noconvert(), py::arg("starts").noconvert(), py::arg("qs").noconvert(),
+        py::arg("qi").noconvert(), py::arg("isa"),
+        "qa[i] = <qs[qi[i]], the len(qs[0]) values of audio from frame starts[i]> through the batch's pair "
+        "kernel.");
 
-    m.def("projfilter_f32", [](const F32& z, const F32& nrow, const F32& rres, const F32& x, const F32& lanes,
-                               const std::string& isa) {
-        const Kernels& k = kernels_for(isa.c_str());
-        const Span2<const float> zr = span2(z, "z"), xs = span2(x, "x"), par = span2(lanes, "lanes");
-        const int64_t n = zr.rows, J = zr.cols, nl = xs.rows;
-        check_vector(nrow, n, "nrow");
-        check_vector(rres, n, "rres");
-        if (xs.cols != J || par.rows != 6 || par.cols != nl || nl < 1)
-            throw std::invalid_argument("x: expected (lanes, J) and lanes (6, lanes)");
-        const int64_t qp = (nl + kQueryPanel - 1) / kQueryPanel * kQueryPanel;
-        // panels of 64 lanes as the batch packs them; padding lanes: zero x, aup = alo = 1
-        std::vector<float> xt(size_t(J) * qp, 0.0f), p(size_t(6) * qp, 0.0f);
-        for (int64_t l = 0; l < qp; ++l) p[1 * qp + l] = p[4 * qp + l] = 1.0f;
-        for (int64_t l = 0; l < nl; ++l) {
-            for (int64_t j = 0; j < J; ++j) xt[(l / 64) * 64 * J + j * 64 + l % 64] = xs(l, j);
-            for (int64_t c = 0; c < 6; ++c) p[c * qp + l] = par(c, l);
-        }
-        const ProjLanes L{&p[0], &p[qp], &p[2 * qp], &p[3 * qp], &p[4 * qp], &p[5 * qp]};
-        py::array_t<float> dh({n, qp}), umin(qp);
-        py::array_t<uint64_t> keep({n, qp / 64});
-        float *pd = dh.mutable_data(), *pu = umin.mutable_data();
-        uint64_t* pk = keep.mutable_data();
-        {
-            py::gil_scoped_release release;
-            std::fill(pu, pu + qp, std::numeric_limits<float>::infinity());
-            k.projfilter_f32(zr.data, n, J, nrow.data(), rres.data(), xt.data(), qp, L, pd, pu);
-            k.projkeep_f32(pd, n, qp, L, pu, pk);
-        }
-        return py::make_tuple(dh, umin, keep);
-    }, py::arg("z").noconvert(), py::arg("nrow").noconvert(), py::arg("rres").noconvert(),
-       py::arg("x").noconvert(), py::arg("lanes").noconvert(), py::arg("isa"),
-       "The batch's projection filter over rows z against lanes x; lanes = (nq, aup, bup, cup, alo, clo). "
-       "Returns (dh (n, qp), umin (qp,), keep bits (n, qp / 64)).");
+    m.def(
+        "projfilter_f32",
+        [](const F32& z, const F32& nrow, const F32& rres, const F32& x, const F32& lanes,
+           const std::string& isa) {
+            const Kernels& k = kernels_for(isa.c_str());
+            const Span2<const float> zr = span2(z, "z"), xs = span2(x, "x"), par = span2(lanes, "lanes");
+            const int64_t n = zr.rows, J = zr.cols, nl = xs.rows;
+            check_vector(nrow, n, "nrow");
+            check_vector(rres, n, "rres");
+            if (xs.cols != J || par.rows != 6 || par.cols != nl || nl < 1)
+                throw std::invalid_argument("x: expected (lanes, J) and lanes (6, lanes)");
+            const int64_t qp = (nl + kQueryPanel - 1) / kQueryPanel * kQueryPanel;
+            // panels of 64 lanes as the batch packs them; padding lanes: zero x, aup = alo = 1
+            std::vector<float> xt(size_t(J) * qp, 0.0f), p(size_t(6) * qp, 0.0f);
+            for (int64_t l = 0; l < qp; ++l) p[1 * qp + l] = p[4 * qp + l] = 1.0f;
+            for (int64_t l = 0; l < nl; ++l) {
+                for (int64_t j = 0; j < J; ++j) xt[(l / 64) * 64 * J + j * 64 + l % 64] = xs(l, j);
+                for (int64_t c = 0; c < 6; ++c) p[c * qp + l] = par(c, l);
+            }
+            const ProjLanes L{&p[0], &p[qp], &p[2 * qp], &p[3 * qp], &p[4 * qp], &p[5 * qp]};
+            py::array_t<float> dh({n, qp}), umin(qp);
+            py::array_t<uint64_t> keep({n, qp / 64});
+            float *pd = dh.mutable_data(), *pu = umin.mutable_data();
+            uint64_t* pk = keep.mutable_data();
+            {
+                py::gil_scoped_release release;
+                std::fill(pu, pu + qp, std::numeric_limits<float>::infinity());
+                k.projfilter_f32(zr.data, n, J, nrow.data(), rres.data(), xt.data(), qp, L, pd, pu);
+                k.projkeep_f32(pd, n, qp, L, pu, pk);
+            }
+            return py::make_tuple(dh, umin, keep);
+        },
+        py::arg("z").noconvert(), py::arg("nrow").noconvert(), py::arg("rres").noconvert(),
+        py::arg("x").noconvert(), py::arg("lanes").noconvert(), py::arg("isa"),
+        "The batch's projection filter over rows z against lanes x; lanes = (nq, aup, bup, cup, alo, clo). "
+        "Returns (dh (n, qp), umin (qp,), keep bits (n, qp / 64)).");
 
-    m.def("cosdots_f32", [](const F32& audio, const F32& q, const std::string& isa) {
-        const Kernels& k = kernels_for(isa.c_str());
-        const Span2<const float> a = span2(audio, "audio");
-        const Span2<const float> qs = span2(q, "q");
-        if (qs.cols != a.cols || qs.rows < 1 || qs.rows > a.rows)
-            throw std::invalid_argument("q: expected (n, " + std::to_string(a.cols) + ") with 1 <= n <= " +
-                                        std::to_string(a.rows) + "; got " + shape_str(q));
-        const int64_t n_win = a.rows - qs.rows + 1;
-        py::array_t<float> qa(n_win), aa(n_win);
-        float *pqa = qa.mutable_data(), *paa = aa.mutable_data();
-        {
-            py::gil_scoped_release release;
-            k.cosdots_f32(a.data, n_win, a.cols, qs.rows * qs.cols, qs.data, pqa, paa);
-        }
-        return py::make_tuple(qa, aa);
-    }, py::arg("audio").noconvert(), py::arg("q").noconvert(), py::arg("isa"),
-       "(<q, w>, <w, w>) for every window w of len(q) frames of audio (flattened).");
+    m.def(
+        "cosdots_f32",
+        [](const F32& audio, const F32& q, const std::string& isa) {
+            const Kernels& k = kernels_for(isa.c_str());
+            const Span2<const float> a = span2(audio, "audio");
+            const Span2<const float> qs = span2(q, "q");
+            if (qs.cols != a.cols || qs.rows < 1 || qs.rows > a.rows)
+                throw std::invalid_argument("q: expected (n, " + std::to_string(a.cols) +
+                                            ") with 1 <= n <= " + std::to_string(a.rows) + "; got " +
+                                            shape_str(q));
+            const int64_t n_win = a.rows - qs.rows + 1;
+            py::array_t<float> qa(n_win), aa(n_win);
+            float *pqa = qa.mutable_data(), *paa = aa.mutable_data();
+            {
+                py::gil_scoped_release release;
+                k.cosdots_f32(a.data, n_win, a.cols, qs.rows * qs.cols, qs.data, pqa, paa);
+            }
+            return py::make_tuple(qa, aa);
+        },
+        py::arg("audio").noconvert(), py::arg("q").noconvert(), py::arg("isa"),
+        "(<q, w>, <w, w>) for every window w of len(q) frames of audio (flattened).");
 
     // --- search -------------------------------------------------------------
-    m.def("step", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
-                     const F32& prev, const F32& query, int64_t k, const std::string& preselect,
-                     const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
-                     int threads, const std::optional<U16>& pose_f16,
-                     const std::optional<py::tuple>& pose_proj) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
-        check_vector(prev, db.pose.cols, "prev_pose");
-        const Span2<const float> q = span2(query, "query_audio");
-        if (q.cols != db.audio.cols || q.rows < 1)
-            throw std::invalid_argument("query_audio: expected (n >= 1, " + std::to_string(db.audio.cols) +
-                                        "); got " + shape_str(query));
-        if (k < 1) throw std::invalid_argument("k: expected >= 1; got " + std::to_string(k));
-        StepOptions opt;
-        opt.k = k;
-        opt.preselect = parse_preselect(preselect);
-        opt.allowed = make_allowed(allowed, db, false).at(0);
-        opt.exclude = exclude_ptr(exclude, db.n_segments());
-        const Kernels& kern = active_kernels();
-        StepResult r;
-        {
-            py::gil_scoped_release release;
-            StepEngine engine(kern, db, threads <= 0 ? default_threads() : threads);
-            r = engine.step(prev.data(), q.data, q.rows, opt);
-        }
-        return step_result_dict(r);
-    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
-       py::arg("seg_len").noconvert(), py::arg("prev").noconvert(), py::arg("query").noconvert(),
-       py::arg("k"), py::arg("preselect"), py::arg("allowed").noconvert().none(true),
-       py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
-       py::arg("pose_f16").noconvert().none(true) = py::none(),
-       py::arg("pose_proj").none(true) = py::none(),
-       "One rank-sum step (use gesturedb.search.rank_sum_step, which validates).");
+    m.def(
+        "step",
+        [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len, const F32& prev,
+           const F32& query, int64_t k, const std::string& preselect, const std::optional<U64>& allowed,
+           const std::optional<Bool>& exclude, int threads, const std::optional<U16>& pose_f16,
+           const std::optional<py::tuple>& pose_proj) {
+            const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
+            check_vector(prev, db.pose.cols, "prev_pose");
+            const Span2<const float> q = span2(query, "query_audio");
+            if (q.cols != db.audio.cols || q.rows < 1)
+                throw std::invalid_argument("query_audio: expected (n >= 1, " +
+                                            std::to_string(db.audio.cols) + "); got " + shape_str(query));
+            if (k < 1) throw std::invalid_argument("k: expected >= 1; got " + std::to_string(k));
+            StepOptions opt;
+            opt.k = k;
+            opt.preselect = parse_preselect(preselect);
+            opt.allowed = make_allowed(allowed, db, false).at(0);
+            opt.exclude = exclude_ptr(exclude, db.n_segments());
+            const Kernels& kern = active_kernels();
+            StepResult r;
+            {
+                py::gil_scoped_release release;
+                StepEngine engine(kern, db, threads <= 0 ? default_threads() : threads);
+                r = engine.step(prev.data(), q.data, q.rows, opt);
+            }
+            return step_result_dict(r);
+        },
+        py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+        py::arg("seg_len").noconvert(), py::arg("prev").noconvert(), py::arg("query").noconvert(),
+        py::arg("k"), py::arg("preselect"), py::arg("allowed").noconvert().none(true),
+        py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
+        py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+        "One rank-sum step (use gesturedb.search.rank_sum_step, which validates).");
 
-    m.def("preselect", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
-                          const F32& prev, const F32& query, const std::string& preselect,
-                          const std::optional<U64>& allowed, const std::optional<Bool>& exclude,
-                          int threads, const std::optional<U16>& pose_f16,
-                          const std::optional<py::tuple>& pose_proj) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
-        check_vector(prev, db.pose.cols, "prev_pose");
-        const Span2<const float> q = span2(query, "query_audio");
-        if (q.cols != db.audio.cols || q.rows < 1)
-            throw std::invalid_argument("query_audio: expected (n >= 1, " + std::to_string(db.audio.cols) +
-                                        "); got " + shape_str(query));
-        StepOptions opt;
-        opt.preselect = parse_preselect(preselect);
-        opt.allowed = make_allowed(allowed, db, false).at(0);
-        opt.exclude = exclude_ptr(exclude, db.n_segments());
-        const Kernels& kern = active_kernels();
-        const int64_t M = db.n_segments();
-        py::array_t<int64_t> s(M);
-        py::array_t<float> dp(M);
-        py::array_t<double> da(M);
-        int64_t* ps = s.mutable_data();
-        float* pdp = dp.mutable_data();
-        double* pda = da.mutable_data();
-        {
-            py::gil_scoped_release release;
-            StepEngine engine(kern, db, threads <= 0 ? default_threads() : threads);
-            engine.preselect(prev.data(), q.data, q.rows, opt, ps, pdp, pda);
-        }
-        return py::make_tuple(s, dp, da);
-    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
-       py::arg("seg_len").noconvert(), py::arg("prev").noconvert(), py::arg("query").noconvert(),
-       py::arg("preselect"), py::arg("allowed").noconvert().none(true),
-       py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
-       py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
-       "Pre-selection table of one step (use gesturedb.tables.preselect_table, which validates).");
+    m.def(
+        "preselect",
+        [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len, const F32& prev,
+           const F32& query, const std::string& preselect, const std::optional<U64>& allowed,
+           const std::optional<Bool>& exclude, int threads, const std::optional<U16>& pose_f16,
+           const std::optional<py::tuple>& pose_proj) {
+            const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
+            check_vector(prev, db.pose.cols, "prev_pose");
+            const Span2<const float> q = span2(query, "query_audio");
+            if (q.cols != db.audio.cols || q.rows < 1)
+                throw std::invalid_argument("query_audio: expected (n >= 1, " +
+                                            std::to_string(db.audio.cols) + "); got " + shape_str(query));
+            StepOptions opt;
+            opt.preselect = parse_preselect(preselect);
+            opt.allowed = make_allowed(allowed, db, false).at(0);
+            opt.exclude = exclude_ptr(exclude, db.n_segments());
+            const Kernels& kern = active_kernels();
+            const int64_t M = db.n_segments();
+            py::array_t<int64_t> s(M);
+            py::array_t<float> dp(M);
+            py::array_t<double> da(M);
+            int64_t* ps = s.mutable_data();
+            float* pdp = dp.mutable_data();
+            double* pda = da.mutable_data();
+            {
+                py::gil_scoped_release release;
+                StepEngine engine(kern, db, threads <= 0 ? default_threads() : threads);
+                engine.preselect(prev.data(), q.data, q.rows, opt, ps, pdp, pda);
+            }
+            return py::make_tuple(s, dp, da);
+        },
+        py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+        py::arg("seg_len").noconvert(), py::arg("prev").noconvert(), py::arg("query").noconvert(),
+        py::arg("preselect"), py::arg("allowed").noconvert().none(true),
+        py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
+        py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+        "Pre-selection table of one step (use gesturedb.tables.preselect_table, which validates).");
 
-    m.def("rank_table", [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t k) {
-        require_ndim(start, 1, "starts");
-        const int64_t M = start.shape(0);
-        check_vector(pose_dist, M, "pose_dist");
-        if (audio_dist.ndim() != 1 || audio_dist.shape(0) != M)
-            throw std::invalid_argument("audio_dist: expected (" + std::to_string(M) + ",); got " +
-                                        shape_str(audio_dist));
-        TableRank r;
-        {
-            py::gil_scoped_release release;
-            r = rank_table(start.data(), pose_dist.data(), audio_dist.data(), M, k);
-        }
-        return py::make_tuple(r.segment, r.pose_rank, r.audio_rank, r.n_candidates);
-    }, py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
-       py::arg("k"), "Ranks over a pre-selection table (use gesturedb.search.rank_table).");
+    m.def(
+        "rank_table",
+        [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t k) {
+            require_ndim(start, 1, "starts");
+            const int64_t M = start.shape(0);
+            check_vector(pose_dist, M, "pose_dist");
+            if (audio_dist.ndim() != 1 || audio_dist.shape(0) != M)
+                throw std::invalid_argument("audio_dist: expected (" + std::to_string(M) + ",); got " +
+                                            shape_str(audio_dist));
+            TableRank r;
+            {
+                py::gil_scoped_release release;
+                r = rank_table(start.data(), pose_dist.data(), audio_dist.data(), M, k);
+            }
+            return py::make_tuple(r.segment, r.pose_rank, r.audio_rank, r.n_candidates);
+        },
+        py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
+        py::arg("k"), "Ranks over a pre-selection table (use gesturedb.search.rank_table).");
 
-    m.def("table_top_lists", [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t n) {
-        require_ndim(start, 2, "starts");
-        const int64_t Q = start.shape(0), M = start.shape(1);
-        auto same_shape = [&](const py::array& arr, const char* name) {
-            if (arr.ndim() != 2 || arr.shape(0) != Q || arr.shape(1) != M)
-                throw std::invalid_argument(std::string(name) + ": expected (" + std::to_string(Q) + ", " +
-                                            std::to_string(M) + "); got " + shape_str(arr));
-        };
-        same_shape(pose_dist, "pose_dist");
-        same_shape(audio_dist, "audio_dist");
-        if (n < 1) throw std::invalid_argument("n: expected >= 1; got " + std::to_string(n));
-        py::array_t<int32_t> by_pose({Q, n}), by_audio({Q, n});
-        py::array_t<int64_t> n_cand(Q);
-        {
-            py::gil_scoped_release release;
-            table_top_lists(start.data(), pose_dist.data(), audio_dist.data(), Q, M, n, by_pose.mutable_data(),
-                            by_audio.mutable_data(), n_cand.mutable_data());
-        }
-        return py::make_tuple(n_cand, by_pose, by_audio);
-    }, py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
-       py::arg("n"), "Top lists of pre-selection tables (use gesturedb.tables.top_lists).");
+    m.def(
+        "table_top_lists",
+        [](const I64& start, const F32& pose_dist, const F64& audio_dist, int64_t n) {
+            require_ndim(start, 2, "starts");
+            const int64_t Q = start.shape(0), M = start.shape(1);
+            auto same_shape = [&](const py::array& arr, const char* name) {
+                if (arr.ndim() != 2 || arr.shape(0) != Q || arr.shape(1) != M)
+                    throw std::invalid_argument(std::string(name) + ": expected (" + std::to_string(Q) +
+                                                ", " + std::to_string(M) + "); got " + shape_str(arr));
+            };
+            same_shape(pose_dist, "pose_dist");
+            same_shape(audio_dist, "audio_dist");
+            if (n < 1) throw std::invalid_argument("n: expected >= 1; got " + std::to_string(n));
+            py::array_t<int32_t> by_pose({Q, n}), by_audio({Q, n});
+            py::array_t<int64_t> n_cand(Q);
+            {
+                py::gil_scoped_release release;
+                table_top_lists(start.data(), pose_dist.data(), audio_dist.data(), Q, M, n,
+                                by_pose.mutable_data(), by_audio.mutable_data(), n_cand.mutable_data());
+            }
+            return py::make_tuple(n_cand, by_pose, by_audio);
+        },
+        py::arg("starts").noconvert(), py::arg("pose_dist").noconvert(), py::arg("audio_dist").noconvert(),
+        py::arg("n"), "Top lists of pre-selection tables (use gesturedb.tables.top_lists).");
 
-    m.def("search", [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
-                       const F32& query, const F32& init_pose, int64_t window, int64_t k,
-                       const std::string& preselect, const std::optional<U64>& allowed,
-                       const std::optional<Bool>& exclude, int threads,
-                       const std::optional<U16>& pose_f16,
-                       const std::optional<py::tuple>& pose_proj) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
-        check_vector(init_pose, db.pose.cols, "init_pose");
-        const Span2<const float> q = span2(query, "query_audio");
-        if (window < 1) throw std::invalid_argument("step: expected >= 1; got " + std::to_string(window));
-        const int64_t S = q.rows >= 1 ? (q.rows + window - 1) / window : 0;
-        const AllowedSchedule sched = make_allowed(allowed, db, true);
-        const bool* ex = exclude_ptr(exclude, db.n_segments());
-        const Preselect pre = parse_preselect(preselect);
-        const Kernels& kern = active_kernels();
-        SearchArrays out(S);
-        SearchOutput view = out.view();
-        int64_t failed;
-        {
-            py::gil_scoped_release release;
-            failed = rank_sum_search(kern, db, q, init_pose.data(), window, k, pre, sched, ex, view,
-                                     threads);
-        }
-        return py::make_tuple(out.to_dict(), failed);
-    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
-       py::arg("seg_len").noconvert(), py::arg("query").noconvert(), py::arg("init_pose").noconvert(),
-       py::arg("window"), py::arg("k"), py::arg("preselect"),
-       py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
-       py::arg("threads") = 0, py::arg("pose_f16").noconvert().none(true) = py::none(),
-       py::arg("pose_proj").none(true) = py::none(),
-       "A whole search -> (dict of (S,) arrays, failed step or -1) "
-       "(use gesturedb.search.rank_sum_search, which validates).");
+    m.def(
+        "search",
+        [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len, const F32& query,
+           const F32& init_pose, int64_t window, int64_t k, const std::string& preselect,
+           const std::optional<U64>& allowed, const std::optional<Bool>& exclude, int threads,
+           const std::optional<U16>& pose_f16, const std::optional<py::tuple>& pose_proj) {
+            const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
+            check_vector(init_pose, db.pose.cols, "init_pose");
+            const Span2<const float> q = span2(query, "query_audio");
+            if (window < 1) throw std::invalid_argument("step: expected >= 1; got " + std::to_string(window));
+            const int64_t S = q.rows >= 1 ? (q.rows + window - 1) / window : 0;
+            const AllowedSchedule sched = make_allowed(allowed, db, true);
+            const bool* ex = exclude_ptr(exclude, db.n_segments());
+            const Preselect pre = parse_preselect(preselect);
+            const Kernels& kern = active_kernels();
+            SearchArrays out(S);
+            SearchOutput view = out.view();
+            int64_t failed;
+            {
+                py::gil_scoped_release release;
+                failed =
+                    rank_sum_search(kern, db, q, init_pose.data(), window, k, pre, sched, ex, view, threads);
+            }
+            return py::make_tuple(out.to_dict(), failed);
+        },
+        py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+        py::arg("seg_len").noconvert(), py::arg("query").noconvert(), py::arg("init_pose").noconvert(),
+        py::arg("window"), py::arg("k"), py::arg("preselect"), py::arg("allowed").noconvert().none(true),
+        py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
+        py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+        "A whole search -> (dict of (S,) arrays, failed step or -1) "
+        "(use gesturedb.search.rank_sum_search, which validates).");
 
     // A BatchPlan and the arrays its Database points into: holding them here
     // keeps them alive (and unresizable) as long as the plan.
@@ -580,111 +617,120 @@ PYBIND11_MODULE(_core, m) {
         .def(py::init([](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
                          const std::string& preselect, const std::optional<U16>& pose_f16,
                          const std::optional<py::tuple>& pose_proj) {
-            auto p = std::make_unique<PyBatchPlan>(PyBatchPlan{pose, audio, seg_start, seg_len, pose_f16, pose_proj, {}, {}});
-            p->db = make_db(p->pose, p->audio, p->seg_start, p->seg_len, p->pose_f16, p->pose_proj);
-            p->plan.reset(new BatchPlan(active_kernels(), p->db, parse_preselect(preselect)));
-            return p;
-        }), py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
-            py::arg("seg_len").noconvert(), py::arg("preselect"),
-            py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none())
-        .def("tables", [](PyBatchPlan& p, const F32& prevs, const F32& windows, const std::optional<U64>& allowed,
-                          const std::optional<Bool>& exclude, int threads, const std::string& method) {
-            const Database& db = p.db;
-            const int64_t M = db.n_segments();
-            const Span2<const float> pv = span2(prevs, "prev_poses");
-            const int64_t Q = pv.rows;
-            if (pv.cols != db.pose.cols)
-                throw std::invalid_argument("prev_poses: expected (Q, " + std::to_string(db.pose.cols) + "); got " +
-                                            shape_str(prevs));
-            if (windows.ndim() != 3 || windows.shape(0) != Q || windows.shape(1) < 1 ||
-                windows.shape(2) != db.audio.cols)
-                throw std::invalid_argument("query_windows: expected (" + std::to_string(Q) + ", n >= 1, " +
-                                            std::to_string(db.audio.cols) + "); got " + shape_str(windows));
+                 auto p = std::make_unique<PyBatchPlan>(
+                     PyBatchPlan{pose, audio, seg_start, seg_len, pose_f16, pose_proj, {}, {}});
+                 p->db = make_db(p->pose, p->audio, p->seg_start, p->seg_len, p->pose_f16, p->pose_proj);
+                 p->plan.reset(new BatchPlan(active_kernels(), p->db, parse_preselect(preselect)));
+                 return p;
+             }),
+             py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+             py::arg("seg_len").noconvert(), py::arg("preselect"),
+             py::arg("pose_f16").noconvert().none(true) = py::none(),
+             py::arg("pose_proj").none(true) = py::none())
+        .def(
+            "tables",
+            [](PyBatchPlan& p, const F32& prevs, const F32& windows, const std::optional<U64>& allowed,
+               const std::optional<Bool>& exclude, int threads, const std::string& method) {
+                const Database& db = p.db;
+                const int64_t M = db.n_segments();
+                const Span2<const float> pv = span2(prevs, "prev_poses");
+                const int64_t Q = pv.rows;
+                if (pv.cols != db.pose.cols)
+                    throw std::invalid_argument("prev_poses: expected (Q, " + std::to_string(db.pose.cols) +
+                                                "); got " + shape_str(prevs));
+                if (windows.ndim() != 3 || windows.shape(0) != Q || windows.shape(1) < 1 ||
+                    windows.shape(2) != db.audio.cols)
+                    throw std::invalid_argument("query_windows: expected (" + std::to_string(Q) +
+                                                ", n >= 1, " + std::to_string(db.audio.cols) + "); got " +
+                                                shape_str(windows));
+                const BatchMethod bm = parse_method(method);
+                const AllowedSchedule sched = make_allowed(allowed, db, false);
+                const BatchExclude ex = batch_exclude(exclude, Q, M);
+                const int64_t n = windows.shape(1), Da = db.audio.cols;
+                py::array_t<int64_t> s({Q, M});
+                py::array_t<float> dp({Q, M});
+                py::array_t<double> da({Q, M});
+                std::vector<BatchQuery> batch(Q);
+                for (int64_t i = 0; i < Q; ++i) {
+                    batch[i].audio = Span2<const float>{windows.data() + i * n * Da, n, Da};
+                    batch[i].init_pose = pv.row(i);
+                    batch[i].k = 1;
+                    batch[i].exclude = ex.row(i);
+                    batch[i].table_s = s.mutable_data() + i * M;
+                    batch[i].table_dp = dp.mutable_data() + i * M;
+                    batch[i].table_da = da.mutable_data() + i * M;
+                }
+                {
+                    py::gil_scoped_release release;
+                    p.plan->preselect(batch, sched, threads, bm);
+                }
+                return py::make_tuple(s, dp, da);
+            },
+            py::arg("prev_poses").noconvert(), py::arg("query_windows").noconvert(),
+            py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
+            py::arg("threads") = 0, py::arg("method") = "auto",
+            "Pre-selection tables of one step for many queries -> (starts, pose_dist, audio_dist), each (Q, "
+            "M).")
+        .def_property_readonly(
+            "n_setups", [](const PyBatchPlan& p) { return p.plan->n_setups(); },
+            "Window lengths whose blocked set-up the plan keeps.");
+
+    m.def(
+        "search_batch",
+        [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len,
+           const std::vector<F32>& queries, const F32& init_poses, int64_t window, const I64& k,
+           const std::string& preselect, const std::optional<U64>& allowed,
+           const std::optional<Bool>& exclude, int threads, const std::string& method,
+           const std::optional<U16>& pose_f16, const std::optional<py::tuple>& pose_proj) {
+            const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
+            const int64_t Q = int64_t(queries.size());
             const BatchMethod bm = parse_method(method);
-            const AllowedSchedule sched = make_allowed(allowed, db, false);
+            const Span2<const float> init = span2(init_poses, "init_poses");
+            if (init.rows != Q || init.cols != db.pose.cols)
+                throw std::invalid_argument("init_poses: expected (" + std::to_string(Q) + ", " +
+                                            std::to_string(db.pose.cols) + "); got " + shape_str(init_poses));
+            require_ndim(k, 1, "k");
+            if (k.shape(0) != Q)
+                throw std::invalid_argument("k: expected " + std::to_string(Q) + " values; got " +
+                                            std::to_string(k.shape(0)));
+            if (window < 1) throw std::invalid_argument("step: expected >= 1; got " + std::to_string(window));
+            const AllowedSchedule sched = make_allowed(allowed, db, true);
+            const Preselect pre = parse_preselect(preselect);
+            const int64_t M = db.n_segments();
             const BatchExclude ex = batch_exclude(exclude, Q, M);
-            const int64_t n = windows.shape(1), Da = db.audio.cols;
-            py::array_t<int64_t> s({Q, M});
-            py::array_t<float> dp({Q, M});
-            py::array_t<double> da({Q, M});
             std::vector<BatchQuery> batch(Q);
+            I64 offsets(Q + 1);
+            int64_t* off = offsets.mutable_data();
+            off[0] = 0;
             for (int64_t i = 0; i < Q; ++i) {
-                batch[i].audio = Span2<const float>{windows.data() + i * n * Da, n, Da};
-                batch[i].init_pose = pv.row(i);
-                batch[i].k = 1;
-                batch[i].exclude = ex.row(i);
-                batch[i].table_s = s.mutable_data() + i * M;
-                batch[i].table_dp = dp.mutable_data() + i * M;
-                batch[i].table_da = da.mutable_data() + i * M;
+                batch[i].audio = span2(queries[i], "queries[i]");
+                const int64_t T = batch[i].audio.rows;
+                off[i + 1] = off[i] + (T >= 1 ? (T + window - 1) / window : 0);
             }
+            SearchArrays out(off[Q]);
+            const int64_t* kp = k.data();
+            for (int64_t i = 0; i < Q; ++i) {
+                batch[i].init_pose = init.row(i);
+                batch[i].k = kp[i];
+                batch[i].exclude = ex.row(i);
+                batch[i].out = out.view(off[i]);
+            }
+            const Kernels& kern = active_kernels();
+            I64 failed(Q);
             {
                 py::gil_scoped_release release;
-                p.plan->preselect(batch, sched, threads, bm);
+                rank_sum_search_batch(kern, db, batch, window, pre, sched, threads, bm);
             }
-            return py::make_tuple(s, dp, da);
-        }, py::arg("prev_poses").noconvert(), py::arg("query_windows").noconvert(),
-           py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
-           py::arg("threads") = 0, py::arg("method") = "auto",
-           "Pre-selection tables of one step for many queries -> (starts, pose_dist, audio_dist), each (Q, M).")
-        .def_property_readonly("n_setups", [](const PyBatchPlan& p) { return p.plan->n_setups(); },
-                               "Window lengths whose blocked set-up the plan keeps.");
-
-    m.def("search_batch", [](const F32& pose, const F32& audio, const I64& seg_start,
-                             const I64& seg_len, const std::vector<F32>& queries,
-                             const F32& init_poses, int64_t window, const I64& k,
-                             const std::string& preselect, const std::optional<U64>& allowed,
-                             const std::optional<Bool>& exclude, int threads,
-                             const std::string& method, const std::optional<U16>& pose_f16,
-                             const std::optional<py::tuple>& pose_proj) {
-        const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
-        const int64_t Q = int64_t(queries.size());
-        const BatchMethod bm = parse_method(method);
-        const Span2<const float> init = span2(init_poses, "init_poses");
-        if (init.rows != Q || init.cols != db.pose.cols)
-            throw std::invalid_argument("init_poses: expected (" + std::to_string(Q) + ", " +
-                                        std::to_string(db.pose.cols) + "); got " + shape_str(init_poses));
-        require_ndim(k, 1, "k");
-        if (k.shape(0) != Q)
-            throw std::invalid_argument("k: expected " + std::to_string(Q) + " values; got " +
-                                        std::to_string(k.shape(0)));
-        if (window < 1) throw std::invalid_argument("step: expected >= 1; got " + std::to_string(window));
-        const AllowedSchedule sched = make_allowed(allowed, db, true);
-        const Preselect pre = parse_preselect(preselect);
-        const int64_t M = db.n_segments();
-        const BatchExclude ex = batch_exclude(exclude, Q, M);
-        std::vector<BatchQuery> batch(Q);
-        I64 offsets(Q + 1);
-        int64_t* off = offsets.mutable_data();
-        off[0] = 0;
-        for (int64_t i = 0; i < Q; ++i) {
-            batch[i].audio = span2(queries[i], "queries[i]");
-            const int64_t T = batch[i].audio.rows;
-            off[i + 1] = off[i] + (T >= 1 ? (T + window - 1) / window : 0);
-        }
-        SearchArrays out(off[Q]);
-        const int64_t* kp = k.data();
-        for (int64_t i = 0; i < Q; ++i) {
-            batch[i].init_pose = init.row(i);
-            batch[i].k = kp[i];
-            batch[i].exclude = ex.row(i);
-            batch[i].out = out.view(off[i]);
-        }
-        const Kernels& kern = active_kernels();
-        I64 failed(Q);
-        {
-            py::gil_scoped_release release;
-            rank_sum_search_batch(kern, db, batch, window, pre, sched, threads, bm);
-        }
-        int64_t* f = failed.mutable_data();
-        for (int64_t i = 0; i < Q; ++i) f[i] = batch[i].failed_step;
-        return py::make_tuple(out.to_dict(), offsets, failed);
-    }, py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
-       py::arg("seg_len").noconvert(), py::arg("queries").noconvert(), py::arg("init_poses").noconvert(),
-       py::arg("window"), py::arg("k").noconvert(), py::arg("preselect"),
-       py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
-       py::arg("threads") = 0, py::arg("method") = "auto",
-       py::arg("pose_f16").noconvert().none(true) = py::none(),
-       py::arg("pose_proj").none(true) = py::none(),
-       "Many searches -> (dict of concatenated arrays, offsets (Q+1,), failed step per query) "
-       "(use gesturedb.search.rank_sum_search_batch, which validates).");
+            int64_t* f = failed.mutable_data();
+            for (int64_t i = 0; i < Q; ++i) f[i] = batch[i].failed_step;
+            return py::make_tuple(out.to_dict(), offsets, failed);
+        },
+        py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+        py::arg("seg_len").noconvert(), py::arg("queries").noconvert(), py::arg("init_poses").noconvert(),
+        py::arg("window"), py::arg("k").noconvert(), py::arg("preselect"),
+        py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
+        py::arg("threads") = 0, py::arg("method") = "auto",
+        py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+        "Many searches -> (dict of concatenated arrays, offsets (Q+1,), failed step per query) "
+        "(use gesturedb.search.rank_sum_search_batch, which validates).");
 }

@@ -23,9 +23,9 @@ struct BlockedBatch::Run {
     BatchQuery* const* block;
     int64_t nq;
     int64_t M, Dp, Da, J;
-    int64_t qp;         // lanes padded to whole panels
-    int64_t words;      // 64-bit words of a bit per lane
-    int64_t len = 0;    // values per panel column: J, Dp or N * Da
+    int64_t qp;                      // lanes padded to whole panels
+    int64_t words;                   // 64-bit words of a bit per lane
+    int64_t len = 0;                 // values per panel column: J, Dp or N * Da
     std::vector<const float*> prev;  // each query's previous pose
     std::vector<int64_t> S;          // each query's steps
     int64_t max_steps = 0;
@@ -73,8 +73,8 @@ struct BlockedBatch::Run {
 
     Run(const BlockedBatch& b, BatchQuery* const* block_, int64_t nq_)
         : block(block_), nq(nq_), M(b.db_.n_segments()), Dp(b.db_.pose.cols), Da(b.db_.audio.cols),
-          J(b.db_.proj_dim), qp((nq + kQueryPanel - 1) / kQueryPanel * kQueryPanel), words(qp / 64),
-          prev(nq), S(nq) {
+          J(b.db_.proj_dim), qp((nq + kQueryPanel - 1) / kQueryPanel * kQueryPanel), words(qp / 64), prev(nq),
+          S(nq) {
         len = b.proj_ ? J : b.pre_ == Preselect::Pose ? Dp : b.N_ * Da;
         for (int64_t i = 0; i < nq; ++i) {
             prev[i] = block[i]->init_pose;
@@ -187,7 +187,8 @@ void BlockedBatch::mark_lanes(Run& r) const {
     if (r.any_ex) {
         std::fill(r.ex_bits.begin(), r.ex_bits.end(), uint64_t(0));
         for (int64_t l = 0; l < nl; ++l)
-            if (const bool* ex = r.block[r.lanes[l]]->exclude) mark_excluded(ex, r.M, l, r.words, r.ex_bits.data());
+            if (const bool* ex = r.block[r.lanes[l]]->exclude)
+                mark_excluded(ex, r.M, l, r.words, r.ex_bits.data());
     }
 }
 
@@ -254,7 +255,8 @@ void BlockedBatch::preselect_segment(Run& r, int64_t m, const BitsetView& allowe
 
 // Which candidates of segment m the step's bitset allows: okp = null when all
 // of them, else a byte per candidate in r.ok. False when none is.
-bool BlockedBatch::allowed_candidates(Run& r, int64_t m, const BitsetView& allowed, const uint8_t*& okp) const {
+bool BlockedBatch::allowed_candidates(Run& r, int64_t m, const BitsetView& allowed,
+                                      const uint8_t*& okp) const {
     const int64_t n_cand = db_.seg_len[m] - N_;
     const int64_t seg0 = db_.seg_start[m];
     bool any = false;
@@ -304,8 +306,8 @@ void BlockedBatch::filter_tile(Run& r, int64_t m, int64_t i0, int64_t nr, const 
             nrow = r.nrow_tile.data();
         }
         if (tile_has_row(okp, i0, nr)) {
-            kern_.projfilter_f32(&pr_->zrow[(seg0 + i0) * J], nr, J, nrow, &pr_->rres[seg0 + i0], r.xt.data(), qp,
-                                 r.pl, r.c.data(), r.minhi.data());
+            kern_.projfilter_f32(&pr_->zrow[(seg0 + i0) * J], nr, J, nrow, &pr_->rres[seg0 + i0], r.xt.data(),
+                                 qp, r.pl, r.c.data(), r.minhi.data());
             kern_.projkeep_f32(r.c.data(), nr, qp, r.pl, r.minhi.data(), r.keep.data());
         } else {
             std::fill(r.keep.begin(), r.keep.begin() + nr * r.words, uint64_t(0));
@@ -318,8 +320,8 @@ void BlockedBatch::filter_tile(Run& r, int64_t m, int64_t i0, int64_t nr, const 
     } else {
         // rows are the windows starting at g = seg0 + 1 + i
         kern_.dots_block_f32(db_.audio.row(seg0 + 1 + i0), nr, Da, r.len, r.xt.data(), qp, r.c.data());
-        kern_.cosfilter_f32(r.c.data(), nr, qp, nullptr, &rrow_[seg0 + 1 + i0], okp ? okp + i0 : nullptr, nullptr,
-                            r.rx.data(), eps_, r.minhi.data(), r.keep.data());
+        kern_.cosfilter_f32(r.c.data(), nr, qp, nullptr, &rrow_[seg0 + 1 + i0], okp ? okp + i0 : nullptr,
+                            nullptr, r.rx.data(), eps_, r.minhi.data(), r.keep.data());
     }
 }
 
@@ -332,7 +334,8 @@ void BlockedBatch::recompute_kept(Run& r, int64_t m, int64_t i0, int64_t nr) con
         collect_pairs(r.keep.data(), r.live.data(), nr, r.words, r.pair_lane.data(), r.pair_r.data());
     if (pre_ == Preselect::Audio) {
         for (int64_t p = 0; p < n_pairs; ++p)
-            exact_update_audio(m, i0 + r.pair_r[p], r.lane_step[r.pair_lane[p]], r.pair_lane[p], r.best, r.best_da);
+            exact_update_audio(m, i0 + r.pair_r[p], r.lane_step[r.pair_lane[p]], r.pair_lane[p], r.best,
+                               r.best_da);
     } else if (n_pairs > 0) {
         const float* rows = db_.pose.row(seg0 + i0);
         const int64_t stride = db_.pose.cols;
@@ -463,8 +466,9 @@ void BlockedBatch::mark_excluded(const bool* ex, int64_t M, int64_t l, int64_t w
 // in ascending s, which the strict minimum's tie rule needs). Still about a
 // fifth of run()'s own time (perf): about two bits per word, so each word's
 // loop exit is hard to predict.
-int64_t BlockedBatch::collect_pairs(const uint64_t* __restrict keep, const uint64_t* __restrict live, int64_t nr,
-                             int64_t words, int32_t* __restrict pair_lane, int32_t* __restrict pair_r) {
+int64_t BlockedBatch::collect_pairs(const uint64_t* __restrict keep, const uint64_t* __restrict live,
+                                    int64_t nr, int64_t words, int32_t* __restrict pair_lane,
+                                    int32_t* __restrict pair_r) {
     int64_t n = 0;
     for (int64_t r = 0; r < nr; ++r, keep += words)
         for (int64_t w = 0; w < words; ++w)
@@ -512,8 +516,8 @@ int64_t BlockedBatch::max_seg_len() const {
 
 // The exact audio distance of candidate i of segment m for one lane, folded
 // into the lane's running minimum (strict: ties keep the smaller s).
-void BlockedBatch::exact_update_audio(int64_t m, int64_t i, const QueryStep& qs, int64_t l, std::vector<int64_t>& best,
-                        std::vector<double>& best_da) const {
+void BlockedBatch::exact_update_audio(int64_t m, int64_t i, const QueryStep& qs, int64_t l,
+                                      std::vector<int64_t>& best, std::vector<double>& best_da) const {
     const int64_t seg0 = db_.seg_start[m];
     float qa, aa;
     kern_.cosdots_f32(db_.audio.row(seg0 + 1 + i), 1, db_.audio.cols, qs.n * db_.audio.cols, qs.q, &qa, &aa);
@@ -524,7 +528,8 @@ void BlockedBatch::exact_update_audio(int64_t m, int64_t i, const QueryStep& qs,
     }
 }
 
-void BlockedBatch::finish(BatchQuery* bq, int64_t step, int64_t t, const StepResult& r, const float*& prev) const {
+void BlockedBatch::finish(BatchQuery* bq, int64_t step, int64_t t, const StepResult& r,
+                          const float*& prev) const {
     if (!r.found) {
         bq->failed_step = step;
         return;

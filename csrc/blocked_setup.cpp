@@ -11,8 +11,8 @@
 
 namespace gesturedb {
 
-BlockedBatch::BlockedBatch(const Kernels& kern, const Database& db, int64_t window, Preselect pre, int threads,
-                           std::shared_ptr<const ProjRows> proj_rows)
+BlockedBatch::BlockedBatch(const Kernels& kern, const Database& db, int64_t window, Preselect pre,
+                           int threads, std::shared_ptr<const ProjRows> proj_rows)
     : kern_(kern), db_(db), N_(window), pre_(pre) {
     const int64_t F = db.n_frames(), Dp = db.pose.cols, Da = db.audio.cols;
     proj_ = pre == Preselect::Pose && db.has_proj();

@@ -19,22 +19,46 @@
 namespace gesturedb {
 namespace {
 
-const Kernels kScalar{"scalar", l2sq_rows_f32_scalar, cosdots_f32_scalar, dots_block_f32_scalar,
-                      l2filter_f32_scalar, cosfilter_f32_scalar, l2sq_rows_f16_scalar,
-                      l2sq_blocks_f32_scalar, l2sq_blocks_f16_scalar,
-                    l2sq_pairs_f32_scalar, cosdots_pairs_f32_scalar,
-                    projfilter_f32_scalar, projkeep_f32_scalar};
+const Kernels kScalar{"scalar",
+                      l2sq_rows_f32_scalar,
+                      cosdots_f32_scalar,
+                      dots_block_f32_scalar,
+                      l2filter_f32_scalar,
+                      cosfilter_f32_scalar,
+                      l2sq_rows_f16_scalar,
+                      l2sq_blocks_f32_scalar,
+                      l2sq_blocks_f16_scalar,
+                      l2sq_pairs_f32_scalar,
+                      cosdots_pairs_f32_scalar,
+                      projfilter_f32_scalar,
+                      projkeep_f32_scalar};
 #ifdef GESTUREDB_X86
-const Kernels kAvx2{"avx2", l2sq_rows_f32_avx2, cosdots_f32_avx2, dots_block_f32_avx2,
-                    l2filter_f32_avx2, cosfilter_f32_avx2, l2sq_rows_f16_avx2,
-                    l2sq_blocks_f32_avx2, l2sq_blocks_f16_avx2,
-                    l2sq_pairs_f32_avx2, cosdots_pairs_f32_avx2,
-                    projfilter_f32_avx2, projkeep_f32_avx2};
-const Kernels kAvx512{"avx512", l2sq_rows_f32_avx512, cosdots_f32_avx512, dots_block_f32_avx512,
-                      l2filter_f32_avx512, cosfilter_f32_avx512, l2sq_rows_f16_avx512,
-                      l2sq_blocks_f32_avx512, l2sq_blocks_f16_avx512,
-                    l2sq_pairs_f32_avx512, cosdots_pairs_f32_avx512,
-                    projfilter_f32_avx512, projkeep_f32_avx512};
+const Kernels kAvx2{"avx2",
+                    l2sq_rows_f32_avx2,
+                    cosdots_f32_avx2,
+                    dots_block_f32_avx2,
+                    l2filter_f32_avx2,
+                    cosfilter_f32_avx2,
+                    l2sq_rows_f16_avx2,
+                    l2sq_blocks_f32_avx2,
+                    l2sq_blocks_f16_avx2,
+                    l2sq_pairs_f32_avx2,
+                    cosdots_pairs_f32_avx2,
+                    projfilter_f32_avx2,
+                    projkeep_f32_avx2};
+const Kernels kAvx512{"avx512",
+                      l2sq_rows_f32_avx512,
+                      cosdots_f32_avx512,
+                      dots_block_f32_avx512,
+                      l2filter_f32_avx512,
+                      cosfilter_f32_avx512,
+                      l2sq_rows_f16_avx512,
+                      l2sq_blocks_f32_avx512,
+                      l2sq_blocks_f16_avx512,
+                      l2sq_pairs_f32_avx512,
+                      cosdots_pairs_f32_avx512,
+                      projfilter_f32_avx512,
+                      projkeep_f32_avx512};
 #endif
 
 struct CpuSupport {
@@ -60,8 +84,8 @@ CpuSupport detect() {
     const bool f16c = (c >> 29) & 1;  // half-precision conversions, used by the pose filter
     if (!osxsave || !avx) return s;
     const uint64_t xcr0 = read_xcr0();
-    const bool ymm_saved = (xcr0 & 0x6) == 0x6;            // SSE + AVX state
-    const bool zmm_saved = (xcr0 & 0xE6) == 0xE6;          // + opmask, ZMM_Hi256, Hi16_ZMM
+    const bool ymm_saved = (xcr0 & 0x6) == 0x6;    // SSE + AVX state
+    const bool zmm_saved = (xcr0 & 0xE6) == 0xE6;  // + opmask, ZMM_Hi256, Hi16_ZMM
     if (!__get_cpuid_count(7, 0, &a, &b, &c, &d)) return s;
     const bool avx2 = (b >> 5) & 1;
     const bool f = (b >> 16) & 1, dq = (b >> 17) & 1, bw = (b >> 30) & 1, vl = (b >> 31) & 1;
@@ -101,8 +125,8 @@ const Kernels* initial_table() {
     if (env != nullptr && *env != '\0') {
         const Kernels* k = lookup(env);
         if (k == nullptr) {
-            throw std::invalid_argument(std::string("GESTUREDB_SIMD: expected one of ") +
-                                        available_list() + " on this CPU; got '" + env + "'");
+            throw std::invalid_argument(std::string("GESTUREDB_SIMD: expected one of ") + available_list() +
+                                        " on this CPU; got '" + env + "'");
         }
         return k;
     }
@@ -147,8 +171,6 @@ const Kernels& kernels_for(const char* isa) {
 
 const Kernels& active_kernels() { return *active_slot().load(std::memory_order_acquire); }
 
-void set_simd(const char* isa) {
-    active_slot().store(&kernels_for(isa), std::memory_order_release);
-}
+void set_simd(const char* isa) { active_slot().store(&kernels_for(isa), std::memory_order_release); }
 
 }  // namespace gesturedb

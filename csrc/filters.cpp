@@ -30,8 +30,8 @@ namespace gesturedb {
 // Appends the kept candidates to `kept`. Returns false when some value is not
 // finite (an overflowing half, a NaN): the bound says nothing then and the
 // caller scans the segment exactly.
-bool half_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
-                 double x_norm, const BitsetView& allowed, float* dh, std::vector<int32_t>& kept) {
+bool half_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs, double x_norm,
+                 const BitsetView& allowed, float* dh, std::vector<int32_t>& kept) {
     const int64_t n_cand = db.seg_len[m] - qs.n;
     if (n_cand < 1) return true;
     const int64_t seg0 = db.seg_start[m], Dp = db.pose.cols;
@@ -111,8 +111,9 @@ ProjQuery proj_query(const Database& db, const float* x) {
     const double S = db.proj_max_norm + std::sqrt(xn2);
     const bool half = db.proj_f16.data != nullptr;
     double e0 = std::ldexp(1.0, -21) * S * (1.0 + 1e-9);
-    if (half) e0 += std::ldexp(1.0, -11) * (1.0 + std::ldexp(1.0, -10)) * db.proj_max_norm +
-                    std::sqrt(double(J)) * std::ldexp(1.0, -25);
+    if (half)
+        e0 += std::ldexp(1.0, -11) * (1.0 + std::ldexp(1.0, -10)) * db.proj_max_norm +
+              std::sqrt(double(J)) * std::ldexp(1.0, -25);
     const double eta = std::ldexp(1.0, half ? -9 : -12);
     const double gk = 2.0 * double(J + 4) * u, g = 2.0 * double(Dp + 4) * u;
     const double tiny = double(Dp + J) * std::ldexp(1.0, -140);  // float underflow of the squares
@@ -137,8 +138,8 @@ ProjQuery proj_query(const Database& db, const float* x) {
 
 // Keeps the candidates whose lower bound can reach Umin, the smallest upper
 // bound (filters.h).
-bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
-                 const ProjQuery& pq, const BitsetView& allowed, float* dh, std::vector<int32_t>& kept) {
+bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs, const ProjQuery& pq,
+                 const BitsetView& allowed, float* dh, std::vector<int32_t>& kept) {
     const int64_t n_cand = db.seg_len[m] - qs.n;
     if (n_cand < 1) return true;
     if (!pq.ok) return false;
@@ -152,9 +153,10 @@ bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const Query
         // candidate i's entry frame is seg0 + i
         // upper bounds a_up dh + b_up r_f + c_up, fused with the distances; a
         // NaN never lowers umin and is caught by the finiteness test on dh below
-        const float u = db.proj.data != nullptr
-                            ? kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0)
-                            : kern.l2sq_blocks_f16(db.proj_f16.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0);
+        const float u =
+            db.proj.data != nullptr
+                ? kern.l2sq_blocks_f32(db.proj.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0)
+                : kern.l2sq_blocks_f16(db.proj_f16.data, seg0 + i0, seg0 + i1, J, pq.zx.data(), up, dh + i0);
         umin = u < umin ? u : umin;
     });
     if (!any) return true;

@@ -20,8 +20,8 @@ namespace gesturedb {
 // Pose pre-selection of segment m through the half-precision copy of pose
 // (Database::pose_f16) against prev = qs.prev with x_norm = ||prev||: appends
 // the kept candidates to `kept`. dh: scratch, one value per candidate.
-bool half_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
-                 double x_norm, const BitsetView& allowed, float* dh, std::vector<int32_t>& kept);
+bool half_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs, double x_norm,
+                 const BitsetView& allowed, float* dh, std::vector<int32_t>& kept);
 
 // The query side of the projection filter: z_x = (U^T (x - mean), r_x) in
 // double, its float32 copy for the filter kernel, and the constants of the
@@ -29,7 +29,7 @@ bool half_filter(const Kernels& kern, const Database& db, int64_t m, const Query
 struct ProjQuery {
     std::vector<float> zx;  // (J,)
     float a_lo = 0, c_lo = 0, a_up = 0, b_up = 0, c_up = 0;
-    bool ok = false;        // false: not finite, every segment is scanned exactly
+    bool ok = false;  // false: not finite, every segment is scanned exactly
 };
 
 // The ProjQuery of the previous pose x (Dp,).
@@ -41,7 +41,7 @@ ProjQuery proj_query(const Database& db, const float* x);
 // exact minimum of the kept ones (ties to the smallest s) is the exact answer:
 // the winner's exact distance is <= Umin and its lower bound <= that.
 // Returns false when a value is not finite; the caller then scans exactly.
-bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
-                 const ProjQuery& pq, const BitsetView& allowed, float* dh, std::vector<int32_t>& kept);
+bool proj_filter(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs, const ProjQuery& pq,
+                 const BitsetView& allowed, float* dh, std::vector<int32_t>& kept);
 
 }  // namespace gesturedb

@@ -34,24 +34,22 @@ namespace gesturedb {
 // Squared Euclidean distance of each row to one vector:
 //   out[r] = sum_j (rows[r * dim + j] - v[j])^2        for r in [0, n_rows)
 // rows: (n_rows, dim) row-major, v: (dim,), out: (n_rows,).
-using L2sqRowsFn = void (*)(const float* rows, int64_t n_rows, int64_t dim,
-                            const float* v, float* out);
+using L2sqRowsFn = void (*)(const float* rows, int64_t n_rows, int64_t dim, const float* v, float* out);
 
 // Dot products of sliding windows with one query window:
 //   a_w = base + w * stride  (len contiguous values)  for w in [0, n_win)
 //   qa[w] = <q, a_w>,  aa[w] = <a_w, a_w>
 // Windows may overlap (stride < len): an audio window of n frames of Da values
 // starting at frame g is the n * Da floats at audio + g * Da.
-using CosDotsFn = void (*)(const float* base, int64_t n_win, int64_t stride,
-                           int64_t len, const float* q, float* qa, float* aa);
+using CosDotsFn = void (*)(const float* base, int64_t n_win, int64_t stride, int64_t len, const float* q,
+                           float* qa, float* aa);
 
 // Half-precision rows, for the optional pose filter of a single-query step:
 //   d[r] = sum_j (h[r][j] - v[j])^2
 // with h = rows (IEEE binary16 bit patterns, (n_rows, dim)) converted exactly to
 // float32. Only a filter (see half_filter in filters.cpp): any summation order
 // is fine, the caller's bound covers float32 rounding of any order.
-using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
-                               float* d);
+using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v, float* d);
 
 // Squared distances of frames stored in blocks of 16 (structure of arrays, for
 // the pose projection filter):
@@ -67,12 +65,12 @@ using L2sqRowsF16Fn = void (*)(const uint16_t* rows, int64_t n_rows, int64_t dim
 // in float32 with any contraction (the caller's bound covers 3 roundings); a
 // NaN never lowers the minimum (+inf if every value is NaN).
 constexpr int64_t kFrameBlock = 16;
-using L2sqBlocksFn = float (*)(const float* blocks, int64_t f0, int64_t f1, int64_t dim,
-                               const float* v, const float* up, float* out);
+using L2sqBlocksFn = float (*)(const float* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                               const float* up, float* out);
 // The same over blocks of IEEE binary16 bit patterns (half the bytes per frame),
 // each value converted exactly to float32 first.
-using L2sqBlocksF16Fn = float (*)(const uint16_t* blocks, int64_t f0, int64_t f1, int64_t dim,
-                                  const float* v, const float* up, float* out);
+using L2sqBlocksF16Fn = float (*)(const uint16_t* blocks, int64_t f0, int64_t f1, int64_t dim, const float* v,
+                                  const float* up, float* out);
 
 // --- batched search -------------------------------------------------------
 // The batch evaluates many queries against the same rows at once. It uses the
@@ -92,8 +90,8 @@ constexpr int64_t kQueryPanel = 64;
 //   contiguous (len, 64) block that stays in L1 while the rows stream past
 //   (a (len, qp) layout would map every row of the panel to the same few L1
 //   sets once qp * 4 bytes is a multiple of 1 KiB).
-using DotsBlockFn = void (*)(const float* base, int64_t n_rows, int64_t stride, int64_t len,
-                             const float* xt, int64_t qp, float* out);
+using DotsBlockFn = void (*)(const float* base, int64_t n_rows, int64_t stride, int64_t len, const float* xt,
+                             int64_t qp, float* out);
 
 // Bound filters over a block c (n_rows, qp) from DotsBlockFn, vectorised across
 // the qp queries. For each row r with ok[r] != 0 (ok may be null: all rows):
@@ -105,9 +103,9 @@ using DotsBlockFn = void (*)(const float* base, int64_t n_rows, int64_t stride, 
 // or NaN for good once any d + b is not finite (the caller then falls back to
 // the exact scan). keep (n_rows, qp / 64) uint64 words, overwritten: bit (r, j)
 // is set iff d - b <= minhi[j] after this block.
-using FilterFn = void (*)(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
-                          const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
-                          float eps, float* minhi, uint64_t* keep);
+using FilterFn = void (*)(const float* c, int64_t n_rows, int64_t qp, const float* nrow, const float* rrow,
+                          const uint8_t* ok, const float* nq, const float* rq, float eps, float* minhi,
+                          uint64_t* keep);
 
 // The exact distances of scattered (row, vector) pairs, for the batch's
 // recomputation of what its filter kept:
@@ -143,16 +141,15 @@ struct ProjLanes {
 // nrow = |z_r|^2, or +inf for a row that must not count (dh and the bound are
 // then +inf). The caller guarantees that everything stays finite otherwise
 // (no NaN handling here; the bound covers the rounding of any order).
-using ProjFilterFn = void (*)(const float* z, int64_t n_rows, int64_t J, const float* nrow,
-                              const float* rres, const float* xt, int64_t qp, const ProjLanes& lanes,
-                              float* dh, float* umin);
+using ProjFilterFn = void (*)(const float* z, int64_t n_rows, int64_t J, const float* nrow, const float* rres,
+                              const float* xt, int64_t qp, const ProjLanes& lanes, float* dh, float* umin);
 // Then keep (n_rows, qp / 64) words, overwritten: bit (r, j) set iff
 //   alo[j] dh[r * qp + j] - clo[j] <= umin[j].
 using ProjKeepFn = void (*)(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& lanes,
                             const float* umin, uint64_t* keep);
 
 struct Kernels {
-    const char* isa;      // "scalar", "avx2", "avx512"
+    const char* isa;  // "scalar", "avx2", "avx512"
     L2sqRowsFn l2sq_rows_f32;
     CosDotsFn cosdots_f32;
     DotsBlockFn dots_block_f32;
@@ -184,7 +181,7 @@ float l2sq_blocks_f16_scalar(const uint16_t*, int64_t, int64_t, int64_t, const f
 void l2sq_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_scalar(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_scalar(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
-                          const ProjLanes&, float*, float*);
+                           const ProjLanes&, float*, float*);
 void projkeep_f32_scalar(const float*, int64_t, int64_t, const ProjLanes&, const float*, uint64_t*);
 
 #if defined(__x86_64__) || defined(_M_X64)
@@ -202,7 +199,7 @@ float l2sq_blocks_f16_avx2(const uint16_t*, int64_t, int64_t, int64_t, const flo
 void l2sq_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_avx2(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_avx2(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
-                          const ProjLanes&, float*, float*);
+                         const ProjLanes&, float*, float*);
 void projkeep_f32_avx2(const float*, int64_t, int64_t, const ProjLanes&, const float*, uint64_t*);
 void l2sq_rows_f32_avx512(const float*, int64_t, int64_t, const float*, float*);
 void cosdots_f32_avx512(const float*, int64_t, int64_t, int64_t, const float*, float*, float*);
@@ -217,7 +214,7 @@ float l2sq_blocks_f16_avx512(const uint16_t*, int64_t, int64_t, int64_t, const f
 void l2sq_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
 void cosdots_pairs_f32_avx512(const float* const*, const float* const*, int64_t, int64_t, float*);
 void projfilter_f32_avx512(const float*, int64_t, int64_t, const float*, const float*, const float*, int64_t,
-                          const ProjLanes&, float*, float*);
+                           const ProjLanes&, float*, float*);
 void projkeep_f32_avx512(const float*, int64_t, int64_t, const ProjLanes&, const float*, uint64_t*);
 #endif
 

@@ -81,7 +81,8 @@ GDB_AVX2 inline float l2sq_one(const float* row, const float* v, int64_t dim, co
     }
     if (t.tail) {
         const __m256 d2 = _mm256_sub_ps(_mm256_maskload_ps(row + j, t.m0), _mm256_maskload_ps(v + j, t.m0));
-        const __m256 d3 = _mm256_sub_ps(_mm256_maskload_ps(row + j + 8, t.m1), _mm256_maskload_ps(v + j + 8, t.m1));
+        const __m256 d3 =
+            _mm256_sub_ps(_mm256_maskload_ps(row + j + 8, t.m1), _mm256_maskload_ps(v + j + 8, t.m1));
         b0 = _mm256_fmadd_ps(d2, d2, b0);
         b1 = _mm256_fmadd_ps(d3, d3, b1);
     }
@@ -89,9 +90,12 @@ GDB_AVX2 inline float l2sq_one(const float* row, const float* v, int64_t dim, co
 }
 
 // <q, a> (and <a, a> when nrm is not null) of one window
-GDB_AVX2 inline float cosdots_one(const float* a, const float* q, int64_t len, const TailMasks& t, float* nrm) {
-    __m256 a0 = _mm256_setzero_ps(), a1 = _mm256_setzero_ps(), b0 = _mm256_setzero_ps(), b1 = _mm256_setzero_ps();
-    __m256 n0 = _mm256_setzero_ps(), n1 = _mm256_setzero_ps(), m0 = _mm256_setzero_ps(), m1 = _mm256_setzero_ps();
+GDB_AVX2 inline float cosdots_one(const float* a, const float* q, int64_t len, const TailMasks& t,
+                                  float* nrm) {
+    __m256 a0 = _mm256_setzero_ps(), a1 = _mm256_setzero_ps(), b0 = _mm256_setzero_ps(),
+           b1 = _mm256_setzero_ps();
+    __m256 n0 = _mm256_setzero_ps(), n1 = _mm256_setzero_ps(), m0 = _mm256_setzero_ps(),
+           m1 = _mm256_setzero_ps();
     int64_t j = 0;
     for (; j + 32 <= len; j += 32) {
         const __m256 x0 = _mm256_loadu_ps(a + j), x1 = _mm256_loadu_ps(a + j + 8);
@@ -132,14 +136,13 @@ GDB_AVX2 inline float cosdots_one(const float* a, const float* q, int64_t len, c
 
 }  // namespace
 
-GDB_AVX2 void l2sq_rows_f32_avx2(const float* rows, int64_t n_rows, int64_t dim,
-                                 const float* v, float* out) {
+GDB_AVX2 void l2sq_rows_f32_avx2(const float* rows, int64_t n_rows, int64_t dim, const float* v, float* out) {
     const TailMasks t = tail_masks(dim);
     for (int64_t r = 0; r < n_rows; ++r) out[r] = l2sq_one(rows + r * dim, v, dim, t);
 }
 
-GDB_AVX2 void cosdots_f32_avx2(const float* base, int64_t n_win, int64_t stride,
-                               int64_t len, const float* q, float* qa, float* aa) {
+GDB_AVX2 void cosdots_f32_avx2(const float* base, int64_t n_win, int64_t stride, int64_t len, const float* q,
+                               float* qa, float* aa) {
     const TailMasks t = tail_masks(len);
     for (int64_t w = 0; w < n_win; ++w) qa[w] = cosdots_one(base + w * stride, q, len, t, aa + w);
 }
@@ -168,8 +171,8 @@ GDB_AVX2 inline void tile_acc_avx2(const float* base, int64_t stride, int64_t le
 }
 
 template <int NR>
-GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t len,
-                                    const float* panel, int64_t qp, float* out) {
+GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t len, const float* panel,
+                                    int64_t qp, float* out) {
     __m256 acc[NR][2];
     tile_acc_avx2<NR>(base, stride, len, panel, acc);
     for (int i = 0; i < NR; ++i) {
@@ -205,8 +208,8 @@ GDB_AVX2 void dots_block_f32_avx2(const float* base, int64_t n_rows, int64_t str
 namespace {
 
 template <class Dist>
-GDB_AVX2 inline void filter_avx2(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi,
-                                 uint64_t* keep, Dist dist) {
+GDB_AVX2 inline void filter_avx2(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi, uint64_t* keep,
+                                 Dist dist) {
     const __m256 inf = _mm256_set1_ps(std::numeric_limits<float>::infinity());
     const __m256 nan = _mm256_set1_ps(std::numeric_limits<float>::quiet_NaN());
     for (int64_t r = 0; r < n_rows; ++r) {
@@ -217,8 +220,8 @@ GDB_AVX2 inline void filter_avx2(int64_t n_rows, int64_t qp, const uint8_t* ok, 
             const __m256 hi = _mm256_add_ps(d, b);
             const __m256 mh = _mm256_loadu_ps(minhi + j);
             // not finite (NaN or inf) now or before: the lane is marked NaN for good
-            const __m256 bad = _mm256_or_ps(_mm256_cmp_ps(hi, inf, _CMP_NLT_UQ),
-                                            _mm256_cmp_ps(mh, mh, _CMP_UNORD_Q));
+            const __m256 bad =
+                _mm256_or_ps(_mm256_cmp_ps(hi, inf, _CMP_NLT_UQ), _mm256_cmp_ps(mh, mh, _CMP_UNORD_Q));
             _mm256_storeu_ps(minhi + j, _mm256_blendv_ps(_mm256_min_ps(hi, mh), nan, bad));
         }
     }
@@ -238,8 +241,8 @@ GDB_AVX2 inline void filter_avx2(int64_t n_rows, int64_t qp, const uint8_t* ok, 
 }  // namespace
 
 GDB_AVX2 void l2filter_f32_avx2(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
-                                const float* rrow, const uint8_t* ok, const float* nq,
-                                const float* rq, float eps, float* minhi, uint64_t* keep) {
+                                const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
+                                float eps, float* minhi, uint64_t* keep) {
     const __m256 two = _mm256_set1_ps(2.0f), e = _mm256_set1_ps(eps);
     filter_avx2(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m256& d, __m256& b) GDB_AVX2 {
         const __m256 cc = _mm256_loadu_ps(c + r * qp + j);
@@ -249,9 +252,9 @@ GDB_AVX2 void l2filter_f32_avx2(const float* c, int64_t n_rows, int64_t qp, cons
     });
 }
 
-GDB_AVX2 void cosfilter_f32_avx2(const float* c, int64_t n_rows, int64_t qp, const float*,
-                                 const float* rrow, const uint8_t* ok, const float*,
-                                 const float* rq, float eps, float* minhi, uint64_t* keep) {
+GDB_AVX2 void cosfilter_f32_avx2(const float* c, int64_t n_rows, int64_t qp, const float*, const float* rrow,
+                                 const uint8_t* ok, const float*, const float* rq, float eps, float* minhi,
+                                 uint64_t* keep) {
     const __m256 one = _mm256_set1_ps(1.0f), e = _mm256_set1_ps(eps);
     filter_avx2(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m256& d, __m256& b) GDB_AVX2 {
         const __m256 cc = _mm256_loadu_ps(c + r * qp + j);
@@ -263,8 +266,8 @@ GDB_AVX2 void cosfilter_f32_avx2(const float* c, int64_t n_rows, int64_t qp, con
 
 // --- half-precision pose filter ----------------------------------------------
 
-__attribute__((target("avx2,fma,f16c"))) void l2sq_rows_f16_avx2(
-    const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v, float* d) {
+__attribute__((target("avx2,fma,f16c"))) void l2sq_rows_f16_avx2(const uint16_t* rows, int64_t n_rows,
+                                                                 int64_t dim, const float* v, float* d) {
     for (int64_t r = 0; r < n_rows; ++r) {
         const uint16_t* row = rows + r * dim;
         // fetch ahead: the rows are streamed (3 cache lines for 96 halves)
@@ -367,14 +370,14 @@ GDB_AVX2_F16C float l2sq_blocks_f16_avx2(const uint16_t* blocks, int64_t f0, int
 // --- blocked batch: exact pairs and the projection filter ---------------------
 
 // The single-row kernel itself for each pair: bit-identical by construction.
-GDB_AVX2 void l2sq_pairs_f32_avx2(const float* const* rows, const float* const* vs, int64_t n,
-                                  int64_t dim, float* out) {
+GDB_AVX2 void l2sq_pairs_f32_avx2(const float* const* rows, const float* const* vs, int64_t n, int64_t dim,
+                                  float* out) {
     const TailMasks t = tail_masks(dim);
     for (int64_t i = 0; i < n; ++i) out[i] = l2sq_one(rows[i], vs[i], dim, t);
 }
 
-GDB_AVX2 void cosdots_pairs_f32_avx2(const float* const* wins, const float* const* qs, int64_t n,
-                                     int64_t len, float* qa) {
+GDB_AVX2 void cosdots_pairs_f32_avx2(const float* const* wins, const float* const* qs, int64_t n, int64_t len,
+                                     float* qa) {
     const TailMasks t = tail_masks(len);
     for (int64_t i = 0; i < n; ++i) qa[i] = cosdots_one(wins[i], qs[i], len, t, nullptr);
 }
@@ -384,8 +387,8 @@ namespace {
 // NR rows x 16 lanes, as dots_tile_avx2, with the bound formed in registers.
 template <int NR>
 GDB_AVX2 inline void proj_tile_avx2(const float* z, int64_t J, const float* nrow, const float* rres,
-                                    const float* panel, int64_t qp, int64_t j0, const ProjLanes& L,
-                                    float* dh, float* umin) {
+                                    const float* panel, int64_t qp, int64_t j0, const ProjLanes& L, float* dh,
+                                    float* umin) {
     __m256 acc[NR][2];
     tile_acc_avx2<NR>(z, J, J, panel, acc);
     const __m256 two = _mm256_set1_ps(2.0f);
@@ -436,8 +439,8 @@ GDB_AVX2 void projkeep_f32_avx2(const float* dh, int64_t n_rows, int64_t qp, con
             uint64_t bits = 0;
             for (int k = 0; k < 8; ++k) {
                 const int64_t j = 64 * w + 8 * k;
-                const __m256 lb = _mm256_fmsub_ps(_mm256_loadu_ps(L.alo + j), _mm256_loadu_ps(dh + r * qp + j),
-                                                  _mm256_loadu_ps(L.clo + j));
+                const __m256 lb = _mm256_fmsub_ps(
+                    _mm256_loadu_ps(L.alo + j), _mm256_loadu_ps(dh + r * qp + j), _mm256_loadu_ps(L.clo + j));
                 const __m256 m = _mm256_cmp_ps(lb, _mm256_loadu_ps(umin + j), _CMP_LE_OQ);
                 bits |= uint64_t(unsigned(_mm256_movemask_ps(m))) << (8 * k);
             }

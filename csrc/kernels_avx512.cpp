@@ -50,8 +50,8 @@ GDB_AVX512 inline __m512 reduce_tree16(const __m512* a) {
         l3[i] = _mm512_add_ps(_mm512_shuffle_ps(l2[2 * i], l2[2 * i + 1], 0x44),
                               _mm512_shuffle_ps(l2[2 * i], l2[2 * i + 1], 0xEE));
     // i + (i+1); element 4L + c now holds row 4c + L
-    const __m512 s = _mm512_add_ps(_mm512_shuffle_ps(l3[0], l3[1], 0x88),
-                                   _mm512_shuffle_ps(l3[0], l3[1], 0xDD));
+    const __m512 s =
+        _mm512_add_ps(_mm512_shuffle_ps(l3[0], l3[1], 0x88), _mm512_shuffle_ps(l3[0], l3[1], 0xDD));
     const __m512i to_rows = _mm512_setr_epi32(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15);
     return _mm512_permutexvar_ps(to_rows, s);
 }
@@ -73,8 +73,8 @@ GDB_AVX512 inline __m512 l2sq_lanes(const float* row, const float* v, int64_t di
         j += 16;
     }
     if (tail_mask) {
-        const __m512 d1 = _mm512_sub_ps(_mm512_maskz_loadu_ps(tail_mask, row + j),
-                                        _mm512_maskz_loadu_ps(tail_mask, v + j));
+        const __m512 d1 =
+            _mm512_sub_ps(_mm512_maskz_loadu_ps(tail_mask, row + j), _mm512_maskz_loadu_ps(tail_mask, v + j));
         acc1 = _mm512_fmadd_ps(d1, d1, acc1);
     }
     return _mm512_add_ps(acc0, acc1);
@@ -95,8 +95,8 @@ GDB_AVX512 inline void prefetch_row(const float* row, int64_t dim) {
 
 }  // namespace
 
-GDB_AVX512 void l2sq_rows_f32_avx512(const float* rows, int64_t n_rows, int64_t dim,
-                                     const float* v, float* out) {
+GDB_AVX512 void l2sq_rows_f32_avx512(const float* rows, int64_t n_rows, int64_t dim, const float* v,
+                                     float* out) {
     const __mmask16 tail_mask = __mmask16((1u << (dim & 15)) - 1u);
     int64_t r = 0;
     for (; r + 16 <= n_rows; r += 16) {
@@ -115,8 +115,8 @@ GDB_AVX512 void l2sq_rows_f32_avx512(const float* rows, int64_t n_rows, int64_t 
     }
 }
 
-GDB_AVX512 void cosdots_f32_avx512(const float* base, int64_t n_win, int64_t stride,
-                                   int64_t len, const float* q, float* qa, float* aa) {
+GDB_AVX512 void cosdots_f32_avx512(const float* base, int64_t n_win, int64_t stride, int64_t len,
+                                   const float* q, float* qa, float* aa) {
     const int64_t tail = len & 15;
     const __mmask16 tail_mask = __mmask16((1u << tail) - 1u);
     for (int64_t w = 0; w < n_win; ++w) {
@@ -176,8 +176,8 @@ GDB_AVX512 inline void tile_acc_avx512(const float* base, int64_t stride, int64_
 }
 
 template <int NR>
-GDB_AVX512 inline void dots_tile_avx512(const float* base, int64_t stride, int64_t len,
-                                        const float* panel, int64_t qp, float* out) {
+GDB_AVX512 inline void dots_tile_avx512(const float* base, int64_t stride, int64_t len, const float* panel,
+                                        int64_t qp, float* out) {
     __m512 acc[NR][4];
     tile_acc_avx512<NR>(base, stride, len, panel, acc);
     for (int i = 0; i < NR; ++i)
@@ -186,8 +186,8 @@ GDB_AVX512 inline void dots_tile_avx512(const float* base, int64_t stride, int64
 
 }  // namespace
 
-GDB_AVX512 void dots_block_f32_avx512(const float* base, int64_t n_rows, int64_t stride,
-                                      int64_t len, const float* xt, int64_t qp, float* out) {
+GDB_AVX512 void dots_block_f32_avx512(const float* base, int64_t n_rows, int64_t stride, int64_t len,
+                                      const float* xt, int64_t qp, float* out) {
     constexpr int NR = 6;
     for (int64_t j0 = 0; j0 < qp; j0 += 64) {
         const float* panel = xt + j0 * len;
@@ -245,8 +245,8 @@ GDB_AVX512 inline void filter_avx512(int64_t n_rows, int64_t qp, const uint8_t* 
 }  // namespace
 
 GDB_AVX512 void l2filter_f32_avx512(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
-                                    const float* rrow, const uint8_t* ok, const float* nq,
-                                    const float* rq, float eps, float* minhi, uint64_t* keep) {
+                                    const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
+                                    float eps, float* minhi, uint64_t* keep) {
     const __m512 two = _mm512_set1_ps(2.0f), e = _mm512_set1_ps(eps);
     filter_avx512(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m512& d, __m512& b) GDB_AVX512 {
         const __m512 cc = _mm512_loadu_ps(c + r * qp + j);
@@ -257,8 +257,8 @@ GDB_AVX512 void l2filter_f32_avx512(const float* c, int64_t n_rows, int64_t qp, 
 }
 
 GDB_AVX512 void cosfilter_f32_avx512(const float* c, int64_t n_rows, int64_t qp, const float*,
-                                     const float* rrow, const uint8_t* ok, const float*,
-                                     const float* rq, float eps, float* minhi, uint64_t* keep) {
+                                     const float* rrow, const uint8_t* ok, const float*, const float* rq,
+                                     float eps, float* minhi, uint64_t* keep) {
     const __m512 one = _mm512_set1_ps(1.0f), e = _mm512_set1_ps(eps);
     filter_avx512(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m512& d, __m512& b) GDB_AVX512 {
         const __m512 cc = _mm512_loadu_ps(c + r * qp + j);
@@ -308,8 +308,8 @@ GDB_AVX512 inline void prefetch_f16_row(const uint16_t* row, int64_t dim) {
 
 // Rows of 96 halves are only 192 bytes: a reduction per row would make this
 // compute-bound, so rows go 16 at a time through the shared reduction tree.
-GDB_AVX512 void l2sq_rows_f16_avx512(const uint16_t* rows, int64_t n_rows, int64_t dim,
-                                     const float* v, float* d) {
+GDB_AVX512 void l2sq_rows_f16_avx512(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
+                                     float* d) {
     const __mmask16 tail_mask = __mmask16((1u << (dim & 15)) - 1u);
     int64_t r = 0;
     for (; r + 16 <= n_rows; r += 16) {
@@ -428,8 +428,8 @@ GDB_AVX512 void cosdots_pairs_f32_avx512(const float* const* wins, const float* 
             j += 16;
         }
         if (tail)
-            dot1 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(tail_mask, q + j), _mm512_maskz_loadu_ps(tail_mask, a + j),
-                                   dot1);
+            dot1 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(tail_mask, q + j),
+                                   _mm512_maskz_loadu_ps(tail_mask, a + j), dot1);
         qa[i] = reduce_tree(_mm512_add_ps(dot0, dot1));
     }
 }
@@ -464,8 +464,8 @@ GDB_AVX512 inline void proj_tile_avx512(const float* z, int64_t J, const float* 
 }  // namespace
 
 GDB_AVX512 void projfilter_f32_avx512(const float* z, int64_t n_rows, int64_t J, const float* nrow,
-                                      const float* rres, const float* xt, int64_t qp,
-                                      const ProjLanes& L, float* dh, float* umin) {
+                                      const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
+                                      float* dh, float* umin) {
     constexpr int NR = 6;
     for (int64_t j0 = 0; j0 < qp; j0 += 64) {
         const float* panel = xt + j0 * J;
@@ -499,7 +499,8 @@ GDB_AVX512 void projkeep_f32_avx512(const float* dh, int64_t n_rows, int64_t qp,
         for (int64_t r = 0; r < n_rows; ++r) {
             uint64_t bits = 0;
             for (int k = 0; k < 4; ++k) {
-                const __m512 lb = _mm512_fmsub_ps(alo[k], _mm512_loadu_ps(dh + r * qp + 64 * w + 16 * k), clo[k]);
+                const __m512 lb =
+                    _mm512_fmsub_ps(alo[k], _mm512_loadu_ps(dh + r * qp + 64 * w + 16 * k), clo[k]);
                 bits |= uint64_t(_mm512_cmp_ps_mask(lb, mn[k], _CMP_LE_OQ)) << (16 * k);
             }
             keep[r * words + w] = bits;

@@ -49,8 +49,7 @@ inline float canonical_total(const float* A, const float* B) {
 
 }  // namespace
 
-void l2sq_rows_f32_scalar(const float* rows, int64_t n_rows, int64_t dim,
-                          const float* v, float* out) {
+void l2sq_rows_f32_scalar(const float* rows, int64_t n_rows, int64_t dim, const float* v, float* out) {
     float A[kLanes], B[kLanes];
     for (int64_t r = 0; r < n_rows; ++r) {
         const float* row = rows + r * dim;
@@ -60,8 +59,8 @@ void l2sq_rows_f32_scalar(const float* rows, int64_t n_rows, int64_t dim,
     }
 }
 
-void cosdots_f32_scalar(const float* base, int64_t n_win, int64_t stride,
-                        int64_t len, const float* q, float* qa, float* aa) {
+void cosdots_f32_scalar(const float* base, int64_t n_win, int64_t stride, int64_t len, const float* q,
+                        float* qa, float* aa) {
     float A[kLanes], B[kLanes];
     for (int64_t w = 0; w < n_win; ++w) {
         const float* a = base + w * stride;
@@ -78,8 +77,8 @@ void cosdots_f32_scalar(const float* base, int64_t n_win, int64_t stride,
 // These are only ever a filter (see kernels.h), so float accumulation is fine;
 // the scalar versions define the semantics the SIMD ones are tested against.
 
-void dots_block_f32_scalar(const float* base, int64_t n_rows, int64_t stride, int64_t len,
-                           const float* xt, int64_t qp, float* out) {
+void dots_block_f32_scalar(const float* base, int64_t n_rows, int64_t stride, int64_t len, const float* xt,
+                           int64_t qp, float* out) {
     for (int64_t r = 0; r < n_rows; ++r) {
         const float* row = base + r * stride;
         float* o = out + r * qp;
@@ -95,8 +94,7 @@ namespace {
 
 // shared by both filters: d and b for lane j of row r are given by `dist`
 template <class Dist>
-void filter_scalar(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi, uint64_t* keep,
-                   Dist dist) {
+void filter_scalar(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi, uint64_t* keep, Dist dist) {
     const float inf = std::numeric_limits<float>::infinity();
     const float nan = std::numeric_limits<float>::quiet_NaN();
     for (int64_t r = 0; r < n_rows; ++r) {
@@ -126,9 +124,9 @@ void filter_scalar(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi, 
 
 }  // namespace
 
-void l2filter_f32_scalar(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
-                         const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
-                         float eps, float* minhi, uint64_t* keep) {
+void l2filter_f32_scalar(const float* c, int64_t n_rows, int64_t qp, const float* nrow, const float* rrow,
+                         const uint8_t* ok, const float* nq, const float* rq, float eps, float* minhi,
+                         uint64_t* keep) {
     filter_scalar(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, float& d, float& b) {
         d = nrow[r] + nq[j] - 2.0f * c[r * qp + j];
         const float s = rrow[r] + rq[j];
@@ -137,8 +135,8 @@ void l2filter_f32_scalar(const float* c, int64_t n_rows, int64_t qp, const float
 }
 
 void cosfilter_f32_scalar(const float* c, int64_t n_rows, int64_t qp, const float* /*nrow*/,
-                          const float* rrow, const uint8_t* ok, const float* /*nq*/,
-                          const float* rq, float eps, float* minhi, uint64_t* keep) {
+                          const float* rrow, const uint8_t* ok, const float* /*nq*/, const float* rq,
+                          float eps, float* minhi, uint64_t* keep) {
     filter_scalar(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, float& d, float& b) {
         d = 1.0f - c[r * qp + j] * rrow[r] * rq[j];
         b = eps;
@@ -163,8 +161,7 @@ float half_to_float(uint16_t h) {
     return f;
 }
 
-void l2sq_rows_f16_scalar(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v,
-                          float* d) {
+void l2sq_rows_f16_scalar(const uint16_t* rows, int64_t n_rows, int64_t dim, const float* v, float* d) {
     for (int64_t r = 0; r < n_rows; ++r) {
         const uint16_t* row = rows + r * dim;
         double acc = 0.0;
@@ -212,7 +209,6 @@ float l2sq_blocks_f16_scalar(const uint16_t* blocks, int64_t f0, int64_t f1, int
     return l2sq_blocks_scalar(blocks, f0, f1, dim, v, up, out);
 }
 
-
 // --- blocked batch: exact pairs and the projection filter -------------------
 
 void l2sq_pairs_f32_scalar(const float* const* rows, const float* const* vs, int64_t n, int64_t dim,
@@ -228,9 +224,8 @@ void cosdots_pairs_f32_scalar(const float* const* wins, const float* const* qs, 
     }
 }
 
-void projfilter_f32_scalar(const float* z, int64_t n_rows, int64_t J, const float* nrow,
-                           const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
-                           float* dh, float* umin) {
+void projfilter_f32_scalar(const float* z, int64_t n_rows, int64_t J, const float* nrow, const float* rres,
+                           const float* xt, int64_t qp, const ProjLanes& L, float* dh, float* umin) {
     for (int64_t r = 0; r < n_rows; ++r) {
         const float* row = z + r * J;
         for (int64_t j = 0; j < qp; ++j) {
@@ -245,8 +240,8 @@ void projfilter_f32_scalar(const float* z, int64_t n_rows, int64_t J, const floa
     }
 }
 
-void projkeep_f32_scalar(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L,
-                         const float* umin, uint64_t* keep) {
+void projkeep_f32_scalar(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L, const float* umin,
+                         uint64_t* keep) {
     const int64_t words = qp / 64;
     std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
     for (int64_t r = 0; r < n_rows; ++r)

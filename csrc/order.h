@@ -23,7 +23,6 @@ inline bool nan_last_less(T a, T b) {
     return a < b || (b != b && a == a);
 }
 
-
 // Order-preserving unsigned keys for the radix sort: -0 and +0 are equal (as
 // they compare), every NaN sorts last and equal to the others, like nan_last_less.
 inline uint32_t order_key(float x) {
@@ -100,7 +99,8 @@ void select_smallest(std::vector<T>& v, int32_t n, KeyFn key, std::vector<uint32
         cum += hist[b];
         if (cum >= uint32_t(n)) break;
     }
-    const auto mid = std::partition(v.begin(), v.end(), [&](const T& x) { return ((key(x) >> shift) & 2047) <= b; });
+    const auto mid =
+        std::partition(v.begin(), v.end(), [&](const T& x) { return ((key(x) >> shift) & 2047) <= b; });
     std::nth_element(v.begin(), v.begin() + (n - 1), mid);
     std::sort(v.begin(), v.begin() + n);
 }

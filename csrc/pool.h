@@ -56,5 +56,4 @@ void parallel_for(int64_t n_tasks, int threads, Fn&& fn) {
     if (first) std::rethrow_exception(first);
 }
 
-
 }  // namespace gesturedb

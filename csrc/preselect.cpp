@@ -26,8 +26,8 @@ void cosine_distances(const float* __restrict qa, const float* __restrict qq, co
 }
 
 int64_t preselect_exact(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
-                        Preselect pre, const BitsetView& allowed, float* scratch_a,
-                        float* scratch_b, Selection& sel) {
+                        Preselect pre, const BitsetView& allowed, float* scratch_a, float* scratch_b,
+                        Selection& sel) {
     const int64_t n = qs.n;
     const int64_t n_cand = db.seg_len[m] - n;  // s = 1 .. seg_len - n
     if (n_cand < 1) return -1;
@@ -53,8 +53,7 @@ int64_t preselect_exact(const Kernels& kern, const Database& db, int64_t m, cons
         double best_da = 0.0;
         for_each_allowed_run(allowed, seg0 + 1, n_cand, n - 1, [&](int64_t i0, int64_t i1) {
             // the window of candidate i starts at g = seg0 + 1 + i
-            kern.cosdots_f32(db.audio.row(seg0 + 1 + i0), i1 - i0, Da, n * Da, qs.q, scratch_a,
-                             scratch_b);
+            kern.cosdots_f32(db.audio.row(seg0 + 1 + i0), i1 - i0, Da, n * Da, qs.q, scratch_a, scratch_b);
             for (int64_t i = i0; i < i1; ++i) {
                 const double d = cosine_distance(scratch_a[i - i0], qs.qq, scratch_b[i - i0]);
                 if (best < 0 || nan_last_less(d, best_da)) {

@@ -24,9 +24,9 @@ inline double cosine_distance(float qa, float qq, float aa) {
 
 // One query's step inputs as the pre-selection sees them.
 struct QueryStep {
-    const float* prev;   // (Dp,)
-    const float* q;      // (n * Da,)
-    float qq;            // <q, q> from cosdots_f32, as every path computes it
+    const float* prev;  // (Dp,)
+    const float* q;     // (n * Da,)
+    float qq;           // <q, q> from cosdots_f32, as every path computes it
     int64_t n;
 };
 
@@ -47,8 +47,8 @@ void cosine_distances(const float* __restrict qa, const float* __restrict qq, co
 // one value per candidate. Returns the candidate index i (s = i + 1) or -1 and
 // writes the pre-selection distance into sel.
 int64_t preselect_exact(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
-                        Preselect pre, const BitsetView& allowed, float* scratch_a,
-                        float* scratch_b, Selection& sel);
+                        Preselect pre, const BitsetView& allowed, float* scratch_a, float* scratch_b,
+                        Selection& sel);
 
 // Spec steps 1-3, second half: the other distance of the pre-selected candidate.
 inline void complete_other(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
@@ -69,7 +69,8 @@ inline void prefetch_other(const Database& db, int64_t m, const QueryStep& qs, P
                            const Selection& sel) {
     if (sel.s[m] < 0) return;
     const int64_t g = db.seg_start[m] + sel.s[m];
-    if (pre == Preselect::Pose) prefetch_bytes(db.audio.row(g), qs.n * db.audio.cols * int64_t(sizeof(float)));
+    if (pre == Preselect::Pose)
+        prefetch_bytes(db.audio.row(g), qs.n * db.audio.cols * int64_t(sizeof(float)));
     else prefetch_bytes(db.pose.row(g - 1), db.pose.cols * int64_t(sizeof(float)));
 }
 

@@ -82,8 +82,7 @@ void Ranker::full(int32_t K, int64_t k, int32_t& c, int64_t& rp_out, int64_t& ra
     for (int32_t i = 0; i < K; ++i) ra_[ord_da_[i]] = i;
     // (R, rp) is unique (rp is a permutation), so it orders every candidate
     rkey_.resize(K);
-    for (int32_t i = 0; i < K; ++i)
-        rkey_[i] = (uint64_t(uint32_t(rp_[i] + ra_[i])) << 32) | uint32_t(rp_[i]);
+    for (int32_t i = 0; i < K; ++i) rkey_[i] = (uint64_t(uint32_t(rp_[i] + ra_[i])) << 32) | uint32_t(rp_[i]);
     const int64_t kk = std::min<int64_t>(k, K) - 1;
     std::nth_element(rkey_.begin(), rkey_.begin() + kk, rkey_.end());
     c = ord_dp_[int32_t(rkey_[kk] & 0xFFFFFFFFu)];
@@ -102,7 +101,8 @@ TableRank rank_table(const int64_t* start, const float* pose_dist, const double*
     db.seg_start = {zero.data(), M};
     db.seg_len = {zero.data(), M};
     // Selection is read-only here; the ranker never writes through it
-    Selection sel{const_cast<int64_t*>(start), const_cast<float*>(pose_dist), const_cast<double*>(audio_dist)};
+    Selection sel{const_cast<int64_t*>(start), const_cast<float*>(pose_dist),
+                  const_cast<double*>(audio_dist)};
     Ranker ranker;
     const StepResult r = ranker.rank(db, sel, 0, k);
     TableRank out;
@@ -145,7 +145,8 @@ void table_top_lists(const int64_t* start, const float* pose_dist, const double*
         const int64_t take = std::min(n, K);
         if (take < K) {
             select_smallest(p, int32_t(take), [](uint64_t x) { return x; }, hist);
-            select_smallest(a, int32_t(take), [](const std::pair<uint64_t, int32_t>& x) { return x.first; }, hist);
+            select_smallest(
+                a, int32_t(take), [](const std::pair<uint64_t, int32_t>& x) { return x.first; }, hist);
         } else {
             std::sort(p.begin(), p.end());
             std::sort(a.begin(), a.end());

@@ -15,9 +15,9 @@ namespace gesturedb {
 
 // Pre-selection results of one query at one step, indexed by segment.
 struct Selection {
-    int64_t* s;    // chosen offset, or -1 when the segment has no allowed candidate
-    float* dp;     // its pose distance
-    double* da;    // its audio distance
+    int64_t* s;  // chosen offset, or -1 when the segment has no allowed candidate
+    float* dp;   // its pose distance
+    double* da;  // its audio distance
 };
 
 // Spec steps 4-5 over a Selection.

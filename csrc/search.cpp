@@ -10,9 +10,9 @@
 
 namespace gesturedb {
 
-int64_t run_search(StepEngine& engine, const Database& db, Span2<const float> query,
-                   const float* init_pose, int64_t window, int64_t k, Preselect preselect,
-                   const AllowedSchedule& allowed, const bool* exclude, const SearchOutput& out) {
+int64_t run_search(StepEngine& engine, const Database& db, Span2<const float> query, const float* init_pose,
+                   int64_t window, int64_t k, Preselect preselect, const AllowedSchedule& allowed,
+                   const bool* exclude, const SearchOutput& out) {
     const int64_t T = query.rows;
     const float* prev = init_pose;
     StepOptions opt;
@@ -51,8 +51,8 @@ void check_search_args(const Database& db, Span2<const float> query, int64_t win
 
 int64_t rank_sum_search(const Kernels& kernels, const Database& db, Span2<const float> query,
                         const float* init_pose, int64_t window, int64_t k, Preselect preselect,
-                        const AllowedSchedule& allowed, const bool* exclude,
-                        const SearchOutput& out, int threads) {
+                        const AllowedSchedule& allowed, const bool* exclude, const SearchOutput& out,
+                        int threads) {
     check_search_args(db, query, window, k, allowed);
     StepEngine engine(kernels, db, threads <= 0 ? default_threads() : threads);
     return run_search(engine, db, query, init_pose, window, k, preselect, allowed, exclude, out);

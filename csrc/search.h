@@ -15,10 +15,10 @@ namespace gesturedb {
 enum class Preselect { Pose = 0, Audio = 1 };
 
 struct Database {
-    Span2<const float> pose;          // (F, Dp) pose feature per frame
-    Span2<const float> audio;         // (F, Da) audio feature per frame
-    Span1<const int64_t> seg_start;   // (M,) first global frame of each segment
-    Span1<const int64_t> seg_len;     // (M,) frames in each segment
+    Span2<const float> pose;         // (F, Dp) pose feature per frame
+    Span2<const float> audio;        // (F, Da) audio feature per frame
+    Span1<const int64_t> seg_start;  // (M,) first global frame of each segment
+    Span1<const int64_t> seg_len;    // (M,) frames in each segment
     // Optional (F, Dp) binary16 copy of pose (round-to-nearest), data null when
     // absent. Pose pre-selection then streams these half-size rows and bounds
     // the distance each row can have in float32; only rows that may still be a
@@ -57,22 +57,22 @@ struct Database {
 void check_database(const Database& db);
 
 struct StepOptions {
-    int64_t k = 1;                        // 1-based rank of the choice
+    int64_t k = 1;  // 1-based rank of the choice
     Preselect preselect = Preselect::Pose;
-    BitsetView allowed;                   // empty view: every frame allowed
-    const bool* exclude = nullptr;        // (M,) true = segment excluded; may be null
+    BitsetView allowed;             // empty view: every frame allowed
+    const bool* exclude = nullptr;  // (M,) true = segment excluded; may be null
 };
 
 struct StepResult {
     bool found = false;
-    int64_t segment = -1;    // m
-    int64_t start = -1;      // s, offset of the window in the segment (>= 1)
-    int64_t frame = -1;      // g = seg_start[m] + s, first global frame of the window
-    int64_t length = 0;      // n, frames in the window
-    double pose_dist = 0.0;  // ||P[g-1] - prev||^2
-    double audio_dist = 0.0; // 1 - cos(query window, audio window)
-    int64_t pose_rank = -1;  // rp, 0-based
-    int64_t audio_rank = -1; // ra, 0-based
+    int64_t segment = -1;      // m
+    int64_t start = -1;        // s, offset of the window in the segment (>= 1)
+    int64_t frame = -1;        // g = seg_start[m] + s, first global frame of the window
+    int64_t length = 0;        // n, frames in the window
+    double pose_dist = 0.0;    // ||P[g-1] - prev||^2
+    double audio_dist = 0.0;   // 1 - cos(query window, audio window)
+    int64_t pose_rank = -1;    // rp, 0-based
+    int64_t audio_rank = -1;   // ra, 0-based
     int64_t n_candidates = 0;  // segments left after pre-selection
 };
 
@@ -95,7 +95,7 @@ struct SearchOutput {
 struct AllowedSchedule {
     const uint64_t* words = nullptr;
     int64_t n_words = 0;
-    int64_t n_rows = 0;     // 0: no mask; 1 with per_step false: shared
+    int64_t n_rows = 0;  // 0: no mask; 1 with per_step false: shared
     bool per_step = false;
 
     BitsetView at(int64_t step) const {
@@ -123,8 +123,8 @@ public:
     // candidate), its pose distance (float32, as the ranking compares it) and
     // audio distance. Ranks computed over the rows of several shards' tables
     // (ties by global segment index) are exactly those of one database.
-    void preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt,
-                   int64_t* start, float* pose_dist, double* audio_dist);
+    void preselect(const float* prev, const float* query, int64_t n, const StepOptions& opt, int64_t* start,
+                   float* pose_dist, double* audio_dist);
 
 private:
     struct Impl;
@@ -134,7 +134,7 @@ private:
 // Spec steps 4-5 over a pre-selection table of M rows (start -1: no
 // candidate), e.g. several shards' tables concatenated in global segment order.
 struct TableRank {
-    int64_t segment = -1;      // -1 when no row has a candidate
+    int64_t segment = -1;  // -1 when no row has a candidate
     int64_t pose_rank = -1;
     int64_t audio_rank = -1;
     int64_t n_candidates = 0;
@@ -152,19 +152,19 @@ void table_top_lists(const int64_t* start, const float* pose_dist, const double*
 // A whole search of query (T, Da) from init_pose (Dp,), steps at t = 0, N, 2N...
 // Returns -1 on success, else the index of the step that found no candidate
 // (entries from that step on are left unwritten).
-int64_t rank_sum_search(const Kernels& kernels, const Database& db,
-                        Span2<const float> query, const float* init_pose, int64_t window,
-                        int64_t k, Preselect preselect, const AllowedSchedule& allowed,
-                        const bool* exclude, const SearchOutput& out, int threads);
+int64_t rank_sum_search(const Kernels& kernels, const Database& db, Span2<const float> query,
+                        const float* init_pose, int64_t window, int64_t k, Preselect preselect,
+                        const AllowedSchedule& allowed, const bool* exclude, const SearchOutput& out,
+                        int threads);
 
 // One query of a batch: its own audio, initial pose, k, exclusion row and outputs.
 struct BatchQuery {
-    Span2<const float> audio;    // (T_i, Da)
-    const float* init_pose;      // (Dp,)
+    Span2<const float> audio;  // (T_i, Da)
+    const float* init_pose;    // (Dp,)
     int64_t k;
-    const bool* exclude;         // (M,) or null
-    SearchOutput out;            // (S_i,) each
-    int64_t failed_step = -1;    // written: -1 or the failing step
+    const bool* exclude;       // (M,) or null
+    SearchOutput out;          // (S_i,) each
+    int64_t failed_step = -1;  // written: -1 or the failing step
     // Set by preselect_batch: the query's one window is pre-selected into
     // these (M,) rows (as StepEngine::preselect writes them), not ranked.
     int64_t* table_s = nullptr;
@@ -183,9 +183,8 @@ enum class BatchMethod {
 
 // Runs every query exactly as rank_sum_search would, in parallel over blocks of
 // queries (one level of parallelism: nothing inside a block is threaded).
-void rank_sum_search_batch(const Kernels& kernels, const Database& db,
-                           std::vector<BatchQuery>& queries, int64_t window,
-                           Preselect preselect, const AllowedSchedule& allowed, int threads,
+void rank_sum_search_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuery>& queries,
+                           int64_t window, Preselect preselect, const AllowedSchedule& allowed, int threads,
                            BatchMethod method = BatchMethod::Auto);
 
 // Spec steps 1-3 of one step for many queries, on one database over many

@@ -32,8 +32,8 @@ void check_search_args(const Database& db, Span2<const float> query, int64_t win
 
 // The steps of one query on engine; returns -1 or the step that found no
 // candidate (rank_sum_search's contract).
-int64_t run_search(StepEngine& engine, const Database& db, Span2<const float> query,
-                   const float* init_pose, int64_t window, int64_t k, Preselect preselect,
-                   const AllowedSchedule& allowed, const bool* exclude, const SearchOutput& out);
+int64_t run_search(StepEngine& engine, const Database& db, Span2<const float> query, const float* init_pose,
+                   int64_t window, int64_t k, Preselect preselect, const AllowedSchedule& allowed,
+                   const bool* exclude, const SearchOutput& out);
 
 }  // namespace gesturedb

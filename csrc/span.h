@@ -6,8 +6,8 @@
 // built in bindings.cpp (from a checked numpy array) or in tests.
 #pragma once
 
-#include <cstdint>
 #include <cstddef>
+#include <cstdint>
 
 namespace gesturedb {
 
@@ -40,9 +40,7 @@ struct BitsetView {
     int64_t n_words = 0;
 
     bool all() const { return words == nullptr; }
-    bool test(int64_t f) const {
-        return words == nullptr || ((words[f >> 6] >> (f & 63)) & 1u) != 0;
-    }
+    bool test(int64_t f) const { return words == nullptr || ((words[f >> 6] >> (f & 63)) & 1u) != 0; }
 };
 
 }  // namespace gesturedb

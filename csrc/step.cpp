@@ -3,12 +3,12 @@
 // (pool.h); in each chunk the pre-selection streams the candidates (exactly, or
 // through a bounded filter of filters.h), then reads the scattered rows that
 // decide, and the ranker (rank.h) picks the window.
-#include "search.h"
 #include "filters.h"
 #include "pool.h"
 #include "prefetch.h"
 #include "preselect.h"
 #include "rank.h"
+#include "search.h"
 
 #include <algorithm>
 #include <cmath>
@@ -124,7 +124,8 @@ struct StepEngine::Impl {
             if (filtered) {
                 auto prefetch_kept = [&](int64_t m) {
                     for (int64_t j = off[m - m0]; j < off[m - m0 + 1]; ++j)
-                        prefetch_bytes(db.pose.row(db.seg_start[m] + kept[j]), db.pose.cols * int64_t(sizeof(float)));
+                        prefetch_bytes(db.pose.row(db.seg_start[m] + kept[j]),
+                                       db.pose.cols * int64_t(sizeof(float)));
                 };
                 for (int64_t m = m0; m < std::min(m1, m0 + kScatterAhead); ++m) prefetch_kept(m);
                 for (int64_t m = m0; m < m1; ++m) {
@@ -135,7 +136,8 @@ struct StepEngine::Impl {
                     sel.s[m] = i < 0 ? -1 : i + 1;
                 }
             }
-            for (int64_t m = m0; m < std::min(m1, m0 + kScatterAhead); ++m) prefetch_other(db, m, qs, opt.preselect, sel);
+            for (int64_t m = m0; m < std::min(m1, m0 + kScatterAhead); ++m)
+                prefetch_other(db, m, qs, opt.preselect, sel);
             for (int64_t m = m0; m < m1; ++m) {
                 if (m + kScatterAhead < m1) prefetch_other(db, m + kScatterAhead, qs, opt.preselect, sel);
                 if (sel.s[m] >= 0) complete_other(kern, db, m, qs, opt.preselect, sel);
@@ -149,8 +151,7 @@ StepEngine::StepEngine(const Kernels& kernels, const Database& db, int threads)
     : impl_(new Impl(kernels, db, threads)) {}
 StepEngine::~StepEngine() = default;
 
-StepResult StepEngine::step(const float* prev, const float* query, int64_t n,
-                            const StepOptions& opt) {
+StepResult StepEngine::step(const float* prev, const float* query, int64_t n, const StepOptions& opt) {
     if (n < 1) throw std::invalid_argument("step: window length must be >= 1");
     return impl_->step(prev, query, n, opt);
 }
