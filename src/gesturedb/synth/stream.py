@@ -40,7 +40,7 @@ from gesturedb.features.audio import AUDIO_WINDOW_S, AudioFeatureStream
 from gesturedb.io.transcripts import Words, normalize_word
 from gesturedb.motion import Motion
 from gesturedb.search import _no_candidate_error
-from gesturedb.synth.assemble import PieceAssembler, floor_height, typical_accelerations, window_piece
+from gesturedb.synth.assemble import PieceAssembler, floor_height, typical_accelerations, window_piece, window_pieces
 from gesturedb.synth.inputs import check_frames
 from gesturedb.synth.options import SearchOptions
 from gesturedb.synth.repeats import clear_frames, repeat_stats
@@ -132,6 +132,8 @@ class Stream:
         self._asm = PieceAssembler(db.skeleton, db.fps, seam_decay_s=self.seam_decay_s,
                                    seam_accel=typical_accelerations(db) if self.seam_decay_s > 0 else None,
                                    floor_y=floor_height(db), batch=_whole)
+        self._whole = _whole
+        self._held: list[tuple] = []  # _whole: the windows (frames, output frame, previous frame), read at finish
         self._windows: list[tuple[int, int, int]] = []  # (output frame, first database frame, length) per step
         self._steps: list[dict] = []
         self._relaxed: list[bool] = []
@@ -200,6 +202,10 @@ class Stream:
         T = check_frames(self._query.shape[0], self.fps)
         while len(self._windows) * self.step < T:
             self._run_step(min(self.step, T - len(self._windows) * self.step))
+        if self._held:
+            for piece, (frames, t, _) in zip(window_pieces(self.db, self._held, seam_decay_s=self.seam_decay_s),
+                                             self._held):
+                self._pending.append(self._asm.add(piece, end=t + frames.shape[0]))
         return self._chunk(self._asm.finish())
 
     def _add_features(self, raw: np.ndarray) -> None:
@@ -301,6 +307,9 @@ class Stream:
             "guard_relaxed": relaxed,
         })
         prev_frame = int(self._source[-2][-1]) if i > 0 else None
+        if self._whole:  # one read of every window at the end (window_pieces: the same pieces)
+            self._held.append((frames, t, prev_frame))
+            return
         piece = window_piece(db, frames, t, prev_frame=prev_frame, seam_decay_s=self.seam_decay_s)
         self._pending.append(self._asm.add(piece, end=t + n))
 
