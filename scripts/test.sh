@@ -2,7 +2,7 @@
 # Install, then run the whole test suite (unit + end-to-end on ../shared/data).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh --tests
 bash scripts/blender.sh  # bpy (about 1 GB) for tests/test_blender.py only: demo.sh never downloads it
 . scripts/venv.sh  # the environment setup.sh installed into: its pytest, lint-imports and gesturedb
 # the layers contract (.importlinter): a stage importing a stage above it fails here

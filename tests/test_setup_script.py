@@ -50,9 +50,9 @@ def project(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "VIRTUAL_ENV"}
     env.update(PATH=f"{fake_bin}{os.pathsep}{env['PATH']}", SETUP_LOG=str(log))
 
-    def run(script="scripts/setup.sh", ok=True, **more):
+    def run(script="scripts/setup.sh", *args, ok=True, **more):
         before = log.read_text()
-        r = subprocess.run(["bash", script], cwd=proj, env={**env, **more}, capture_output=True,
+        r = subprocess.run(["bash", script, *args], cwd=proj, env={**env, **more}, capture_output=True,
                            text=True, timeout=120)
         assert (r.returncode == 0) == ok, r.stderr
         return r.stderr, log.read_text()[len(before):]
@@ -66,7 +66,8 @@ def _pip_calls(calls: str) -> list[str]:
 
 def test_setup_uses_a_local_venv_and_skips_an_unchanged_install(project):
     proj, run = project
-    err, calls = run()
+    tests = ("scripts/setup.sh", "--tests")
+    err, calls = run(*tests)
     venv = proj / ".venv"
     assert f"-m venv {venv}" in calls and (venv / "bin/python").exists()
     pip = _pip_calls(calls)
@@ -76,17 +77,19 @@ def test_setup_uses_a_local_venv_and_skips_an_unchanged_install(project):
     assert {"refiner", "test"} <= set(extras) and pip[0].endswith(f"-e .[{','.join(extras)}]")
     assert (venv / ".gesturedb-install-stamp").exists()
     # nothing changed: no pip, and it says so
-    err, calls = run()
+    err, calls = run(*tests)
     assert _pip_calls(calls) == [] and "up to date" in err and "-m venv" not in calls
     # a changed C++ source, or setup.py, installs again
     src = sorted((proj / "csrc").glob("*.cpp"))[0]
     src.write_text(src.read_text() + "\n// changed\n")
-    assert len(_pip_calls(run()[1])) == 1
-    assert _pip_calls(run()[1]) == []
+    assert len(_pip_calls(run(*tests)[1])) == 1
+    assert _pip_calls(run(*tests)[1]) == []
     setup = proj / "setup.py"
     setup.write_text(setup.read_text().replace('"refiner": ["torch==2.13.0"],',
                                                '"refiner": ["torch==2.13.0"],\n        "aaa": [],'))
-    assert _pip_calls(run()[1])[0].endswith(f"-e .[{','.join(['aaa'] + extras)}]")
+    assert _pip_calls(run(*tests)[1])[0].endswith(f"-e .[{','.join(['aaa'] + extras)}]")
+    # without --tests (the demo), only the product's own extras: no pytest, docs tools or torch
+    assert _pip_calls(run()[1])[0].endswith("-e .[serve]")
 
 
 def test_setup_uses_an_active_virtualenv(project, tmp_path):
@@ -166,7 +169,7 @@ def test_setup_shows_a_line_per_download_not_pips_flood(project, tmp_path):
     lines = err.strip().splitlines()
     assert lines[0].startswith("setup: creating the virtual environment")
     lines = lines[1:]
-    assert "the first time about 2.6 GB" in lines[0]  # what is coming and why it takes minutes
+    assert "the first time up to 2.6 GB" in lines[0]  # what is coming and why it takes minutes
     shown = [re.sub(r"^setup: +\d+:\d\d  ", "", ln) for ln in lines[1:-1]]
     assert shown == [
         "Downloading numpy-2.1.0-cp311-cp311-manylinux_2_17_x86_64.whl (16.3 MB)",

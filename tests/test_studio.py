@@ -31,7 +31,7 @@ DRIVER = shutil.which("chromedriver")
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not (CHROMIUM and DRIVER), reason="Debian's chromium and chromium-driver are not "
-                                 "installed (scripts/setup.sh installs them)")]
+                                 "installed (scripts/setup.sh --tests installs them)")]
 
 sys.path.insert(0, os.path.dirname(__file__))
 
