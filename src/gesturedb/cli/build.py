@@ -12,7 +12,7 @@ def add_parser(sub) -> None:
     p = sub.add_parser(
         "build",
         help="build a gesture database from recordings",
-        description="Pair motion (.bvh/.npz), speech (.wav) and transcripts (.TextGrid/.tsv/.json) by file stem "
+        description="Pair motion (.bvh/.npz), speech (.wav/.flac) and transcripts (.TextGrid/.tsv/.json) by file stem "
         "and build a gesture database (HDF5).",
     )
     p.add_argument("inputs", nargs="*", metavar="INPUT", help="files or folders (paired by file stem)")

@@ -78,7 +78,7 @@ def run(args) -> int:
 
         with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
             tr = train(db, args.output, config=cfg, resume=args.resume, overwrite=args.overwrite, progress=True,
-                       log=lambda m: print(m, file=sys.stderr), client=client, parts=args.parts,
+                       log=lambda m: print(m, file=sys.stderr), scheduler=client, parts=args.parts,
                        workers=args.workers, threads=args.threads)
         last = tr.history[-1] if tr.history else {}
         print(f"trained {tr.iteration} iterations -> {args.output}"

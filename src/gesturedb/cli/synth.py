@@ -99,7 +99,7 @@ def run(args) -> int:
             from gesturedb.refiner import load_refiner
 
             refiner = load_refiner(args.refiner, db)
-        settings = dict(segments=args.segments, client=client, parts=args.parts)
+        settings = dict(segments=args.segments, scheduler=client, parts=args.parts)
         synth = method.open(db, **{k: v for k, v in settings.items() if k in method.settings})
         res = synth.synthesize(args.audio, transcript=args.transcript, options=options,
                                **({"refiner": refiner} if refiner is not None else {}))
@@ -151,7 +151,7 @@ def method_options(method, args, *, keywords):
         fields = set(m.options.field_names())
         out = [flag for name, flag in _METHOD_FLAGS.items() if given[name] is not None and name not in fields]
         out += ["--refiner"] if args.refiner and not m.refines else []
-        return out + (["--scheduler"] if args.scheduler and "client" not in m.settings else [])
+        return out + (["--scheduler"] if args.scheduler and "scheduler" not in m.settings else [])
 
     unused = unusable(method)
     if unused:

@@ -185,17 +185,17 @@ class StepBitsets:
     MB at 1,000 hours), so the ``(steps, W)`` array would be 790 MB where its
     distinct rows take a few.
 
+    Reads like the ``(S, W)`` array it stands for: ``len``, ``shape``,
+    ``dtype``, ``b[i]`` (step ``i``'s row, a read-only view) and
+    ``np.asarray(b)`` (the whole array, built on demand); ``a & b`` is the
+    step-wise intersection, again with each distinct row once.
+
     Parameters
     ----------
     rows : ndarray [shape=(U, W)], uint64
         The distinct bitsets (kept read-only).
     of_step : ndarray [shape=(S,)], int
         The row of each step, ``0 <= of_step < U``.
-
-    Reads like the ``(S, W)`` array it stands for: ``len``, ``shape``,
-    ``dtype``, ``b[i]`` (step ``i``'s row, a read-only view) and
-    ``np.asarray(b)`` (the whole array, built on demand); ``a & b`` is the
-    step-wise intersection, again with each distinct row once.
     """
 
     ndim = 2

@@ -767,7 +767,7 @@ def read_json_attr(obj, name: str, default: Any = None) -> Any:
 
 
 def describe() -> str:
-    """The schema as a Markdown table (used by the README and `gesturedb info --schema`)."""
+    """The schema as a Markdown table (the docs site's schema page and `gesturedb info --schema`)."""
     lines = [f"Schema version {SCHEMA_VERSION}.", "", "| dataset | dtype | shape | unit | meaning |", "|---|---|---|---|---|"]
     for f in FIELDS:
         shape = "(" + ", ".join(str(s) for s in f.shape) + ("," if len(f.shape) == 1 else "") + ")"

@@ -27,7 +27,7 @@ Silero is the default because GestureMaster's clips are cut at its pauses of 0.4
 energy detector reports two false pauses for each true one. Neither finds word onsets: the
 32-bin rhythm signatures of their stretches differ from the transcript's by 10.8 (silero) and
 10.9 (energy) bits per clip, about what an empty signature gives (10.5); with only audio,
-the rhythm term carries little (see README, graph synthesis).
+the rhythm term carries little (see docs/evaluation.md, "Motion graph").
 """
 from __future__ import annotations
 

@@ -50,6 +50,7 @@ from gesturedb.db.shards import ShardedSearch
 from gesturedb.db.workers import single_threaded_worker
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.refiner.representation import moving_joints, to_channels
+from gesturedb.synth.options import default_step
 
 WINDOW = 64
 STRIDE = 5
@@ -359,6 +360,7 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     ks = np.where(np.arange(W) % 2 == 0, 1, rng.integers(2, K_MAX + 1, size=W)).astype(np.int64)
     rng.shuffle(ks)
     init = np.ascontiguousarray(db.pose_features[rng.integers(0, db.n_frames, size=W)])
+    step = default_step(db.fps)  # the synthesis' own step (8 frames at 15 fps), whatever the frame rate
     seg = db.chunks
     seg_start = np.ascontiguousarray(seg.start, dtype=np.int64)
     seg_len = np.ascontiguousarray(seg.length, dtype=np.int64)
@@ -369,7 +371,7 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
         sharded = ShardedSearch.for_database(db, seg_start, seg_len, scheduler=scheduler, parts=parts)
 
         def search_chunk(q, p, k, ex):
-            return sharded.search_batch(q, p, step=8, k=k, exclude=ex)
+            return sharded.search_batch(q, p, step=step, k=k, exclude=ex)
     else:
         sharded = None
         # the batch's pose filter then reads 24 projected columns instead of 96 (same
@@ -379,7 +381,7 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
 
         def search_chunk(q, p, k, ex):
             return rank_sum_search_batch(db.pose_features, db.audio_features, seg_start, seg_len, q, p,
-                                         step=8, k=k, exclude=ex, pose_proj=proj)
+                                         step=step, k=k, exclude=ex, pose_proj=proj)
     # the paths only (a window's frame map and seams, about 600 bytes): the motion is assembled below
     frame_maps = np.empty((W, window), np.int64)
     seams = []

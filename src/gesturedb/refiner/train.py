@@ -436,8 +436,8 @@ def check_output(out_path, *, resume: bool, overwrite: bool) -> None:
 
 
 def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = False, overwrite: bool = False,
-          progress: bool = False, log=None, client=None, parts: int = 2, workers: int = 1,
-          threads: int | None = None) -> Trainer:
+          progress: bool = False, log=None, scheduler=None, parts: int = 2, workers: int = 1,
+          threads: int | None = None, client=None) -> Trainer:
     """Train (or resume training) a refiner on a database and write its checkpoint.
 
     Parameters
@@ -451,8 +451,9 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     overwrite : bool
         Start afresh over an existing ``out_path`` (without it, or ``resume``, an existing
         file is refused: a trained checkpoint is never replaced by mistake).
-    client, parts, workers
-        A Dask client: the training windows' self-search runs over ``parts`` shards on
+    scheduler, parts, workers
+        A Dask client (``client=`` is its older spelling, still accepted): the training
+        windows' self-search runs over ``parts`` shards on
         its workers, and their assembly too; without one the assembly runs on
         ``workers`` local processes (:func:`gesturedb.refiner.data.make_training_data`;
         the same data either way).
@@ -461,6 +462,10 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         :func:`gesturedb.threads.available_cpus`, not torch's own choice, which counts the
         machine's cores and ignores a CPU quota.
     """
+    if client is not None:
+        if scheduler is not None:
+            raise ParameterError("train: expected scheduler= or its older spelling client=, not both")
+        scheduler = client
     if threads is not None and (not _is_int(threads) or threads < 1):
         raise ParameterError(f"threads: expected a positive integer or None, got {threads!r}")
     config = (config or TrainConfig()).check()
@@ -500,7 +505,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
             bars[stage].update(done - bars[stage].n)
 
         try:
-            data = make_training_data(db, seed=config.seed, stride=config.stride, scheduler=client, parts=parts,
+            data = make_training_data(db, seed=config.seed, stride=config.stride, scheduler=scheduler, parts=parts,
                                       workers=workers, progress=report if progress else None, cache=cache)
         finally:
             for b in bars.values():

@@ -70,20 +70,25 @@ class Searcher:
         bytes per step. On by
         default (skipped when it would keep a quarter of the candidates or
         more); takes precedence over ``half_precision``.
-    client : distributed.Client, optional
+    scheduler : distributed.Client, optional
         Search over ``parts`` shards resident on this Dask cluster's workers
         (:class:`gesturedb.db.shards.ShardedSearch`, built at the first
-        search): exactly the same output as the search in this process.
+        search): exactly the same output as the search in this process. The
+        name every Dask entry point takes (``build``, ``ShardedSearch``, the
+        refiner's training data); ``client=`` is the older spelling, still
+        accepted.
     parts : int
-        Number of shards with ``client``. A database opened from an index file
+        Number of shards with ``scheduler``. A database opened from an index file
         (``gesturedb shard``) is searched over its own shard files instead, each
         read by a worker (:meth:`ShardedSearch.from_shard_files`).
     """
 
     def __init__(self, db, *, segments: str = "chunks", half_precision: bool = False,
-                 projection: bool = True, client=None, parts: int = 2):
+                 projection: bool = True, scheduler=None, parts: int = 2, client=None):
+        if client is not None and scheduler is not None:
+            raise ParameterError("Searcher: expected scheduler= or its older spelling client=, not both")
         self.db = db
-        self._client, self._parts, self._sharded = client, parts, None
+        self._client, self._parts, self._sharded = scheduler if scheduler is not None else client, parts, None
         self._projection = bool(projection)
         self._proj = None
         self._half = HalfPose(db.pose_features) if half_precision else None
@@ -620,7 +625,7 @@ METHOD = Method(
     summary="rank-sum motion matching (Habibie et al. 2022)",
     options=SearchOptions,
     open=Searcher,
-    settings=("segments", "client", "parts"),
+    settings=("segments", "scheduler", "parts"),
     streams=True,
     refines=True,
     systems=(
