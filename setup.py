@@ -77,6 +77,7 @@ setup(
         "test": ["pytest>=7", "import-linter>=2.0",
                  "httpx2>=2.0",     # what Starlette's in-process TestClient speaks (tests/test_serve.py)
                  "selenium>=4.20",  # drives Debian's chromium in tests/test_studio.py
+                 "ruff>=0.6",              # scripts/test.sh lints the Python ([tool.ruff] in pyproject.toml)
                  "clang-format>=23,<24",  # scripts/test.sh checks the C++ against .clang-format
                  # coverage-guided fuzzing of every parser (tests/fuzz/); wheels exist for Linux x86_64 only,
                  # elsewhere tests/test_fuzz.py skips with a warning that the fuzzers did not run

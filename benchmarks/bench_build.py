@@ -109,7 +109,8 @@ def main() -> int:
         for workers in (1, 2):
             for mirror in (False, True):
                 out = Path(tmp) / "db.h5"
-                t = median_time(lambda: gesturedb.build(inputs, out, workers=workers, mirror=mirror).close(),
+                t = median_time(lambda out=out, workers=workers, mirror=mirror:
+                                gesturedb.build(inputs, out, workers=workers, mirror=mirror).close(),
                                 args.repeat)
                 label = f"workers={workers}{' mirror' if mirror else ''}"
                 print(f"  {label:<28} {t:8.2f} {total_s / t:9.0f} {t / floor:13.2f}")

@@ -55,7 +55,7 @@ def start_server(db: str, port: int) -> subprocess.Popen:
             return p
         except OSError:
             if p.poll() is not None:
-                raise SystemExit(f"gesturedb serve exited: {p.stdout.read()}")
+                raise SystemExit(f"gesturedb serve exited: {p.stdout.read()}") from None
             time.sleep(0.2)
     p.kill()
     raise SystemExit("gesturedb serve did not answer within 300 s")

@@ -79,9 +79,9 @@ def main() -> int:
         for name, d in (("memory", data), ("cache", cached)):
             tr = Trainer(d, TrainConfig(), database_identity(db), feature_identity(db))
             tr.step()  # warm-up
-            s_train[name] = median_time(lambda: [tr.step() for _ in range(args.iterations)], args.repeat) / args.iterations
+            s_train[name] = median_time(lambda tr=tr: [tr.step() for _ in range(args.iterations)], args.repeat) / args.iterations
 
-        rate = int(db.config.get("sample_rate", 16000))
+        rate = db.sample_rate
         clips = sorted((DATA / "beat2-scott" / "inputs").glob("*.wav"))
         y = np.concatenate([read_audio(c, sr=rate)[0] for c in clips])[: 60 * rate]
         searcher = Searcher(db)

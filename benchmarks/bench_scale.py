@@ -32,7 +32,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_search import DA, DP, interleaved, motion_pose  # noqa: E402
-from gesturedb import search, tables  # noqa: E402
+from gesturedb import search  # noqa: E402
 from gesturedb.db.shards import ShardedSearch, top_rows  # noqa: E402
 
 L, N = 64, 8

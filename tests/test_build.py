@@ -17,6 +17,7 @@ import gesturedb
 from gesturedb.db import schema
 from gesturedb.db.build import BuildConfig, pair_inputs
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
+
 try:  # tests/ is on sys.path when it is not a package, the repo root when it is
     from dbcontent import differing
 except ModuleNotFoundError:  # pragma: no cover

@@ -9,6 +9,7 @@ import pytest
 
 import gesturedb
 from gesturedb.errors import GestureDBError, ParameterError
+
 try:  # tests/ is on sys.path when it is not a package, the repo root when it is
     from dbcontent import differing
 except ModuleNotFoundError:  # pragma: no cover
@@ -311,9 +312,9 @@ def test_a_cluster_lost_mid_build_is_one_line_in_bounded_time(kill, scott_dir, s
     assert build.returncode == 2, err[-3000:]
     assert time.monotonic() - killed < 60, "stopped long after the cluster was lost"
     assert "Traceback" not in err, err[-3000:]
-    want = (f"no Dask worker for 3 s while 2 task\\(s\\) of the build's recordings waited \\(every worker was lost, "
-            f"or none joined\\); stopped" if kill == "the-only-worker" else
-            f"lost the connection to the Dask scheduler while the build's recordings ran( \\(.*\\))?; stopped")
+    want = ("no Dask worker for 3 s while 2 task\\(s\\) of the build's recordings waited \\(every worker was lost, "
+            "or none joined\\); stopped" if kill == "the-only-worker" else
+            "lost the connection to the Dask scheduler while the build's recordings ran( \\(.*\\))?; stopped")
     assert re.fullmatch(rf"gesturedb build: error: scheduler {address}: {want}\n", err), err[-3000:]
     assert out.read_bytes() == old
     assert sorted(p.name for p in out_dir.iterdir()) == ["db.h5"]
@@ -324,7 +325,8 @@ def test_a_lost_connection_while_writing_is_the_clusters_failure_not_the_file(tm
     Stream is closed". It is now one line about the cluster, and the file is as it was."""
     from distributed.comm.core import CommClosedError
 
-    from gesturedb.db.cluster import ClusterError, dask_client as open_client
+    from gesturedb.db.cluster import ClusterError
+    from gesturedb.db.cluster import dask_client as open_client
     from gesturedb.db.storage import write_atomically
 
     out = tmp_path / "db.h5"

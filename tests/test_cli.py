@@ -32,8 +32,8 @@ def test_build_info_export_synth(scott_dir, tmp_path, capsys):
     bvh = tmp_path / "stretch.bvh"
     code, out, err = run(capsys, "export", db, "--recording", "2_scott_0_1_1", "--start", 10, "--end", 12, "-o", bvh)
     assert code == 0, err
-    from gesturedb.io import read_bvh
     import gesturedb
+    from gesturedb.io import read_bvh
 
     m = read_bvh(bvh)
     assert m.rotations.shape[0] == 30 and m.fps == pytest.approx(15.0)

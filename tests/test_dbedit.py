@@ -11,8 +11,8 @@ import pytest
 
 import gesturedb
 from gesturedb import control as masks
-from gesturedb.db import edit as dbedit
 from gesturedb.cli.main import main
+from gesturedb.db import edit as dbedit
 from gesturedb.errors import ParameterError
 from gesturedb.synth import Searcher
 

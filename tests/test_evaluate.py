@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import gesturedb
+from gesturedb.errors import ParameterError, SearchError
 from gesturedb.eval import baselines as B
 from gesturedb.eval import evaluate as E
-from gesturedb.errors import ParameterError, SearchError
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_pose_only_picks_the_nearest_entry_pose_like_brute_force(mdb, speech):
     prev = init.astype(np.float64)
     for i, (t, n) in enumerate(zip(*B.step_layout(T, 8))):
         best, best_g = np.inf, None
-        for m, (s0, L) in enumerate(zip(s.seg_start, s.seg_len)):
+        for _m, (s0, L) in enumerate(zip(s.seg_start, s.seg_len)):
             for off in range(1, L - n + 1):
                 g = s0 + off
                 d = float(((P[g - 1] - prev) ** 2).sum())

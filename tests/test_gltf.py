@@ -164,11 +164,10 @@ def test_gltf_errors(tmp_path, source):
 
 import json  # noqa: E402
 import os  # noqa: E402
+import re  # noqa: E402
 import struct  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
-
-import re  # noqa: E402
 
 from gesturedb.errors import ParameterError  # noqa: E402
 from gesturedb.motion import Motion, Skeleton  # noqa: E402

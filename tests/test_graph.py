@@ -705,7 +705,7 @@ def test_upper_body_follows_one_path_and_root_and_legs_the_other(mirrored_db, sc
     with gesturedb.open(mirrored_db) as db:
         synth = GraphSynthesizer(db)
         res = synth.synthesize(wav, seam_decay_s=0, smooth=False)
-        upper, lower = np.asarray(synth.upper_joints), synth.lower_joints
+        upper, _lower = np.asarray(synth.upper_joints), synth.lower_joints
         rot = res.motion.rotations
         up_nodes = [s["node"] for s in res.steps]
         low_nodes = [s["lower"]["node"] for s in res.steps]

@@ -43,7 +43,7 @@ def _brute(unary, dense, cost, w_data, w_trans):
 def test_viterbi_matches_brute_force(integer):
     rng = np.random.default_rng(1 if integer else 2)
     checked = infeasible = 0
-    for trial in range(300):
+    for _trial in range(300):
         K = int(rng.integers(1, 5))
         n = int(rng.integers(1, 5))
         indptr, indices, ec, dense, cost = _random_graph(rng, K, rng.uniform(0.2, 0.9), integer=integer)

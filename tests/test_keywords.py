@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 import gesturedb
-from gesturedb.db import keywords as kw
-from gesturedb.db.export import export_keyword
 from gesturedb import control as masks
+from gesturedb.db import keywords as kw
 from gesturedb.db import schema
+from gesturedb.db.export import export_keyword
 from gesturedb.errors import GestureDBError, ParameterError
 from gesturedb.io.transcripts import Words, read_transcript
 

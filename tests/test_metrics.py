@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from gesturedb.eval import metrics as M
 from gesturedb.errors import ParameterError
+from gesturedb.eval import metrics as M
 
 FPS = 30.0
 

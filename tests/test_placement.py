@@ -11,7 +11,6 @@ from gesturedb.synth import Searcher
 from gesturedb.synth.assemble import Piece, assemble_frames, assemble_pieces, foot_contacts, foot_joints
 from gesturedb.synth.contacts import leg_joints
 
-
 # ---------------------------------------------------------------- metric conventions on hand-made signals
 
 def _line(F, v, fps):

@@ -16,11 +16,20 @@ import gesturedb  # noqa: E402
 from gesturedb import rotations as R  # noqa: E402
 from gesturedb.errors import InputFileError  # noqa: E402
 from gesturedb.refiner.data import (  # noqa: E402
-    TrainingData, database_identity, exclusion, feature_identity, window_starts,
+    TrainingData,
+    database_identity,
+    exclusion,
+    feature_identity,
+    window_starts,
 )
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty  # noqa: E402
 from gesturedb.refiner.representation import (  # noqa: E402
-    from_channels, from_channels_torch, moving_joints, to_channels, to_channels_torch)
+    from_channels,
+    from_channels_torch,
+    moving_joints,
+    to_channels,
+    to_channels_torch,
+)
 from gesturedb.refiner.train import Refiner, TrainConfig, Trainer, read_checkpoint  # noqa: E402
 
 
@@ -351,7 +360,6 @@ def test_a_poisoned_or_crafted_cache_is_refused_and_the_checkpoint_kept(poison, 
     """One NaN in the cached fakes made every weight NaN, exited 0 and overwrote the good
     checkpoint; a crafted cache gave IndexError. Now: one line naming the cache and the dataset,
     and the checkpoint as it was (a resumed run, through the CLI)."""
-    from gesturedb.cli.main import main
     from gesturedb.refiner.train import train
 
     ck = tmp_path / "r.pt"
@@ -437,7 +445,7 @@ def test_an_existing_checkpoint_is_replaced_only_with_overwrite(scott_db_path, t
     assert read_checkpoint(ck)["iteration"] == 1 and ck.read_bytes() != before
 
 
-def _checkpoint(tmp_path, **change) -> "Path":
+def _checkpoint(tmp_path, **change):
     """A real checkpoint (tiny training data, three-joint skeleton) with entries changed or removed (None)."""
     tr = Trainer(_tiny_data(), TrainConfig(width=8, batch=2, n_critic=1), "id", _FEATURES)
     tr.step()

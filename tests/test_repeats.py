@@ -11,7 +11,11 @@ from gesturedb.control import full_mask, unpack_bits
 from gesturedb.errors import ParameterError, SearchError
 from gesturedb.synth import Searcher
 from gesturedb.synth.repeats import (
-    clear_frames, guarded_search, repeat_of, repeat_stats, windows_of,
+    clear_frames,
+    guarded_search,
+    repeat_of,
+    repeat_stats,
+    windows_of,
 )
 from test_search import continuous_db, oracle_step, pack_bits
 

@@ -17,6 +17,7 @@ import subprocess
 import sys
 
 import pytest
+
 try:  # tests/ is on sys.path when it is not a package, the repo root when it is
     from dbcontent import differing
 except ModuleNotFoundError:  # pragma: no cover

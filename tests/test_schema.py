@@ -1,7 +1,6 @@
 """The schema module: declared datasets are checked on write, and the README shows the current schema."""
 from __future__ import annotations
 
-
 import h5py
 import numpy as np
 import pytest

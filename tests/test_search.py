@@ -353,7 +353,7 @@ def test_ranking_with_many_segments_matches_oracle(isa):
     A = rng.integers(-3, 4, size=(F, 2)).astype(np.float32)
     P[5 * L:9 * L] = P[100 * L:104 * L]  # duplicated segments: tied distances
     A[5 * L:9 * L] = A[100 * L:104 * L]
-    for trial, k in enumerate([1, 2, 15, 400, 1300, 5000]):
+    for _trial, k in enumerate([1, 2, 15, 400, 1300, 5000]):
         prev = P[int(rng.integers(0, F))]
         q = rng.integers(-3, 4, size=(4, 2)).astype(np.float32)
         for preselect in ("pose", "audio"):

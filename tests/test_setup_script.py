@@ -121,7 +121,7 @@ def test_blender_script_installs_bpy_once_or_says_why_not(project, tmp_path):
         assert "bpy needs Python 3.11" in err and "-m pip" not in calls
         return
     venv = proj / ".venv-blender"
-    assert f"-m venv .venv-blender" in calls
+    assert "-m venv .venv-blender" in calls
     pip = [c for c in calls.splitlines() if " -m pip install" in c]
     assert len(pip) == 1 and pip[0].startswith(".venv-blender/bin/python -m pip install") and "bpy>=4.2,<6" in pip[0]
     assert "installing bpy (about 1 GB) into .venv-blender" in err and venv.is_dir()

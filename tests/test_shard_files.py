@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 import gesturedb
-from gesturedb.db import schema
-from gesturedb.db import shardfiles
+from gesturedb.db import schema, shardfiles
 from gesturedb.db.database import Database
 from gesturedb.db.shardfiles import plan_shards, shard_database
 from gesturedb.errors import ParameterError, SchemaError

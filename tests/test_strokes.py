@@ -110,7 +110,7 @@ def test_a_30_fps_database_keeps_strokes_and_local_seams(scott_db_30fps, speech)
     assert nd == 16  # 0.533 s at 30 fps, twice the frames of 15 fps
     starts = np.concatenate([[0], res.boundaries])
     idx = np.arange(res.n_frames)
-    since = idx - starts[np.searchsorted(starts, idx, side="right") - 1]
+    idx - starts[np.searchsorted(starts, idx, side="right") - 1]
     keep = np.setdiff1d(np.arange(1, db.skeleton.n_joints), leg_joints(db.skeleton).ravel())
     # locality: 16-frame steps and a 0.1 s base decay, whose offsets last at most 0.3 s = 9 frames here
     from gesturedb.synth.assemble import MAX_DECAY_FACTOR

@@ -29,9 +29,8 @@ import numpy as np
 import pytest
 
 import gesturedb
-from gesturedb.cli.main import main
-
 from daskprocs import QUIET, kill_groups, remove_veth, start_scheduler, veth_pair, worker_command
+from gesturedb.cli.main import main
 
 STEM = "2_scott_0_1_1"
 

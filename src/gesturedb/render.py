@@ -535,8 +535,8 @@ def _draw_text(img: np.ndarray, text: str, *, xy, px: int, color, anchor="la", b
     d = ImageDraw.Draw(im)
     font = _font(px)
     if box:
-        l, t, r, b = d.textbbox(xy, text, font=font, anchor=anchor)
-        d.rectangle((l - 4, t - 3, r + 4, b + 3), fill=(255, 255, 255))
+        x0, y0, x1, y1 = d.textbbox(xy, text, font=font, anchor=anchor)
+        d.rectangle((x0 - 4, y0 - 3, x1 + 4, y1 + 3), fill=(255, 255, 255))
     d.text(xy, text, font=font, fill=tuple(int(c) for c in color), anchor=anchor)
     return np.asarray(im)
 

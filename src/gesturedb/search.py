@@ -324,7 +324,7 @@ def _float_array(a, name, shape_text, ndim) -> np.ndarray:
     try:
         arr = np.asarray(a)
     except Exception as exc:  # e.g. ragged lists
-        raise ParameterError(f"{name}: expected {shape_text} float array; got {type(a).__name__} ({exc})")
+        raise ParameterError(f"{name}: expected {shape_text} float array; got {type(a).__name__} ({exc})") from None
     if arr.ndim != ndim or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)) \
             or arr.dtype == np.bool_:
         raise ParameterError(f"{name}: expected {shape_text} float array; got {_describe(arr)}")

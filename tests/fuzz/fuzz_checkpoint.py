@@ -18,7 +18,6 @@ import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
 import _common  # noqa: E402
-
 import atheris  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402  (imported before instrumenting: only gesturedb's code is instrumented)

@@ -6,7 +6,6 @@ import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
 import _common  # noqa: E402
-
 import atheris  # noqa: E402
 import numpy as np  # noqa: E402
 

@@ -19,7 +19,6 @@ def run(args) -> int:
     import gesturedb
     from gesturedb.cli.retarget import apply_target
     from gesturedb.io import check_motion_output, write_motion
-
     from gesturedb.io.outputs import check_outputs
 
     check_motion_output(args.output)

@@ -54,9 +54,8 @@ def _positive(name, v):
 
 def run(args) -> int:
     import gesturedb
-    from gesturedb.refiner import require_torch
-
     from gesturedb.io.outputs import check_outputs
+    from gesturedb.refiner import require_torch
 
     require_torch()  # before anything else: says how to install torch when it is missing
     if args.op == "train":

@@ -84,7 +84,6 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from gesturedb.io import check_motion_output, read_motion, write_motion
-
     from gesturedb.io.outputs import check_outputs
 
     check_motion_output(args.output)

@@ -72,8 +72,6 @@ def run(args) -> int:
     import gesturedb
     from gesturedb.cli.retarget import apply_target, load_target
     from gesturedb.io import check_motion_output, write_motion
-    from gesturedb.synth import Searcher
-
     from gesturedb.io.outputs import check_outputs
 
     check_motion_output(args.output)

@@ -74,16 +74,12 @@ from gesturedb.control.bitsets import (  # noqa: F401
     unpack_bits,
     validate_bitset,
 )
-from gesturedb.control.expression import (  # noqa: F401
-    MaskExpression,
-    parse_mask_expression,
-)
 from gesturedb.control.compile import (  # noqa: F401
     CONTROL_UNITS,
-    Comparison,
     DEFAULT_NAMED,
     HIGH_PERCENTILE,
     LOW_PERCENTILE,
+    Comparison,
     MaskResult,
     compile_mask,
     feature_unit,
@@ -91,17 +87,21 @@ from gesturedb.control.compile import (  # noqa: F401
     percentile_masks,
     percentile_threshold,
 )
-from gesturedb.control.suggest import (  # noqa: F401
-    PercentileSuggestion,
-    Relaxation,
-    closest_percentile_with_candidates,
-    suggest_percentiles,
+from gesturedb.control.expression import (  # noqa: F401
+    MaskExpression,
+    parse_mask_expression,
 )
 from gesturedb.control.schedule import (  # noqa: F401
     ScheduleBitsets,
     ScheduleItem,
     parse_schedule,
     schedule_bitsets,
+)
+from gesturedb.control.suggest import (  # noqa: F401
+    PercentileSuggestion,
+    Relaxation,
+    closest_percentile_with_candidates,
+    suggest_percentiles,
 )
 
 __all__ = [

@@ -6,7 +6,6 @@ last frame are both set (Habibie et al. 2022, Sec. 3.1).
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from gesturedb.errors import ParameterError

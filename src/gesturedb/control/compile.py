@@ -11,9 +11,32 @@ from typing import Mapping
 
 import numpy as np
 
+from gesturedb.control.bitsets import (
+    _check_count,
+    count_bits,
+    mask_and,
+    mask_not,
+    mask_or,
+    n_words,
+    pack_bits,
+    unpack_bits,
+    validate_bitset,
+)
+from gesturedb.control.expression import (
+    _KEYWORDS,
+    _NAME_RE,
+    _OPS,
+    _PCT_RE,
+    _UNITS,
+    MaskExpression,
+    _Bin,
+    _caret_error,
+    _Cmp,
+    _Not,
+    _Ref,
+    parse_mask_expression,
+)
 from gesturedb.errors import ParameterError, echo, echo_list
-from gesturedb.control.bitsets import _check_count, count_bits, mask_and, mask_not, mask_or, n_words, pack_bits, unpack_bits, validate_bitset
-from gesturedb.control.expression import _KEYWORDS, _NAME_RE, _OPS, _PCT_RE, _UNITS, MaskExpression, _Bin, _caret_error, _Cmp, _Not, _Ref, parse_mask_expression
 
 # --------------------------------------------------------------------------------------
 # Control features, units and named masks
@@ -116,7 +139,7 @@ def mask_definitions(
             raise ParameterError(
                 f"named: expected a mapping of name -> expression or bitset; got {type(named).__name__}"
             )
-        for k, v in named.items():
+        for k, _v in named.items():
             if not isinstance(k, str) or not _NAME_RE.fullmatch(k) or k.lower() in _KEYWORDS:
                 raise ParameterError(
                     f"named: mask names must be identifiers (letters, digits, '_') other than "

@@ -10,10 +10,10 @@ from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from gesturedb.errors import ParameterError
 from gesturedb.control.bitsets import StepBitsets, _check_count, full_mask
 from gesturedb.control.compile import MaskResult, _Compiler
 from gesturedb.control.expression import parse_mask_expression
+from gesturedb.errors import ParameterError
 
 # --------------------------------------------------------------------------------------
 # Control schedules

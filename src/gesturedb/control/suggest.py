@@ -8,10 +8,10 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from gesturedb.errors import ParameterError
 from gesturedb.control.bitsets import count_bits, mask_and, validate_bitset
 from gesturedb.control.compile import Comparison, _check_percentile, _compare, _Compiler, _finite_values
 from gesturedb.control.expression import _OPS, MaskExpression, parse_mask_expression
+from gesturedb.errors import ParameterError
 
 # --------------------------------------------------------------------------------------
 # "No candidates": nearest percentile that leaves some

@@ -22,12 +22,17 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from gesturedb.db import schema, store
 from gesturedb._version import __version__
+from gesturedb.db import schema, store
 from gesturedb.db.framewriter import FrameWriter
 from gesturedb.db.storage import check_writes, write_atomically
 from gesturedb.db.takes import (  # noqa: F401  (re-exported: build is where callers look)
-    MIRROR_NOTE_REL, PAIRING_COLUMNS, RecordingSource, infer_speaker, mirrored_copy, read_pairing_file,
+    MIRROR_NOTE_REL,
+    PAIRING_COLUMNS,
+    RecordingSource,
+    infer_speaker,
+    mirrored_copy,
+    read_pairing_file,
 )
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS, voiced_segments

@@ -29,7 +29,6 @@ import numpy as np
 from gesturedb.db import schema
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
 
-
 #: times an open retries when the index it opened was replaced (re-sharded) while it checked its shards
 OPEN_TRIES = 5
 

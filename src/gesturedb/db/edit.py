@@ -120,7 +120,7 @@ def save_masks(path: str | os.PathLike, masks, *, replace: bool = False) -> dict
     with locked(path):  # the names taken are read under the lock: a concurrent add of one name is refused
         with Database(path) as db:
             saved = db.masks
-            for name, expr in items:
+            for name, _expr in items:
                 if name in saved and not replace:
                     raise ParameterError(f"mask {name!r} already exists in {db.path} "
                                          f"(definition {db.mask_definitions[name]!r}); pass replace=True to "
@@ -155,7 +155,6 @@ def read_mask_file(path) -> list[tuple[str, str]]:
         name (the message names the line).
     """
     from gesturedb.errors import InputFileError, ParameterError
-
     from gesturedb.io.text import read_text_lines
 
     lines = read_text_lines(path)

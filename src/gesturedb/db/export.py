@@ -8,11 +8,12 @@ from __future__ import annotations
 import os
 from collections import Counter
 from dataclasses import dataclass
+
 import numpy as np
 
 from gesturedb.db import schema, store
-from gesturedb.errors import ParameterError, SchemaError
 from gesturedb.db.keywords import SubDatabase, _check_int, _open, _tables, _write_subdb, get_subdatabase, time_to_frames
+from gesturedb.errors import ParameterError, SchemaError
 
 
 def export_keyword(db_path, word: str, out_path, *, chunk_frames: int | None = None):
@@ -56,8 +57,8 @@ def export_keyword(db_path, word: str, out_path, *, chunk_frames: int | None = N
     gesturedb.db.database.Database
         The new database, open for reading.
     """
-    from gesturedb.db.storage import write_atomically
     from gesturedb.db.database import Database
+    from gesturedb.db.storage import write_atomically
 
     if chunk_frames is not None:
         chunk_frames = _check_int("chunk_frames", chunk_frames, 1)

@@ -333,7 +333,6 @@ def read_word_list(path) -> list[str]:
         The file cannot be read, or a line is not one word (the message names the line).
     """
     from gesturedb.errors import InputFileError
-
     from gesturedb.io.text import read_text_lines
 
     lines = read_text_lines(path)

@@ -29,8 +29,7 @@ import numpy as np
 
 from gesturedb import search, tables
 from gesturedb.control.bitsets import StepBitsets, full_mask, n_words, slice_bits
-from gesturedb.db import schema
-from gesturedb.db import cluster
+from gesturedb.db import cluster, schema
 from gesturedb.db.cluster import worker_address
 from gesturedb.errors import ParameterError, SchemaError, SearchError
 

@@ -344,11 +344,10 @@ def evaluate_controls(
         row.n_steps = len(res.steps)
         row.min_candidates = int(min(s["candidates"] for s in res.steps))
         row.direction_ok = bool((row.mean - fm) * case.direction > 0)
-        ratio = lambda ref: row.std / ref if ref > 0 else float("inf")  # noqa: E731
-        row.std_ratio_unconstrained = ratio(fs)
-        row.std_ratio_allowed = ratio(ast)
+        row.std_ratio_unconstrained = row.std / fs if fs > 0 else float("inf")
+        row.std_ratio_allowed = row.std / ast if ast > 0 else float("inf")
         ref_std = ast if freeze_reference == "allowed" else fs
-        row.std_ratio = ratio(ref_std)
+        row.std_ratio = row.std / ref_std if ref_std > 0 else float("inf")
         row.no_freeze_ok = bool(row.std >= min_std_ratio * ref_std)
         row.status = "PASS" if row.direction_ok and row.no_freeze_ok else "FAIL"
         rows.append(row)

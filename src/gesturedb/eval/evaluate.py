@@ -58,13 +58,28 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from gesturedb.errors import InputFileError, ParameterError, SearchError
+from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is where callers look)
-    BASELINES, SYSTEM_LABELS, SYSTEMS, _centred, _fmt, _read_samples, _stats, eval_options, feature_joint_indices,
-    json_clean, metric_positions, upper_body_joints,
+    BASELINES,
+    SYSTEM_LABELS,
+    SYSTEMS,
+    _centred,
+    _fmt,
+    _read_samples,
+    _stats,
+    eval_options,
+    feature_joint_indices,
+    json_clean,
+    metric_positions,
+    upper_body_joints,
 )
 from gesturedb.eval.controls import (  # noqa: F401
-    DEFAULT_MIN_STD_RATIO, TABLE2_CASES, ControlCase, ControlRow, ControlsReport, evaluate_controls,
+    DEFAULT_MIN_STD_RATIO,
+    TABLE2_CASES,
+    ControlCase,
+    ControlRow,
+    ControlsReport,
+    evaluate_controls,
 )
 from gesturedb.eval.texttable import text_table
 from gesturedb.roles import HIP_ROLES, JOINT_GROUPS
@@ -116,7 +131,11 @@ METRIC_COLUMNS = (
 
 from gesturedb.eval.conventions import CONVENTION_COLUMNS  # noqa: E402  (the published-conventions table)
 from gesturedb.eval.strokes import (  # noqa: E402  (the stroke tables)
-    STROKE_COLUMNS, STROKE_GT_COLUMNS, database_strokes, group_band_power, stroke_metrics,
+    STROKE_COLUMNS,
+    STROKE_GT_COLUMNS,
+    database_strokes,
+    group_band_power,
+    stroke_metrics,
 )
 
 #: (key, header, format) of the world-space table (:func:`gesturedb.eval.placement.world_metrics`).
@@ -693,7 +712,8 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
     for n, o in outputs.items():
         rows[n].update(stroke_metrics(o.positions, fps=db.fps, names=db.joint_names, root=root,
                                       reference=reference["band_power"], truth=truth))
-    from gesturedb.eval import conventions as CV, metrics as M
+    from gesturedb.eval import conventions as CV
+    from gesturedb.eval import metrics as M
 
     conv_args = dict(audio_beats_s=M.audio_beats(samples, sr=sr),
                      reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),

@@ -229,7 +229,7 @@ def plot_metric_summary(path, rows: dict, *, reference: dict | None = None) -> P
             refs.append((rows["ground_truth"][key], _COLORS["ground_truth"], "ground truth"))
         if reference is not None and np.isfinite(reference.get(key, np.nan)) and key != "speed_hellinger_db":
             refs.append((reference[key], _COLORS["reference"], "database"))
-        for v, c, lab in refs:
+        for v, c, _lab in refs:
             ax.axvline(v, color=c, ls="--", lw=1.2)
         ref_text = " · ".join(f"{lab} {v:.3g}" for v, _, lab in refs)
         ax.set_title(f"{title} ({hint})" + (f"\ndashed: {ref_text}" if ref_text else "\n"), fontsize=9)

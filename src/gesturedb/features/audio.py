@@ -236,7 +236,7 @@ class AudioFeatureStream:
         """Analysis frames ``_j .. j1 - 1`` from the buffer, in blocks."""
         import librosa
 
-        hop, half, win = self._hop, self._half, self._win
+        hop, _half, win = self._hop, self._half, self._win
         while self._j < j1:
             j0 = self._j
             jb = min(j1, j0 + self._block)

@@ -36,7 +36,9 @@ from gesturedb import rotations as rot
 from gesturedb.errors import ParameterError
 from gesturedb.io.atomic import atomic_open
 from gesturedb.io.bvh import MAX_FPS, MIN_FPS
-from gesturedb.io.gltf_file import Doc, load as _load, shown as _shown
+from gesturedb.io.gltf_file import Doc
+from gesturedb.io.gltf_file import load as _load
+from gesturedb.io.gltf_file import shown as _shown
 from gesturedb.motion import Motion, Skeleton
 
 __all__ = ["MAX_JOINT_FRAMES", "read_gltf", "read_gltf_rig", "write_glb"]
@@ -517,7 +519,7 @@ def read_gltf(path, *, animation: int = 0) -> Motion:
         doc.fail(f"{aw} key times", f"{n_f} frames x {len(rig.needed)} nodes is more than this reader's limit of "
                                     f"{MAX_JOINT_FRAMES} frame-joints")
     anim_of = {}
-    for cw, node, tpath, s in used:
+    for _cw, node, tpath, s in used:
         sw, smp, tin = keys(s)
         interp = doc.text(smp, "interpolation", sw, choices=("LINEAR", "STEP", "CUBICSPLINE"), default="LINEAR")
         o = doc.index(smp, "output", sw, "accessors")

@@ -210,8 +210,9 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
         bad = _textgrid_time_problem(path)
         if bad:  # praatio says "Expected field in Textgrid missing" for a negative time: name the line instead
             raise InputFileError(path, bad) from None
+        # praatio's messages span lines: keep one
         raise InputFileError(path, f"cannot parse as a Praat TextGrid: {type(exc).__name__}: "
-                                   f"{' '.join(str(exc).split())}")  # praatio's messages span lines: keep one from None
+                                   f"{' '.join(str(exc).split())}") from None
     names = list(tg.tierNames)
     match = [n for n in names if n.strip().lower() == tier.lower()]
     if not match:

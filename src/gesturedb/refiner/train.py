@@ -36,8 +36,16 @@ import torch
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError, echo, echo_list
 from gesturedb.io.atomic import atomic_open
 from gesturedb.io.joints import leg_joints
-from gesturedb.refiner.data import (STRIDE, WINDOW, TrainingData, cache_settings, database_identity, feature_identity,
-                                    load_cache, make_training_data)
+from gesturedb.refiner.data import (
+    STRIDE,
+    WINDOW,
+    TrainingData,
+    cache_settings,
+    database_identity,
+    feature_identity,
+    load_cache,
+    make_training_data,
+)
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
 from gesturedb.threads import available_cpus

@@ -62,8 +62,16 @@ from gesturedb import rotations as R
 from gesturedb.motion import Motion
 from gesturedb.synth.contacts import FootPlanter, foot_contacts, foot_joints
 from gesturedb.synth.seams import (
-    LEAD_FRAMES, SEAM_DECAY_S, adaptive_decays, apply_rotation_offsets, check_decay_s, decay_frames, extend_constant_velocity,
-    quintic_offsets, rotation_offsets, seam_derivatives,
+    LEAD_FRAMES,
+    SEAM_DECAY_S,
+    adaptive_decays,
+    apply_rotation_offsets,
+    check_decay_s,
+    decay_frames,
+    extend_constant_velocity,
+    quintic_offsets,
+    rotation_offsets,
+    seam_derivatives,
 )
 
 __all__ = ["Piece", "PieceAssembler", "SEAM_DECAY_S", "SMOOTH_WINDOW_S", "assemble_frames", "assemble_pieces",

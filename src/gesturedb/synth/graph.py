@@ -65,12 +65,17 @@ from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
 from gesturedb.io.transcripts import Words
 from gesturedb.synth import inputs
 from gesturedb.synth.assemble import (
-    SMOOTH_WINDOW_S, Piece, assemble_pieces, floor_height, placed_frames, typical_accelerations,
+    SMOOTH_WINDOW_S,
+    Piece,
+    assemble_pieces,
+    floor_height,
+    placed_frames,
+    typical_accelerations,
 )
 from gesturedb.synth.options import SynthOptions
 from gesturedb.synth.protocol import EvalSystem, Method
-from gesturedb.synth.seams import LEAD_FRAMES, check_decay_s
 from gesturedb.synth.result import SynthResult
+from gesturedb.synth.seams import LEAD_FRAMES, check_decay_s
 from gesturedb.synth.viterbi import viterbi
 
 __all__ = ["viterbi", "GraphSynthesizer", "GraphOptions", "voiced_segments", "MAX_SPEED", "METHOD"]
@@ -407,7 +412,6 @@ class GraphSynthesizer:
 
         ``speeds``: (n, K) warp rate of node ``d`` for clip ``i``, or None for the source speed.
         """
-        from gesturedb import rotations as R
 
         db = self.db
         pieces, times = [], []

@@ -38,17 +38,29 @@ from gesturedb.motion import Motion
 from gesturedb.search import HalfPose, PoseProjection, _no_candidate_error, rank_sum_search
 from gesturedb.synth import inputs
 from gesturedb.synth.assemble import (
-    PieceAssembler, assemble_frames, floor_height, typical_accelerations, window_piece, window_pieces,
+    PieceAssembler,
+    assemble_frames,
+    floor_height,
+    typical_accelerations,
+    window_piece,
+    window_pieces,
 )
-from gesturedb.synth.inputs import check_frames
-from gesturedb.synth.inputs import speech_samples  # noqa: F401  (its old home; every method's now)
+from gesturedb.synth.inputs import (
+    check_frames,
+    speech_samples,  # noqa: F401  (its old home; every method's now)
+)
 from gesturedb.synth.options import (  # noqa: F401  (re-exported from their old home)
-    DEFAULT_INIT, INIT_CHOICES, STEP_S, SearchOptions, default_step,
+    DEFAULT_INIT,
+    INIT_CHOICES,
+    STEP_S,
+    SearchOptions,
+    default_step,
 )
 from gesturedb.synth.protocol import EvalSystem, Method
 from gesturedb.synth.repeats import check_guard_s, clear_frames, repeat_stats
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.seams import SEAM_DECAY_S, check_decay_s
+
 
 class Searcher:
     """Search an open database for new speech (the ``knn`` method of :mod:`gesturedb.synth.methods`).
