@@ -226,6 +226,7 @@ def test_each_transcript_is_read_once(scott_dir, tmp_path, monkeypatch):
     """The automatic gap reads every transcript before any recording is processed; the
     recordings take those words instead of parsing their files again. The database is the one a
     build with that gap given explicitly writes (where each recording reads its own file)."""
+    import gesturedb.db.build
     import gesturedb.io
     import gesturedb.io.transcripts as T
 
@@ -238,6 +239,7 @@ def test_each_transcript_is_read_once(scott_dir, tmp_path, monkeypatch):
 
     monkeypatch.setattr(T, "read_transcript", counting)
     monkeypatch.setattr(gesturedb.io, "read_transcript", counting)
+    monkeypatch.setattr(gesturedb.db.build, "read_transcript", counting)  # imported at its top
     with gesturedb.build([scott_dir], tmp_path / "auto.h5", mirror=True) as db:
         gap = float(db.config["gap_s"])
     assert reads == [f"{STEM}.TextGrid"]

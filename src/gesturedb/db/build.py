@@ -22,9 +22,13 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from gesturedb import control
 from gesturedb._version import __version__
 from gesturedb.db import schema, store
+from gesturedb.db.cluster import check_on_worker, check_scheduler, iter_on_cluster, optional_client
+from gesturedb.db.database import Database
 from gesturedb.db.framewriter import FrameWriter
+from gesturedb.db.graph import suggest_gap_s, write_graph
 from gesturedb.db.storage import check_writes, write_atomically
 from gesturedb.db.takes import (  # noqa: F401  (re-exported: build is where callers look)
     MIRROR_NOTE_REL,
@@ -34,8 +38,21 @@ from gesturedb.db.takes import (  # noqa: F401  (re-exported: build is where cal
     mirrored_copy,
     read_pairing_file,
 )
+from gesturedb.db.workers import single_threaded_worker
 from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.features import controls as fcontrols
+from gesturedb.features import pose as fpose
+from gesturedb.features import rhythm as frhythm
+from gesturedb.features import segments as fseg
+from gesturedb.features import style as fstyle
+from gesturedb.features.audio import audio_features
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS, voiced_segments
+from gesturedb.io import read_audio, read_motion, read_transcript
+from gesturedb.io.audio import audio_duration
+from gesturedb.io.bvh import describe_length_unit
+from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
+from gesturedb.io.outputs import check_outputs
+from gesturedb.io.transcripts import Words
 
 MOTION_EXTS = (".bvh", ".npz")
 AUDIO_EXTS = (".wav", ".flac")
@@ -283,12 +300,6 @@ def _check_finite(path: str, what: str, arr: np.ndarray) -> None:
 def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingSource, *,
                   mirrored: bool, source_fps: float) -> RecordingData:
     """Features, segments and signatures of one (possibly mirrored) motion with its audio features."""
-    from gesturedb.features import controls as fcontrols
-    from gesturedb.features import pose as fpose
-    from gesturedb.features import rhythm as frhythm
-    from gesturedb.features import segments as fseg
-    from gesturedb.features import style as fstyle
-    from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
 
     joints = find_joints(motion.skeleton.names, FEATURE_ROLES + BODY_ROLES, mapping=cfg.joint_map, source=source.motion)
     positions = motion.positions
@@ -346,14 +357,11 @@ def process_recording(source: RecordingSource, cfg: BuildConfig, words=None) -> 
     unreadable or truncated files, NaN, audio and motion durations that differ by
     more than ``cfg.max_mismatch_s``.
     """
-    from gesturedb.io import read_audio, read_motion, read_transcript
 
     is_bvh = Path(source.motion).suffix.lower() == ".bvh"
     motion = read_motion(source.motion, length_unit_m=cfg.length_unit_m if is_bvh else None)
     notes = []
     if is_bvh:
-        from gesturedb.io.bvh import describe_length_unit
-
         how = "guessed" if cfg.length_unit_m is None else "given"
         notes.append(("unit", os.path.basename(source.motion), f"{how} {describe_length_unit(motion.skeleton)}"
                       + ("; --length-unit overrides" if cfg.length_unit_m is None else "")))
@@ -374,8 +382,6 @@ def process_recording(source: RecordingSource, cfg: BuildConfig, words=None) -> 
     if words is None:
         # no transcript: voiced stretches of the speech stand in for words (empty text), so the
         # recording is still cut into clips at its pauses, as the graph synthesis cuts its input
-        from gesturedb.io.transcripts import Words
-
         vs, ve = voiced_segments(samples, sr, method=cfg.vad)
         words = Words(start_s=vs, end_s=ve, text=[""] * len(vs), source=None)
     if source.span_s is not None:
@@ -384,8 +390,6 @@ def process_recording(source: RecordingSource, cfg: BuildConfig, words=None) -> 
         keep = np.asarray(words.start_s) < motion_dur
         if not keep.all():
             words = words[: int(keep.sum())]
-
-    from gesturedb.features.audio import audio_features
 
     motion = motion.resample(cfg.fps)
     # one audio analysis serves the recording and its mirrored copy
@@ -431,7 +435,6 @@ def _on_worker_paths(source: RecordingSource) -> RecordingSource:
 def _process_on_worker(args):
     """:func:`process_recording` on a Dask worker, whose machine must see the input files at the
     paths the client gave (made absolute by the client, see :func:`_on_worker_paths`)."""
-    from gesturedb.db.cluster import check_on_worker
 
     source = args[0]
     for path in (source.motion, source.audio, source.transcript if args[2] is None else None):
@@ -510,8 +513,6 @@ def _write(h5, recs: list[RecordingData], cfg: BuildConfig, progress: bool, fram
     check_writes(h5)
     write_default_masks(h5, frames.controls)
     if cfg.graph:
-        from gesturedb.db.graph import write_graph
-
         check_writes(h5)  # before the graph's edge search, which takes minutes on a large database
         write_graph(h5, progress=bool(progress), scheduler=scheduler)
 
@@ -521,7 +522,6 @@ def write_default_masks(h5, controls) -> None:
 
     ``controls`` maps names to (F,) arrays or HDF5 datasets; one feature is read at a time.
     """
-    from gesturedb import control
 
     store.ensure_group(h5, schema.MASKS_GROUP)
     for feature in controls:
@@ -579,8 +579,6 @@ def build(
     """
     cfg = BuildConfig.from_kwargs(**config)
     if isinstance(scheduler, str):
-        from gesturedb.db.cluster import check_scheduler
-
         check_scheduler(scheduler)  # before any input is read
     if isinstance(inputs, (str, os.PathLike)):
         inputs = [inputs]
@@ -600,7 +598,6 @@ def build(
             "inputs: expected at least one recording (a motion file .bvh/.npz and a .wav with the same stem), "
             f"found none in {', '.join(map(str, inputs))}" + ("\n" + pairing.summary() if pairing.skipped else "")
         )
-    from gesturedb.io.outputs import check_outputs
 
     for r in pairing.recordings:
         schema.check_name(f"recording name of {r.motion}", r.name, schema.RECORDING_NAME_PATTERN)
@@ -628,14 +625,10 @@ def build(
             check_writes(h5)  # a full disk stops the build here, not after every recording
         _write(h5, recs, cfg, progress, frames, scheduler)
 
-    from gesturedb.db.cluster import optional_client
-
     # one cluster for the recordings and the motion graphs ("local:N" starts it here)
     with optional_client(scheduler) as scheduler:
         write_atomically(out_path, fill)
     pairing.notes = report_notes(recs)
-
-    from gesturedb.db.database import Database
 
     db = Database(out_path)
     db.pairing = pairing
@@ -658,9 +651,6 @@ def report_notes(recs: list[RecordingData]) -> list[str]:
 def _auto_gap(sources: list[RecordingSource]) -> tuple[float, list]:
     """gap_s from the pauses of every transcript (mirrored copies have the same words: not counted twice),
     and each source's transcript as read (None without one), for :func:`process_recording`."""
-    from gesturedb.db.graph import suggest_gap_s
-    from gesturedb.io.audio import audio_duration
-    from gesturedb.io.transcripts import read_transcript
 
     pauses, total, n, words = [], 0.0, 0, []
     for src in sources:
@@ -701,8 +691,6 @@ def _iter_processed(sources: list[RecordingSource], cfg: BuildConfig, *, workers
 
     try:
         if scheduler is not None:
-            from gesturedb.db.cluster import iter_on_cluster
-
             # tasks finish in any order; input order keeps the content independent of scheduling
             ready, nxt = {}, 0
             remote = [(_on_worker_paths(s), cfg, w) for s, cfg, w in tasks]
@@ -721,8 +709,6 @@ def _iter_processed(sources: list[RecordingSource], cfg: BuildConfig, *, workers
                 yield from res
         else:
             from concurrent.futures import ProcessPoolExecutor
-
-            from gesturedb.db.workers import single_threaded_worker
 
             with ProcessPoolExecutor(max_workers=min(workers, len(sources)),
                                      initializer=single_threaded_worker, initargs=(os.getpid(),)) as ex:

@@ -28,6 +28,7 @@ import numpy as np
 
 from gesturedb.db import schema
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
+from gesturedb.motion import Motion, Skeleton
 
 #: times an open retries when the index it opened was replaced (re-sharded) while it checked its shards
 OPEN_TRIES = 5
@@ -536,7 +537,6 @@ class Database:
     @functools.cached_property
     def skeleton(self):
         """The :class:`gesturedb.motion.Skeleton` of every recording in the database."""
-        from gesturedb.motion import Skeleton
 
         end_joints = self._read(schema.SKELETON_END_SITE_JOINTS)
         end_offsets = self._read(schema.SKELETON_END_SITE_OFFSETS)
@@ -656,7 +656,6 @@ class Database:
 
     def motion_from_frames(self, frames: np.ndarray):
         """A :class:`Motion` made of arbitrary database frames (e.g. a synthesis result)."""
-        from gesturedb.motion import Motion
 
         frames = np.asarray(frames, dtype=np.int64)
         return Motion(

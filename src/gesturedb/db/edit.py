@@ -11,9 +11,15 @@ from __future__ import annotations
 import os
 import re
 
+from gesturedb import control
 from gesturedb.db import schema, store
 from gesturedb.db.build import save_mask_bits, write_default_masks
+from gesturedb.db.database import Database
 from gesturedb.db.storage import edit, locked
+from gesturedb.errors import InputFileError, ParameterError, echo
+from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS, control_features
+from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
+from gesturedb.io.text import read_text_lines
 
 
 def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> list[str]:
@@ -30,10 +36,6 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
     """
     import numpy as np
 
-    from gesturedb.db.database import Database
-    from gesturedb.features.controls import control_features
-    from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
-
     with locked(path):
         with Database(path) as db:
             names = db.joint_names
@@ -47,8 +49,6 @@ def add_control_features(path: str | os.PathLike, *, replace: bool = True) -> li
 
 
 def _write_controls(path, controls: dict, replace: bool) -> None:
-    from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
-
     C, M = schema.CONTROLS_GROUP, schema.MASKS_GROUP
     with edit(path) as h5:
         store.ensure_group(h5, C)
@@ -74,8 +74,6 @@ def save_mask(path: str | os.PathLike, name: str, expr: str, *, replace: bool = 
 
 
 def _mask_items(masks) -> list[tuple[str, str]]:
-    from gesturedb.errors import ParameterError, echo
-
     items = list(masks.items()) if isinstance(masks, dict) else list(masks)
     if not items:
         raise ParameterError("masks: expected at least one (name, expression), got none")
@@ -111,9 +109,6 @@ def save_masks(path: str | os.PathLike, masks, *, replace: bool = False) -> dict
         A bad name or expression, a name already saved (without ``replace``), or a
         mask that allows no frame: the whole edit is refused and the file unchanged.
     """
-    from gesturedb import control
-    from gesturedb.db.database import Database
-    from gesturedb.errors import ParameterError
 
     items = _mask_items(masks)
     results = {}
@@ -154,8 +149,6 @@ def read_mask_file(path) -> list[tuple[str, str]]:
         The file cannot be read, or a line is not ``NAME = EXPRESSION`` with a valid
         name (the message names the line).
     """
-    from gesturedb.errors import InputFileError, ParameterError
-    from gesturedb.io.text import read_text_lines
 
     lines = read_text_lines(path)
     items = []
@@ -183,7 +176,6 @@ def remove_mask(path: str | os.PathLike, name: str) -> None:
     with '/' (stored as nested groups): ``remove_mask(db, "a/b")`` or
     ``remove_mask(db, "a")`` deletes them, whatever the name.
     """
-    from gesturedb.errors import ParameterError
 
     if not isinstance(name, str) or not name or name.strip("/.") == "":
         raise ParameterError(f"mask name: expected a mask name, got {name!r}")

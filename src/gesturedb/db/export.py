@@ -11,9 +11,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gesturedb import control
+from gesturedb._version import __version__
 from gesturedb.db import schema, store
+from gesturedb.db.build import write_default_masks
+from gesturedb.db.database import Database
 from gesturedb.db.keywords import SubDatabase, _check_int, _open, _tables, _write_subdb, get_subdatabase, time_to_frames
+from gesturedb.db.storage import write_atomically
 from gesturedb.errors import ParameterError, SchemaError
+from gesturedb.features import rhythm as frhythm
+from gesturedb.features import segments as fseg
+from gesturedb.features import style as fstyle
 
 
 def export_keyword(db_path, word: str, out_path, *, chunk_frames: int | None = None):
@@ -57,8 +65,6 @@ def export_keyword(db_path, word: str, out_path, *, chunk_frames: int | None = N
     gesturedb.db.database.Database
         The new database, open for reading.
     """
-    from gesturedb.db.database import Database
-    from gesturedb.db.storage import write_atomically
 
     if chunk_frames is not None:
         chunk_frames = _check_int("chunk_frames", chunk_frames, 1)
@@ -87,10 +93,6 @@ class _ExportPlan:
 
 
 def _export_plan(db, sub: SubDatabase, chunk_frames: int | None) -> _ExportPlan:
-    from gesturedb.features import rhythm as frhythm
-    from gesturedb.features import segments as fseg
-    from gesturedb.features import style as fstyle
-
     fps = db.fps
     recs = db.recordings
     t = _tables(db)
@@ -166,10 +168,6 @@ def _export_plan(db, sub: SubDatabase, chunk_frames: int | None) -> _ExportPlan:
 
 
 def _write_export(h5, db, sub: SubDatabase, p: _ExportPlan) -> None:
-    from gesturedb import control
-    from gesturedb._version import __version__
-    from gesturedb.db.build import write_default_masks
-
     W = schema.write
     dims: dict[str, int] = {}
     recs = db.recordings

@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from gesturedb.db import schema, store
+from gesturedb.features.audio import audio_deltas
+from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
 
 #: standard deviations under this are taken as this, so a constant feature is not divided by zero
 MIN_AUDIO_STD = 1e-6
@@ -59,8 +61,6 @@ class FrameWriter:
         self.audio_sum: np.ndarray | None = None
 
     def _open(self, r) -> None:
-        from gesturedb.features.controls import CONTROL_DOCS, CONTROL_UNITS
-
         def rows(row_shape) -> int:
             return chunk_rows(r.n_frames, 4 * int(np.prod(row_shape, dtype=np.int64)))
 
@@ -103,7 +103,6 @@ class FrameWriter:
     def close(self, dims: dict) -> tuple[np.ndarray, np.ndarray]:
         """After the last recording: rows checked against ``dims``, the audio standardised in
         place and its deltas written; returns the audio ``(mean, std)``, (Da,) float64 each."""
-        from gesturedb.features.audio import audio_deltas
 
         for rows in self.rows + [self.recording]:
             rows.close(dims)

@@ -41,10 +41,12 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from gesturedb import rotations as R
 from gesturedb.db import schema, storage, store
 from gesturedb.db.cluster import optional_client
 from gesturedb.db.edges import DELTA_QUANTILE, MAX_OUT, MIN_OUT, _edges, _grid_unit, _GriddedCosts, _on_grid
 from gesturedb.errors import ParameterError
+from gesturedb.io.joints import leg_joints
 
 L1 = 0.7
 L2 = 0.3
@@ -59,7 +61,6 @@ CV_FOLDS = 20
 
 def _yaw_inverse(root_q: np.ndarray) -> np.ndarray:
     """Quaternions (n, 4) removing the heading (rotation about +y) of root rotations (n, 4)."""
-    from gesturedb import rotations as R
 
     fwd = R.apply(root_q, np.broadcast_to(np.array([0.0, 0.0, 1.0]), root_q.shape[:-1] + (3,)))
     a = -np.arctan2(fwd[..., 0], fwd[..., 2]) / 2
@@ -74,7 +75,6 @@ def body_parts(names, parents) -> tuple[np.ndarray, np.ndarray]:
     body: everything else (spine, arms, hands, head). Both int64, ascending, disjoint, covering
     all joints. A rig without recognisable hips has a lower body of the root alone.
     """
-    from gesturedb.io.joints import leg_joints
 
     J = len(names)
     lower = np.union1d([0], leg_joints(names, parents)).astype(np.int64)
@@ -112,7 +112,6 @@ def transition_features(positions, rotations, root, frames, *, l1: float = L1, l
         ``sqrt(l1)`` x the joint positions, then ``sqrt(l2 / 2)`` x the local quaternions
         (and the tilt) on the ``w >= 0`` hemisphere.
     """
-    from gesturedb import rotations as R
 
     if part not in ("whole", "upper", "lower"):
         raise ParameterError(f"part: expected 'whole', 'upper' or 'lower', got {part!r}")

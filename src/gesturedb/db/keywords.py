@@ -60,13 +60,18 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from gesturedb.db import schema, store
+from gesturedb import control
+from gesturedb.db import schema, storage, store
+from gesturedb.db.database import Database
 from gesturedb.db.subdatabase import SUBDB_FIELDS, SubDatabase, time_to_frames  # noqa: F401 (re-exported)
 from gesturedb.db.subdatabase import mask_of as _mask_of
 from gesturedb.db.subdatabase import read_all as _read_all
 from gesturedb.db.subdatabase import read_subdb as _read_subdb
 from gesturedb.db.subdatabase import write_subdb as _write_subdb
-from gesturedb.errors import ParameterError, echo, echo_list
+from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
+from gesturedb.io import read_transcript
+from gesturedb.io.text import read_text_lines
+from gesturedb.io.transcripts import normalize_word
 
 __all__ = [
     "SubDatabase",
@@ -93,7 +98,6 @@ def normalise_word(text: str) -> str:
     Lower case, punctuation stripped except an apostrophe inside a word,
     ``""`` for silence markers: ``"Hand,"`` -> ``"hand"``.
     """
-    from gesturedb.io.transcripts import normalize_word
 
     return normalize_word(str(text))
 
@@ -300,8 +304,6 @@ def _occurrences(t: _Tables, w: str, before_s: float, after_s: float, *, index: 
 # --------------------------------------------------------------------------
 
 def _open(db_path):
-    from gesturedb.db.database import Database
-
     return Database(db_path)
 
 
@@ -332,8 +334,6 @@ def read_word_list(path) -> list[str]:
     InputFileError
         The file cannot be read, or a line is not one word (the message names the line).
     """
-    from gesturedb.errors import InputFileError
-    from gesturedb.io.text import read_text_lines
 
     lines = read_text_lines(path)
     words = []
@@ -353,7 +353,6 @@ def read_word_list(path) -> list[str]:
 
 def _add(db_path, names: list[str], before_s: float, after_s: float, replace: bool, keep: bool):
     """Add the sub-databases of ``names`` in one locked edit; the written SubDatabases if ``keep``."""
-    from gesturedb.db import storage
 
     with storage.locked(db_path):
         # every check reads the file under the lock (nothing can change it before the write) and runs
@@ -495,7 +494,6 @@ def remove_occurrence(db_path, word: str, index) -> SubDatabase:
     SubDatabase
         The sub-database after the removal.
     """
-    from gesturedb.db import storage
 
     with storage.locked(db_path):
         with _open(db_path) as db:
@@ -527,7 +525,6 @@ def remove_occurrence(db_path, word: str, index) -> SubDatabase:
 
 def drop_keyword(db_path, word: str) -> SubDatabase:
     """Delete a whole sub-database (atomic edit); returns what was dropped."""
-    from gesturedb.db import storage
 
     with storage.locked(db_path):
         with _open(db_path) as db:
@@ -644,8 +641,6 @@ def show(db, word: str, *, n_context: int = 3) -> list[Occurrence]:
 
 def _read_words(transcript):
     if isinstance(transcript, (str, os.PathLike)):
-        from gesturedb.io import read_transcript
-
         transcript = read_transcript(transcript)
     missing = [a for a in ("start_s", "end_s", "text") if not hasattr(transcript, a)]
     if missing:
@@ -710,7 +705,6 @@ def keyword_step_masks(
         alphabetically first. None when no keyword of the database (of
         ``only``) is said inside the output.
     """
-    from gesturedb import control
 
     step = _check_int("step", step, 1)
     n_out_frames = _check_int("n_out_frames", n_out_frames, 1)

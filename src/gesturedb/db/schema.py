@@ -40,7 +40,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from gesturedb.db import store
-from gesturedb.errors import SchemaError
+from gesturedb.errors import ParameterError, SchemaError
 
 #: 2: adds graph/ and style_model/ (GestureMaster motion graph)
 #: 3: graph/ is the upper-body graph (it was over the whole body) and graph_lower/ the lower-body one
@@ -740,8 +740,6 @@ RECORDING_NAME_PATTERN = r"[^,/\x00-\x1f\x7f]{1,255}"
 def check_name(kind: str, name, pattern: str) -> str:
     """Return ``name`` if it matches ``pattern`` entirely, else raise :class:`ParameterError`."""
     import re
-
-    from gesturedb.errors import ParameterError
 
     if not isinstance(name, str) or not re.fullmatch(pattern, name):
         raise ParameterError(f"{kind}: expected a name matching {pattern}, got {name!r}")

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gesturedb.db import schema, storage
+from gesturedb.db.database import Database
 from gesturedb.errors import ParameterError
 
 __all__ = ["ShardingReport", "plan_shards", "shard_database", "shard_path"]
@@ -136,8 +137,6 @@ def shard_database(path, parts: int, *, index=None, progress: bool = False) -> S
     ShardingReport
     """
     import h5py
-
-    from gesturedb.db.database import Database
 
     path = os.fspath(path)
     index = os.fspath(index) if index is not None else default_index(path)

@@ -11,7 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gesturedb import control
 from gesturedb.db import schema, store
+from gesturedb.db.database import Segments
 from gesturedb.errors import SchemaError
 
 __all__ = ["SUBDB_FIELDS", "SubDatabase", "time_to_frames", "read_subdb", "read_all", "write_subdb", "mask_of"]
@@ -104,14 +106,11 @@ class SubDatabase:
 
     def segments(self):
         """The stretches as :class:`gesturedb.db.database.Segments` (e.g. to search the sub-database alone)."""
-        from gesturedb.db.database import Segments
 
         return Segments(self.start.copy(), self.length.copy(), self.recording.copy())
 
 
 def read_subdb(g, word: str, n_frames: int, filename: str) -> SubDatabase:
-    from gesturedb import control
-
     arrays = {}
     for name, (dtype, _unit, doc) in SUBDB_FIELDS.items():
         path = f"{schema.SUBDB_GROUP}/{word}/{name}"
@@ -151,8 +150,6 @@ def read_all(h5, filename: str) -> dict[str, SubDatabase]:
 
 
 def mask_of(start: np.ndarray, length: np.ndarray, n_frames: int) -> np.ndarray:
-    from gesturedb import control
-
     bits = np.zeros(n_frames, dtype=bool)
     for a, n in zip(start, length):
         bits[a:a + n] = True

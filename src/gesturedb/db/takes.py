@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.motion import Motion
 
 __all__ = ["MIRROR_NOTE_REL", "PAIRING_COLUMNS", "RecordingSource", "infer_speaker", "mirrored_copy",
            "read_pairing_file"]
@@ -150,7 +151,6 @@ def mirrored_copy(motion, path) -> tuple:
         ``LeftArm``/``RightArm``, ``l_wrist``/``r_wrist``), or swapping them does
         not map the hierarchy onto itself.
     """
-    from gesturedb.motion import Motion
 
     sk = motion.skeleton
     perm = sk.mirror_permutation()
