@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gesturedb.errors import ParameterError, SearchError
+from gesturedb.search import window_frame_map
 
 __all__ = [
     "WindowChoice",
@@ -94,7 +95,6 @@ class WindowChoice:
     @property
     def source_frames(self) -> np.ndarray:
         """ndarray [shape=(T,)], int64: database frame copied to each output frame."""
-        from gesturedb.search import window_frame_map
 
         return window_frame_map(self.frames, self.out_frames, self.lengths, self.n_frames)
 

@@ -27,9 +27,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from gesturedb import control
 from gesturedb.errors import InputFileError, ParameterError, SearchError
 from gesturedb.eval.common import _fmt, _read_samples, _stats, feature_joint_indices, json_clean
 from gesturedb.eval.texttable import text_table
+from gesturedb.features.controls import control_features
 from gesturedb.synth.matching import Searcher
 from gesturedb.synth.options import SearchOptions
 
@@ -282,8 +284,6 @@ def evaluate_controls(
         ``"EMPTY"`` and the search's explanation in ``error``; the others get
         ``"PASS"`` or ``"FAIL"``.
     """
-    from gesturedb import control
-    from gesturedb.features.controls import control_features
 
     if not (isinstance(min_std_ratio, (int, float)) and 0 <= min_std_ratio):
         raise ParameterError(f"min_std_ratio: expected a number >= 0, got {min_std_ratio!r}")

@@ -58,7 +58,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+import gesturedb
+from gesturedb import control
+from gesturedb.db.build import pair_inputs
 from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.eval import baselines as B
+from gesturedb.eval import conventions as CV
+from gesturedb.eval import metrics as M
 from gesturedb.eval.common import (  # noqa: F401  (re-exported: evaluate is where callers look)
     BASELINES,
     SYSTEM_LABELS,
@@ -81,12 +87,22 @@ from gesturedb.eval.controls import (  # noqa: F401
     ControlsReport,
     evaluate_controls,
 )
+from gesturedb.eval.fgd import SelfFGD, frechet_distance
+from gesturedb.eval.metrics import speed_histogram
+from gesturedb.eval.placement import world_metrics
+from gesturedb.eval.report import write_motion_report
+from gesturedb.eval.rhythm import input_words, rhythm_hamming
 from gesturedb.eval.texttable import text_table
+from gesturedb.features.audio import audio_deltas
+from gesturedb.features.controls import control_features
+from gesturedb.io import read_motion, read_transcript
+from gesturedb.io.audio import read_audio
 from gesturedb.roles import HIP_ROLES, JOINT_GROUPS
 from gesturedb.synth import methods
 from gesturedb.synth.inputs import check_speech
 from gesturedb.synth.matching import Searcher
 from gesturedb.synth.options import SearchOptions
+from gesturedb.synth.repeats import repeat_stats, windows_of
 
 __all__ = [
     "SYSTEMS",
@@ -241,7 +257,6 @@ def synthesize_systems(
     dict name -> SystemOutput, all with the same number of frames
         (the shorter of the speech and the ground truth).
     """
-    from gesturedb.eval import baselines as B
 
     opts = eval_options(options, **changes)
     unknown = [s for s in systems if s not in SYSTEMS]
@@ -285,8 +300,6 @@ def synthesize_systems(
                                                  options=method.options.of(opts, **system.options))
             out[name] = SystemOutput(name, res.positions, res.boundaries, res.source_frames, res.motion)
     if refiner is not None:
-        from gesturedb.features.audio import audio_deltas
-
         if hasattr(refiner, "check"):
             refiner.check(db)
         base = out.get("ranksum_pose")
@@ -305,8 +318,6 @@ def synthesize_systems(
 
 
 def _speed_counts(pos, *, fps, joints, bin_width_m_s=0.01, max_speed_m_s=2.0):
-    from gesturedb.eval.metrics import speed_histogram
-
     return speed_histogram(pos, fps=fps, joints=joints, bin_width_m_s=bin_width_m_s, max_speed_m_s=max_speed_m_s)
 
 
@@ -323,7 +334,6 @@ def database_reference(db, *, joints: np.ndarray, root: int) -> dict:
         the database's speech is not the input's) plus ``"speed_counts"`` and
         ``"speed_edges"`` for the Hellinger distances.
     """
-    from gesturedb.eval import metrics as M
 
     fps = db.fps
     jerk = acc = div = 0.0
@@ -416,7 +426,6 @@ def system_metrics(
     speed_counts : dict name -> ndarray (n_bins,)
         Speed histograms (0.01 m/s bins up to 2 m/s) for plots.
     """
-    from gesturedb.eval import metrics as M
 
     abeats = M.audio_beats(samples, sr=sr)
     pos = {n: metric_positions(o.positions, root) for n, o in outputs.items()}
@@ -432,8 +441,6 @@ def system_metrics(
         rows[n] = _flatten(rep["generated"])
         rows[n]["speed_hellinger_gt"] = rep["comparison"]["speed_hellinger"] if rep["comparison"] else float("nan")
         if outputs[n].source_frames is not None:
-            from gesturedb.synth.repeats import repeat_stats, windows_of
-
             st = repeat_stats(*windows_of(outputs[n].source_frames, b)[:2])
             rows[n].update(repeats=st["repeats"], max_plays=st["max_plays"])
         if gt_part is None and rep["ground_truth"] is not None:
@@ -661,7 +668,6 @@ class MotionEvaluation:
 
         See :func:`gesturedb.eval.report.write_motion_report`.
         """
-        from gesturedb.eval.report import write_motion_report
 
         return write_motion_report(self, out_dir, render=render, video=video, video_seconds=video_seconds)
 
@@ -671,8 +677,6 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
     (seeds 0..starts-1): one row of :func:`system_metrics`, world metrics and the
     published conventions per start, cut to the evaluation's length and measured
     against the same ground truth."""
-    from gesturedb.eval import conventions as CV
-    from gesturedb.eval.placement import world_metrics
 
     # with the ground truth among the systems, synthesize_systems cuts every output to its length
     gt = outputs["ground_truth"].positions if "ground_truth" in outputs else None
@@ -697,13 +701,10 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
 
 def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript, start_s, systems, joints, root,
                   reference, opts, starts: int = 0) -> InputEvaluation:
-    from gesturedb.features.controls import control_features
-
     outputs = synthesize_systems(db, samples, sr, systems=systems, ground_truth=ground_truth, transcript=transcript,
                                  **opts)
     rows, counts = system_metrics(outputs, fps=db.fps, samples=samples, sr=sr, joints=joints, root=root,
                                   names=db.joint_names, reference_counts=reference["speed_counts"])
-    from gesturedb.eval.placement import world_metrics
 
     for n, o in outputs.items():  # world space, before the root is removed for the arm metrics
         rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
@@ -712,8 +713,6 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
     for n, o in outputs.items():
         rows[n].update(stroke_metrics(o.positions, fps=db.fps, names=db.joint_names, root=root,
                                       reference=reference["band_power"], truth=truth))
-    from gesturedb.eval import conventions as CV
-    from gesturedb.eval import metrics as M
 
     conv_args = dict(audio_beats_s=M.audio_beats(samples, sr=sr),
                      reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
@@ -726,7 +725,6 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
                   if starts else {})
     for n in rows:
         rows[n].update(conv[n])
-    from gesturedb.eval.fgd import frechet_distance
 
     fgd = reference.get("fgd")
     gt_codes = fgd.codes(rel["ground_truth"]) if fgd is not None and "ground_truth" in rel else None
@@ -737,7 +735,6 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
         rows[n]["fgd_self_gt"] = (frechet_distance(codes, gt_codes) if ok and gt_codes is not None
                                   and gt_codes.shape[0] >= 2 else float("nan"))
     fj = feature_joint_indices(db)
-    from gesturedb.eval.rhythm import input_words, rhythm_hamming
 
     ws, we = input_words(samples, sr, transcript)
     for n, o in outputs.items():  # speech rhythm vs each system's motion rhythm (eval/rhythm.py)
@@ -751,8 +748,6 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
 
 
 def _common(db, opts, controls, control_audio):
-    from gesturedb import control
-
     # the default step is the paper's in seconds: frames at this database's rate, resolved once for the report
     opts["options"] = opts["options"].replace(step=opts["options"].step_at(db.fps))
 
@@ -763,7 +758,6 @@ def _common(db, opts, controls, control_audio):
     root = fj["root"]
     joints = upper_body_joints(db.skeleton.parents, root=root, hips=[fj[r] for r in HIP_ROLES])
     reference = database_reference(db, joints=joints, root=root)
-    from gesturedb.eval.fgd import SelfFGD
 
     fgd = SelfFGD.try_build(db, joints=joints, root=root)  # trained once per evaluation (about 5 s)
     reference.update(fgd=fgd, fgd_self_gt=float("nan"), fgd_self_db=0.0 if fgd is not None else float("nan"))
@@ -841,7 +835,6 @@ def evaluate_inputs(
     MotionEvaluation
         ``speed_hellinger_db`` compares each system with the database's motion.
     """
-    from gesturedb.io import read_transcript
 
     starts = _starts(starts)
     audio = [os.fspath(a) for a in audio]
@@ -960,11 +953,6 @@ def evaluate_holdout(
         to the database fps, every system cut to the same length.
     """
     import tempfile
-
-    import gesturedb
-    from gesturedb.db.build import pair_inputs
-    from gesturedb.io import read_motion, read_transcript
-    from gesturedb.io.audio import read_audio
 
     starts = _starts(starts)
     data = [data] if isinstance(data, (str, os.PathLike)) else list(data)

@@ -23,6 +23,8 @@ import numpy as np
 from scipy import linalg
 
 from gesturedb.errors import ParameterError
+from gesturedb.eval.common import metric_positions
+from gesturedb.refiner.autoencoder import WINDOW, train_motion_encoder
 
 __all__ = ["frechet_distance", "motion_windows", "SelfFGD", "STRIDE"]
 
@@ -80,9 +82,6 @@ class SelfFGD:
     """
 
     def __init__(self, db, *, joints, root: int, seed: int = 0):
-        from gesturedb.eval.common import metric_positions
-        from gesturedb.refiner.autoencoder import WINDOW, train_motion_encoder
-
         self.joints = np.asarray(joints)
         self.fps = float(db.fps)
         wins = [motion_windows(metric_positions(db.joint_positions[r.start_frame:r.stop_frame], root),
@@ -126,7 +125,6 @@ class SelfFGD:
     def codes(self, positions: np.ndarray) -> np.ndarray:
         """Codes (n, LATENT), in database standard deviations, of root-relative positions (T, J, 3)
         (``metric_positions``) at the database's frame rate."""
-        from gesturedb.refiner.autoencoder import WINDOW
 
         w = motion_windows(positions, joints=self.joints, window=WINDOW, fps=self.fps)
         if w.shape[0] == 0:

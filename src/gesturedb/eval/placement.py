@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.io.joints import body_keys
 from gesturedb.io.joints import group_joints as _group_joints
 from gesturedb.roles import JOINT_GROUPS
 
@@ -115,7 +116,6 @@ def world_metrics(positions, *, fps: float, names) -> dict:
     ``jerk_rel_<g>_m_s3`` (root-relative: the root's horizontal position removed).
     Missing body parts give NaN.
     """
-    from gesturedb.io.joints import body_keys
 
     pos = _pos(positions)
     keys = {k: j for j, k in body_keys(names).items()}

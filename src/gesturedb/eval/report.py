@@ -28,8 +28,10 @@ from typing import Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.eval.common import SYSTEM_LABELS, _centred, _fmt
 from gesturedb.eval.strokes import BANDS_HZ, STROKE_COLUMNS, band_key
 from gesturedb.io.atomic import write_text
+from gesturedb.render import render_contact_sheet, render_video
 from gesturedb.synth import methods
 
 __all__ = [
@@ -65,8 +67,6 @@ def _plt():
 
 
 def _label(name: str) -> str:
-    from gesturedb.eval.common import SYSTEM_LABELS
-
     return SYSTEM_LABELS.get(name, name)
 
 
@@ -300,8 +300,6 @@ def render_comparison(out_dir, inp, *, parents, root: int, index: int = 0, video
     -------
     list of Path
     """
-    from gesturedb.eval.common import _centred
-    from gesturedb.render import render_contact_sheet, render_video
 
     out_dir = Path(out_dir)
     names = _panel_systems(inp.outputs)
@@ -353,8 +351,6 @@ _METRIC_DOCS = (
 
 
 def _html_table(ev, rows: dict, spec=None) -> str:
-    from gesturedb.eval.common import _fmt
-
     cols = ev.columns(rows) if spec is None else ev.columns(rows, spec)
     head = "<tr><th>system</th>" + "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in cols) + "</tr>"
     body = []

@@ -11,14 +11,15 @@ from __future__ import annotations
 import numpy as np
 
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
+from gesturedb.features.rhythm import audio_rhythm, hamming, hand_speed, motion_rhythm
+from gesturedb.features.segments import word_gap_clips
+from gesturedb.io.transcripts import Words, read_transcript
 
 
 def input_words(samples: np.ndarray, sr: int, transcript=None, *, vad: str = DEFAULT_VAD) -> tuple[np.ndarray, np.ndarray]:
     """Word start and end times (s) from a transcript (path or Words) or, without one, voiced stretches
     found by :func:`gesturedb.features.pauses.voiced_segments` (detector ``vad``)."""
     if transcript is not None:
-        from gesturedb.io.transcripts import Words, read_transcript
-
         w = transcript if isinstance(transcript, Words) else read_transcript(transcript)
         return np.asarray(w.start_s, dtype=np.float64), np.asarray(w.end_s, dtype=np.float64)
     return voiced_segments(samples, sr, method=vad)
@@ -33,8 +34,6 @@ def rhythm_hamming(positions: np.ndarray, *, word_start_s, word_end_s, fps: floa
     word_start_s, word_end_s : ndarray [shape=(W,)], seconds
     joints : mapping role -> joint index (wrists and body-frame roles)
     """
-    from gesturedb.features.rhythm import audio_rhythm, hamming, hand_speed, motion_rhythm
-    from gesturedb.features.segments import word_gap_clips
 
     T = positions.shape[0]
     order = np.argsort(word_start_s, kind="stable")

@@ -30,6 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.eval.metrics import find_wrists
 from gesturedb.eval.placement import root_relative
 from gesturedb.io.joints import group_joints
 from gesturedb.roles import STROKE_JOINT_GROUPS
@@ -185,8 +186,6 @@ def stroke_strength(positions, *, fps: float, wrists, root: int = 0, percentile:
 
 
 def _wrists(names) -> list[int]:
-    from gesturedb.eval.metrics import find_wrists
-
     return list(find_wrists(list(names)))
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from gesturedb import rotations as R
+from gesturedb.io.joints import body_keys
 from gesturedb.motion import Motion
 
 __all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "MAX_FILL_GAP_S", "FootPlanter", "fill_non_steps", "foot_contacts",
@@ -50,7 +51,6 @@ def foot_joints(skeleton) -> np.ndarray:
     Found by body part (:func:`gesturedb.io.joints.body_keys`); a side without a toe
     uses its ankle twice. Empty (0, 2) when the skeleton has no feet.
     """
-    from gesturedb.io.joints import body_keys
 
     keys = {k: j for j, k in body_keys(skeleton.names).items()}
     out = []
@@ -103,7 +103,6 @@ def foot_contacts(positions: np.ndarray, *, fps: float, feet: np.ndarray, floor_
 
 def leg_joints(skeleton) -> np.ndarray:
     """``[[hip, knee, ankle], ...]`` for the left and right leg (2, 3) int64; (0, 3) without legs."""
-    from gesturedb.io.joints import body_keys
 
     keys = {k: j for j, k in body_keys(skeleton.names).items()}
     out = []

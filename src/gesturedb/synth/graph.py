@@ -59,19 +59,27 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gesturedb.db.graph import body_parts
+from gesturedb import rotations as R
+from gesturedb.db.graph import body_parts, clip_audio_inputs, predict_style, suggest_gap_s
 from gesturedb.errors import ParameterError, SchemaError
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
+from gesturedb.features.rhythm import audio_rhythm, hamming
+from gesturedb.features.segments import word_gap_clips
 from gesturedb.io.transcripts import Words
+from gesturedb.motion import Motion
 from gesturedb.synth import inputs
 from gesturedb.synth.assemble import (
     SMOOTH_WINDOW_S,
     Piece,
+    _yaw_of,
+    _yaw_quat,
     assemble_pieces,
     floor_height,
     placed_frames,
+    savgol_smooth,
     typical_accelerations,
 )
+from gesturedb.synth.contacts import foot_joints
 from gesturedb.synth.options import SynthOptions
 from gesturedb.synth.protocol import EvalSystem, Method
 from gesturedb.synth.result import SynthResult
@@ -105,8 +113,6 @@ def join_upper_body(skeleton, rot: np.ndarray, upper_rot: np.ndarray, upper_join
     another pelvis those compensations moved the head instead (its 4-7 Hz power 8-11x the
     database's on the BEAT2 inputs, against about 1x for either path alone).
     """
-    from gesturedb import rotations as R
-    from gesturedb.synth.assemble import _yaw_of, _yaw_quat
 
     upper = set(int(j) for j in np.asarray(upper_joints).ravel())
     parents = np.asarray(skeleton.parents)
@@ -214,7 +220,6 @@ class GraphSynthesizer:
         the feet moved 1.8-1.9x as fast as the capture's. This term, weighted like the duration term,
         keeps the stance of a speaker who mostly stands unless the transitions say otherwise.
         """
-        from gesturedb.synth.contacts import foot_joints
 
         feet = foot_joints(self.db.skeleton)[:, 0]
         if feet.size == 0 or self.start.size == 0:
@@ -234,7 +239,6 @@ class GraphSynthesizer:
     # -- input side -----------------------------------------------------------
     def input_clips(self, samples, sr, T, *, transcript=None, gap_s=None, vad=DEFAULT_VAD):
         """Input clip boundaries (n+1,) in frames, word onsets (s), and words per clip (n,)."""
-        from gesturedb.features.segments import word_gap_clips
 
         fps = self.db.fps
         if gap_s is not None and gap_s != "auto":
@@ -253,8 +257,6 @@ class GraphSynthesizer:
         order = np.argsort(ws, kind="stable")
         ws, we = ws[order], we[order]
         if gap_s == "auto":  # from this speech's own pauses, clips of about 3 s (as the build's "auto")
-            from gesturedb.db.graph import suggest_gap_s
-
             pauses = ws[1:] - np.maximum.accumulate(we)[:-1] if ws.size > 1 else np.zeros(0)
             gap = suggest_gap_s(pauses, T / fps)
         else:
@@ -269,8 +271,6 @@ class GraphSynthesizer:
 
     def data_terms(self, query, bounds, onsets_s, n_words, *, l5=1.0, l6=0.1, l_dur=0.5):
         """Components of ``C_d`` (n, K) each: style L2, rhythm Hamming, duration; plus rates and fit flags."""
-        from gesturedb.db.graph import clip_audio_inputs, predict_style
-        from gesturedb.features.rhythm import audio_rhythm, hamming
 
         fps = self.db.fps
         starts, lens = bounds[:-1], np.diff(bounds)
@@ -474,7 +474,6 @@ class GraphSynthesizer:
         joints from the first and the root and the legs from the second: the upper body rides on
         the lower body's pelvis.
         """
-        from gesturedb.motion import Motion
 
         db = self.db
         recs = db.recordings
@@ -521,8 +520,6 @@ class GraphSynthesizer:
 
     def _smooth(self, motion):
         """Savitzky-Golay per joint group (Sec. 4.2): order 2 for arms/hands/head, 1 elsewhere; window in seconds."""
-        from gesturedb.motion import Motion
-        from gesturedb.synth.assemble import savgol_smooth
 
         names = motion.skeleton.names
         o2 = np.array([any(k in nm.lower() for k in ORDER2_PARTS) for nm in names])

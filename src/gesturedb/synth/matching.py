@@ -31,6 +31,7 @@ import numpy as np
 from gesturedb.control import candidate_counts, compile_mask, full_mask, mask_and, suggest_percentiles
 from gesturedb.control.schedule import _schedule_items
 from gesturedb.db import keywords as kw
+from gesturedb.db.shards import ShardedSearch
 from gesturedb.errors import ParameterError, SearchError
 from gesturedb.features.audio import AUDIO_WINDOW_S, AudioFeatureStream, audio_deltas
 from gesturedb.io.transcripts import Words, normalize_word
@@ -263,8 +264,6 @@ class Searcher:
         def search(q, prev, allowed_now):
             if self._client is not None:
                 if self._sharded is None:
-                    from gesturedb.db.shards import ShardedSearch  # Dask, only with a client
-
                     self._sharded = ShardedSearch.for_database(db, self.seg_start, self.seg_len,
                                                                scheduler=self._client, parts=self._parts)
                 return self._sharded.search(q, prev, step=step, k=k, preselect=preselect,

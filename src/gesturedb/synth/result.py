@@ -7,6 +7,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gesturedb.errors import InputFileError
+from gesturedb.io.atomic import write_text
+
 
 @dataclass
 class SynthResult:
@@ -56,8 +59,6 @@ class SynthResult:
 
     def write_provenance(self, path: str | os.PathLike) -> None:
         """Write the provenance as strict JSON (a NaN or inf distance is an error, never ``NaN`` in the file)."""
-        from gesturedb.errors import InputFileError
-        from gesturedb.io.atomic import write_text
 
         try:
             text = json.dumps(self.provenance(), indent=1, allow_nan=False)
