@@ -31,7 +31,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from gesturedb.errors import GestureDBError, ParameterError
+from gesturedb.errors import GestureDBError, InputFileError, ParameterError
 
 # VTK reads this when the first render window is created. Without it VTK first
 # tries X11, fails with a warning and only then falls back to EGL.
@@ -660,8 +660,6 @@ def _load_audio(audio, sr) -> tuple[np.ndarray, int]:
         try:
             y, file_sr = sf.read(os.fspath(audio), dtype="float32", always_2d=True)
         except Exception as e:  # soundfile raises several types for unreadable files
-            from gesturedb.errors import InputFileError
-
             raise InputFileError(audio, f"audio: expected a readable sound file; got {e}") from None
         return y.mean(axis=1), int(file_sr)
     if isinstance(audio, tuple) and len(audio) == 2:

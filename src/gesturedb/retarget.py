@@ -38,7 +38,8 @@ import numpy as np
 
 from gesturedb import rotations as rot
 from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
-from gesturedb.io.bvh import MAX_FPS, MIN_FPS
+from gesturedb.io.bvh import MAX_FPS, MIN_FPS, read_bvh
+from gesturedb.io.gltf import read_gltf_rig
 from gesturedb.io.joints import MESSAGE_JOINTS, body_keys
 from gesturedb.motion import Motion, Skeleton
 from gesturedb.roles import RETARGET_REQUIRED
@@ -69,12 +70,8 @@ def load_rig(path) -> Skeleton:
     """
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext == ".bvh":
-        from gesturedb.io.bvh import read_bvh
-
         return read_bvh(path).skeleton
     if ext in (".glb", ".gltf"):
-        from gesturedb.io.gltf import read_gltf_rig
-
         return read_gltf_rig(path)
     raise InputFileError(path, f"target rig: unknown extension {ext or '(none)'!r}; expected "
                                f"{', '.join(RIG_EXTENSIONS)}")

@@ -64,6 +64,7 @@ STEP_FRAMES = 8
 
 def _core():
     try:
+        # local on purpose: a missing compiled kernel becomes the build hint below, not a failed import
         import gesturedb._core as core
     except ImportError as exc:  # pragma: no cover - depends on the build
         raise ImportError(

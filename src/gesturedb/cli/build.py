@@ -4,7 +4,12 @@ from __future__ import annotations
 import sys
 
 from gesturedb.cli._args import float_range, int_range
+from gesturedb.db.build import build, pair_inputs, read_pairing_file
+from gesturedb.db.cluster import check_scheduler
+from gesturedb.errors import ParameterError
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
+from gesturedb.io.bvh import parse_length_unit
+from gesturedb.io.joints import read_joint_map
 from gesturedb.threads import available_cpus
 
 
@@ -55,21 +60,13 @@ def _gap(text):
 
 
 def _joint_map(text):
-    from gesturedb.io.joints import read_joint_map  # JSON text or file, BOM allowed, messages capped
-
     return read_joint_map(text)
 
 
 def run(args) -> int:
-    from gesturedb.db.build import build, pair_inputs, read_pairing_file
-    from gesturedb.errors import ParameterError
-    from gesturedb.io.bvh import parse_length_unit
-
     if not args.inputs and not args.pairs:
         raise ParameterError("inputs: expected files or folders, or --pairs PAIRS.csv; got neither")
     if args.scheduler is not None:
-        from gesturedb.db.cluster import check_scheduler
-
         check_scheduler(args.scheduler)  # before the inputs are read (local:100000 started without limit)
     unit = None if args.length_unit is None else parse_length_unit(args.length_unit)
     listed = read_pairing_file(args.pairs) if args.pairs else []

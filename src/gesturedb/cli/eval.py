@@ -9,8 +9,11 @@ from __future__ import annotations
 import os
 import sys
 
+import gesturedb
 from gesturedb.cli._args import add_init_argument, float_range
+from gesturedb.errors import ParameterError
 from gesturedb.eval.common import SYSTEM_LABELS, SYSTEMS, eval_options
+from gesturedb.io.outputs import check_outputs
 from gesturedb.synth.seams import SEAM_DECAY_S
 
 
@@ -109,10 +112,8 @@ def _search_kwargs(args, **more) -> dict:
 
 
 def run_controls(args) -> int:
-    import gesturedb
     from gesturedb.eval.evaluate import evaluate_controls
     from gesturedb.eval.report import write_controls_report
-    from gesturedb.io.outputs import check_outputs
 
     check_outputs({"--json": args.json, "--md": args.md, "--plot": args.plot}, [args.db, args.audio])
     with gesturedb.open(args.db) as db:
@@ -137,7 +138,6 @@ def _beside(audio: str) -> str | None:
 
 
 def run_motion(args) -> int:
-    from gesturedb.errors import ParameterError
     from gesturedb.eval.evaluate import evaluate_holdout, evaluate_inputs
 
     systems = None
@@ -169,7 +169,6 @@ def run_motion(args) -> int:
         if not args.db or not args.audio:
             raise ParameterError("eval motion: expected DB.h5 and at least one --audio (or a held-out evaluation "
                                  "with --data-dir, --holdout-start and --holdout-end)")
-        import gesturedb
 
         with gesturedb.open(args.db) as db:
             ev = evaluate_inputs(

@@ -1,6 +1,10 @@
 """`gesturedb export DB.h5 --recording NAME --start S --end E -o out.bvh|out.glb [--target-skeleton RIG]`"""
 from __future__ import annotations
 
+import gesturedb
+from gesturedb.io import check_motion_output, write_motion
+from gesturedb.io.outputs import check_outputs
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser("export", help="write a stretch of a recording in the database to BVH or glTF")
@@ -16,10 +20,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    import gesturedb
     from gesturedb.cli.retarget import apply_target
-    from gesturedb.io import check_motion_output, write_motion
-    from gesturedb.io.outputs import check_outputs
 
     check_motion_output(args.output)
     check_outputs({"-o": args.output}, [args.db, args.target_skeleton])

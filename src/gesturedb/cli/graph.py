@@ -1,6 +1,8 @@
 """`gesturedb graph DB.h5`: add (or rebuild) the motion graphs of an existing database."""
 from __future__ import annotations
 
+from gesturedb.db.graph import add_graph
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -24,8 +26,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from gesturedb.db.graph import add_graph
-
     s = add_graph(args.db, delta_T=args.delta_T, delta_T_lower=args.delta_T_lower, min_out=args.min_out,
                   progress=not args.quiet, scheduler=args.scheduler)
     print(f"{args.db}: motion graphs over {s['n_nodes']} clips: upper body {s['n_edges']} edges (delta_T "

@@ -4,6 +4,10 @@ from __future__ import annotations
 import json
 import os
 
+import gesturedb
+from gesturedb.db import schema
+from gesturedb.errors import ParameterError
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser("info", help="summarise a gesture database")
@@ -46,15 +50,10 @@ def summary(db) -> dict:
 
 
 def run(args) -> int:
-    import gesturedb
-    from gesturedb.db import schema
-
     if args.schema:
         print(schema.describe())
         return 0
     if args.db is None:
-        from gesturedb.errors import ParameterError
-
         raise ParameterError("DB.h5: expected a database to summarise (or --schema for the file layout)")
     with gesturedb.open(args.db) as db:
         s = summary(db)

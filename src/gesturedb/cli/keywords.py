@@ -6,6 +6,10 @@ that overlap the word in the input transcript take their gesture from it.
 """
 from __future__ import annotations
 
+import gesturedb
+from gesturedb.errors import ParameterError
+from gesturedb.io.outputs import check_outputs
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -56,7 +60,6 @@ def _fmt_sub(sub, fps: float) -> str:
 
 
 def _list(args) -> int:
-    import gesturedb
     from gesturedb.db import keywords as kw
 
     with gesturedb.open(args.db) as db:
@@ -82,7 +85,6 @@ def _list(args) -> int:
 
 
 def _show(args) -> int:
-    import gesturedb
     from gesturedb.db import keywords as kw
 
     with gesturedb.open(args.db) as db:
@@ -109,8 +111,6 @@ def run(args) -> int:
     if args.action == "show":
         return _show(args)
     if args.action == "add":
-        from gesturedb.errors import ParameterError
-
         words = list(args.words) + (kw.read_word_list(args.from_file) if args.from_file else [])
         if not words:
             raise ParameterError("add: expected at least one WORD or --from FILE, got neither")
@@ -129,8 +129,6 @@ def run(args) -> int:
         print(f"dropped {sub.word!r} ({len(sub)} occurrence(s)) from {args.db}")
         return 0
     if args.action == "export":
-        from gesturedb.io.outputs import check_outputs
-
         check_outputs({"-o": args.output}, [args.db])
         with export_keyword(args.db, args.word, args.output, chunk_frames=args.chunk_frames) as out:
             print(f"wrote {args.output}: {len(out.recordings)} recording(s), {out.n_frames} frames "

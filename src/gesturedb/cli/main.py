@@ -9,6 +9,9 @@ import argparse
 import importlib
 import sys
 
+from gesturedb import __version__
+from gesturedb.errors import GestureDBError
+
 #: command name -> module in this package defining `add_parser(subparsers)` and `run(args)`
 COMMANDS = {
     "build": "build",
@@ -28,8 +31,6 @@ COMMANDS = {
 
 
 def make_parser() -> argparse.ArgumentParser:
-    from gesturedb import __version__
-
     parser = argparse.ArgumentParser(
         prog="gesturedb",
         description="Build gesture databases from speech + motion recordings and synthesize gestures by searching them.",
@@ -42,8 +43,6 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from gesturedb.errors import GestureDBError
-
     parser = make_parser()
     args = parser.parse_args(argv)
     _one_line_warnings(args.command)

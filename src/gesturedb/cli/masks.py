@@ -1,6 +1,10 @@
 """`gesturedb masks DB.h5 list|add NAME EXPR [NAME EXPR ...]|remove NAME|controls`: saved control masks."""
 from __future__ import annotations
 
+import gesturedb
+from gesturedb import control as masks
+from gesturedb.errors import GestureDBError, ParameterError, echo_list
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser("masks", help="list, save or remove control masks; recompute control features",
@@ -25,14 +29,9 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     import numpy as np
 
-    import gesturedb
-    from gesturedb import control as masks
     from gesturedb.db import edit as dbedit
-    from gesturedb.errors import GestureDBError
 
     if args.op == "add":
-        from gesturedb.errors import ParameterError, echo_list
-
         if len(args.pairs) % 2:
             raise ParameterError(f"add: expected NAME EXPR pairs, got {len(args.pairs)} argument(s): "
                                  f"{echo_list(args.pairs, quote=True)} (quote each expression)")

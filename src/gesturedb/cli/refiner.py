@@ -3,7 +3,15 @@ from __future__ import annotations
 
 import sys
 
+import gesturedb
 from gesturedb.cli._args import int_range
+from gesturedb.db.cluster import check_scheduler, optional_client
+from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.features.audio import audio_deltas
+from gesturedb.io import read_motion, write_motion
+from gesturedb.io.audio import read_audio
+from gesturedb.io.outputs import check_outputs
+from gesturedb.motion import Motion
 from gesturedb.refiner.data import STRIDE  # no torch: the data module is plain numpy
 from gesturedb.threads import available_cpus
 
@@ -46,15 +54,11 @@ def add_parser(sub) -> None:
 
 
 def _positive(name, v):
-    from gesturedb.errors import ParameterError
-
     if v is not None and v < 1:
         raise ParameterError(f"--{name}: expected a positive integer, got {v}")
 
 
 def run(args) -> int:
-    import gesturedb
-    from gesturedb.io.outputs import check_outputs
     from gesturedb.refiner import require_torch
 
     require_torch()  # before anything else: says how to install torch when it is missing
@@ -68,12 +72,9 @@ def run(args) -> int:
         for name in ("iterations", "batch", "stride", "threads", "parts", "workers"):
             _positive(name, getattr(args, name))
         if args.scheduler:
-            from gesturedb.db.cluster import check_scheduler
-
             check_scheduler(args.scheduler)  # before the database is opened or anything is searched
         cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed, stride=args.stride,
                           checkpoint_every_s=args.checkpoint_every)
-        from gesturedb.db.cluster import optional_client
 
         with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
             tr = train(db, args.output, config=cfg, resume=args.resume, overwrite=args.overwrite, progress=True,
@@ -85,10 +86,6 @@ def run(args) -> int:
         return 0
     import numpy as np
 
-    from gesturedb.errors import InputFileError
-    from gesturedb.features.audio import audio_deltas
-    from gesturedb.io import read_motion, write_motion
-    from gesturedb.io.audio import read_audio
     from gesturedb.refiner import load_refiner
     from gesturedb.synth import Searcher
 
@@ -102,8 +99,6 @@ def run(args) -> int:
             raise InputFileError(args.input, f"skeleton: expected the database's {len(want)} joints, got "
                                              f"{len(names)} (missing e.g. {', '.join(missing) or 'none'})")
         if names != want:  # a BVH lists joints depth first: put them back in the database's order
-            from gesturedb.motion import Motion
-
             order = [names.index(n) for n in want]
             motion = Motion(skeleton=db.skeleton, fps=motion.fps, rotations=motion.rotations[:, order],
                             root_positions=motion.root_positions)

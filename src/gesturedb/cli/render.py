@@ -12,6 +12,14 @@ from __future__ import annotations
 import os
 import sys
 
+import gesturedb
+from gesturedb.errors import GestureDBError, InputFileError, ParameterError
+from gesturedb.io import read_audio, read_bvh, read_smplx, read_transcript
+from gesturedb.io.gltf import read_gltf
+from gesturedb.io.npz import JOINT_POSITION_FIELDS, npz_keys, read_joint_positions
+from gesturedb.io.outputs import check_outputs
+from gesturedb.motion import resampled_length
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -51,24 +59,16 @@ def load_positions(path):
     """
     import numpy as np
 
-    from gesturedb.errors import InputFileError
-
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if not os.path.isfile(path):
         raise InputFileError(path, "no such file")
     if ext == ".bvh":
-        from gesturedb.io import read_bvh
-
         m = read_bvh(path)
         return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
     if ext in (".glb", ".gltf"):
-        from gesturedb.io.gltf import read_gltf
-
         m = read_gltf(path)
         return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
     if ext == ".npz":
-        from gesturedb.io.npz import JOINT_POSITION_FIELDS, npz_keys, read_joint_positions  # memory bounded
-
         try:
             keys = set(npz_keys(path))
             if JOINT_POSITION_FIELDS[0] in keys:
@@ -79,8 +79,6 @@ def load_positions(path):
         except Exception as exc:  # a damaged array (a string as fps, a ragged names list...)
             raise InputFileError(path, f"not a readable npz file ({exc})") from None
         if smplx:
-            from gesturedb.io import read_smplx
-
             m = read_smplx(path)
             return m.positions, np.asarray(m.skeleton.parents), float(m.fps), list(m.skeleton.names)
         raise InputFileError(path, f"npz: expected joint positions (positions, parents, fps) or SMPL-X "
@@ -91,8 +89,6 @@ def load_positions(path):
 def resample_positions(pos, fps_from: float, fps_to: float):
     """Linear interpolation of joint positions to another frame rate (display only)."""
     import numpy as np
-
-    from gesturedb.motion import resampled_length
 
     if fps_from == fps_to:
         return pos
@@ -107,8 +103,6 @@ def resample_positions(pos, fps_from: float, fps_to: float):
 def facing_of(positions, names):
     """Mean facing direction of a motion from its hips and shoulders; +z when they cannot be found."""
     import numpy as np
-
-    from gesturedb.errors import GestureDBError
 
     if names is None:
         return (0.0, 0.0, 1.0)
@@ -127,8 +121,6 @@ def facing_of(positions, names):
 
 
 def _size(text, default):
-    from gesturedb.errors import ParameterError
-
     if text is None:
         return default
     try:
@@ -141,13 +133,11 @@ def _size(text, default):
 def run(args) -> int:
     import numpy as np
 
-    from gesturedb.errors import ParameterError
     from gesturedb.render import fit_camera, render_contact_sheet, render_video
 
     ext = os.path.splitext(args.output)[1].lower()
     if ext not in (".mp4", ".gif", ".png"):
         raise ParameterError(f"-o {args.output}: expected a .mp4, .gif or .png file name")
-    from gesturedb.io.outputs import check_outputs
 
     check_outputs({"-o": args.output}, [*args.inputs, args.audio, args.transcript, args.db])
     if not args.inputs and not args.db:
@@ -161,8 +151,6 @@ def run(args) -> int:
         panels.append([pos, par, fps, names, os.path.basename(path)])
     audio = args.audio
     if args.db:
-        import gesturedb
-
         with gesturedb.open(args.db) as db:
             rec = db.recording(args.recording if args.recording is not None else 0)
             a, b = db.frame_range(rec.name, args.start, args.end)
@@ -171,8 +159,6 @@ def run(args) -> int:
             panels.append([pos, np.asarray(db.skeleton.parents), db.fps, list(db.joint_names),
                            f"{rec.name} {t0:g}-{t1:g} s"])
             if audio is None and not args.inputs and rec.audio_path and os.path.isfile(rec.audio_path):
-                from gesturedb.io import read_audio
-
                 y, sr = read_audio(rec.audio_path, sr=None)
                 # A recording built from part of a file (a held-out split) does not start at the
                 # file's 0 s and the database does not store where it did: no sound rather than wrong sound.
@@ -200,8 +186,6 @@ def run(args) -> int:
     camera = fit_camera([p[0] for p in panels], size=size, facing=facing_of(panels[0][0], panels[0][3]))
     captions = None
     if args.transcript:
-        from gesturedb.io import read_transcript
-
         captions = read_transcript(args.transcript)
     if ext == ".png":
         render_contact_sheet(args.output, out_panels, n=args.frames, fps=fps, size=size, camera=camera)

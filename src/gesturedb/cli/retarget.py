@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import sys
 
+from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.io import check_motion_output, read_motion, write_motion
+from gesturedb.io.outputs import check_outputs
+
 
 def add_target_options(p, *, required: bool = False) -> None:
     """The rig options shared by `retarget`, `synth` and `export`."""
@@ -16,8 +20,6 @@ def add_target_options(p, *, required: bool = False) -> None:
 
 
 def parse_map(items) -> dict:
-    from gesturedb.errors import ParameterError
-
     mapping = {}
     for item in items:
         t, sep, s = item.partition("=")
@@ -58,8 +60,6 @@ def speech_beside(output, audio):
         return None
     import soundfile as sf
 
-    from gesturedb.errors import InputFileError
-
     wav = os.path.splitext(output)[0] + ".wav"
     if os.path.abspath(wav) == os.path.abspath(audio):
         return None
@@ -83,9 +83,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from gesturedb.io import check_motion_output, read_motion, write_motion
-    from gesturedb.io.outputs import check_outputs
-
     check_motion_output(args.output)
     check_outputs({"-o": args.output}, [args.input, args.target_skeleton])
     motion = read_motion(args.input)

@@ -1,7 +1,9 @@
 """`gesturedb serve DB.h5 [--host 127.0.0.1] [--port 8765]`: live gestures and the browser studio."""
 from __future__ import annotations
 
+import gesturedb
 from gesturedb.cli._args import float_range, int_range
+from gesturedb.errors import ParameterError
 
 
 def add_parser(sub) -> None:
@@ -30,8 +32,6 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     import logging
 
-    import gesturedb
-    from gesturedb.errors import ParameterError
     from gesturedb.serve.limits import Limits
 
     try:

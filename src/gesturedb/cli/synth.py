@@ -3,8 +3,14 @@ from __future__ import annotations
 
 import os
 
+import gesturedb
 from gesturedb.cli._args import add_init_argument, float_range, int_range
+from gesturedb.db.cluster import optional_client
+from gesturedb.errors import ParameterError
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
+from gesturedb.io import check_motion_output, read_transcript, write_motion
+from gesturedb.io.npz import write_joint_positions
+from gesturedb.io.outputs import check_outputs
 from gesturedb.synth import methods
 from gesturedb.synth.seams import SEAM_DECAY_S
 
@@ -69,10 +75,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    import gesturedb
     from gesturedb.cli.retarget import apply_target, load_target
-    from gesturedb.io import check_motion_output, write_motion
-    from gesturedb.io.outputs import check_outputs
 
     check_motion_output(args.output)
     prov = args.provenance or os.path.splitext(args.output)[0] + ".provenance.json"
@@ -82,14 +85,11 @@ def run(args) -> int:
                   [args.db, args.audio, args.transcript, getattr(args, "target_skeleton", None)])
     load_target(args)  # a broken rig fails now, not after the synthesis
     if args.transcript and args.accept_transcript_mismatch:
-        from gesturedb.io import read_transcript
-
         args.transcript = read_transcript(args.transcript, accept_mismatch=True)
 
     keywords = False if args.no_keywords else (args.keywords.split(",") if args.keywords else True)
     method = methods.get(args.method)
     options = method_options(method, args, keywords=keywords)  # a flag the method cannot use fails now
-    from gesturedb.db.cluster import optional_client
 
     with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
         refiner = None
@@ -110,8 +110,6 @@ def run(args) -> int:
 
     written += [w for w in [speech_beside(args.output, args.audio)] if w]
     if args.npz:
-        from gesturedb.io.npz import write_joint_positions
-
         write_joint_positions(args.npz, motion.positions, parents=motion.skeleton.parents, fps=motion.fps,
                               names=motion.skeleton.names)
         written.append(args.npz)
@@ -137,7 +135,6 @@ _METHOD_FLAGS = {"step": "--step", "repeat_guard_s": "--repeat-guard", "gap_s": 
 
 def method_options(method, args, *, keywords):
     """The method's options object from the command line; a flag the method cannot use is an error."""
-    from gesturedb.errors import ParameterError
 
     given = dict(seam_decay_s=args.seam_decay_s, smooth=args.smooth, control=args.control, keywords=keywords,
                  exclude=args.exclude.split(",") if args.exclude else None, speaker=args.speaker,

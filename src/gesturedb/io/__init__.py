@@ -12,6 +12,7 @@ import os
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.io.audio import read_audio
 from gesturedb.io.bvh import read_bvh, write_bvh
+from gesturedb.io.gltf import read_gltf, write_glb
 from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
 from gesturedb.io.smplx import read_smplx, smplx_skeleton
 from gesturedb.io.transcripts import Words, read_transcript
@@ -71,7 +72,6 @@ def read_motion(path, *, length_unit_m: float | None = None):
     if ext in (".glb", ".gltf"):
         if length_unit_m not in (None, 1.0):
             raise ParameterError(f"length_unit_m: glTF files are in metres; got {length_unit_m} for {path}")
-        from gesturedb.io.gltf import read_gltf
 
         return read_gltf(path)
     raise InputFileError(path, f"unknown motion extension {ext or '(none)'!r}; expected "
@@ -103,8 +103,6 @@ def write_motion(path, motion) -> None:
         Unknown extension or the file cannot be written.
     """
     if check_motion_output(path) == ".glb":
-        from gesturedb.io.gltf import write_glb
-
         write_glb(path, motion)
     else:
         write_bvh(path, motion)

@@ -40,6 +40,7 @@ import numpy as np
 from gesturedb import rotations as rot
 from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
 from gesturedb.io.atomic import atomic_open
+from gesturedb.io.joints import body_keys
 from gesturedb.motion import Motion, Skeleton
 
 __all__ = ["LENGTH_UNITS", "describe_length_unit", "guess_length_unit", "parse_length_unit", "read_bvh",
@@ -348,8 +349,6 @@ def _height_units(offsets, parents, end_sites) -> float:
 
 
 def _has_legs(names) -> bool:
-    from gesturedb.io.joints import body_keys
-
     return any(k.endswith(_LEG_KEYS) for k in body_keys(names).values())
 
 

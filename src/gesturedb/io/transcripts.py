@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.errors import GestureDBWarning, InputFileError, ParameterError
 from gesturedb.io.text import read_text_lines
 
 __all__ = ["FIT_TOLERANCE_S", "Words", "check_words_fit", "read_genea_tsv", "read_json_words", "read_textgrid",
@@ -418,8 +418,6 @@ def check_words_fit(words: Words, duration_s: float, *, audio=None, accept_misma
         the audio's length, unless the mismatch is accepted.
     """
     import warnings
-
-    from gesturedb.errors import GestureDBWarning
 
     if len(words) == 0:
         return

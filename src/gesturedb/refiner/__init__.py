@@ -34,6 +34,7 @@ def require_torch():
 def load_refiner(path, db=None):
     """Load a trained refiner checkpoint (no code is executed from the file); see :class:`train.Refiner`."""
     require_torch()
+    # local on purpose: refiner.train imports torch at its top, and `import gesturedb.refiner` stays torch-free
     from gesturedb.refiner.train import Refiner
 
     return Refiner.load(path, db=db)

@@ -44,12 +44,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import gesturedb
 from gesturedb.db import arrayfile
 from gesturedb.db.cluster import check_on_worker, iter_on_cluster, worker_address
 from gesturedb.db.shards import ShardedSearch
 from gesturedb.db.workers import single_threaded_worker
 from gesturedb.errors import InputFileError, ParameterError
 from gesturedb.refiner.representation import moving_joints, to_channels
+from gesturedb.search import PoseProjection, rank_sum_search_batch
+from gesturedb.synth.assemble import assemble_frames
 from gesturedb.synth.options import default_step
 
 WINDOW = 64
@@ -229,7 +232,6 @@ def _worker_database(path):
     databases stay open, and one that drops out is closed by the garbage collector
     once no task holds it any more.
     """
-    import gesturedb
 
     st = os.stat(path)
     key = (path, st.st_mtime_ns, st.st_size)
@@ -262,7 +264,6 @@ def assemble_windows(db, frame_maps: np.ndarray, seams, joints: np.ndarray) -> n
     -------
     ndarray [shape=(n, 6 Jm, window)], float32
     """
-    from gesturedb.synth.assemble import assemble_frames
 
     if isinstance(db, (str, os.PathLike)):
         db = _worker_database(os.fspath(db))
@@ -348,7 +349,6 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     and the result reads them from it: nothing of size windows x channels x frames
     is held in memory. Without it they are returned in memory.
     """
-    from gesturedb.search import PoseProjection, rank_sum_search_batch
 
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ParameterError(f"workers: expected an int >= 1; got {workers!r}")

@@ -36,6 +36,7 @@ import torch
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError, echo, echo_list
 from gesturedb.io.atomic import atomic_open
 from gesturedb.io.joints import leg_joints
+from gesturedb.motion import Motion
 from gesturedb.refiner.data import (
     STRIDE,
     WINDOW,
@@ -626,7 +627,6 @@ class Refiner:
             Same skeleton, fps and root; refined local rotations of the moving joints
             above the hips (the legs keep the input's planted feet).
         """
-        from gesturedb.motion import Motion
 
         T = motion.rotations.shape[0]
         audio = np.asarray(audio, dtype=np.float32)

@@ -22,6 +22,7 @@ __all__ = ["DEFAULT_HOST", "DEFAULT_PORT", "Limits", "create_app"]
 
 def create_app(db, **kwargs):
     """The ASGI app; see :func:`gesturedb.serve.app.create_app` (imported here lazily: the client needs no Starlette)."""
+    # local on purpose: serve.app imports Starlette at its top, which the client and `--help` do not need
     from gesturedb.serve.app import create_app as _create
 
     return _create(db, **kwargs)

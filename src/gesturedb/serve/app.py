@@ -42,11 +42,16 @@ from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket
 
 from gesturedb._version import __version__
+from gesturedb.control.compile import compile_mask
+from gesturedb.control.schedule import parse_schedule
 from gesturedb.errors import GestureDBError, ParameterError, echo
+from gesturedb.io import write_motion
+from gesturedb.io.audio import audio_duration
 from gesturedb.serve import protocol as P
 from gesturedb.serve.limits import Limits
 from gesturedb.serve.session import StreamSession
 from gesturedb.serve.vendor import find_three
+from gesturedb.synth.matching import Searcher
 
 log = logging.getLogger("gesturedb.serve")
 
@@ -65,6 +70,7 @@ _TOKEN = re.compile(r"^[0-9a-f]{32}$")
 def default_stream_factory():
     """The streaming synthesizer class and None, or None and why it is not available."""
     try:
+        # local on purpose: probes whether the live path is installed; an ImportError becomes the message below
         from gesturedb.synth.stream import Stream
     except ImportError as exc:
         return None, (f"live streaming is not available in this installation: gesturedb.synth.stream could not be "
@@ -142,8 +148,6 @@ class ServerState:
         with self._control_lock:
             if control in self._controls_ok:
                 return control
-            from gesturedb.control.compile import compile_mask
-            from gesturedb.control.schedule import parse_schedule
 
             db = self.db
             exprs = [item.expr for item in parse_schedule(control)] if ":" in control else [control]
@@ -159,8 +163,6 @@ class ServerState:
         """The k-NN Searcher every stream and upload shares (built once: its segments and pose projection)."""
         with self._control_lock:
             if self._searcher is None:
-                from gesturedb.synth.matching import Searcher
-
                 self._searcher = Searcher(self.db)
         return self._searcher
 
@@ -182,7 +184,6 @@ class ServerState:
 
     def synthesize(self, wav: bytes, transcript: tuple[str, bytes] | None, control: str | None, seed: int):
         """Offline synthesis of an uploaded WAV, one at a time (the streams keep the other core)."""
-        from gesturedb.io.audio import audio_duration
 
         with tempfile.TemporaryDirectory(prefix="gesturedb-serve-") as tmp, self._offline_lock:
             audio = os.path.join(tmp, "speech.wav")
@@ -419,7 +420,6 @@ def _encode_motion(motion, fmt: str, steps) -> bytes:
                             root_positions=motion.root_positions.astype(np.float32), fps=motion.fps,
                             parents=np.asarray(sk.parents), names=np.asarray(sk.names), offsets=sk.offsets)
         return buf.getvalue()
-    from gesturedb.io import write_motion
 
     with tempfile.TemporaryDirectory(prefix="gesturedb-serve-") as tmp:
         path = os.path.join(tmp, "result." + fmt)

@@ -18,6 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from gesturedb.errors import GestureDBError, ParameterError, echo
+from gesturedb.motion import Motion
 from gesturedb.serve import protocol as P
 
 log = logging.getLogger("gesturedb.serve")
@@ -256,8 +257,6 @@ class StreamSession:
         self._steps.extend(P.json_safe(steps))
 
     def _result(self):
-        from gesturedb.motion import Motion
-
         return {"motion": Motion(self.state.db.skeleton, float(self.stream.fps), np.concatenate(self._rots),
                                  np.concatenate(self._roots)),
                 "steps": self._steps}
