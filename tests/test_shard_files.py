@@ -1,6 +1,7 @@
 """`gesturedb shard`: shard files of whole recordings + an index file that reads like the database."""
 from __future__ import annotations
 
+import mmap
 import os
 import shutil
 
@@ -169,13 +170,16 @@ def test_workers_read_their_own_shard_files(db_copy, scott_dir, dask_client, mon
     np.testing.assert_array_equal(ctl_one.positions, ctl_idx.positions)
 
 
-@pytest.mark.parametrize("sharded", [False, True])
-def test_rows_and_means_are_the_arrays_without_loading_them(db_copy, sharded):
+@pytest.mark.parametrize("how", ["read", "mapped", "sharded"])
+def test_rows_and_means_are_the_arrays_without_loading_them(db_copy, how):
     """Database.rows / frame_mean read from the file (through an index: from its
-    shard files) exactly what indexing the loaded arrays gives."""
-    path = shard_database(db_copy, 3).index if sharded else db_copy
+    shard files; a contiguous dataset: from its memory map, which reads only the
+    rows indexed) exactly what indexing the loaded arrays gives."""
+    path = shard_database(db_copy, 3).index if how == "sharded" else db_copy
     rng = np.random.default_rng(4)
     with gesturedb.open(path) as lazy, gesturedb.open(db_copy) as full:
+        lazy.map_frames = how == "mapped"
+        full.map_frames = False
         F = full.n_frames
         # runs across recordings and shard boundaries, any order, repeats, one frame, none
         picks = [rng.integers(0, F, 40), np.arange(F), np.r_[np.arange(F - 9, F), np.arange(5)][::-1],
@@ -186,7 +190,9 @@ def test_rows_and_means_are_the_arrays_without_loading_them(db_copy, sharded):
                 got = lazy.rows(name, frames)
                 assert got.dtype == arr.dtype and got.shape == (frames.size,) + arr.shape[1:]
                 np.testing.assert_array_equal(got, arr[frames], err_msg=name)
-            assert name not in vars(lazy)
+            assert (name in vars(lazy)) == (how == "mapped")
+            if how == "mapped":
+                assert isinstance(vars(lazy)[name].base.base.obj, mmap.mmap)  # the map, not a read
         for col in (0, 7, -1):
             np.testing.assert_array_equal(lazy.rows("local_rotations", picks[0], column=col),
                                           full.local_rotations[picks[0], col])
@@ -198,7 +204,7 @@ def test_rows_and_means_are_the_arrays_without_loading_them(db_copy, sharded):
                 assert np.array_equal(lazy.frame_mean(name, chunk=chunk, stored=False), want), (name, chunk)
             assert np.array_equal(full.frame_mean(name, chunk=100, stored=False), want)
             assert np.array_equal(lazy.frame_mean(name), want)  # pose_features: the stored mean
-        assert not set(vars(lazy)) & set(Database.FRAME_ARRAYS)
+        assert not set(vars(lazy)) & set(Database.FRAME_ARRAYS) or how == "mapped"
         with pytest.raises(ParameterError, match=rf"frames: expected indices in 0..{F - 1} .*got {F}"):
             lazy.rows("pose_features", [0, F])
         with pytest.raises(ParameterError, match=r"frames: expected indices .*got -1"):

@@ -627,7 +627,9 @@ def build(
 
     # one cluster for the recordings and the motion graphs ("local:N" starts it here)
     with optional_client(scheduler) as scheduler:
-        write_atomically(out_path, fill)
+        # compact: the per-frame arrays, grown chunk by chunk, are stored contiguous in the database,
+        # so that opening it maps them instead of reading them (gesturedb.db.database)
+        write_atomically(out_path, fill, compact=True)
     pairing.notes = report_notes(recs)
 
     db = Database(out_path)

@@ -234,6 +234,10 @@ MEAN_FIELDS = (POSE_FEATURES,)
 #: datasets over the shards, so the index reads exactly like the single file (gesturedb/db/shardfiles.py).
 SHARDED_FIELDS = (POSE_FEATURES, AUDIO_FEATURES, AUDIO_DELTAS, JOINT_POSITIONS, LOCAL_ROTATIONS, ROOT_POSITIONS,
                   FRAME_RECORDING)
+#: The per-frame arrays a reader memory-maps (gesturedb/db/database.py) when they are stored contiguous:
+#: builds and edits store them so (:func:`gesturedb.db.storage.compact_copy`), a storage layout, not a
+#: schema change: files with these chunked (written before) are read as they were.
+CONTIGUOUS_FIELDS = SHARDED_FIELDS
 #: root attribute of an index file: JSON list of {"file": name beside the index, "frames": [f0, f1], "token": str}
 SHARDS_ATTR = "shards"
 #: root attribute of a shard file: JSON {"token", "part" (1-based), "parts", "frames": [f0, f1], "index": name}

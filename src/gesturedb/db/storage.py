@@ -42,9 +42,11 @@ import threading
 import time
 from typing import Callable
 
+import numpy as np
+
 from gesturedb.db import schema
 from gesturedb.errors import GestureDBError, InputFileError, ParameterError
-from gesturedb.io.atomic import is_temporary_of, os_error, remove_stale_temporaries, replacing
+from gesturedb.io.atomic import is_temporary_of, os_error, remove_stale_temporaries, replacing, scratch
 
 #: seconds a writer waits for another writer of the same database before giving up
 LOCK_TIMEOUT_S = 600.0
@@ -305,7 +307,7 @@ def check_writes(h5) -> None:
         guard.check()
 
 
-def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
+def write_atomically(out_path: str | os.PathLike, fill: Callable, *, compact: bool = False) -> None:
     """Create an HDF5 file by writing a temporary file beside ``out_path`` and renaming it.
 
     The temporary file is in the same folder so the rename is atomic; it is
@@ -313,9 +315,13 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
     failed build leaves nothing behind and an existing database untouched
     (:func:`gesturedb.io.atomic.replacing`). The write lock of ``out_path`` is
     held throughout.
-    """
-    import h5py
 
+    ``compact=True``: ``fill`` writes an intermediate file beside ``out_path``, which is
+    then copied into the temporary file with :func:`compact_copy` (the per-frame arrays
+    stored contiguous, so that readers memory-map them) and removed. For a build, whose
+    per-frame arrays grow chunk by chunk as the recordings arrive: it costs a copy of the
+    file, as an edit does, and twice its size on the disk while it runs.
+    """
     out_path = os.fspath(out_path)
     folder = os.path.dirname(os.path.abspath(out_path))
     if not os.path.isdir(folder):
@@ -325,15 +331,11 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
     with locked(out_path):
         remove_stale_temporaries(out_path)
         try:
-            with replacing(out_path) as tmp, _GuardedFile(tmp) as guard:
-                h5 = h5py.File(guard, "w", track_order=True)
-                try:
-                    fill(h5)
-                except BaseException as exc:
-                    # a refused write is the cause of what failed after it; an interruption stays one
-                    guard.close_h5(h5, check=isinstance(exc, Exception))
-                    raise
-                guard.close_h5(h5)
+            with replacing(out_path) as tmp, contextlib.ExitStack() as stack:
+                first = stack.enter_context(scratch(out_path)) if compact else tmp
+                _fill_guarded(first, fill)
+                if compact:
+                    _fill_guarded(tmp, lambda h5: compact_copy(first, h5, contiguous=schema.CONTIGUOUS_FIELDS))
         except Exception as exc:
             if isinstance(exc, GestureDBError):
                 raise
@@ -352,6 +354,21 @@ def write_atomically(out_path: str | os.PathLike, fill: Callable) -> None:
             raise
 
 
+def _fill_guarded(path: str, fill: Callable) -> None:
+    """Create the HDF5 file ``path`` (creation order tracked) through a :class:`_GuardedFile` and ``fill`` it."""
+    import h5py
+
+    with _GuardedFile(path) as guard:
+        h5 = h5py.File(guard, "w", track_order=True)
+        try:
+            fill(h5)
+        except BaseException as exc:
+            # a refused write is the cause of what failed after it; an interruption stays one
+            guard.close_h5(h5, check=isinstance(exc, Exception))
+            raise
+        guard.close_h5(h5)
+
+
 def _other_file(exc: OSError, out_path: str) -> str | None:
     """The file an OSError names when it is neither ``out_path`` nor one of its temporaries."""
     name = exc.filename
@@ -361,7 +378,7 @@ def _other_file(exc: OSError, out_path: str) -> str | None:
     return None if os.path.abspath(name) == os.path.abspath(out_path) or is_temporary_of(name, out_path) else name
 
 
-def compact_copy(src_path: str, dst) -> None:
+def compact_copy(src_path: str, dst, *, contiguous=()) -> None:
     """Copy the HDF5 file ``src_path`` into ``dst`` object by object (a fresh, compact file).
 
     HDF5 does not give back the space of a deleted or replaced object once the file
@@ -376,13 +393,19 @@ def compact_copy(src_path: str, dst) -> None:
     dst : str or h5py.File
         A path (created with creation order tracked, as :func:`write_atomically`
         makes files), or an empty file open for writing.
+    contiguous : collection of str
+        Dataset paths (``schema.CONTIGUOUS_FIELDS``) stored contiguous in the copy when they
+        are chunked without filters (a build's growable per-frame arrays, a file written
+        before): the same values and attributes, laid out so that a reader can memory-map
+        them. Virtual datasets (an index file's) and filtered ones are copied as they are.
     """
     import h5py
 
     if isinstance(dst, (str, os.PathLike)):
         with h5py.File(dst, "w", track_order=True) as h5:
-            compact_copy(src_path, h5)
+            compact_copy(src_path, h5, contiguous=contiguous)
         return
+    groups = {p.split("/")[0] for p in contiguous if "/" in p}
     with h5py.File(src_path, "r") as src:
         for k, v in src.attrs.items():
             dst.attrs[k] = v
@@ -390,8 +413,53 @@ def compact_copy(src_path: str, dst) -> None:
             link = src.get(name, getlink=True)
             if isinstance(link, (h5py.SoftLink, h5py.ExternalLink)):
                 dst[name] = link  # a link stays a link (H5Ocopy would copy what it points at)
+            elif name in groups and isinstance(src[name], h5py.Group) and any(
+                    _to_contiguous(src[f"{name}/{m}"]) for m in src[name] if f"{name}/{m}" in contiguous):
+                _copy_group(src[name], dst, name, contiguous)
             else:
                 src.copy(src[name], dst, name)
+
+
+def _to_contiguous(ds) -> bool:
+    """Whether ``ds`` is a dataset :func:`compact_copy` rewrites contiguous: chunked, unfiltered, in its file."""
+    import h5py
+
+    return (isinstance(ds, h5py.Dataset) and ds.chunks is not None and not ds.is_virtual and not ds.external
+            and ds.id.get_create_plist().get_nfilters() == 0)
+
+
+#: bytes of rows copied at a time into a contiguous dataset (bounds the memory of a copy)
+COPY_BYTES = 1 << 26
+
+
+def _copy_group(group, dst, name: str, contiguous) -> None:
+    """Copy the top-level ``group`` as ``dst[name]``, its members of ``contiguous`` stored contiguous."""
+    import h5py
+
+    # the group's own creation properties (link order tracking), as H5Ocopy keeps them
+    h5py.h5g.create(dst.id, name.encode(), gcpl=group.id.get_create_plist())
+    out = dst[name]
+    _copy_attrs(group, out)
+    for m in group:
+        link = group.get(m, getlink=True)
+        ds = group[m] if not isinstance(link, (h5py.SoftLink, h5py.ExternalLink)) else None
+        if ds is None:
+            out[m] = link
+        elif f"{name}/{m}" in contiguous and _to_contiguous(ds):
+            new = out.create_dataset(m, shape=ds.shape, dtype=ds.dtype)
+            _copy_attrs(ds, new)
+            row_bytes = max(1, ds.dtype.itemsize * int(np.prod(ds.shape[1:], dtype=np.int64)))
+            step = max(1, COPY_BYTES // row_bytes)
+            for a in range(0, ds.shape[0], step):
+                new[a:a + step] = ds[a:a + step]
+        else:
+            group.copy(ds, out, m)
+
+
+def _copy_attrs(src, dst) -> None:
+    """Every attribute of ``src`` onto ``dst`` with its stored type (a fixed-length string stays one)."""
+    for k in src.attrs:
+        dst.attrs.create(k, src.attrs[k], dtype=src.attrs.get_id(k).dtype)
 
 
 @contextlib.contextmanager
@@ -429,7 +497,8 @@ def edit(path: str | os.PathLike, *, upgrade: bool = False):
                     h5 = h5py.File(guard, "w", track_order=True)
                     try:
                         try:
-                            compact_copy(path, h5)
+                            # per-frame arrays stored contiguous: a file written before gets them on its next edit
+                            compact_copy(path, h5, contiguous=schema.CONTIGUOUS_FIELDS)
                             guard.check()
                         except OSError as exc:
                             raise os_error(shown, _is_disk_error(exc) or exc) from None

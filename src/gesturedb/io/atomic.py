@@ -182,6 +182,28 @@ def replacing(path: str | os.PathLike, *, mode_of: str | os.PathLike | None = No
 
 
 @contextlib.contextmanager
+def scratch(path: str | os.PathLike) -> Iterator[str]:
+    """An intermediate file beside ``path``, removed when the block ends, whatever happens.
+
+    Named as :func:`replacing` names its temporaries, so a process killed with SIGKILL
+    leaves one that :func:`remove_stale_temporaries` removes, and a failed :func:`replacing`
+    block around it removes it too.
+    """
+    path = os.fspath(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}.", suffix=".tmp",
+                                   dir=os.path.dirname(os.path.abspath(path)))
+    except OSError as exc:
+        raise os_error(path, exc) from None
+    os.close(fd)
+    try:
+        yield tmp
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+@contextlib.contextmanager
 def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator[IO]:
     """Open ``path`` for writing through a temporary sibling renamed on success (:func:`replacing`).
 
