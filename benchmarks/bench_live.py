@@ -15,8 +15,20 @@ step is late when its latency is over --budget-ms. Prints, per count of clients,
 steps measured, p50 / p99 / max step latency and the late steps, and the largest
 count with no late step.
 
+Start-up (--startup): the time from `gesturedb.open(DB)` to the first search step and to
+the first frame of a `Stream`, each in a fresh interpreter (imports not counted; the file
+in the page cache, as for a server that starts on a database it has used), speech pushed
+in --chunk-ms chunks as fast as the stream takes it (so the audio's own latency, 1.7 s at
+15 fps, is not in it). Measured with the per-frame arrays memory-mapped and, alternating,
+read (GESTUREDB_MMAP=0, what `open` did before), and on --chunked DB2.h5 (the same
+database with chunked per-frame arrays, as builds wrote them before: read).
+--paper OUT.h5 first writes a paper-scale database (616k frames) by tiling DB's
+recordings (`--paper-frames`), and --paper-chunked OUT2.h5 the same with chunked arrays.
+
 Usage:  python benchmarks/bench_live.py DB.h5 [--wav SPEECH.wav] [--seconds 10]
                                         [--clients 1,2,4,8,16,32,50] [--chunk-ms 40] [--budget-ms 100]
+        python benchmarks/bench_live.py DB.h5 --startup [--reps 5] [--chunked DB2.h5]
+        python benchmarks/bench_live.py out/scott.h5 --paper /tmp/paper.h5 --paper-chunked /tmp/paper_chunked.h5
 """
 from __future__ import annotations
 
@@ -96,6 +108,124 @@ def run(url: str, x: np.ndarray, n: int, chunk_ms: float) -> tuple[list, list]:
     return lat, errors
 
 
+#: the paper's database: 616k frames (11.4 hours at 15 fps)
+PAPER_FRAMES = 616_000
+
+STARTUP = r"""
+import json, sys, time
+import numpy as np
+import librosa
+import gesturedb
+from gesturedb.io import read_audio
+# the audio features' lazy imports and numba compilations, which a server has behind it
+librosa.feature.mfcc(y=np.random.default_rng(0).standard_normal(16000).astype(np.float32), sr=16000)
+from gesturedb.synth import Searcher
+from gesturedb.synth.stream import Stream
+x, _ = read_audio(sys.argv[2], sr=16000)
+chunk = int(float(sys.argv[3]) * 16)
+t0 = time.perf_counter()
+db = gesturedb.open(sys.argv[1])
+s = Stream(db, sample_rate=16000, searcher=Searcher(db, projection=sys.argv[4] == "1"))
+t_open = time.perf_counter() - t0
+step = frame = None
+for a in range(0, x.shape[0], chunk):
+    c = s.push(x[a:a + chunk])
+    if step is None and s.n_steps > 0:
+        step = time.perf_counter() - t0
+    if c.n_frames > 0:
+        frame = time.perf_counter() - t0
+        break
+print(json.dumps({"open": t_open, "step": step, "frame": frame}))
+"""
+
+
+def startup(db: str, wav: str, chunk_ms: float, mmap: bool, projection: bool = True) -> dict:
+    """Seconds from open to the stream made, to its first step and to its first frame, in a fresh process."""
+    env = dict(os.environ, GESTUREDB_MMAP="1" if mmap else "0")
+    p = subprocess.run([sys.executable, "-c", STARTUP, db, wav, str(chunk_ms), "1" if projection else "0"], env=env,
+                       capture_output=True, text=True)
+    if p.returncode != 0:
+        raise SystemExit(f"start-up run on {db} failed:\n{p.stderr}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def report_startup(args) -> None:
+    runs = [(args.db, True, True, "mapped"), (args.db, False, True, "read (GESTUREDB_MMAP=0)")]
+    if args.chunked:
+        runs.append((args.chunked, True, True, "chunked file (read)"))
+    # the pose projection filter (Searcher's default) is built at the first step from every pose row
+    runs += [(args.db, True, False, "mapped, no projection"), (args.db, False, False, "read, no projection")]
+    got: dict = {name: [] for *_, name in runs}
+    for _ in range(args.reps):  # alternating, so that a change of load falls on every variant
+        for db, m, proj, name in runs:
+            got[name].append(startup(db, args.wav, args.chunk_ms, m, proj))
+    print(f"start-up, median of {args.reps} (s): open + Stream / first step / first frame")
+    for name, rs in got.items():
+        med = {k: float(np.median([r[k] for r in rs])) for k in ("open", "step", "frame")}
+        print(f"  {name:<26} {med['open']:.3f} / {med['step']:.3f} / {med['frame']:.3f}")
+
+
+def paper_database(src: str, out: str, frames: int = PAPER_FRAMES, *, chunked: bool = False) -> None:
+    """Write ``out``: the database ``src`` with its recordings repeated until it holds ``frames`` frames or
+    more (names suffixed, every frame, segment, word and graph index shifted), per-frame arrays
+    contiguous (as a build stores them) or ``chunked`` (as builds stored them before)."""
+    import h5py
+
+    from gesturedb.db import schema
+
+    with h5py.File(src, "r") as a, h5py.File(out, "w", track_order=True) as b:
+        F = int(a.attrs["n_frames"])
+        R = a[schema.RECORDING_NAME].shape[0]
+        W = a[schema.WORD_RECORDING].shape[0]
+        C = a[schema.CLIP_START].shape[0]
+        K = -(-frames // F)
+        shift = {schema.RECORDING_START_FRAME: F, schema.CHUNK_START: F, schema.CLIP_START: F,
+                 schema.CHUNK_RECORDING: R, schema.CLIP_RECORDING: R, schema.WORD_RECORDING: R,
+                 schema.CLIP_WORD_START: W, schema.CLIP_WORD_END: W}
+        for k, v in a.attrs.items():
+            b.attrs[k] = v
+        b.attrs["n_frames"] = K * F
+
+        def tiled(name, ds):
+            if not isinstance(ds, h5py.Dataset):
+                return
+            x = ds[()]
+            group = name.split("/")[0]
+            if name in shift:
+                y = np.concatenate([x + k * shift[name] for k in range(K)])
+            elif name == schema.RECORDING_NAME:
+                y = np.array([f"{n.decode() if isinstance(n, bytes) else n}~{k:04d}" for k in range(K) for n in x],
+                             dtype=object)
+            elif group in ("graph", "graph_lower") and name.endswith("indptr"):  # CSR over clips
+                e = int(x[-1])
+                y = np.concatenate([x[:-1] + k * e for k in range(K)] + [[K * e]]).astype(x.dtype)
+            elif group in ("graph", "graph_lower") and name.endswith("indices"):
+                y = np.concatenate([x + k * C for k in range(K)])
+            elif group == schema.MASKS_GROUP:  # packed bits over frames, bit 0 first
+                bits = ((x[:, None] >> np.arange(64, dtype=np.uint64)) & np.uint64(1)).reshape(-1)[:F]
+                bits = np.concatenate([np.tile(bits, K), np.zeros(-(K * F) % 64, np.uint64)]).reshape(-1, 64)
+                y = (bits << np.arange(64, dtype=np.uint64)).sum(axis=1, dtype=np.uint64)
+            elif group in ("frames", "controls", "recordings", "chunks", "clips", "words", "graph", "graph_lower"):
+                y = np.concatenate([x] * K)
+            else:  # audio statistics, skeleton, style model
+                y = x
+            per_frame = name in schema.CONTIGUOUS_FIELDS or name.startswith(schema.CONTROLS_GROUP + "/")
+            kw = {"chunks": (min(y.shape[0], max(1, (1 << 22) // max(1, y[:1].nbytes))),) + y.shape[1:]} \
+                if chunked and per_frame else {}
+            if y.dtype == object:
+                kw["dtype"] = h5py.string_dtype()
+            d = b.create_dataset(name, data=y, **kw)
+            for k, v in ds.attrs.items():
+                d.attrs.create(k, v, dtype=ds.attrs.get_id(k).dtype)
+
+        a.visititems(tiled)
+        for g in a:
+            for k, v in a[g].attrs.items():
+                b[g].attrs.create(k, v, dtype=a[g].attrs.get_id(k).dtype)
+    print(f"wrote {out}: {K} copies of {F} frames = {K * F} frames, {os.path.getsize(out) / 1e9:.2f} GB"
+          + (" (chunked)" if chunked else ""))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("db")
@@ -104,7 +234,21 @@ def main(argv=None) -> int:
     ap.add_argument("--clients", default="1,2,4,8,16,32,50")
     ap.add_argument("--chunk-ms", type=float, default=40.0)
     ap.add_argument("--budget-ms", type=float, default=100.0)
+    ap.add_argument("--startup", action="store_true", help="measure the time from open to the first frame")
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--chunked", help="--startup: also this database with chunked per-frame arrays")
+    ap.add_argument("--paper", help="write a paper-scale database here (DB's recordings repeated), then stop")
+    ap.add_argument("--paper-chunked", help="also write it with chunked per-frame arrays here")
+    ap.add_argument("--paper-frames", type=int, default=PAPER_FRAMES)
     args = ap.parse_args(argv)
+    if args.paper or args.paper_chunked:
+        for out, chunked in ((args.paper, False), (args.paper_chunked, True)):
+            if out:
+                paper_database(args.db, out, args.paper_frames, chunked=chunked)
+        return 0
+    if args.startup:
+        report_startup(args)
+        return 0
 
     from gesturedb.io import read_audio
 
