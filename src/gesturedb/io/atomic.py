@@ -158,12 +158,7 @@ def replacing(path: str | os.PathLike, *, mode_of: str | os.PathLike | None = No
     path = os.fspath(path)
     with sigterm_as_interrupt() as signals:
         try:
-            try:
-                fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}.", suffix=".tmp",
-                                           dir=os.path.dirname(os.path.abspath(path)))
-            except OSError as exc:
-                raise os_error(path, exc) from None
-            os.close(fd)
+            tmp = _new_temporary(path)
             yield tmp
             if signals:  # a KeyboardInterrupt that a finalizer swallowed
                 raise KeyboardInterrupt("SIGTERM")
@@ -181,6 +176,18 @@ def replacing(path: str | os.PathLike, *, mode_of: str | os.PathLike | None = No
             raise
 
 
+def _new_temporary(path: str) -> str:
+    """An empty file beside ``path``, named so that :func:`remove_stale_temporaries` knows
+    whose it is (this process's id); an :class:`InputFileError` naming ``path`` if it cannot be made."""
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}.", suffix=".tmp",
+                                   dir=os.path.dirname(os.path.abspath(path)))
+    except OSError as exc:
+        raise os_error(path, exc) from None
+    os.close(fd)
+    return tmp
+
+
 @contextlib.contextmanager
 def scratch(path: str | os.PathLike) -> Iterator[str]:
     """An intermediate file beside ``path``, removed when the block ends, whatever happens.
@@ -190,12 +197,7 @@ def scratch(path: str | os.PathLike) -> Iterator[str]:
     block around it removes it too.
     """
     path = os.fspath(path)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}.", suffix=".tmp",
-                                   dir=os.path.dirname(os.path.abspath(path)))
-    except OSError as exc:
-        raise os_error(path, exc) from None
-    os.close(fd)
+    tmp = _new_temporary(path)
     try:
         yield tmp
     finally:
