@@ -353,6 +353,51 @@ def _motion(skeleton, fps, rot, root) -> Motion:
     return m
 
 
+@dataclass(eq=False)
+class StepQuery:
+    """One search step of a :class:`Stream`, prepared (:meth:`Stream.next_step`): what its search reads.
+
+    The search itself is either the stream's own (:meth:`Stream.search_step`) or one call for
+    the steps of many streams (:class:`gesturedb.synth.stepbatch.StepBatch`); both give the
+    same result, and :meth:`Stream.complete_step` applies it.
+
+    Attributes
+    ----------
+    stream : Stream
+        The stream whose step this is.
+    i, t, n : int
+        Step index, its first output frame and its length (frames).
+    query : ndarray [shape=(n, Da)], float32
+        The step's standardised audio features.
+    prev : ndarray [shape=(Dp,)], float32
+        Pose feature of the last output frame (or the initial pose).
+    row : ndarray [shape=(ceil(F/64),)], uint64, or None
+        The step's control and keyword bitset; None when unconstrained.
+    allowed : ndarray [shape=(ceil(F/64),)], uint64
+        ``row``, or every frame when None (what the search without the guard takes).
+    recent : list of (int, int)
+        Database frame ranges ``[a, b)`` of the windows within the repeat guard.
+    guarded : ndarray [shape=(ceil(F/64),)], uint64, or None
+        ``allowed`` with the ``recent`` frames cleared (tried first); None when ``recent`` is empty.
+    label : tuple (control, keyword) or None
+    kw_row : ndarray or None
+        The keyword sub-database's bitset (for the message of a step without candidates).
+    """
+
+    stream: Stream
+    i: int
+    t: int
+    n: int
+    query: np.ndarray
+    prev: np.ndarray
+    row: np.ndarray | None
+    allowed: np.ndarray
+    recent: list
+    guarded: np.ndarray | None
+    label: tuple | None
+    kw_row: np.ndarray | None
+
+
 class Stream:
     """The k-NN synthesis of speech that arrives in chunks.
 
@@ -455,11 +500,46 @@ class Stream:
 
     def push(self, samples) -> StreamChunk:
         """Add speech samples (float32 mono in [-1, 1], any length); the frames that became final."""
+        self.feed(samples)
+        while (sq := self.next_step()) is not None:
+            self._apply_step(sq, *self._search_step(sq))
+        return self._chunk()
+
+    # -- a step in three parts, for a server that searches many streams' steps at once ---------------
+    # push() is feed(), then per ready step next_step() (prepare), search_step() (search) and
+    # complete_step() (apply), then take_chunk(); gesturedb.synth.stepbatch runs the same prepare and
+    # apply around one search call for many streams, so the two cannot drift.
+    def feed(self, samples) -> None:
+        """Add speech samples (float32 mono in [-1, 1], any length) without running the steps they make
+        ready: :meth:`next_step` gives them one at a time."""
         if self._finished:
             raise ParameterError("Stream.push: the stream is finished; start a new one")
         self._add_features(self._features.push(samples))
-        while self._query.shape[0] - len(self._windows) * self.step >= self.step:
-            self._run_step(self.step)
+
+    def next_step(self) -> StepQuery | None:
+        """The next search step that the speech fed so far makes ready (all its audio features), prepared
+        for the search; None while it waits for more speech (or once the stream is finished)."""
+        if self._finished or self._query.shape[0] - len(self._windows) * self.step < self.step:
+            return None
+        return self._prepare_step(self.step)
+
+    def search_step(self, sq: StepQuery):
+        """``(res, relaxed)``: step ``sq`` searched alone, as :meth:`push` searches it (with the repeat
+        guard, then without it when the guard leaves no candidate, ``relaxed`` True). ``res`` is a
+        one-step :class:`gesturedb.search.SearchResult`. Raises the step's explained SearchError
+        (naming the control that emptied it) when nothing is left."""
+        return self._search_step(sq)
+
+    def complete_step(self, sq: StepQuery, res, relaxed: bool) -> None:
+        """Apply step ``sq``'s search result (``res``, ``relaxed`` as :meth:`search_step` returns them):
+        its provenance, the next step's previous pose and its frames."""
+        if sq.stream is not self or sq.i != len(self._windows):
+            raise ParameterError(f"Stream.complete_step: expected step {len(self._windows)} of this stream; got "
+                                 f"step {sq.i}" + ("" if sq.stream is self else " of another stream"))
+        self._apply_step(sq, res, relaxed)
+
+    def take_chunk(self) -> StreamChunk:
+        """The frames that the steps completed since the last chunk made final (what :meth:`push` returns)."""
         return self._chunk()
 
     def finish(self) -> StreamChunk:
@@ -512,35 +592,50 @@ class Stream:
         return row, label, kw_row
 
     def _run_step(self, n: int) -> None:
+        sq = self._prepare_step(n)
+        self._apply_step(sq, *self._search_step(sq))
+
+    def _prepare_step(self, n: int) -> StepQuery:
+        """Step ``len(windows)`` of ``n`` frames: its query rows, previous pose and allowed rows."""
         i = len(self._windows)
         t = i * self.step
         if i == 0:
             self.searcher._check_window(n)
         row, label, kw_row = self._step_rows(i, t, n)
         allowed = self._full if row is None else np.ascontiguousarray(row)
-        q = self._query[t:t + n]
         recent = []  # the windows within the repeat guard: the latest ones
         for t0, g, m in reversed(self._windows):
             if t - t0 >= self._guard_frames:
                 break
             recent.append((g, g + m))
         recent.reverse()
+        return StepQuery(stream=self, i=i, t=t, n=n, query=self._query[t:t + n], prev=self._prev,
+                         row=None if row is None else allowed, allowed=allowed, recent=recent,
+                         guarded=clear_frames(allowed, recent) if recent else None, label=label, kw_row=kw_row)
+
+    def _search_step(self, sq: StepQuery):
+        """``(res, relaxed)`` of one step searched alone: with the repeat guard, then without it."""
         res, relaxed = None, False
+        i, t, n = sq.i, sq.t, sq.n
         try:
-            if recent:
+            if sq.guarded is not None:
                 try:
-                    res = self._search(q, self._prev, clear_frames(allowed, recent)[None, :])
+                    res = self._search(sq.query, sq.prev, sq.guarded[None, :])
                 except SearchError:
                     relaxed = True
             if res is None:
                 try:
-                    res = self._search(q, self._prev, allowed[None, :])
+                    res = self._search(sq.query, sq.prev, sq.allowed[None, :])
                 except SearchError:
-                    raise _no_candidate_error(i, t, n, self.searcher.seg_len, self._excl,
-                                              None if row is None else allowed) from None
+                    raise _no_candidate_error(i, t, n, self.searcher.seg_len, self._excl, sq.row) from None
         except SearchError as exc:
-            raise self.searcher._explain(exc, {i: label}, keyword_bits={i: kw_row}, exclude=self._excl,
+            raise self.searcher._explain(exc, {i: sq.label}, keyword_bits={i: sq.kw_row}, exclude=self._excl,
                                          step=self.step, T=t + n) from None
+        return res, relaxed
+
+    def _apply_step(self, sq: StepQuery, res, relaxed: bool) -> None:
+        """Step ``sq``'s chosen window into the stream: its provenance, the next previous pose, its frames."""
+        i, t, n, label = sq.i, sq.t, sq.n, sq.label
         g = int(res.frames[0])
         db = self.db
         self._windows.append((t, g, n))
