@@ -1,0 +1,190 @@
+"""The search steps of many live streams in one call (issue 39: many real-time streams on one server).
+
+A :class:`gesturedb.synth.matching.Stream` runs a step in three parts: prepare
+(:meth:`~gesturedb.synth.matching.Stream.next_step`: the step's audio rows, previous pose and
+allowed bitsets), search and apply (:meth:`~gesturedb.synth.matching.Stream.complete_step`).
+:class:`StepBatch` is the search part for the steps of many streams at once: one pass of the
+blocked kernel over the database serves every step of a batch (each candidate row read once
+per block of steps instead of once per step), and each step gets exactly the window its stream
+would have chosen alone.
+
+How a batch stays exact. The kernel's batch takes one allowed bitset for all its queries, but
+each stream's step has its own: its control, and the repeat guard, which clears the frames of
+the stream's recent windows (:mod:`gesturedb.synth.repeats`). Pre-selection (spec steps 1-3) is
+per segment and a segment reads only the bits of its own frames, so
+
+1. steps that share a control bitset (or have none) are one call of
+   :meth:`gesturedb.tables.PreselectBatch.tables`, each step excluding the few segments its
+   recent windows touch: every other segment sees the same bits with or without the guard;
+2. each step's touched segments are pre-selected alone under its guarded bitset
+   (:func:`gesturedb.tables.preselect_table` with every other segment excluded) and put
+   into its table;
+3. the table is ranked by the kernel's own ranker (:func:`gesturedb.tables.rank_table`, as the
+   shards merge theirs).
+
+A step that the guard leaves without a candidate, a stream searching over a Dask cluster,
+and a batch call that fails for any reason take the stream's own search
+(:meth:`~gesturedb.synth.matching.Stream.search_step`): one stream's failure is its own.
+"""
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+
+import numpy as np
+
+from gesturedb import tables
+from gesturedb.errors import GestureDBError, ParameterError
+from gesturedb.search import SearchResult
+
+__all__ = ["StepBatch"]
+
+
+class StepBatch:
+    """Search prepared steps (:class:`gesturedb.synth.matching.StepQuery`) of many streams at once.
+
+    Parameters
+    ----------
+    searcher : gesturedb.synth.Searcher
+        The searcher the streams share (their database, segments and pose projection);
+        steps of streams over another searcher are searched by their own stream.
+    method : {"auto", "blocked", "per_query"}
+        The kernel's strategy for the shared pre-selection (results are identical;
+        ``"auto"`` blocks from 16 steps on).
+    threads : int, optional
+        Worker threads of the kernel (default: the CPUs this process may use).
+
+    Calls from several threads are safe; a server calls it from one, a batch at a time.
+    """
+
+    def __init__(self, searcher, *, method: str = "auto", threads: int | None = None):
+        if method not in tables.METHODS:
+            raise ParameterError(f"method: expected one of {', '.join(tables.METHODS)}; got {method!r}")
+        self.searcher = searcher
+        self.method, self.threads = method, threads
+        self._batches: dict[str, tables.PreselectBatch] = {}
+        self._lock = threading.Lock()
+        start, length = searcher.seg_start, searcher.seg_len
+        self._sorted = bool(np.all(start[1:] >= start[:-1]))
+        self._max_len = int(length.max(initial=0))
+        #: steps searched in batches, steps searched alone (a fallback), batch calls made
+        self.n_batched = self.n_alone = self.n_calls = 0
+
+    # -- the search -----------------------------------------------------------------
+    def search(self, steps: Sequence) -> list:
+        """Search every step of ``steps`` (StepQuery of any streams, at most one per stream).
+
+        Returns
+        -------
+        list
+            Per step, in order: ``(res, relaxed)`` as its stream's
+            :meth:`~gesturedb.synth.matching.Stream.search_step` returns them (a one-step
+            :class:`gesturedb.search.SearchResult` and whether the repeat guard was relaxed),
+            or the :class:`gesturedb.errors.GestureDBError` that call raises (the step has no
+            candidate): bit for bit what each stream gets alone.
+        """
+        out: list = [None] * len(steps)
+        groups: dict[tuple, list[int]] = {}
+        for j, sq in enumerate(steps):
+            if self._batchable(sq):
+                key = (sq.stream.options.preselect, sq.n, None if sq.row is None else sq.row.tobytes())
+                groups.setdefault(key, []).append(j)
+        for (preselect, _, _), idx in groups.items():
+            try:
+                got = self._search_group([steps[j] for j in idx], preselect)
+            except GestureDBError:
+                continue  # every step of the group is searched alone below, each with its own outcome
+            for j, r in zip(idx, got):
+                out[j] = r
+        for j, sq in enumerate(steps):
+            if out[j] is None:
+                out[j] = self._alone(sq)
+        return out
+
+    def _batchable(self, sq) -> bool:
+        # a Dask searcher searches its shards; another searcher has other segments
+        return sq.stream.searcher is self.searcher and self.searcher._client is None
+
+    def _alone(self, sq):
+        self.n_alone += 1
+        try:
+            return sq.stream.search_step(sq)
+        except GestureDBError as exc:
+            return exc
+
+    def _preselect_batch(self, preselect: str) -> tables.PreselectBatch:
+        with self._lock:
+            if preselect not in self._batches:
+                s, db = self.searcher, self.searcher.db
+                self._batches[preselect] = tables.PreselectBatch(
+                    db.pose_features, db.audio_features, s.seg_start, s.seg_len, preselect=preselect,
+                    pose_f16=s._half, pose_proj=s.pose_projection() if preselect == "pose" else None)
+            return self._batches[preselect]
+
+    def _search_group(self, group: list, preselect: str) -> list:
+        """Steps of one pre-selection mode and length sharing one control bitset: ``(res, False)`` per
+        step, or None where the guard leaves no candidate (that step then runs alone)."""
+        s, db = self.searcher, self.searcher.db
+        M = s.seg_start.shape[0]
+        touched = [self._touched(sq.recent) for sq in group]
+        exclude = np.zeros((len(group), M), dtype=bool)
+        for r, (sq, tm) in enumerate(zip(group, touched)):
+            if sq.stream._excl is not None:
+                exclude[r] = sq.stream._excl
+            exclude[r, tm] = True
+        prevs = np.stack([sq.prev for sq in group]).astype(np.float32, copy=False)
+        windows = np.stack([sq.query for sq in group]).astype(np.float32, copy=False)
+        row = group[0].row  # shared by the group (its key); None: every frame
+        starts, pose_d, audio_d = self._preselect_batch(preselect).tables(
+            prevs, windows, allowed=row, exclude=exclude, threads=self.threads, method=self.method)
+        self.n_calls += 1
+        proj = s.pose_projection() if preselect == "pose" else None
+        out = []
+        for r, (sq, tm) in enumerate(zip(group, touched)):
+            st, dp, da = starts[r], pose_d[r], audio_d[r]
+            if tm.size:
+                # the touched segments under the step's guarded bitset, each alone
+                only = np.ones(M, dtype=bool)
+                only[tm] = False
+                if sq.stream._excl is not None:
+                    only |= sq.stream._excl
+                s1, dp1, da1 = tables.preselect_table(
+                    db.pose_features, db.audio_features, s.seg_start, s.seg_len, sq.prev, sq.query,
+                    preselect=preselect, allowed=sq.guarded, exclude=only, threads=self.threads,
+                    pose_f16=s._half, pose_proj=proj)
+                st[tm], dp[tm], da[tm] = s1[tm], dp1[tm], da1[tm]
+            got = tables.rank_table(st, dp, da, k=sq.stream.options.k)
+            if got is None:
+                out.append(None)
+                continue
+            m, rp, ra, K = got
+            start = int(st[m])
+
+            def one(v, dtype=np.int64):
+                return np.array([v], dtype=dtype)
+
+            res = SearchResult(segments=one(m), starts=one(start), frames=one(int(s.seg_start[m]) + start),
+                               lengths=one(sq.n), out_frames=one(0), pose_dist=one(float(dp[m]), np.float64),
+                               audio_dist=one(float(da[m]), np.float64), pose_rank=one(rp), audio_rank=one(ra),
+                               n_candidates=one(K), n_frames=sq.n)
+            out.append((res, False))
+            self.n_batched += 1
+        return out
+
+    def _touched(self, recent: list) -> np.ndarray:
+        """Segments (indices) that read a bit of the frame ranges ``recent`` (``[a, b)`` each): segment m
+        reads the bits of frames ``[seg_start + 1, seg_start + seg_len - 1]`` (first and last frames of its
+        candidate windows). Taking one too many would only cost time; none is missed."""
+        if not recent:
+            return np.zeros(0, dtype=np.int64)
+        start, length = self.searcher.seg_start, self.searcher.seg_len
+        hits = []
+        for a, b in recent:
+            lo, hi = 0, start.shape[0]
+            if self._sorted:  # only segments starting within a longest segment before the range can reach it
+                lo = int(np.searchsorted(start, a - self._max_len, side="left"))
+                hi = int(np.searchsorted(start, b, side="left"))
+            m = np.arange(lo, hi)
+            first, last = start[lo:hi] + 1, start[lo:hi] + length[lo:hi] - 1
+            hits.append(m[(first < b) & (last >= a)])
+        return np.unique(np.concatenate(hits))
