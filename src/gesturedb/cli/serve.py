@@ -26,6 +26,9 @@ def add_parser(sub) -> None:
                    help="close a stream silent for this many seconds (default: %(default)g)")
     p.add_argument("--max-upload-mb", type=float_range(0.001, 65536), default=d.max_upload_bytes / 2**20,
                    help="largest POST /synth body, MiB (default: %(default)g)")
+    p.add_argument("--no-batch", dest="batch_steps", action="store_false",
+                   help="search each stream's steps alone instead of the waiting steps of all streams in one call "
+                        "(the same frames; for comparison)")
     p.set_defaults(run=run)
 
 
@@ -44,7 +47,7 @@ def run(args) -> int:
     limits = Limits(max_streams=args.max_streams, idle_s=args.idle_s,
                     max_upload_bytes=int(args.max_upload_mb * 2**20))
     with gesturedb.open(args.db) as db:
-        app = create_app(db, limits=limits)
+        app = create_app(db, limits=limits, batch_steps=args.batch_steps)
         warm_s = app.state.gesturedb.warm_s  # create_app paid what the first stream would pay
         shown = f"[{args.host}]" if ":" in args.host else args.host
         print(f"gesturedb serve: {db.path} ({db.n_frames} frames at {db.fps:g} fps); studio at "

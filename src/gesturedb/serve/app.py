@@ -48,6 +48,7 @@ from gesturedb.errors import GestureDBError, ParameterError, echo
 from gesturedb.io import write_motion
 from gesturedb.io.audio import audio_duration
 from gesturedb.serve import protocol as P
+from gesturedb.serve.batcher import StepScheduler
 from gesturedb.serve.limits import Limits
 from gesturedb.serve.session import StreamSession
 from gesturedb.serve.vendor import find_three
@@ -110,10 +111,13 @@ class ResultStore:
 class ServerState:
     """What every request and stream shares: the database (opened once), limits, the synthesizers."""
 
-    def __init__(self, db, limits: Limits, stream_factory):
+    def __init__(self, db, limits: Limits, stream_factory, *, batch_steps: bool = True):
         self.db = db
         self.limits = limits
         why = None
+        #: the scheduler that searches the waiting steps of every stream in one call (None: each alone)
+        self.scheduler = None
+        self._default_factory = stream_factory is None
         if stream_factory is None:
             stream_factory, why = default_stream_factory()
             if stream_factory is not None and "searcher" in inspect.signature(stream_factory).parameters:
@@ -129,6 +133,8 @@ class ServerState:
         self._control_lock = threading.Lock()
         self._offline_lock = threading.Lock()
         self._searcher = None
+        if batch_steps and stream_factory is not None and why is None and self._default_factory:
+            self.scheduler = StepScheduler(self.searcher())
 
     def check_control(self, control) -> str | None:
         """A client's control: None (no control), a mask expression or saved mask name, or a schedule of
@@ -176,7 +182,15 @@ class ServerState:
             try:
                 s = self.stream_factory(self.db, sample_rate=16000)
                 noise = np.random.default_rng(0).normal(0, 0.01, 24000).astype(np.float32)
-                s.push(noise)
+                if self.scheduler is not None:
+                    # and the batched search's set-up: its tables, the blocked kernel's pass over the
+                    # database (16 copies of a step: the smallest batch that takes the blocked path)
+                    s.feed(noise)
+                    sq = s.next_step()
+                    self.scheduler.batch.search([sq] * 16)
+                    s.complete_step(sq, *self.scheduler.batch.search([sq])[0])
+                else:
+                    s.push(noise)
                 s.finish()
             except Exception as exc:  # a stream that cannot start says so to its client; the server serves on
                 log.warning("warming up the streaming synthesizer failed: %s: %s", type(exc).__name__, exc)
@@ -250,7 +264,7 @@ def _same_origin(headers, scope) -> bool:
     return urlsplit(origin).netloc == headers.get("host", "")
 
 
-def create_app(db, *, limits: Limits | None = None, stream_factory=None) -> Starlette:
+def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_steps: bool = True) -> Starlette:
     """The ASGI app serving ``db`` (an open :class:`gesturedb.db.database.Database`).
 
     Parameters
@@ -262,9 +276,13 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None) -> Star
         ``factory(db, sample_rate=...)`` -> a streaming synthesizer with ``push``,
         ``push_words``, ``set_control``, ``finish``, ``fps`` and ``latency_s``;
         default :class:`gesturedb.synth.stream.Stream`.
+    batch_steps : bool
+        Search the steps that concurrent streams wait on in one call
+        (:class:`gesturedb.serve.batcher.StepScheduler`; the same frames, less time per step with
+        many streams); False: each stream searches its own. Only for the default ``stream_factory``.
     """
     limits = limits or Limits()
-    state = ServerState(db, limits, stream_factory)
+    state = ServerState(db, limits, stream_factory, batch_steps=batch_steps)
     state.warm_s = state.warm()
     if state.three is None:
         log.warning("three.js not found (Debian's libjs-three, /usr/share/javascript/three/three.module.js): the "

@@ -60,6 +60,7 @@ class StreamSession:
         self._roots: list[np.ndarray] = []
         self._rots: list[np.ndarray] = []
         self._steps: list[dict] = []
+        self._unfed: list[np.ndarray] = []  # audio received, not yet fed to the stream (see _push)
 
     # -- the loop -------------------------------------------------------------
     async def run(self) -> None:
@@ -196,7 +197,26 @@ class StreamSession:
         if ahead_s > 0:
             await anyio.sleep(ahead_s)
         if samples.shape[0]:
-            await self._send_chunk(await self._synth(self.stream.push, samples))
+            await self._send_chunk(await self._push(samples))
+
+    async def _push(self, samples: np.ndarray):
+        """The stream's ``push``, with its steps searched by the server's scheduler together with the other
+        streams' waiting steps (each applied here, to this stream only), when the server batches."""
+        sched = self.state.scheduler
+        if sched is None or not hasattr(self.stream, "next_step"):
+            return await self._synth(self.stream.push, samples)
+        self._unfed.append(samples)
+        if self.n_samples < self.stream.samples_before_step():
+            return None  # no step can be ready yet: fed later in one piece (the same features, fewer calls)
+        unfed, self._unfed = self._unfed, []
+        sq, chunk = await self._synth(_feed, self.stream, unfed)
+        while sq is not None:
+            try:
+                res, relaxed = await sched.search(sq)
+            except GestureDBError as exc:
+                raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
+            sq, chunk = await self._synth(_complete, self.stream, sq, res, relaxed)
+        return chunk
 
     async def _control(self, req: dict) -> None:
         try:
@@ -222,6 +242,9 @@ class StreamSession:
             await self._synth(self.stream.push_words, words)
 
     async def _end(self) -> None:
+        if self._unfed:  # audio held for the next step's feed (see _push): the stream needs it all now
+            unfed, self._unfed = self._unfed, []
+            await self._synth(self.stream.feed, np.concatenate(unfed))
         await self._send_chunk(await self._synth(self.stream.finish))
         token = None
         if self.n_sent:
@@ -287,6 +310,20 @@ class StreamSession:
             await self.ws.close(code=c.close_code, reason=reason)
         except (WebSocketDisconnect, RuntimeError, OSError):
             pass  # the client is gone already
+
+
+def _feed(stream, pieces: list[np.ndarray]):
+    """Feed held audio; ``(next step or None, chunk or None)`` (the chunk once no step is ready)."""
+    stream.feed(pieces[0] if len(pieces) == 1 else np.concatenate(pieces))
+    sq = stream.next_step()
+    return sq, (stream.take_chunk() if sq is None else None)
+
+
+def _complete(stream, sq, res, relaxed: bool):
+    """Apply a step's result; ``(next step or None, chunk or None)`` as :func:`_feed`."""
+    stream.complete_step(sq, res, relaxed)
+    sq = stream.next_step()
+    return sq, (stream.take_chunk() if sq is None else None)
 
 
 def check_words(words) -> list[tuple[float, float, str]]:

@@ -24,6 +24,7 @@ is a stream fed the whole file, so the two give the same frames.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -537,6 +538,13 @@ class Stream:
             raise ParameterError(f"Stream.complete_step: expected step {len(self._windows)} of this stream; got "
                                  f"step {sq.i}" + ("" if sq.stream is self else " of another stream"))
         self._apply_step(sq, res, relaxed)
+
+    def samples_before_step(self) -> int:
+        """Samples to push in all (from the stream's start) before :meth:`next_step` can give the next
+        step, a lower bound: the step's own audio (its last frame's features need its audio, and a
+        little context after it). A caller that feeds audio in small pieces can hold them until then
+        and feed them at once: the features are the same whatever the pieces, and fewer calls cost less."""
+        return int(math.floor((len(self._windows) + 1) * self.step * self.sample_rate / self.fps))
 
     def take_chunk(self) -> StreamChunk:
         """The frames that the steps completed since the last chunk made final (what :meth:`push` returns)."""

@@ -1,0 +1,128 @@
+"""gesturedb serve with many streams at once: their waiting steps are searched in one call
+(gesturedb.serve.batcher), and each client still gets, bit for bit, the frames and provenance
+its stream makes alone, whatever the other clients send or fail at (issue 39)."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+
+import numpy as np
+import pytest
+
+import gesturedb
+from gesturedb.io import read_audio
+from gesturedb.synth import SearchOptions
+
+pytest.importorskip("uvicorn")
+from websockets.exceptions import ConnectionClosed  # noqa: E402
+
+from gesturedb.serve import Limits, create_app  # noqa: E402
+from gesturedb.serve import protocol as P  # noqa: E402
+from gesturedb.serve.client import LiveClient, LiveError  # noqa: E402
+from gesturedb.synth.stream import Stream  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(__file__))
+from test_serve import LiveServer  # noqa: E402
+
+SR = 16000
+CHUNK = 640  # 40 ms
+CONTROLS = [None, "left_wrist_high", "0-6: symmetric; 6-: left_wrist_speed > p85", None, "left_wrist_high",
+            "hand_speed_low"]
+
+
+@pytest.fixture(scope="module")
+def db(scott_db_path):
+    with gesturedb.open(scott_db_path) as d:
+        yield d
+
+
+def _speech(scott_dir, j, seconds=12.0):
+    wavs = sorted((scott_dir / "inputs").glob("*.wav"))
+    x, sr = read_audio(wavs[j % len(wavs)], sr=SR)
+    start = int((j // len(wavs)) * 7 * SR)  # the same file twice: another stretch of it
+    return x[start:start + int(seconds * SR)]
+
+
+def _alone(db, x, control):
+    s = Stream(db, SearchOptions(control=control), sample_rate=SR)
+    chunks = [s.push(x[a:a + CHUNK]) for a in range(0, x.shape[0], CHUNK)] + [s.finish()]
+    rot = np.concatenate([c.motion.rotations for c in chunks]).astype(np.float32)
+    root = np.concatenate([c.motion.root_positions for c in chunks]).astype(np.float32)
+    steps = json.loads(json.dumps(P.json_safe([st for c in chunks for st in c.steps])))
+    return root, rot, steps
+
+
+def _client(url, x, control, out, j):
+    try:
+        frames = []
+        with LiveClient(url, sample_rate=SR, format="f32", control=control) as live:
+            for a in range(0, x.shape[0], CHUNK):
+                live.send_audio(x[a:a + CHUNK])
+                frames += live.poll()
+            frames += live.end()
+        out[j] = (np.concatenate([f.root_positions for f in frames if len(f)]),
+                  np.concatenate([f.rotations for f in frames if len(f)]), [s for f in frames for s in f.steps])
+    except Exception as exc:  # noqa: BLE001 - reported by the test
+        out[j] = exc
+
+
+def test_concurrent_streams_through_the_batcher_are_each_alone_bit_for_bit(db, scott_dir):
+    speech = [_speech(scott_dir, j) for j in range(len(CONTROLS))]
+    lim = Limits()
+    app = create_app(db, limits=lim)
+    sched = app.state.gesturedb.scheduler
+    assert sched is not None
+    out = [None] * len(CONTROLS)
+    with LiveServer(app, lim) as srv:
+        calls0, steps0 = sched.n_calls, sched.n_steps  # after the warm-up's batches
+        threads = [threading.Thread(target=_client, args=(srv.ws, x, c, out, j))
+                   for j, (x, c) in enumerate(zip(speech, CONTROLS))]
+        [t.start() for t in threads]
+        [t.join(300) for t in threads]
+    for j, (x, c) in enumerate(zip(speech, CONTROLS)):
+        assert not isinstance(out[j], BaseException) and out[j] is not None, (j, out[j])
+        root, rot, steps = _alone(db, x, c)
+        assert np.array_equal(out[j][1], rot) and np.array_equal(out[j][0], root), j
+        assert out[j][2] == steps, j
+    # the steps went through the scheduler, several per call
+    n_steps = sched.n_steps - steps0
+    assert n_steps >= sum(len(o[2]) for o in out) - 2 * len(out)  # finish() runs a stream's last steps itself
+    assert sched.n_calls - calls0 < n_steps
+
+
+def test_a_failing_stream_does_not_disturb_the_batch(db, scott_dir):
+    """A client whose control leaves a step no candidate is closed with its own explained error; the
+    clients batched with it get what they get alone."""
+    bad = "left_wrist_height > p99 and left_wrist_height < p1"
+    controls = [None, bad, "left_wrist_high"]
+    speech = [_speech(scott_dir, j, 6.0) for j in range(3)]
+    lim = Limits()
+    out = [None] * 3
+    with LiveServer(create_app(db, limits=lim), lim) as srv:
+        threads = [threading.Thread(target=_client, args=(srv.ws, x, c, out, j))
+                   for j, (x, c) in enumerate(zip(speech, controls))]
+        [t.start() for t in threads]
+        [t.join(300) for t in threads]
+    # the error message, or (when the client was still sending) the close that follows it
+    if isinstance(out[1], LiveError):
+        assert out[1].code == "synthesis" and "no candidate" in str(out[1])
+    else:
+        assert isinstance(out[1], ConnectionClosed) and out[1].rcvd.code == P.CLOSE_POLICY
+        assert out[1].rcvd.reason == "synthesis"
+    for j in (0, 2):
+        root, rot, steps = _alone(db, speech[j], controls[j])
+        assert np.array_equal(out[j][1], rot) and out[j][2] == steps, j
+
+
+def test_no_batch_serves_each_stream_alone(db, scott_dir):
+    x = _speech(scott_dir, 0, 4.0)
+    lim = Limits()
+    app = create_app(db, limits=lim, batch_steps=False)
+    assert app.state.gesturedb.scheduler is None
+    out = [None]
+    with LiveServer(app, lim) as srv:
+        _client(srv.ws, x, None, out, 0)
+    root, rot, steps = _alone(db, x, None)
+    assert np.array_equal(out[0][1], rot) and out[0][2] == steps
