@@ -55,9 +55,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(db: str, port: int) -> subprocess.Popen:
+def start_server(db: str, port: int, batch: bool = True) -> subprocess.Popen:
     p = subprocess.Popen([sys.executable, "-m", "gesturedb.cli.main", "serve", db, "--port", str(port),
-                          "--max-streams", "1000"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                          "--max-streams", "1000"] + ([] if batch else ["--no-batch"]),
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     t = time.monotonic()
     while time.monotonic() - t < 300:
         try:
@@ -234,6 +235,11 @@ def main(argv=None) -> int:
     ap.add_argument("--clients", default="1,2,4,8,16,32,50")
     ap.add_argument("--chunk-ms", type=float, default=40.0)
     ap.add_argument("--budget-ms", type=float, default=100.0)
+    ap.add_argument("--modes", default="batch,alone",
+                    help="servers to compare, in this order: batch (steps of all streams searched in one call), "
+                         "alone (gesturedb serve --no-batch: each stream searches its own)")
+    ap.add_argument("--give-up-ms", type=float, default=2000.0,
+                    help="stop adding clients to a server once a count's p50 step latency is over this")
     ap.add_argument("--startup", action="store_true", help="measure the time from open to the first frame")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--chunked", help="--startup: also this database with chunked per-frame arrays")
@@ -254,28 +260,56 @@ def main(argv=None) -> int:
 
     x, _ = read_audio(args.wav, sr=SR)
     x = x[: int(args.seconds * SR)]
+    counts = [int(c) for c in args.clients.split(",")]
+    print(f"{x.shape[0] / SR:.1f} s of speech per client in {args.chunk_ms:g} ms chunks; late = step latency over "
+          f"{args.budget_ms:g} ms; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start")
+    best = {}
+    for mode in args.modes.split(","):
+        if mode not in ("batch", "alone"):
+            raise SystemExit(f"--modes: expected batch and/or alone; got {mode!r}")
+        best[mode] = serve_and_measure(args, x, counts, mode)
+    for mode, n in best.items():
+        print(f"{mode}: real-time clients with no late step: {n}")
+    return 0
+
+
+def health(port: int) -> dict:
+    return json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=10).read())
+
+
+def serve_and_measure(args, x: np.ndarray, counts: list, mode: str) -> int:
+    """Start a server (batched or not), run each count of clients; the largest count with no late step."""
     port = free_port()
     t = time.perf_counter()
-    server = start_server(args.db, port)
-    print(f"server up in {time.perf_counter() - t:.1f} s (warm-up included); {x.shape[0] / SR:.1f} s of speech "
-          f"per client in {args.chunk_ms:g} ms chunks; late = step latency over {args.budget_ms:g} ms")
-    print(f"{'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6}")
+    server = start_server(args.db, port, batch=mode == "batch")
+    print(f"\n[{mode}] server up in {time.perf_counter() - t:.1f} s (warm-up included)")
+    print(f"{'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6} "
+          f"{'batch':>6} {'search ms/step':>15} {'load':>5}")
     best = 0
     try:
-        for n in [int(c) for c in args.clients.split(",")]:
+        for n in counts:
+            before = health(port).get("batch")
             lat, errors = run(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms)
+            after = health(port).get("batch")
             ms = np.array(lat) * 1000
             late = int((ms > args.budget_ms).sum())
             p50, p99, mx = (np.percentile(ms, 50), np.percentile(ms, 99), ms.max()) if ms.size else (np.nan,) * 3
-            print(f"{n:>8} {ms.size:>7} {p50:>8.1f} {p99:>8.1f} {mx:>8.1f} {late:>6}"
-                  + (f"  ({len(errors)} clients failed: {errors[0]})" if errors else ""), flush=True)
+            batch = search = "-"
+            if before is not None and after is not None and after["calls"] > before["calls"]:
+                steps = after["steps"] - before["steps"]
+                batch = f"{steps / (after['calls'] - before['calls']):.1f}"  # mean steps per search call
+                search = f"{(after['busy_s'] - before['busy_s']) * 1000 / steps:.2f}"  # search thread per step
+            print(f"{n:>8} {ms.size:>7} {p50:>8.1f} {p99:>8.1f} {mx:>8.1f} {late:>6} {batch:>6} {search:>15} "
+                  f"{os.getloadavg()[0]:>5.1f}" + (f"  ({len(errors)} clients failed: {errors[0]})" if errors else ""),
+                  flush=True)
             if late == 0 and not errors:
                 best = n
+            if not ms.size or p50 > args.give_up_ms:
+                break
     finally:
         server.terminate()
         server.wait(30)
-    print(f"real-time clients with no late step: {best}")
-    return 0
+    return best
 
 
 if __name__ == "__main__":

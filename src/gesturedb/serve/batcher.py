@@ -35,6 +35,10 @@ class StepScheduler:
         The searcher every stream of the server shares.
     max_batch : int
         Most steps per call; more waiting steps make several calls in a row.
+    threads : int
+        Threads of the batched search (1: the search takes one core while the sessions' Python,
+        their features, assembly and messages, takes the others; measured faster on 2 cores than
+        a search on both).
 
     Attributes
     ----------
@@ -44,14 +48,20 @@ class StepScheduler:
         Seconds the worker spent in batch calls.
     """
 
-    def __init__(self, searcher, *, max_batch: int = MAX_BATCH):
-        self.batch = StepBatch(searcher)
+    def __init__(self, searcher, *, max_batch: int = MAX_BATCH, threads: int = 1):
+        self.batch = StepBatch(searcher, threads=threads)
         self.max_batch = max_batch
         self._waiting: list[tuple] = []  # (step, future, its event loop)
         self._cond = threading.Condition()
         self._worker: threading.Thread | None = None
         self.n_steps = self.n_calls = 0
         self.busy_s = 0.0
+
+    def stats(self) -> dict:
+        """``{"steps", "calls", "busy_s", "alone"}``: steps searched, batch calls, seconds in them, and steps
+        a batch left to their own stream (the repeat guard left them no candidate)."""
+        return {"steps": self.n_steps, "calls": self.n_calls, "busy_s": round(self.busy_s, 6),
+                "alone": self.batch.n_alone}
 
     async def search(self, sq):
         """``(res, relaxed)`` of step ``sq`` (as its stream's ``search_step`` returns them), searched with
