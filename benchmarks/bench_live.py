@@ -182,6 +182,7 @@ def paper_database(src: str, out: str, frames: int = PAPER_FRAMES, *, chunked: b
         K = -(-frames // F)
         shift = {schema.RECORDING_START_FRAME: F, schema.CHUNK_START: F, schema.CLIP_START: F,
                  schema.CHUNK_RECORDING: R, schema.CLIP_RECORDING: R, schema.WORD_RECORDING: R,
+                 schema.FRAME_RECORDING: R,
                  schema.CLIP_WORD_START: W, schema.CLIP_WORD_END: W}
         for k, v in a.attrs.items():
             b.attrs[k] = v

@@ -651,7 +651,8 @@ class Stream:
         self._prev = np.ascontiguousarray(db.rows("pose_features", [g + n - 1])[0], dtype=np.float32)
         frames = g + np.arange(n, dtype=np.int64)
         self._source.append(frames)
-        rec = db.recordings[int(db.rows("frame_recording", np.array([g], dtype=np.int64))[0])]
+        # the segment's recording is its frames' (a segment never spans two): no read of the file per step
+        rec = db.recordings[int(self.searcher.seg_recording[int(res.segments[0])])]
         # the latest earlier window this one overlaps (repeats.repeat_of for the last window only)
         starts = np.fromiter((w[1] for w in self._windows[:-1]), dtype=np.int64, count=i)
         ends = starts + np.fromiter((w[2] for w in self._windows[:-1]), dtype=np.int64, count=i)
