@@ -1,0 +1,108 @@
+"""Where a live step's time goes, in one process without the network (run by hand, never by pytest).
+
+N streams over one Searcher are fed the same speech (each from another offset) in 40 ms pieces,
+in lockstep; every ready step is searched twice, alone (``Stream.search_step``, what a server
+without batching runs) and in one call for all streams (``StepBatch.search``, what
+``gesturedb serve`` runs), checked to agree, and applied (``Stream.complete_step``). Prints the
+milliseconds per step of: the audio features fed per 40 ms piece and fed once per step (what
+the server does: it holds a step's audio until the step can be complete), the step's
+preparation, the search alone, the search batched, the apply (window, seams, feet) and the
+frames message (``pack_frames`` with its provenance JSON).
+
+Usage:  python benchmarks/bench_live_steps.py DB.h5 [--streams 50] [--seconds 12] [--threads 1]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_WAV = os.path.join(HERE, "..", "..", "shared", "data", "beat2-scott", "2_scott_0_1_1.wav")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("db")
+    ap.add_argument("--wav", default=DEFAULT_WAV)
+    ap.add_argument("--streams", type=int, default=50)
+    ap.add_argument("--seconds", type=float, default=12.0)
+    ap.add_argument("--threads", type=int, default=1, help="threads of the batched search (the server: 1); the search alone takes every CPU, as a stream does")
+    args = ap.parse_args(argv)
+
+    import gesturedb
+    from gesturedb.io import read_audio
+    from gesturedb.serve import protocol as P
+    from gesturedb.synth import Searcher, SearchOptions
+    from gesturedb.synth.stepbatch import StepBatch
+
+    x, sr = read_audio(args.wav, sr=16000)
+    db = gesturedb.open(args.db)
+    searcher = Searcher(db)
+    t = time.perf_counter()
+    searcher.pose_projection()
+    print(f"{db.n_frames} frames; pose projection {time.perf_counter() - t:.1f} s; {args.streams} streams, "
+          f"{args.seconds:g} s each; load average {os.getloadavg()[0]:.1f}")
+    Q, piece = args.streams, 640
+    n = int(args.seconds * sr)
+    starts = np.random.default_rng(0).integers(0, max(1, x.shape[0] - n), Q)
+    pieces = [searcher.stream(SearchOptions(seed=j), sample_rate=sr) for j in range(Q)]  # fed in 40 ms pieces
+    steps = [searcher.stream(SearchOptions(seed=j), sample_rate=sr) for j in range(Q)]  # fed once per step
+    batch = StepBatch(searcher, threads=args.threads)
+    t_piece = t_step = t_prep = t_alone = t_batch = t_apply = t_pack = 0.0
+    n_steps = n_calls = 0
+    fed = [0] * Q
+    for a in range(0, n, piece):
+        for j in range(Q):
+            y = x[starts[j] + a: starts[j] + min(a + piece, n)]
+            t0 = time.perf_counter()
+            pieces[j].feed(y)
+            t_piece += time.perf_counter() - t0
+        ready = []
+        for j, s in enumerate(steps):
+            if a + piece < s.samples_before_step():
+                continue
+            t0 = time.perf_counter()
+            s.feed(x[starts[j] + fed[j]: starts[j] + min(a + piece, n)])
+            t_step += time.perf_counter() - t0
+            fed[j] = min(a + piece, n)
+            t0 = time.perf_counter()
+            sq = s.next_step()
+            t_prep += time.perf_counter() - t0
+            if sq is not None:
+                ready.append((j, sq))
+        if not ready:
+            continue
+        t0 = time.perf_counter()
+        alone = [steps[j].search_step(sq) for j, sq in ready]
+        t_alone += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        got = batch.search([sq for _, sq in ready])
+        t_batch += time.perf_counter() - t0
+        n_calls += 1
+        for (j, sq), g, o in zip(ready, got, alone):
+            assert int(g[0].frames[0]) == int(o[0].frames[0]) and g[1] == o[1], "batched and alone differ"
+            t0 = time.perf_counter()
+            steps[j].complete_step(sq, *g)
+            c = steps[j].take_chunk()
+            t_apply += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            P.pack_frames(c.start, np.asarray(c.motion.root_positions, np.float32),
+                          np.asarray(c.motion.rotations, np.float32), c.steps, samples=fed[j])
+            t_pack += time.perf_counter() - t0
+            n_steps += 1
+    ms = 1000.0 / max(n_steps, 1)
+    print(f"steps {n_steps} in {n_calls} calls (mean batch {n_steps / max(n_calls, 1):.1f}); ms per step:")
+    for name, v in (("features, fed in 40 ms pieces", t_piece), ("features, fed once per step", t_step),
+                    ("prepare", t_prep), ("search alone", t_alone), ("search batched", t_batch),
+                    ("apply (window, seams, feet)", t_apply), ("frames message", t_pack)):
+        print(f"  {name:<32} {v * ms:8.2f}")
+    print(f"load average {os.getloadavg()[0]:.1f} at the end")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
