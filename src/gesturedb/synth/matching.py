@@ -402,6 +402,11 @@ class StepQuery:
 class Stream:
     """The k-NN synthesis of speech that arrives in chunks.
 
+    ``Searcher.synthesize`` is a stream made with ``_whole=True``: every step as here, the frames
+    assembled at :meth:`finish` (the kinematics of all frames at once: the same bits, faster).
+    A server of many streams runs each step in its parts (:meth:`next_step`, a search of many
+    streams' steps at once, :meth:`complete_step`; :mod:`gesturedb.synth.stepbatch`).
+
     Parameters
     ----------
     db : gesturedb.db.database.Database
@@ -413,9 +418,6 @@ class Stream:
     searcher : gesturedb.synth.Searcher, optional
         The searcher to use (its segments, projection or Dask client); default ``Searcher(db)``.
         One searcher can serve many streams.
-
-    ``Searcher.synthesize`` is a stream made with ``_whole=True``: every step as here, the frames
-    assembled at :meth:`finish` (the kinematics of all frames at once: the same bits, faster).
     """
 
     def __init__(self, db, options: SearchOptions | None = None, *, sample_rate: int, searcher=None,
