@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import h5py
@@ -468,27 +469,42 @@ def test_real_graph_is_stored_and_consistent(scott_db_path):
         assert np.isfinite(sm["heldout_rmse"]) or K < 7
 
 
-@pytest.mark.parametrize("version", [1, 2])
-def test_old_file_is_a_clear_error_and_graph_command_upgrades(scott_db_path, tmp_path, capsys, version):
+@pytest.mark.parametrize("version", [1, 2, 3])
+def test_old_file_is_a_clear_error_and_upgrade_brings_it_to_what_a_build_writes(scott_db_path, tmp_path, capsys,
+                                                                                 version):
     from gesturedb.cli.main import main
 
     old = tmp_path / "old.h5"
     shutil.copy(scott_db_path, old)
     with h5py.File(old, "r+") as h5:
         want = {f"{g}/{k}": h5[f"{g}/{k}"][()] for g in ("graph", "graph_lower") for k in ("indptr", "indices", "cost")}
-        del h5["graph_lower"]
+        want["frames/pose_features"] = h5["frames/pose_features"][()]
+        want_config = json.loads(h5.attrs["config"])
+        if version < 3:
+            del h5["graph_lower"]
         if version == 1:
             del h5["graph"], h5["style_model"]
+        # what version 3 stored: the past only (frames f, f-2, f-4, f-6, 96 values)
+        del h5["frames/pose_features"]
+        h5["frames/pose_features"] = np.zeros((want["frames/pose_features"].shape[0], 96), np.float32)
+        h5.attrs["config"] = json.dumps({**want_config, "pose_window": 4, "pose_stride": 2})
         h5.attrs["schema_version"] = version
-    what = "no motion graph" if version == 1 else "one motion graph over the whole body"
-    with pytest.raises(SchemaError, match=rf"old.h5: schema_version: expected 3, got {version} \({what}.*gesturedb graph"):
+    with pytest.raises(SchemaError, match=rf"old.h5: schema_version: expected 4, got {version} "
+                                          rf"\({re.escape(schema.UPGRADABLE_VERSIONS[version])}\).*gesturedb upgrade"):
         gesturedb.open(old)
-    assert main(["graph", str(old)] + (["-q"] if version == 2 else [])) == 0
-    assert "edges" in capsys.readouterr().out
+    with pytest.raises(SchemaError, match="gesturedb upgrade"):
+        G.add_graph(old)  # the graph alone would leave the pose features as they were
+    assert main(["upgrade", str(old)] + (["-q"] if version == 2 else [])) == 0
+    out = capsys.readouterr().out
+    assert f"schema version {version} -> 4" in out and "pose features" in out
+    assert ("motion graphs" in out) == (version < 3)
     with gesturedb.open(old) as db, h5py.File(old, "r") as h5:
         for k, v in want.items():
-            np.testing.assert_array_equal(h5[k][()], v)  # the same graphs as the build made
+            np.testing.assert_array_equal(h5[k][()], v)  # the same features and graphs as the build made
+        assert json.loads(h5.attrs["config"]) == want_config
         GraphSynthesizer(db)
+    assert main(["upgrade", str(old)]) == 0
+    assert "nothing to do" in capsys.readouterr().out
 
 
 @pytest.fixture(scope="module")

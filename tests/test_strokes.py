@@ -91,9 +91,10 @@ def scott_db_30fps(scott_dir, tmp_path_factory):
 
 def test_a_30_fps_database_keeps_strokes_and_local_seams(scott_db_30fps, speech):
     """At 30 fps: the search step and the seam decay are in seconds (twice the frames), frames beyond the
-    decay are the placed source frames, seams are no jerkier than the inside of the windows, and the slow
-    band keeps the database's power. (The stroke bands are 1.4-1.75x there on the four inputs, above the
-    goal of 1.5; see the strokes issue's closing note.)"""
+    decay are the placed source frames, the seams' jerk stays near the inside of the windows', and every
+    band keeps the database's power (the pose feature's stride and the chunks are in seconds too). The
+    seams: arm seam/inside jerk 1.05-1.11 on the four inputs at 30 fps (mean of 3 seeds; 0.92-1.07 at
+    15 fps), hence the bound of 1.15 here rather than the goal of 1.1; see ``docs/evaluation.md``."""
     from gesturedb.eval.metrics import seam_jerk
     from gesturedb.synth import Searcher
     from gesturedb.synth.contacts import leg_joints
@@ -104,6 +105,8 @@ def test_a_30_fps_database_keeps_strokes_and_local_seams(scott_db_30fps, speech)
     s = Searcher(db)
     res = s.synthesize(speech)
     assert res.options["step"] == 16  # 8/15 s
+    # the chunks and the pose feature's stride are the paper's 15 fps lengths in seconds
+    assert db.config["chunk_frames"] == 128 and db.config["pose_stride"] == 4
     placed = s.synthesize(speech, seam_decay_s=0)
     assert np.array_equal(res.source_frames, placed.source_frames)
     nd = decay_frames(SEAM_DECAY_S, db.fps)
@@ -128,7 +131,6 @@ def test_a_30_fps_database_keeps_strokes_and_local_seams(scott_db_30fps, speech)
     arms = ST.band_groups(db.joint_names)["arms"]
     ref = ST.pooled_band_power([db.joint_positions.astype(np.float64)], fps=db.fps, joints=arms)
     ratios = ST.band_ratios(ST.band_power(res.positions, fps=db.fps, joints=arms), ref)
-    assert 0.67 <= ratios["0.5-2"] <= 1.5, ratios
-    assert all(v < 2.5 for v in ratios.values()), ratios  # no seam energy like unsmoothed cuts (10x and more)
+    assert all(0.67 <= v <= 1.5 for v in ratios.values()), ratios
     r = seam_jerk(res.positions, fps=db.fps, boundaries=res.boundaries, joints=arms)
-    assert r["ratio"] < 1.12, r
+    assert r["ratio"] < 1.15, r

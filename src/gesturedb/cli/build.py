@@ -8,6 +8,7 @@ from gesturedb.db.build import build, pair_inputs, read_pairing_file
 from gesturedb.db.cluster import check_scheduler
 from gesturedb.errors import ParameterError
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
+from gesturedb.features.pose import POSE_WINDOW
 from gesturedb.io.bvh import parse_length_unit
 from gesturedb.io.joints import read_joint_map
 from gesturedb.threads import available_cpus
@@ -31,14 +32,17 @@ def add_parser(sub) -> None:
                    "workers or a running scheduler); this process still writes the file")
     p.add_argument("-r", "--recursive", action="store_true", help="also take files in sub-folders")
     p.add_argument("--fps", type=float_range(1, 1000), default=15.0, help="database frame rate (default: %(default)s)")
-    p.add_argument("--chunk-frames", type=int, default=64, help="fixed chunk length (default: %(default)s)")
+    p.add_argument("--chunk-frames", type=int, default=None,
+                   help="fixed chunk length, frames (default: 64/15 s in frames: 64 at 15 fps, 128 at 30 fps)")
     p.add_argument("--gap", type=_gap, default="auto", dest="gap_s",
                    help="word gap that splits clips, s, or 'auto' (clips of about 3 s from the speakers' own pauses; "
                    "default: %(default)s)")
     p.add_argument("--vad", choices=VAD_METHODS, default=DEFAULT_VAD,
                    help="recordings without a transcript: how pauses are found in the speech (default: %(default)s)")
-    p.add_argument("--pose-window", type=int, default=4)
-    p.add_argument("--pose-stride", type=int, default=2)
+    p.add_argument("--pose-window", type=int, default=POSE_WINDOW,
+                   help="pose feature frames on each side of a frame, itself included (default: %(default)s)")
+    p.add_argument("--pose-stride", type=int, default=None,
+                   help="frames between the pose feature's frames (default: 2/15 s in frames: 2 at 15 fps, 4 at 30 fps)")
     p.add_argument("--mirror", action="store_true", help="add left/right mirrored copies")
     p.add_argument("--speaker", default=None,
                    help="speaker name of every recording (default: a --pairs speaker column, BEAT's "

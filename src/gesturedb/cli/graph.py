@@ -10,7 +10,7 @@ def add_parser(sub) -> None:
         help="add the GestureMaster motion graphs (upper and lower body) and style predictor to a database",
         description="Compute the clip-to-clip transition costs of the upper body and of the lower body, keep the "
         "edges under delta_T plus each clip's cheapest few, fit the style predictor, and store them in DB.h5 "
-        "(a version-1 or -2 file is upgraded).",
+        "(a file of an older schema: `gesturedb upgrade` first).",
     )
     p.add_argument("db", metavar="DB.h5")
     p.add_argument("--delta", type=float, default=None, dest="delta_T",

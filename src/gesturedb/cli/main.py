@@ -25,6 +25,7 @@ COMMANDS = {
     "retarget": "retarget",
     "refiner": "refiner",
     "graph": "graph",
+    "upgrade": "upgrade",
     "shard": "shard",
     "serve": "serve",
 }

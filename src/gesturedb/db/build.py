@@ -71,16 +71,21 @@ class BuildConfig:
     ----------
     fps : float
         Database frame rate (Hz); 15 as in Habibie et al. 2022.
-    chunk_frames : int
-        Length of the fixed chunks (the paper's T_match = 64 frames).
+    chunk_frames : int or None
+        Length of the fixed chunks, frames; None (default): the paper's T_match = 64 frames at
+        15 fps, kept in seconds (:data:`gesturedb.features.segments.CHUNK_S`: 128 at 30 fps).
     gap_s : float or "auto"
         Word-gap clips split where the pause between words exceeds this (s). ``"auto"``
         (default): chosen from the recordings' own pauses so that clips last about 3 s
         (:func:`gesturedb.db.graph.suggest_gap_s`, at most GestureMaster's 0.4 s: Sec. 3.1 ties
         the threshold to the speaker's speech rate and aims at clips of a few seconds); the
         number chosen is what the file stores.
-    pose_window, pose_stride : int
-        Pose feature = feature joints at frames f, f - stride, ..., f - (window-1)*stride.
+    pose_window : int
+        Pose feature = feature joints at frames f + k * stride for k = -(window-1) .. window-1
+        (:func:`gesturedb.features.pose.pose_features`).
+    pose_stride : int or None
+        Frames between them; None (default): 2/15 s in frames
+        (:func:`gesturedb.features.pose.default_pose_stride`: 2 at 15 fps, 4 at 30 fps).
     sample_rate : int
         Analysis rate for speech (Hz).
     n_mfcc : int
@@ -107,10 +112,10 @@ class BuildConfig:
     """
 
     fps: float = 15.0
-    chunk_frames: int = 64
+    chunk_frames: int | None = None
     gap_s: float | str = "auto"
-    pose_window: int = 4
-    pose_stride: int = 2
+    pose_window: int = fpose.POSE_WINDOW
+    pose_stride: int | None = None
     sample_rate: int = schema.DEFAULT_SAMPLE_RATE
     n_mfcc: int = 13
     mirror: bool = False
@@ -127,6 +132,11 @@ class BuildConfig:
 
         if not (np.isfinite(self.fps) and self.fps > 0):
             bad("fps", "a positive number of frames per second")
+        # lengths in frames that the paper gives at 15 fps: kept in seconds at any frame rate
+        if self.chunk_frames is None:
+            object.__setattr__(self, "chunk_frames", fseg.default_chunk_frames(self.fps))
+        if self.pose_stride is None:
+            object.__setattr__(self, "pose_stride", fpose.default_pose_stride(self.fps))
         for name in ("chunk_frames", "pose_window", "pose_stride", "sample_rate", "n_mfcc"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
@@ -306,9 +316,12 @@ def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingS
     n = positions.shape[0]
     _check_finite(source.motion, "joint positions", positions)
 
-    pose = fpose.pose_features(positions, joints=joints, window=cfg.pose_window, stride=cfg.pose_stride)
-    # from the positions exactly as stored (float32), so recomputing them from the file gives the same bits
-    controls = fcontrols.control_features(positions.astype(np.float32).astype(np.float64), joints=joints, fps=cfg.fps)
+    # features from the positions exactly as stored (float32), so that recomputing them from the file
+    # (`gesturedb upgrade`, tests) gives the same bits
+    positions32 = positions.astype(np.float32).astype(np.float64)
+    pose = fpose.pose_features(positions32, joints=joints, fps=cfg.fps, window=cfg.pose_window,
+                               stride=cfg.pose_stride)
+    controls = fcontrols.control_features(positions32, joints=joints, fps=cfg.fps)
 
     c_start, c_len = fseg.fixed_chunks(n, length=cfg.chunk_frames)
     w_start = np.asarray(words.start_s if words is not None else [], dtype=np.float64)

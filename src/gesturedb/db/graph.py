@@ -431,7 +431,8 @@ def _write_edges(h5, group: str, part: str, joints, g: _GriddedCosts, dims: dict
 
 
 def add_graph(path, **options) -> dict:
-    """Add (or replace) the motion graphs of an existing database file, upgrading a version-1 or -2 file.
+    """Add (or replace) the motion graphs of an existing database file (an older version:
+    :func:`gesturedb.db.upgrade.upgrade`).
 
     Written through :func:`gesturedb.db.storage.edit` (temporary copy + rename). ``options``:
     those of :func:`write_graph` (``scheduler`` included).
@@ -439,9 +440,8 @@ def add_graph(path, **options) -> dict:
     # connect (or start the cluster) before the database is copied: a wrong address fails at
     # once instead of after copying a large file
     with optional_client(options.pop("scheduler", None)) as client:
-        with storage.edit(path, upgrade=True) as h5:
+        with storage.edit(path) as h5:
             for grp in (*schema.GRAPHS, schema.STYLE_MODEL):
                 store.delete(h5, grp)
             summary = write_graph(h5, scheduler=client, **options)
-            store.set_attrs(h5, "", {"schema_version": schema.SCHEMA_VERSION})
     return summary

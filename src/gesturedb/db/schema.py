@@ -44,10 +44,17 @@ from gesturedb.errors import ParameterError, SchemaError
 
 #: 2: adds graph/ and style_model/ (GestureMaster motion graph)
 #: 3: graph/ is the upper-body graph (it was over the whole body) and graph_lower/ the lower-body one
-#:    (Sec. 4.1); `gesturedb graph DB.h5` upgrades a version-1 or -2 file
-SCHEMA_VERSION = 3
-#: versions `gesturedb graph` brings to SCHEMA_VERSION (they differ only in the motion graph)
-UPGRADABLE_VERSIONS = (1, 2)
+#:    (Sec. 4.1)
+#: 4: frames/pose_features stack frames centred on each frame (past and future) instead of its past
+#:    only; config pose_stride is 2/15 s in frames
+#: `gesturedb upgrade DB.h5` (:mod:`gesturedb.db.upgrade`) brings any of them to SCHEMA_VERSION
+SCHEMA_VERSION = 4
+#: versions `gesturedb upgrade` brings to SCHEMA_VERSION, and what each lacks
+UPGRADABLE_VERSIONS = {
+    1: "no motion graph, pose features of the past only",
+    2: "one motion graph over the whole body, pose features of the past only",
+    3: "pose features of the past only",
+}
 
 #: HDF5 variable-length UTF-8 strings
 STR = "str"
@@ -407,8 +414,8 @@ def read(h5, path: str) -> np.ndarray:
 def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: bool = False) -> int:
     """Raise :class:`SchemaError` unless the file was written with :data:`SCHEMA_VERSION`.
 
-    ``upgradable=True`` also accepts :data:`UPGRADABLE_VERSIONS` (which differ only in the
-    motion graph), for :func:`gesturedb.db.graph.add_graph`.
+    ``upgradable=True`` also accepts :data:`UPGRADABLE_VERSIONS`, for
+    :func:`gesturedb.db.upgrade.upgrade`.
     """
     name = os.fspath(filename) if filename is not None else h5.filename
     if SHARD_OF_ATTR in h5.attrs:
@@ -428,11 +435,10 @@ def check_version(h5, filename: str | os.PathLike | None = None, *, upgradable: 
     if upgradable and got in UPGRADABLE_VERSIONS:
         return got
     if got in UPGRADABLE_VERSIONS:
-        what = "no motion graph" if got == 1 else "one motion graph over the whole body, no lower-body graph"
         raise SchemaError(
             name,
-            f"schema_version: expected {SCHEMA_VERSION}, got {got} ({what}); run `gesturedb graph {name}` "
-            f"to add the upper- and lower-body graphs, or rebuild the database",
+            f"schema_version: expected {SCHEMA_VERSION}, got {got} ({UPGRADABLE_VERSIONS[got]}); run "
+            f"`gesturedb upgrade {name}` to bring it up to date from what it keeps, or rebuild the database",
         )
     if got != SCHEMA_VERSION:
         raise SchemaError(

@@ -26,6 +26,7 @@ from gesturedb.roles import BODY_ROLES
 __all__ = [
     "BODY_ROLES",
     "FACING_SMOOTH_FRAMES",
+    "FACING_SMOOTH_S",
     "SPEED_SMOOTH_S",
     "body_frame",
     "to_body_frame",
@@ -34,6 +35,9 @@ __all__ = [
 
 #: Default Gaussian sigma (frames) of the facing-direction smoothing in :func:`body_frame`.
 FACING_SMOOTH_FRAMES: float = 2.0
+#: The same sigma in seconds, for callers that know the frame rate (``FACING_SMOOTH_S * fps``
+#: frames: 2.0 exactly at the paper's 15 fps, 4.0 at 30 fps).
+FACING_SMOOTH_S: float = 2.0 / 15.0
 
 #: Default Gaussian sigma (seconds) applied to positions before differentiating them
 #: into speeds (:func:`point_speeds`): 1.5 frames at 30 fps.

@@ -1,10 +1,24 @@
 """Pose features for the motion-matching search (Habibie et al. 2022, Sec. 3.1).
 
-The pose feature of a frame describes where the hands and arms are and where
-they came from: the 8 feature joints (wrists, elbows, index- and little-finger
-roots of both hands) in the body frame of that frame, stacked over a short past
-window. The search compares it by squared Euclidean distance with the feature of
-the last output frame, so everything is in metres and no joint is weighted.
+The pose feature of a frame describes where the hands and arms are, where they came from
+and where they are going: the 8 feature joints (wrists, elbows, index- and little-finger
+roots of both hands) in the body frame of that frame, stacked over a short window centred
+on it (frames ``f - 2s, f - s, f, f + s, f + 2s`` with the defaults, ``s`` = 2/15 s). The
+search compares the feature of a candidate window's entry frame, whose future half is the
+candidate's own first frames, with the feature of the last output frame, whose future half
+is how its source recording went on: a close match is a window that starts where the
+previous one was going, which is the offset that the seam treatment then removes
+(:mod:`gesturedb.synth.seams`). The paper's features likewise "encode information about
+the relevant future frames". Squared Euclidean distance, so everything is in metres and no
+joint is weighted.
+
+Why not the past alone (the schema-3 feature: frames f, f-2, f-4, f-6): matching a fast
+movement's past favours windows whose entry is near still (a still candidate is closer to a
+fast query than a fast candidate moving another way), so the k-NN chained calmer windows
+than the database's average (0.75-0.89x its arm velocity power on the four BEAT2 inputs)
+while its seams added the energy back at 4-7 Hz. With the centred window the windows it
+chooses carry about the database's own power and the seams' offsets are smaller
+(``docs/evaluation.md``, "Strokes").
 """
 from __future__ import annotations
 
@@ -15,33 +29,46 @@ import numpy as np
 from gesturedb.errors import ParameterError
 from gesturedb.features.body import (
     BODY_ROLES,
-    FACING_SMOOTH_FRAMES,
+    FACING_SMOOTH_S,
     body_frame,
+    check_fps,
     check_joints,
     check_positions,
 )
 from gesturedb.roles import FEATURE_ROLES
 
-__all__ = ["FEATURE_ROLES", "pose_features", "pose_feature_size"]
+__all__ = ["FEATURE_ROLES", "POSE_STRIDE_S", "POSE_WINDOW", "default_pose_stride",
+           "pose_features", "pose_feature_size"]
 
+#: Time between stacked frames, s: every second frame of the paper's 15 fps database.
+POSE_STRIDE_S = 2 / 15
+#: Stacked frames on each side of the current one, the current one included (5 frames in all).
+POSE_WINDOW = 3
 
 # Frames per block: bounds the float64 temporaries to a few tens of MB however
 # long the recording is.
 _BLOCK = 32768
 
 
-def pose_feature_size(*, window: int = 4) -> int:
-    """Length of one pose feature vector: ``len(FEATURE_ROLES) * 3 * window``."""
-    return len(FEATURE_ROLES) * 3 * _check_window(window)
+def default_pose_stride(fps: float) -> int:
+    """Frames between stacked frames at ``fps``: :data:`POSE_STRIDE_S` rounded, at least 1
+    (2 at 15 fps, 4 at 30 fps)."""
+    return max(1, int(round(check_fps(fps) * POSE_STRIDE_S)))
+
+
+def pose_feature_size(*, window: int = POSE_WINDOW) -> int:
+    """Length of one pose feature vector: ``len(FEATURE_ROLES) * 3 * (2 * window - 1)``."""
+    return len(FEATURE_ROLES) * 3 * (2 * _check_window(window) - 1)
 
 
 def pose_features(
     positions: np.ndarray,
     *,
     joints: Mapping[str, int],
-    window: int = 4,
-    stride: int = 2,
-    smooth_frames: float = FACING_SMOOTH_FRAMES,
+    fps: float,
+    window: int = POSE_WINDOW,
+    stride: int | None = None,
+    facing_smooth_s: float = FACING_SMOOTH_S,
 ) -> np.ndarray:
     """Pose feature of every frame of one recording.
 
@@ -52,49 +79,52 @@ def pose_features(
     joints : mapping of str to int, keyword-only
         Joint index of every role in :data:`FEATURE_ROLES` and in
         :data:`gesturedb.features.body.BODY_ROLES`.
+    fps : float, keyword-only
+        Frame rate (Hz): sets the default stride and the facing smoothing, both in seconds.
     window : int >= 1, keyword-only
-        Number of frames stacked (current frame and its past).
-    stride : int >= 1, keyword-only
-        Frames between stacked frames.
-    smooth_frames : float >= 0, keyword-only
-        Facing smoothing of the body frame, see
-        :func:`gesturedb.features.body.body_frame`.
+        Frames stacked on each side, the current one included: ``2 * window - 1`` in all.
+    stride : int >= 1 or None, keyword-only
+        Frames between stacked frames; None: :func:`default_pose_stride` of ``fps``.
+    facing_smooth_s : float >= 0, keyword-only
+        Gaussian sigma (s) of the body frame's facing smoothing
+        (:func:`gesturedb.features.body.body_frame`); 0 disables it.
 
     Returns
     -------
-    ndarray [shape=(F, 8 * 3 * window)], float32, C-contiguous, metres
-        Row ``f`` holds, for lag ``k = 0 .. window-1`` (outer), joint ``j`` in
-        :data:`FEATURE_ROLES` order (middle) and axis x, y, z (inner), the
-        position of joint ``j`` at frame ``max(f - k * stride, 0)`` expressed in
-        the body frame of frame ``f`` (x = speaker's left, y = up from the root,
-        z = forward). Column ``(k * 8 + j) * 3 + axis``. With the defaults:
-        frames f, f-2, f-4, f-6 and 96 values; frames before the start of the
-        recording are clamped to frame 0.
+    ndarray [shape=(F, 8 * 3 * (2 * window - 1))], float32, C-contiguous, metres
+        Row ``f`` holds, for lag ``k = -(window-1) .. window-1`` (outer, past first), joint
+        ``j`` in :data:`FEATURE_ROLES` order (middle) and axis x, y, z (inner), the position
+        of joint ``j`` at frame ``f + k * stride`` (clamped to the recording's first and last
+        frame) expressed in the body frame of frame ``f`` (x = speaker's left, y = up from the
+        root, z = forward). Column ``((k + window - 1) * 8 + j) * 3 + axis``. With the
+        defaults at 15 fps: frames f-4, f-2, f, f+2, f+4 and 120 values.
 
     Notes
     -----
     Because every stacked frame is expressed in the *current* body frame, the
     feature is unchanged by a translation or a rotation about the vertical axis
-    of the whole recording, while it still records how the hands moved relative
+    of the whole recording, while it still records how the hands move relative
     to where the body is now.
     """
     positions = check_positions(positions)
+    fps = check_fps(fps)
     window = _check_window(window)
+    stride = default_pose_stride(fps) if stride is None else stride
     if isinstance(stride, (bool, np.bool_)) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise ParameterError(f"stride: expected an int >= 1 (frames); got {stride!r}")
     n_frames, n_joints, _ = positions.shape
     idx = check_joints(joints, FEATURE_ROLES + BODY_ROLES, n_joints=n_joints)
-    origin, rotation = body_frame(positions, joints=idx, smooth_frames=smooth_frames)
+    origin, rotation = body_frame(positions, joints=idx, smooth_frames=facing_smooth_s * fps)
 
     feat_joints = np.array([idx[r] for r in FEATURE_ROLES], dtype=np.int64)
     pts = positions[:, feat_joints, :]  # (F, 8, 3)
-    lags = np.arange(window, dtype=np.int64) * int(stride)
-    out = np.empty((n_frames, window * len(FEATURE_ROLES) * 3), dtype=np.float32)
+    lags = np.arange(-(window - 1), window, dtype=np.int64) * int(stride)
+    out = np.empty((n_frames, lags.size * len(FEATURE_ROLES) * 3), dtype=np.float32)
     for a in range(0, n_frames, _BLOCK):
         b = min(a + _BLOCK, n_frames)
         f = np.arange(a, b, dtype=np.int64)
-        src = np.maximum(f[:, None] - lags[None, :], 0)  # (B, window)
-        d = (pts[src] - origin[a:b, None, None, :]).reshape(b - a, -1, 3)  # (B, window * 8, 3)
+        src = np.clip(f[:, None] + lags[None, :], 0, n_frames - 1)  # (B, 2 * window - 1)
+        d = (pts[src] - origin[a:b, None, None, :]).reshape(b - a, -1, 3)  # (B, lags * 8, 3)
         # row vector times R applies R transposed: local_c = sum_k d_k R[k, c]
         out[a:b] = np.matmul(d, rotation[a:b]).reshape(b - a, -1)
     return out

@@ -20,7 +20,15 @@ import numpy as np
 from gesturedb.errors import ParameterError
 from gesturedb.features.body import check_fps
 
-__all__ = ["Clips", "fixed_chunks", "word_gap_clips"]
+__all__ = ["CHUNK_S", "Clips", "default_chunk_frames", "fixed_chunks", "word_gap_clips"]
+
+#: Length of the fixed chunks, s: the paper's T_match = 64 frames at its 15 fps.
+CHUNK_S = 64 / 15
+
+
+def default_chunk_frames(fps: float) -> int:
+    """:data:`CHUNK_S` in frames at ``fps``, rounded (64 at 15 fps, 128 at 30 fps)."""
+    return max(1, int(round(float(fps) * CHUNK_S)))
 
 
 class Clips(NamedTuple):
