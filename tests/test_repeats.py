@@ -123,7 +123,9 @@ def test_guard_on_the_real_database(scott_db, scott_dir):
     on = s.synthesize(wav)
     assert on.options["repeat_guard_s"] == 4.0 and on.repeats["guard_s"] == 4.0
     assert on.repeats["min_gap_s"] >= 4.0 > off.repeats["min_gap_s"]
-    assert on.repeats["max_plays"] <= off.repeats["max_plays"]
+    # (not how often the most played window plays: the guard moves repeats apart, and on a one-minute
+    # database that count follows the path it takes: 9 with the guard and 7 without on this input, 9
+    # and 12 on 2_scott_0_4_4)
     # the same whole search, one kernel call per step with nothing to guard
     tiny = s.synthesize(wav, repeat_guard_s=0.01)
     np.testing.assert_array_equal(tiny.source_frames, off.source_frames)
