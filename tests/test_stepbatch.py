@@ -139,3 +139,21 @@ def test_touched_segments_are_those_reading_a_cleared_bit(scott_db):
         assert set(batch._touched(recent).tolist()) == want
     batch._sorted = False
     assert set(batch._touched(recent).tolist()) == want
+
+
+def test_a_broken_step_does_not_take_the_others_with_it(scott_db, scott_dir):
+    """A step whose query cannot be searched (a previous pose of the wrong width) gets its own error; the
+    step batched with it gets its own result."""
+    searcher = Searcher(scott_db)
+    x, sr = _speech(scott_dir, 0, 3.0)
+    good, bad = searcher.stream(None, sample_rate=sr), searcher.stream(None, sample_rate=sr)
+    good.feed(x)
+    bad.feed(x)
+    sq_good, sq_bad = good.next_step(), bad.next_step()
+    sq_bad.prev = sq_bad.prev[:-1]
+    batch = StepBatch(searcher)
+    got_good, got_bad = batch.search([sq_good, sq_bad])
+    assert isinstance(got_bad, ParameterError) and "pose features" in str(got_bad)
+    want = good.search_step(sq_good)
+    assert int(got_good[0].frames[0]) == int(want[0].frames[0]) and got_good[1] == want[1]
+    assert batch.n_alone == 2  # the group failed as a whole: each step went alone

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from gesturedb import tables
-from gesturedb.errors import GestureDBError, ParameterError
+from gesturedb.errors import ParameterError
 from gesturedb.search import SearchResult
 
 __all__ = ["StepBatch"]
@@ -80,8 +80,9 @@ class StepBatch:
             Per step, in order: ``(res, relaxed)`` as its stream's
             :meth:`~gesturedb.synth.matching.Stream.search_step` returns them (a one-step
             :class:`gesturedb.search.SearchResult` and whether the repeat guard was relaxed),
-            or the :class:`gesturedb.errors.GestureDBError` that call raises (the step has no
-            candidate): bit for bit what each stream gets alone.
+            or the exception that call raises (a :class:`gesturedb.errors.SearchError` when the
+            step has no candidate): bit for bit what each stream gets alone, whatever the other
+            steps of the call are.
         """
         out: list = [None] * len(steps)
         groups: dict[tuple, list[int]] = {}
@@ -92,8 +93,8 @@ class StepBatch:
         for (preselect, _, _), idx in groups.items():
             try:
                 got = self._search_group([steps[j] for j in idx], preselect)
-            except GestureDBError:
-                continue  # every step of the group is searched alone below, each with its own outcome
+            except Exception:  # noqa: BLE001 - whatever one step brought, each step is searched alone below
+                continue  # (with its own outcome, its own error), so that no stream fails for another
             for j, r in zip(idx, got):
                 out[j] = r
         for j, sq in enumerate(steps):
@@ -109,7 +110,7 @@ class StepBatch:
         self.n_alone += 1
         try:
             return sq.stream.search_step(sq)
-        except GestureDBError as exc:
+        except Exception as exc:  # noqa: BLE001 - returned to its own stream, which raises it
             return exc
 
     def _preselect_batch(self, preselect: str) -> tables.PreselectBatch:
