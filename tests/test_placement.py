@@ -7,6 +7,7 @@ import soundfile as sf
 
 from gesturedb import rotations as R
 from gesturedb.eval import placement as P
+from gesturedb.motion import Motion
 from gesturedb.synth import Searcher
 from gesturedb.synth.assemble import Piece, assemble_frames, assemble_pieces, foot_contacts, foot_joints
 from gesturedb.synth.contacts import leg_joints
@@ -187,6 +188,39 @@ def test_planted_feet_stay_planted(scott_db, mirrored_db, which):
     assert both.sum() > 50
     assert speeds[True] < 0.6 * speeds[False], speeds
     assert speeds[True] < 0.12, speeds
+
+
+def test_no_foot_goes_under_the_floor_and_feet_above_it_are_untouched(scott_db):
+    """A root lowered by 15 cm over a standing stretch (what a seam's offset did after a crouch): the leg IK
+    bends the knees so that no foot goes under the floor; frames whose feet stay above it keep their
+    rotations bit for bit; pushing the frames in blocks gives the same bits as at once."""
+    from gesturedb.synth.contacts import FootPlanter
+
+    db = scott_db
+    src = np.arange(200, 320)
+    rot = np.asarray(db.local_rotations[src], dtype=np.float64)
+    root = np.asarray(db.root_positions[src], dtype=np.float64)
+    feet = foot_joints(db.skeleton)
+    floor = float(np.asarray(db.joint_positions[src])[:, feet, 1].min())
+    dip = 0.15 * np.sin(np.pi * np.clip((np.arange(120) - 40) / 30.0, 0, 1))  # frames 40-70 go down and up
+    low_root = root - dip[:, None] * [0, 1, 0]
+    none = np.zeros((120, 2), dtype=bool)  # no contacts: only the floor acts
+    out = FootPlanter(db.skeleton, db.fps, floor_y=floor).push(rot, low_root, none, final=True)
+    pos = Motion(skeleton=db.skeleton, fps=db.fps, rotations=out, root_positions=low_root).positions
+    before = Motion(skeleton=db.skeleton, fps=db.fps, rotations=rot, root_positions=low_root).positions
+    assert before[:, feet, 1].min() < floor - 0.1  # the dip puts them well under
+    assert pos[:, feet, 1].min() >= floor - 1e-6
+    under = (before[:, feet, 1].min(axis=2) < floor).any(axis=1)
+    assert under.sum() > 10
+    np.testing.assert_array_equal(out[~under], rot[~under])
+    # only the legs move
+    keep = np.setdiff1d(np.arange(db.skeleton.n_joints), leg_joints(db.skeleton).ravel())
+    np.testing.assert_array_equal(out[:, keep], rot[:, keep])
+    # streamed in blocks: the same bits
+    fp = FootPlanter(db.skeleton, db.fps, floor_y=floor)
+    parts = [fp.push(rot[i:i + 17], low_root[i:i + 17], none[i:i + 17]) for i in range(0, 120, 17)]
+    parts.append(fp.push(rot[:0], low_root[:0], none[:0], final=True))
+    np.testing.assert_array_equal(np.concatenate(parts), out)
 
 
 def _drifting_foot(T=90, v=0.01):

@@ -356,7 +356,8 @@ class PieceAssembler:
         self._active = None  # the _Offset being decayed
         self._deferred = batch or self.smooth or (self.feet.shape[0] > 0 and floor_y is None)
         self._pull = _Pull(fps) if self.cont else None
-        self._planter = FootPlanter(skeleton, fps) if self.feet.shape[0] and not self._deferred else None
+        self._planter = (FootPlanter(skeleton, fps, floor_y=floor_y) if self.feet.shape[0] and not self._deferred
+                         else None)
         self._pulled_root = np.zeros((0, 3))  # pulled root of the frames the planter holds back
         self.n_placed = 0
         self.n_out = 0
@@ -470,13 +471,13 @@ class PieceAssembler:
             e_rot, e_root = self._empty()
             return self._emit(e_rot, e_root, np.zeros((0, 2), dtype=bool), final=True)
         rot, root, fps = self._rot, self._root, self.fps
+        floor_y = self.floor_y
         if self._src_pos:
             # the pieces' own (unplaced) poses, by one forward kinematics over all of them
             pos = Motion(skeleton=self.skeleton, fps=fps, rotations=np.concatenate([q[2] for q in self._src_pos]),
                          root_positions=np.concatenate([q[3] for q in self._src_pos])).positions
             cuts = np.cumsum([q[1] - q[0] for q in self._src_pos])[:-1]
             pieces_pos = np.split(pos, cuts)
-            floor_y = self.floor_y
             if floor_y is None:
                 floor_y = min(float(pp[:, self.feet, 1].min()) for pp in pieces_pos if pp.shape[0])
             for (a, b, _, _, given), pp in zip(self._src_pos, pieces_pos):
@@ -487,7 +488,7 @@ class PieceAssembler:
         if self.cont:
             rot, root = self._pull.run(rot, root)
             if self.feet.shape[0]:
-                rot = FootPlanter(self.skeleton, fps).push(rot, root, self._contacts, final=True)
+                rot = FootPlanter(self.skeleton, fps, floor_y=floor_y).push(rot, root, self._contacts, final=True)
         self.n_out = rot.shape[0]
         return rot, root
 

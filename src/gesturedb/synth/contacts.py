@@ -337,8 +337,12 @@ class FootPlanter:
     and inverse kinematics are per frame.
     """
 
-    def __init__(self, skeleton, fps: float, *, max_gap_s: float = MAX_FILL_GAP_S):
+    def __init__(self, skeleton, fps: float, *, max_gap_s: float = MAX_FILL_GAP_S, floor_y: float | None = None):
         self.skeleton, self.fps = skeleton, float(fps)
+        #: no foot goes under this height (m): where the motion would put the lowest of its ankle and toe
+        #: lower (the root of a seam's offset still low from a crouch, over a standing window), the ankle
+        #: is raised by the leg IK (the knee bends) until it is on it; None: no floor
+        self.floor_y = None if floor_y is None else float(floor_y)
         self.legs, self.feet = leg_joints(skeleton), foot_joints(skeleton)
         # frames from seconds, distances from the rig: the same behaviour at any frame rate and body size
         self.steps = dict(step_frames=max(2, int(round(STEP_S * fps))), release_frames=max(1, int(round(RELEASE_S * fps))))
@@ -404,16 +408,34 @@ class FootPlanter:
         out = np.array(self._rot[a:b], copy=True)
         if self._sides is not None:
             for side, st in enumerate(self._sides):
-                sel = np.flatnonzero(st[4][a:b])
+                target, weight = st[3][a:b], st[4][a:b]
+                if self.floor_y is not None and self.feet.shape[0]:
+                    target, weight = self._above_floor(side, target, weight, a, b)
+                sel = np.flatnonzero(weight)
                 if sel.size == 0:
                     continue
                 hip, knee, ankle = (int(j) for j in self.legs[side])
                 # the other leg's chain does not depend on this one: positions of the other side stay valid
                 out[sel] = two_bone_ik(out[sel], self._grot[a + sel], self._pos[a + sel], hip=hip, knee=knee,
-                                       ankle=ankle, target=st[3][a + sel])
+                                       ankle=ankle, target=target[sel])
         self.n_out = done
         self._trim()
         return out
+
+    def _above_floor(self, side: int, target: np.ndarray, weight: np.ndarray, a: int, b: int):
+        """``target`` (n, 3) and ``weight`` (n,) of frames ``a .. b`` (array rows) with every ankle raised
+        where its foot's lowest point would be under :attr:`floor_y` (the ankle keeps its world orientation
+        in the IK, so the toe rises with it). Per frame: the same bits whatever the blocks."""
+        ankle, toe = (int(j) for j in self.feet[side])
+        ay, ty = self._pos[a:b, ankle, 1], self._pos[a:b, toe, 1]
+        y = np.where(weight, target[:, 1], ay)  # where the ankle goes: the target where the IK applies
+        low = np.minimum(y, ty + (y - ay))
+        under = low < self.floor_y
+        if not under.any():
+            return target, weight
+        target, weight = target.copy(), weight | under
+        target[under, 1] = y[under] + (self.floor_y - low[under])
+        return target, weight
 
     def _trim(self) -> None:
         """Drop the frames nothing reads again (a live stream's memory stays bounded): those returned and
