@@ -130,12 +130,18 @@ def _yaw_quat(angle: np.ndarray | float) -> np.ndarray:
     return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
 
 
-# One placement per open database: computing it reads every frame's root once.
+# One placement per recording of an open database, computed when a piece first needs it (a first
+# frame then reads its own recording's roots, not those of the 648 recordings of a paper-scale file).
 _PLACEMENT: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
-def recording_placement(db) -> tuple[np.ndarray, np.ndarray]:
+def recording_placement(db, recordings=None) -> tuple[np.ndarray, np.ndarray]:
     """Per-recording yaw (rad) and horizontal centre (m) that put each recording at the origin facing +z.
+
+    Parameters
+    ----------
+    recordings : array-like of int, optional
+        Only these recording indices (in this order); default every recording.
 
     Returns
     -------
@@ -144,32 +150,37 @@ def recording_placement(db) -> tuple[np.ndarray, np.ndarray]:
     centre : ndarray [shape=(R, 3)], metres
         Mean floor position (y = 0).
     """
-    cached = _PLACEMENT.get(db)
-    if cached is None:
+    cached = _PLACEMENT.setdefault(db, {})  # recording index -> (yaw, centre)
+    want = [r.index for r in db.recordings] if recordings is None else [int(r) for r in np.asarray(recordings).ravel()]
+    todo = sorted({r for r in want if r not in cached})
+    if todo:
         # one recording at a time, the root joint only (Database.rows): a client of a
         # sharded database never holds its rotations. bincount sums in frame order,
         # so the sums are those of one bincount over all frames, bit for bit.
-        n = len(db.recordings)
-        sums = np.zeros((n, 4))  # sin yaw, cos yaw, root x, root z
-        for r in db.recordings:
+        sums = np.zeros((len(todo), 4))  # sin yaw, cos yaw, root x, root z
+        for i, ri in enumerate(todo):
+            r = db.recordings[ri]
             frames = np.arange(r.start_frame, r.stop_frame)
             yaw = _yaw_of(np.asarray(db.rows("local_rotations", frames, column=0), dtype=np.float64))
             root = np.asarray(db.rows("root_positions", frames), dtype=np.float64)
             at = np.zeros(frames.size, dtype=np.intp)
             for j, w in enumerate((np.sin(yaw), np.cos(yaw), root[:, 0], root[:, 2])):
-                sums[r.index, j] = np.bincount(at, w, 1)[0]
+                sums[i, j] = np.bincount(at, w, 1)[0]
         mean_yaw = np.arctan2(sums[:, 0], sums[:, 1])
-        centre = np.stack([sums[:, 2], np.zeros(n), sums[:, 3]], 1)
-        centre /= np.maximum(np.array([r.n_frames for r in db.recordings], dtype=np.int64), 1)[:, None]
-        cached = _PLACEMENT[db] = (mean_yaw, centre)
-    return cached
+        centre = np.stack([sums[:, 2], np.zeros(len(todo)), sums[:, 3]], 1)
+        centre /= np.maximum(np.array([db.recordings[ri].n_frames for ri in todo], dtype=np.int64), 1)[:, None]
+        for i, ri in enumerate(todo):
+            cached[ri] = (mean_yaw[i], centre[i])
+    return (np.array([cached[r][0] for r in want], dtype=np.float64).reshape(len(want)),
+            np.array([cached[r][1] for r in want], dtype=np.float64).reshape(len(want), 3))
 
 
 def placed_frames(db, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Local rotations (n, J, 4) and root positions (n, 3) of database frames, normalised per recording."""
     frames = np.asarray(frames, dtype=np.int64)
-    mean_yaw, centre = recording_placement(db)
     rec = db.rows("frame_recording", frames)
+    recs, rec = np.unique(rec, return_inverse=True)  # only the recordings of these frames are placed
+    mean_yaw, centre = recording_placement(db, recs)
     rot = np.asarray(db.rows("local_rotations", frames), dtype=np.float64)
     root0 = np.asarray(db.rows("root_positions", frames), dtype=np.float64)
     q = _yaw_quat(-mean_yaw[rec])
