@@ -15,19 +15,22 @@ step is late when its latency is over --budget-ms. Prints, per count of clients,
 steps measured, p50 / p99 / max step latency and the late steps, and the largest
 count with no late step.
 
-Start-up (--startup): the time from `gesturedb.open(DB)` to the first search step and to
-the first frame of a `Stream`, each in a fresh interpreter (imports not counted; the file
-in the page cache, as for a server that starts on a database it has used), speech pushed
-in --chunk-ms chunks as fast as the stream takes it (so the audio's own latency, 1.7 s at
-15 fps, is not in it). Measured with the per-frame arrays memory-mapped and, alternating,
-read (GESTUREDB_MMAP=0, what `open` did before), and on --chunked DB2.h5 (the same
-database with chunked per-frame arrays, as builds wrote them before: read).
+Start-up (--startup): the time from `gesturedb.open(DB)` to the first search step, the
+first frame and the second step (the first seam, which needs the database's typical
+accelerations) of a `Stream`, and until its pose projection is ready (built in the
+background while the first steps scan exactly), each in a fresh interpreter (imports not
+counted; the file in the page cache, as for a server that starts on a database it has used),
+speech pushed in --chunk-ms chunks as fast as the stream takes it (so the audio's own
+latency, 1.7 s at 15 fps, is not in it). Measured with the per-frame arrays memory-mapped
+and, alternating, read (GESTUREDB_MMAP=0, what `open` did before), on --chunked DB2.h5
+(the same database with chunked per-frame arrays, as builds wrote them before: read), and
+with gesturedb imported from --baseline-src DIR (a checkout's src/ before a change).
 --paper OUT.h5 first writes a paper-scale database (616k frames) by tiling DB's
 recordings (`--paper-frames`), and --paper-chunked OUT2.h5 the same with chunked arrays.
 
 Usage:  python benchmarks/bench_live.py DB.h5 [--wav SPEECH.wav] [--seconds 10]
                                         [--clients 1,2,4,8,16,32,50] [--chunk-ms 40] [--budget-ms 100]
-        python benchmarks/bench_live.py DB.h5 --startup [--reps 5] [--chunked DB2.h5]
+        python benchmarks/bench_live.py DB.h5 --startup [--reps 5] [--chunked DB2.h5] [--baseline-src DIR]
         python benchmarks/bench_live.py out/scott.h5 --paper /tmp/paper.h5 --paper-chunked /tmp/paper_chunked.h5
 """
 from __future__ import annotations
@@ -150,21 +153,28 @@ t0 = time.perf_counter()
 db = gesturedb.open(sys.argv[1])
 s = Stream(db, sample_rate=16000, searcher=Searcher(db, projection=sys.argv[4] == "1"))
 t_open = time.perf_counter() - t0
-step = frame = None
+step = frame = step2 = None
 for a in range(0, x.shape[0], chunk):
     c = s.push(x[a:a + chunk])
     if step is None and s.n_steps > 0:
         step = time.perf_counter() - t0
-    if c.n_frames > 0:
+    if frame is None and c.n_frames > 0:
         frame = time.perf_counter() - t0
+    if s.n_steps > 1:  # the first seam: the seams' accelerations are needed from here on
+        step2 = time.perf_counter() - t0
         break
-print(json.dumps({"open": t_open, "step": step, "frame": frame}))
+s.searcher.pose_projection()  # waits for it where it is built in the background
+print(json.dumps({"open": t_open, "step": step, "frame": frame, "step2": step2,
+                  "projection": time.perf_counter() - t0}))
 """
 
 
-def startup(db: str, wav: str, chunk_ms: float, mmap: bool, projection: bool = True) -> dict:
-    """Seconds from open to the stream made, to its first step and to its first frame, in a fresh process."""
+def startup(db: str, wav: str, chunk_ms: float, mmap: bool, projection: bool = True, src: str | None = None) -> dict:
+    """Seconds from open to the stream made, to its first step, its first frame, its second step and the
+    pose projection ready, in a fresh process (``src``: import gesturedb from this folder instead)."""
     env = dict(os.environ, GESTUREDB_MMAP="1" if mmap else "0")
+    if src:
+        env["PYTHONPATH"] = os.path.abspath(src) + os.pathsep + env.get("PYTHONPATH", "")
     p = subprocess.run([sys.executable, "-c", STARTUP, db, wav, str(chunk_ms), "1" if projection else "0"], env=env,
                        capture_output=True, text=True)
     if p.returncode != 0:
@@ -173,19 +183,24 @@ def startup(db: str, wav: str, chunk_ms: float, mmap: bool, projection: bool = T
 
 
 def report_startup(args) -> None:
-    runs = [(args.db, True, True, "mapped"), (args.db, False, True, "read (GESTUREDB_MMAP=0)")]
+    runs = [(args.db, True, True, None, "mapped"), (args.db, False, True, None, "read (GESTUREDB_MMAP=0)")]
     if args.chunked:
-        runs.append((args.chunked, True, True, "chunked file (read)"))
-    # the pose projection filter (Searcher's default) is built at the first step from every pose row
-    runs += [(args.db, True, False, "mapped, no projection"), (args.db, False, False, "read, no projection")]
+        runs.append((args.chunked, True, True, None, "chunked file (read)"))
+    # the pose projection filter (Searcher's default), built from every pose row
+    runs += [(args.db, True, False, None, "mapped, no projection"), (args.db, False, False, None, "read, no projection")]
+    if args.baseline_src:
+        runs += [(args.db, True, True, args.baseline_src, "baseline src, mapped"),
+                 (args.db, True, False, args.baseline_src, "baseline src, mapped, no proj.")]
     got: dict = {name: [] for *_, name in runs}
     for _ in range(args.reps):  # alternating, so that a change of load falls on every variant
-        for db, m, proj, name in runs:
-            got[name].append(startup(db, args.wav, args.chunk_ms, m, proj))
-    print(f"start-up, median of {args.reps} (s): open + Stream / first step / first frame")
+        for db, m, proj, src, name in runs:
+            got[name].append(startup(db, args.wav, args.chunk_ms, m, proj, src))
+    keys = ("open", "step", "frame", "step2", "projection")
+    print(f"start-up, median of {args.reps} (s): open + Stream / first step / first frame / second step / "
+          "projection ready")
     for name, rs in got.items():
-        med = {k: float(np.median([r[k] for r in rs])) for k in ("open", "step", "frame")}
-        print(f"  {name:<26} {med['open']:.3f} / {med['step']:.3f} / {med['frame']:.3f}")
+        med = {k: float(np.median([r[k] for r in rs])) for k in keys}
+        print(f"  {name:<30} " + " / ".join(f"{med[k]:.3f}" for k in keys))
 
 
 def paper_database(src: str, out: str, frames: int = PAPER_FRAMES, *, chunked: bool = False) -> None:
@@ -268,6 +283,8 @@ def main(argv=None) -> int:
     ap.add_argument("--startup", action="store_true", help="measure the time from open to the first frame")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--chunked", help="--startup: also this database with chunked per-frame arrays")
+    ap.add_argument("--baseline-src", help="--startup: also import gesturedb from this src/ folder (the code before a "
+                                           "change), alternating with this one")
     ap.add_argument("--paper", help="write a paper-scale database here (DB's recordings repeated), then stop")
     ap.add_argument("--paper-chunked", help="also write it with chunked per-frame arrays here")
     ap.add_argument("--paper-frames", type=int, default=PAPER_FRAMES)

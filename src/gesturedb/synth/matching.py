@@ -25,6 +25,7 @@ is a stream fed the whole file, so the two give the same frames.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,6 +63,51 @@ from gesturedb.synth.protocol import EvalSystem, Method
 from gesturedb.synth.repeats import check_guard_s, clear_frames, repeat_stats
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.seams import SEAM_DECAY_S, check_decay_s
+
+
+class _Background:
+    """A value computed once in a daemon thread: :meth:`ready` asks, :meth:`result` waits (and
+    raises what the computation raised). Daemon, so that a process that never needed the value
+    does not wait for it at exit; what it reads (memory-mapped arrays) outlives the database's
+    close (:meth:`gesturedb.db.database.Database._mapped`)."""
+
+    def __init__(self, fn, name: str):
+        self._fn, self._value, self._exc = fn, None, None
+        self._done = threading.Event()
+        threading.Thread(target=self._run, name=name, daemon=True).start()
+
+    def _run(self) -> None:
+        try:
+            self._value = self._fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to whoever waits for the value
+            self._exc = exc
+        finally:
+            self._done.set()
+
+    def ready(self) -> bool:
+        return self._done.is_set()
+
+    def result(self):
+        self._done.wait()
+        if self._exc is not None:
+            raise self._exc
+        return self._value
+
+
+class _Awaited:
+    """A tuple computed by a :class:`_Background`, waited for at its first indexing (``x[0]``)."""
+
+    def __init__(self, job: _Background):
+        self._job = job
+
+    def __getitem__(self, i):
+        return self._job.result()[i]
+
+    def __len__(self) -> int:
+        return len(self._job.result())
+
+    def __iter__(self):
+        return iter(self._job.result())
 
 
 class Searcher:
@@ -104,7 +150,12 @@ class Searcher:
         self.db = db
         self._client, self._parts, self._sharded = scheduler if scheduler is not None else client, parts, None
         self._projection = bool(projection)
-        self._proj = None
+        # the projection and the seams' accelerations, each built once in a thread of its own
+        # (_Background) while the first steps run without them; the lock makes "once" hold when
+        # streams of a server start together
+        self._lock = threading.Lock()
+        self._proj_job = None
+        self._accel_job = None
         self._half = HalfPose(db.pose_features) if half_precision else None
         if segments == "chunks":
             seg = db.chunks
@@ -117,18 +168,45 @@ class Searcher:
         self.seg_len = np.ascontiguousarray(seg.length, dtype=np.int64)
         self.seg_recording = np.asarray(seg.recording)
 
-    def pose_projection(self):
+    def pose_projection(self, *, wait: bool = True):
         """The :class:`gesturedb.search.PoseProjection` of the database's pose
         features, built once; None when ``projection=False`` or when it would
         keep a quarter of the candidates or more (pose features without the
-        structure of motion: the filter would only add work)."""
-        if self._projection and self._proj is None:
-            # binary16 rows: half the stream of float32 rows for a few more exact checks
-            self._proj = PoseProjection(self.db.pose_features, half=True)
-            if self._proj.keep_fraction >= 0.25:
-                self._projection = False
-                self._proj = None
-        return self._proj
+        structure of motion: the filter would only add work).
+
+        The build (a pass over every pose row and a covariance: 4-7 s at paper scale,
+        616k frames) runs in a background thread, started by the first call. ``wait=False``
+        returns None until it is done instead of waiting: the pose steps search without the
+        filter meanwhile, which gives the same results (it is an exact filter), so a stream's
+        first frame does not wait for it.
+        """
+        if not self._projection:
+            return None
+        with self._lock:
+            if self._proj_job is None:
+                self._proj_job = _Background(self._build_projection, "gesturedb-pose-projection")
+        if not (wait or self._proj_job.ready()):
+            return None
+        proj = self._proj_job.result()
+        if proj is None:
+            self._projection = False
+        return proj
+
+    def _build_projection(self):
+        # binary16 rows: half the stream of float32 rows for a few more exact checks
+        proj = PoseProjection(self.db.pose_features, half=True)
+        return proj if proj.keep_fraction < 0.25 else None
+
+    def seam_accelerations(self):
+        """The database's typical accelerations, which a seam's decay is scaled by
+        (:func:`gesturedb.synth.assemble.typical_accelerations`: (J,) rad/s^2 and m/s^2), as
+        a pair that is computed in a background thread (started by the first call) and waited
+        for where it is first indexed: a stream's first seam, at its second step, not its first
+        frame (about 1.2 s at paper scale, from 32k sampled frames; the same bits either way)."""
+        with self._lock:
+            if self._accel_job is None:
+                self._accel_job = _Background(lambda: typical_accelerations(self.db), "gesturedb-seam-accelerations")
+        return _Awaited(self._accel_job)
 
     # -- inputs ---------------------------------------------------------------
     def query_features(self, samples: np.ndarray, sr: int) -> np.ndarray:
@@ -269,12 +347,21 @@ class Searcher:
                                                                scheduler=self._client, parts=self._parts)
                 return self._sharded.search(q, prev, step=step, k=k, preselect=preselect,
                                             allowed=allowed_now, exclude=excl)
-            return rank_sum_search(
+            proj = None
+            if preselect == "pose":
+                # not waiting: until the projection is built in the background the step scans exactly
+                # (0.05 s at paper scale); its build starts after this search, so that a stream's
+                # first step does not share the CPU with it
+                proj = self.pose_projection(wait=False) if self._proj_job is not None else None
+            res = rank_sum_search(
                 db.pose_features, db.audio_features, self.seg_start, self.seg_len, q, prev,
                 step=step, k=k, preselect=preselect, exclude=excl, pose_f16=self._half,
                 allowed=None if allowed_now is None else np.ascontiguousarray(allowed_now),
-                pose_proj=self.pose_projection() if preselect == "pose" else None,
+                pose_proj=proj,
             )
+            if preselect == "pose" and self._proj_job is None:
+                self.pose_projection(wait=False)
+            return res
 
         search.exclude = excl
         return search
@@ -447,7 +534,7 @@ class Stream:
         self._keywords = opts.keywords
         self._words: list[tuple[float, float, str]] = []
         self._asm = PieceAssembler(db.skeleton, db.fps, seam_decay_s=self.seam_decay_s,
-                                   seam_accel=typical_accelerations(db) if self.seam_decay_s > 0 else None,
+                                   seam_accel=self.searcher.seam_accelerations() if self.seam_decay_s > 0 else None,
                                    floor_y=floor_height(db), batch=_whole)
         self._whole = _whole
         self._held: list[tuple] = []  # _whole: the windows (frames, output frame, previous frame), read at finish
