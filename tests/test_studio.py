@@ -118,7 +118,31 @@ def _canvas_pixels(driver, path: Path) -> np.ndarray:
     return img[int(r[1] * k):int(r[3] * k), int(r[0] * k):int(r[2] * k)]
 
 
-def test_studio_streams_the_microphone_and_a_wav(server, browser, speech_wav):
+def _character_glb(db_path, folder: Path, rename: dict) -> Path:
+    """A rigged .glb of the test database's skeleton (gesturedb's own export: a skin, a box per bone),
+    its bones named as the database's joints except those in ``rename``."""
+    import gesturedb
+    from gesturedb.io.gltf import write_glb
+    from gesturedb.motion import Motion, Skeleton
+
+    path = folder / ("partial.glb" if rename else "character.glb")
+    with gesturedb.open(db_path) as db:
+        m = db.motion(db.recordings[0].name, 0.0, 1.0)
+    sk = m.skeleton
+    sk = Skeleton([rename.get(n, n) for n in sk.names], sk.parents, sk.offsets, sk.channel_orders, sk.end_sites,
+                  sk.length_unit_m)
+    write_glb(path, Motion(skeleton=sk, fps=m.fps, rotations=m.rotations, root_positions=m.root_positions))
+    return path
+
+
+def _assert_whole_body_in_view(d) -> None:
+    """Every joint (or character bone) drawn, head top and feet included, is inside the view, clear of its
+    top and bottom edges (normalised device coordinates, -1 bottom to 1 top)."""
+    lo, hi = d.execute_script("return window.studio.bodyExtent()")
+    assert -0.95 < lo < hi < 0.95, f"the body reaches the view's edge: y from {lo:.3f} to {hi:.3f} of [-1, 1]"
+
+
+def test_studio_streams_the_microphone_and_a_wav(server, browser, speech_wav, scott_db_path):
     OUT.mkdir(exist_ok=True)
     d = browser
     d.get(server.http + "/")
@@ -138,6 +162,7 @@ def test_studio_streams_the_microphone_and_a_wav(server, browser, speech_wav):
     moved = np.abs(a - b).sum(axis=2) > 40
     assert moved.mean() > 0.001, f"the body did not move between screenshots 2 s apart ({moved.mean():.5f} of pixels)"
     assert (np.abs(a - rest).sum(axis=2) > 40).mean() > 0.001, "the body is still in its rest pose"
+    _assert_whole_body_in_view(d)
 
     # a toggled mask is in force from a later step, and the timeline shows it
     mask = "left_wrist_height_high"
@@ -158,13 +183,40 @@ def test_studio_streams_the_microphone_and_a_wav(server, browser, speech_wav):
     assert steps and all(s["recording"] for s in steps)
     assert d.execute_script("return window.studio.late") <= 3  # only the start may wait for the first frames
 
-    # a click on a window of the timeline plays its source stretch
+    # a click on a window of the timeline plays its source stretch, with the recording's own speech
+    # (the test database was built from the real files, which are on this machine)
     d.find_element("css selector", ".step").click()
     _wait(d, "window.studio.log.some(l => l.startsWith('playing the source'))", what="source preview")
+    played = d.execute_script("return window.studio.sourcePlayed")
+    assert played["audio"] is True and played["why"] is None and played["frames"] > 0, played
 
-    # a WAV file played through the page streams the same way
+    # the user's character: a .glb of the database's own skeleton (what gesturedb exports) is driven
+    # joint by joint; one with two bones renamed says which joints found no bone
+    char = _character_glb(scott_db_path, Path(speech_wav).parent, rename={})
+    d.find_element("id", "character").send_keys(str(char))
+    c = _wait(d, "window.studio.character", what="the character loaded")
+    assert c["matched"] == c["joints"] and c["unmatched"] == [] and abs(c["scale"] - 1) < 1e-6, c
+    part = _character_glb(scott_db_path, Path(speech_wav).parent, rename={"left_wrist": "hand_l", "head": "noggin"})
+    d.find_element("id", "character").send_keys(str(part))
+    _wait(d, "window.studio.character && window.studio.character.name === 'partial.glb'", what="the second one")
+    c = d.execute_script("return window.studio.character")
+    assert sorted(c["unmatched"]) == ["head", "left_wrist"] and sorted(c["undriven"]) == ["hand_l", "noggin"], c
+    msg = d.find_element("id", "character-msg").text
+    assert "left_wrist" in msg and "head" in msg and f"{c['joints'] - 2} of {c['joints']} joints" in msg, msg
+    d.execute_script("document.getElementById('character-msg').scrollIntoView()")
+    d.save_screenshot(str(OUT / "studio-character-partial.png"))
+    d.find_element("id", "character").send_keys(str(char))
+    _wait(d, "window.studio.character && window.studio.character.name === 'character.glb'", what="back to the full one")
+
+    # a WAV file played through the page streams the same way (here through the character)
     d.find_element("id", "wav").send_keys(str(speech_wav))
     _wait(d, "window.studio.mode === 'speech.wav' && window.studio.framesReceived > 40", what="frames of the WAV")
+    _wait(d, "window.studio.shownFrame > 20", what="the WAV's frames playing")
+    a = _canvas_pixels(d, OUT / "studio-character-1.png")
+    time.sleep(1.5)
+    b = _canvas_pixels(d, OUT / "studio-character-2.png")
+    assert (np.abs(a - b).sum(axis=2) > 40).mean() > 0.001, "the character did not move"
+    _assert_whole_body_in_view(d)
     d.find_element("id", "stop").click()
     _wait(d, "window.studio.done", what="done of the WAV")
     errors = d.execute_script("return window.studio.errors")

@@ -5,7 +5,7 @@
 ``GET  /health``           status, database, whether streaming is available
 ``GET  /skeleton``         joint names, parents, rest offsets (metres), fps
 ``GET  /controls``         the database's control features and saved masks
-``GET  /source``           a stretch of a database recording as a frames message
+``GET  /source``           a stretch of a database recording as a frames message (``format=wav``: its speech)
 ``POST /synth``            a WAV (and a transcript) -> BVH, glb, npz, JSON or frames
 ``GET  /result/{token}``   a finished stream's motion as BVH, glb or npz
 ``WS   /stream``           live: audio and controls in, frames and provenance out
@@ -27,6 +27,7 @@ import secrets
 import tempfile
 import threading
 import time
+import wave
 from collections import OrderedDict
 from urllib.parse import urlsplit
 
@@ -46,12 +47,12 @@ from gesturedb.control.compile import compile_mask
 from gesturedb.control.schedule import parse_schedule
 from gesturedb.errors import GestureDBError, ParameterError, echo
 from gesturedb.io import write_motion
-from gesturedb.io.audio import audio_duration
+from gesturedb.io.audio import audio_duration, read_audio
 from gesturedb.serve import protocol as P
 from gesturedb.serve.batcher import StepScheduler
 from gesturedb.serve.limits import Limits
 from gesturedb.serve.session import StreamSession
-from gesturedb.serve.vendor import find_three
+from gesturedb.serve.vendor import find_gltf_loader, find_three
 from gesturedb.synth.matching import Searcher
 
 log = logging.getLogger("gesturedb.serve")
@@ -284,6 +285,7 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
     limits = limits or Limits()
     state = ServerState(db, limits, stream_factory, batch_steps=batch_steps)
     state.warm_s = state.warm()
+    state.gltf_loader = find_gltf_loader(state.three)  # the studio's own character (a .glb the user picks)
     if state.three is None:
         log.warning("three.js not found (Debian's libjs-three, /usr/share/javascript/three/three.module.js): the "
                     "studio page loads but cannot draw the body; install it with `apt-get install libjs-three`")
@@ -297,6 +299,7 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
             "stream": state.stream_factory is not None, "stream_error": state.stream_unavailable,
             "streams": state.streams, "three_js": state.three is not None, "protocol": P.PROTOCOL_VERSION,
             "batch": None if state.scheduler is None else state.scheduler.stats(),
+            "gltf_loader": state.gltf_loader is not None,
         })
 
     async def skeleton(request: Request):
@@ -314,11 +317,23 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
 
     async def source(request: Request):
         q = request.query_params
+        fmt = q.get("format", "frames")
+        if fmt not in ("frames", "wav"):
+            return _error(400, "bad_format", f"format: expected frames or wav; got {echo(fmt)}")
         try:
             start_s, end_s = float(q.get("start_s", "0")), float(q.get("end_s", "nan"))
             if not (0 <= start_s < end_s and end_s - start_s <= limits.max_source_s):
                 raise ParameterError(f"start_s, end_s: expected 0 <= start_s < end_s <= start_s + "
                                      f"{limits.max_source_s:g}; got {echo(q.get('start_s'))}, {echo(q.get('end_s'))}")
+            db.frame_range(q.get("recording", ""), start_s, end_s)  # the same checks for both formats
+            if fmt == "wav":
+                path = _source_speech_path(db, q.get("recording", ""))
+                if path is None:
+                    rec = db.recording(q.get("recording", ""))
+                    return _error(404, "no_audio", f"recording {rec.name!r}: its speech file {rec.audio_path!r} "
+                                                   f"(as the build was given it) is not on this server")
+                wav = await run_in_threadpool(_speech_stretch, path, start_s, end_s)
+                return Response(wav, media_type="audio/wav")
             motion = await run_in_threadpool(db.motion, q.get("recording", ""), start_s, end_s)
         except (ValueError, GestureDBError) as exc:
             return _error(400, "bad_request", str(exc))
@@ -407,6 +422,13 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
                                      status_code=404)
         return FileResponse(state.three, media_type="text/javascript")
 
+    async def gltf_loader(request: Request):
+        # served where its own import ("../../../build/three.module.js") finds the page's three.js
+        if state.gltf_loader is None:
+            return PlainTextResponse("three.js's GLTFLoader not found: install Debian's libjs-three "
+                                     "(examples/jsm/loaders/GLTFLoader.js)", status_code=404)
+        return FileResponse(state.gltf_loader, media_type="text/javascript")
+
     async def too_large(request: Request, exc: BodyTooLarge):
         return _error(413, "too_big", str(exc))
 
@@ -419,6 +441,9 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
         Route("/synth", synth, methods=["POST"]),
         Route("/result/{token}", result),
         Route("/vendor/three.module.js", three),
+        # Debian's layout under /vendor/three/, so that the loader's relative import is the page's three.js
+        Route("/vendor/three/build/three.module.js", three),
+        Route("/vendor/three/examples/jsm/loaders/GLTFLoader.js", gltf_loader),
         WebSocketRoute("/stream", stream),
         Mount("/studio", StaticFiles(directory=STUDIO_DIR), name="studio"),
     ]
@@ -426,6 +451,31 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
                     middleware=[Middleware(_BodyLimit, limit=limits.max_upload_bytes)])
     app.state.gesturedb = state
     return app
+
+
+def _source_speech_path(db, recording: str) -> str | None:
+    """The speech file of a database recording on this machine, or None: the path the build was given,
+    as is when absolute, else from the server's working folder or the database's folder."""
+    given = db.recording(recording).audio_path
+    if not given:
+        return None
+    tries = [given] if os.path.isabs(given) else [given, os.path.join(os.path.dirname(os.path.abspath(db.path)), given)]
+    return next((p for p in tries if os.path.isfile(p)), None)
+
+
+def _speech_stretch(path: str, start_s: float, end_s: float) -> bytes:
+    """Seconds ``[start_s, end_s)`` of a speech file as a mono PCM16 WAV at the file's own rate (what a
+    browser decodes); the recording's frame ``i`` is at ``i / fps`` s of its speech, as the build paired them."""
+    x, sr = read_audio(path, sr=None)
+    a, b = int(round(start_s * sr)), int(round(end_s * sr))
+    pcm = (np.clip(x[a:b], -1.0, 1.0) * 32767.0).round().astype("<i2")
+    buf = io.BytesIO()
+    with wave.open(buf, "wb") as w:
+        w.setnchannels(1)
+        w.setsampwidth(2)
+        w.setframerate(int(sr))
+        w.writeframes(pcm.tobytes())
+    return buf.getvalue()
 
 
 def _encode_motion(motion, fmt: str, steps) -> bytes:

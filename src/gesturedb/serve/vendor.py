@@ -12,6 +12,19 @@ import os
 THREE_CANDIDATES = ("/usr/share/javascript/three/three.module.js",)
 
 
+#: Where libjs-three puts the ES module of three.js's glTF loader, relative to ``three.module.js``'s folder.
+GLTF_LOADER = os.path.join("examples", "jsm", "loaders", "GLTFLoader.js")
+
+
+def find_gltf_loader(three: str | None) -> str | None:
+    """Path of ``GLTFLoader.js`` (the studio loads a user's character with it) beside the three.js
+    found by :func:`find_three` (Debian: ``/usr/share/javascript/three/examples/jsm/loaders/``), or None."""
+    if three is None:
+        return None
+    path = os.path.join(os.path.dirname(os.path.realpath(three)), GLTF_LOADER)
+    return path if os.path.isfile(path) else None
+
+
 def find_three() -> str | None:
     """Path of ``three.module.js``, or None when no copy is installed."""
     env = os.environ.get("GESTUREDB_THREE_JS")

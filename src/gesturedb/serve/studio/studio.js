@@ -1,13 +1,14 @@
 // The gesturedb studio: speech in (microphone or a WAV file), the body out, in sync;
 // the database's masks as live toggles; a timeline of where every window came from.
-// Everything comes from this server: three.js is Debian's libjs-three (/vendor/three.module.js).
+// Everything comes from this server: three.js and its glTF loader are Debian's libjs-three, under
+// /vendor/three/ in Debian's layout (the loader imports ../../../build/three.module.js: the same module).
 // The protocol is docs/live.md; window.studio exposes the page's state (the browser test reads it).
 
 const $ = (id) => document.getElementById(id);
 const S = (window.studio = {
   health: null, skeleton: null, ready: null, threeLoaded: false, streaming: false, mode: null,
   framesReceived: 0, frames: [], steps: [], controlAcks: [], errors: [], log: [], late: 0, shownFrame: -1,
-  done: null, closed: null, preview: null,
+  done: null, closed: null, preview: null, character: null,
 });
 const JITTER_S = 0.3;       // played this much after the algorithmic latency: room for network and scheduling
 const PX_PER_S = 90;        // timeline scale: a 0.53 s window is 48 px wide
@@ -30,7 +31,7 @@ async function getJSON(path) {
 // ---- three.js -----------------------------------------------------------------------
 let THREE = null;
 try {
-  THREE = await import('/vendor/three.module.js');
+  THREE = await import('/vendor/three/build/three.module.js');
   S.threeLoaded = true;
 } catch (e) {
   banner('three.js is missing on the server (Debian package libjs-three: apt-get install libjs-three), ' +
@@ -97,6 +98,7 @@ function setupScene() {
 const UP = THREE ? new THREE.Vector3(0, 1, 0) : null;
 const _q = THREE ? new THREE.Quaternion() : null, _d = THREE ? new THREE.Vector3() : null;
 function pose(row) {
+  view.lastRow = row;
   // forward kinematics: p[j] = p[parent] + R[parent] offsets[j]; R[j] = R[parent] q[j]
   for (let j = 0; j < J; j++) {
     const o = 3 + 4 * j;
@@ -121,14 +123,125 @@ function pose(row) {
     b.scale.set(b.userData.radius, Math.max(len, 1e-4), b.userData.radius);
     if (len > 1e-6) b.quaternion.setFromUnitVectors(UP, _d.divideScalar(len));
   }
-  // the camera follows the body on the floor, facing it (the speaker faces +z)
-  let y = 0;
-  for (let j = 0; j < J; j++) y += wp[j].y;
-  y /= J;
-  const t = new THREE.Vector3(wp[0].x, y, wp[0].z);
-  view.target = view.target ? view.target.lerp(t, 0.05) : t;
-  view.camera.position.set(view.target.x, view.target.y + 0.15, view.target.z + 4.2);
+  if (view.character) poseCharacter();
+  frameBody();
+}
+
+// The camera faces the body (the speaker faces +z) from as far as its whole height and width need,
+// head to feet with a margin; it follows slowly so that a gesture does not shake the view.
+const _box = THREE ? new THREE.Box3() : null, _p = THREE ? new THREE.Vector3() : null;
+function frameBody() {
+  _box.makeEmpty();
+  if (view.character) for (const n of view.character.framed) _box.expandByPoint(n.getWorldPosition(_p));
+  else for (let j = 0; j < J; j++) _box.expandByPoint(wp[j]);
+  const lo = _box.min, hi = _box.max;
+  const head = 0.12;                                   // the head's top above its highest joint
+  const h = hi.y + head - Math.min(lo.y, 0) + 0.2;     // and the floor under the feet: 0.1 m each side
+  const w = Math.max(hi.x - lo.x, 0.6) + 0.3;
+  const tanHalf = Math.tan((view.camera.fov * Math.PI) / 360);
+  const dist = Math.max(h / 2 / tanHalf, w / 2 / (tanHalf * view.camera.aspect)) + (hi.z - lo.z) / 2;
+  const t = new THREE.Vector3((lo.x + hi.x) / 2, (Math.min(lo.y, 0) - 0.1 + hi.y + head + 0.1) / 2, (lo.z + hi.z) / 2);
+  if (!view.target) { view.target = t; view.dist = dist; } else { view.target.lerp(t, 0.05); view.dist += 0.05 * (dist - view.dist); }
+  view.camera.position.set(view.target.x, view.target.y, view.target.z + view.dist);
   view.camera.lookAt(view.target);
+}
+
+// the drawn body's vertical extent on screen, head top and floor under the feet included
+// (normalised device coordinates, -1 bottom to 1 top): the browser test checks the framing with it
+S.bodyExtent = () => {
+  const pts = view.character ? view.character.framed.map((n) => n.getWorldPosition(new THREE.Vector3()))
+                             : wp.map((p) => p.clone());
+  const top = pts.reduce((a, p) => (p.y > a.y ? p : a), pts[0]).clone();
+  top.y += 0.12;
+  const ys = pts.concat([top]).map((p) => p.clone().project(view.camera).y);
+  return [Math.min(...ys), Math.max(...ys)];
+};
+
+// ---- your character ----------------------------------------------------------------------------
+// A rigged .glb (or a .gltf with its buffers inside) read in this page, never sent anywhere. Its nodes
+// are matched to the database's joints by name (case, separators and a "prefix:" such as mixamorig:
+// ignored); a matched node takes its joint's world rotation relative to the rest pose (both rigs'
+// rest poses must point the limbs the same way, as gesturedb's own .glb and a T-pose do), the others
+// keep their rest pose, and the root moves with the database's root scaled by the hips' heights.
+const normName = (n) => String(n).toLowerCase().replace(/^.*[:|]/, '').replace(/[^a-z0-9]/g, '');
+async function loadCharacter(file) {
+  if (!THREE || !view.renderer) throw new Error('three.js is missing on the server, so nothing can be drawn');
+  let GLTFLoader;
+  try {
+    ({ GLTFLoader } = await import('/vendor/three/examples/jsm/loaders/GLTFLoader.js'));
+  } catch (e) {
+    throw new Error("three.js's glTF loader is not on the server (Debian's libjs-three: " +
+                    'examples/jsm/loaders/GLTFLoader.js), so a character cannot be read');
+  }
+  const data = await file.arrayBuffer();
+  const gltf = await new Promise((resolve, reject) => new GLTFLoader().parse(data, '', resolve, (e) =>
+    reject(new Error(`${e.message || e} (a .gltf must hold its buffers inside: pick the .glb)`))));
+  const root = gltf.scene;
+  root.traverse((n) => { n.frustumCulled = false; });  // a skinned mesh's bounds are those of its rest pose
+  root.updateMatrixWorld(true);
+  const order = [];                                    // every node, parents first
+  root.traverse((n) => { if (n !== root) order.push(n); });
+  const byName = new Map();
+  for (const n of order) {                             // a skin's bones first, then other nodes of that name
+    const k = normName(n.name || '');
+    if (k && (!byName.has(k) || (n.isBone && !byName.get(k).isBone))) byName.set(k, n);
+  }
+  const joint = new Map(), unmatched = [];
+  skel.names.forEach((name, j) => {
+    const n = byName.get(normName(name));
+    if (n && !joint.has(n)) joint.set(n, j); else unmatched.push(name);
+  });
+  if (!joint.size) {
+    const some = [...byName.values()].filter((n) => n.isBone).slice(0, 8).map((n) => n.name);
+    throw new Error(`none of the database's joints (${skel.names.slice(0, 6).join(', ')}, ...) names a node of ` +
+                    `${file.name}` + (some.length ? ` (its bones: ${some.join(', ')}, ...)` : ' (it has no bones)'));
+  }
+  const undriven = order.filter((n) => n.isBone && !joint.has(n)).map((n) => n.name);
+  const nodes = order.map((n) => ({
+    n, j: joint.has(n) ? joint.get(n) : -1, restLocal: n.quaternion.clone(),
+    restWorld: n.getWorldQuaternion(new THREE.Quaternion()), world: new THREE.Quaternion(),
+  }));
+  const index = new Map(nodes.map((x, i) => [x.n, i]));
+  const hips = nodes.find((x) => x.j === 0);
+  const dbHipY = skel.offsets[0][1];
+  const charHipY = hips ? hips.n.getWorldPosition(new THREE.Vector3()).y : 0;
+  view.character = {
+    root, nodes, index, hips, rootWorld: root.getWorldQuaternion(new THREE.Quaternion()),
+    scale: hips && dbHipY > 0 && charHipY > 0 ? charHipY / dbHipY : 1,
+    framed: nodes.filter((x) => x.j >= 0).map((x) => x.n), name: file.name,
+  };
+  if (view.characterRoot) view.scene.remove(view.characterRoot);
+  view.characterRoot = root;
+  view.scene.add(root);
+  for (const m of view.joints.concat(view.bones)) if (m) m.visible = false;
+  S.character = { name: file.name, matched: joint.size, joints: J, unmatched, undriven,
+                  scale: view.character.scale };
+  return S.character;
+}
+function showSkeleton() {
+  if (view.characterRoot) view.scene.remove(view.characterRoot);
+  view.character = null; view.characterRoot = null; S.character = null;
+  for (const m of view.joints.concat(view.bones)) if (m) m.visible = true;
+}
+const _inv = THREE ? new THREE.Quaternion() : null, _v = THREE ? new THREE.Vector3() : null;
+function poseCharacter() {
+  const c = view.character;
+  for (const x of c.nodes) {
+    const parentW = x.n.parent === c.root ? c.rootWorld : c.nodes[c.index.get(x.n.parent)].world;
+    if (x.j >= 0) {
+      x.world.copy(wq[x.j]).multiply(x.restWorld);     // the joint's rotation from rest, on the node's rest
+      x.n.quaternion.copy(_inv.copy(parentW).inverse().multiply(x.world));
+    } else {
+      x.n.quaternion.copy(x.restLocal);
+      x.world.copy(parentW).multiply(x.restLocal);
+    }
+  }
+  if (c.hips) {
+    const par = c.hips.n.parent;
+    par.updateWorldMatrix(true, false);
+    c.hips.n.position.copy(par.worldToLocal(_v.copy(wp[0]).multiplyScalar(c.scale)));
+  }
+  c.root.updateMatrixWorld(true);
 }
 
 function restRow() {
@@ -137,6 +250,36 @@ function restRow() {
   for (let j = 0; j < J; j++) row[3 + 4 * j] = 1;
   return row;
 }
+const listed = (names) => (names.length > 24 ? `${names.slice(0, 24).join(', ')} and ${names.length - 24} more`
+                                             : names.join(', '));
+$('character').addEventListener('change', async (ev) => {
+  const file = ev.target.files[0];
+  ev.target.value = '';
+  if (!file) return;
+  const msg = $('character-msg');
+  try {
+    const c = await loadCharacter(file);
+    if (S.shownFrame >= 0 && S.frames[S.shownFrame]) pose(S.frames[S.shownFrame]); else if (view.lastRow) pose(view.lastRow);
+    msg.className = c.unmatched.length ? 'warn' : '';
+    msg.textContent = `${file.name}: ${c.matched} of ${c.joints} joints of the database drive its bones` +
+      (c.unmatched.length ? `; joints with no bone of that name (not shown): ${listed(c.unmatched)}` : '') +
+      (c.undriven.length ? `; its bones no joint names (kept in their rest pose): ${listed(c.undriven)}` : '');
+    $('skeleton-view').disabled = false;
+    log(`character ${file.name}: ${c.matched} of ${c.joints} joints matched`);
+  } catch (e) {
+    msg.className = 'warn';
+    msg.textContent = `${file.name}: ${e.message}`;
+    log(`character ${file.name}: ${e.message}`, true);
+  }
+});
+$('skeleton-view').addEventListener('click', () => {
+  showSkeleton();
+  $('skeleton-view').disabled = true;
+  $('character-msg').className = '';
+  $('character-msg').textContent = "the body is drawn as the database's skeleton";
+  if (view.lastRow) pose(view.lastRow);
+});
+
 if (THREE) {
   try { setupScene(); pose(restRow()); } catch (e) { banner(`The 3D view could not start (${e.message}).`); THREE = null; }
 }
@@ -216,14 +359,31 @@ function addStep(st) {
   } else lastCtl = null;
 }
 
+// The stretch of the recording a step copied, with the recording's own speech when the server has
+// its file (the database keeps the path the build was given); the body follows the sound's clock.
 async function playSource(st) {
   try {
     const q = new URLSearchParams({ recording: st.recording, start_s: st.source_start_s, end_s: st.source_end_s });
-    const r = await fetch(`/source?${q}`);
+    const [r, a] = await Promise.all([fetch(`/source?${q}`), fetch(`/source?${q}&format=wav`)]);
     if (!r.ok) throw new Error((await r.json()).message);
     const f = parseFrames(await r.arrayBuffer());
-    S.preview = { rows: f.rows, t0: performance.now() };
-    log(`playing the source: ${st.recording} ${Number(st.source_start_s).toFixed(2)}-${Number(st.source_end_s).toFixed(2)} s`);
+    const what = `${st.recording} ${Number(st.source_start_s).toFixed(2)}-${Number(st.source_end_s).toFixed(2)} s`;
+    let sound = null, why = null;
+    if (a.ok) {
+      try {
+        if (!ctx) ctx = new AudioContext();
+        await ctx.resume();
+        sound = ctx.createBufferSource();
+        sound.buffer = await ctx.decodeAudioData(await a.arrayBuffer());
+        sound.connect(ctx.destination);
+      } catch (e) { sound = null; why = `its speech could not be played here (${e.message})`; }
+    } else why = (await a.json()).message;
+    if (S.preview && S.preview.sound) try { S.preview.sound.stop(); } catch (e) { /* ended */ }
+    const at = sound ? ctx.currentTime + 0.05 : null;
+    if (sound) sound.start(at);
+    S.preview = { rows: f.rows, t0: performance.now() + (sound ? 50 : 0), sound, at };
+    S.sourcePlayed = { recording: st.recording, frames: f.rows.length, audio: !!sound, why };
+    log(`playing the source: ${what}` + (sound ? ', with its speech' : `, without sound: ${why}`));
   } catch (e) { log(`source: ${e.message}`, true); }
 }
 
@@ -407,7 +567,8 @@ function frame() {
   requestAnimationFrame(frame);
   let row = null;
   if (S.preview) {
-    const i = Math.floor(((performance.now() - S.preview.t0) / 1000) * fps);
+    const p = S.preview;
+    const i = Math.max(0, Math.floor((p.sound ? ctx.currentTime - p.at : (performance.now() - p.t0) / 1000) * fps));
     if (i < S.preview.rows.length) row = S.preview.rows[i]; else S.preview = null;
   }
   if (!row && S.t0 != null && ctx) {
