@@ -87,6 +87,10 @@ class _Background:
     def ready(self) -> bool:
         return self._done.is_set()
 
+    def wait(self) -> None:
+        """Until the computation has ended (a value or an exception)."""
+        self._done.wait()
+
     def result(self):
         self._done.wait()
         if self._exc is not None:
@@ -193,6 +197,11 @@ class Searcher:
         return proj
 
     def _build_projection(self):
+        accel = self._accel_job
+        if accel is not None:
+            # one background job at a time, in the order they are needed: the accelerations (a stream's
+            # first seam waits for them) before the projection (no step waits for it)
+            accel.wait()
         # binary16 rows: half the stream of float32 rows for a few more exact checks
         proj = PoseProjection(self.db.pose_features, half=True)
         return proj if proj.keep_fraction < 0.25 else None
