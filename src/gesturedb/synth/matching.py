@@ -130,7 +130,8 @@ class Searcher:
     projection : bool
         Pose steps stream a 24-column projection of the pose features in
         binary16 (:class:`gesturedb.search.PoseProjection` with ``half=True``,
-        built at the first pose search): identical results, an eighth of the
+        built in a background thread after the first pose search; the steps
+        scan exactly until it is ready): identical results, an eighth of the
         bytes per step. On by
         default (skipped when it would keep a quarter of the candidates or
         more); takes precedence over ``half_precision``.
