@@ -48,6 +48,7 @@ from gesturedb.synth.assemble import (
     window_piece,
     window_pieces,
 )
+from gesturedb.synth.background import Awaited, Background
 from gesturedb.synth.inputs import (
     check_frames,
     speech_samples,  # noqa: F401  (its old home; every method's now)
@@ -63,55 +64,6 @@ from gesturedb.synth.protocol import EvalSystem, Method
 from gesturedb.synth.repeats import check_guard_s, clear_frames, repeat_stats
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.seams import SEAM_DECAY_S, check_decay_s
-
-
-class _Background:
-    """A value computed once in a daemon thread: :meth:`ready` asks, :meth:`result` waits (and
-    raises what the computation raised). Daemon, so that a process that never needed the value
-    does not wait for it at exit; what it reads (memory-mapped arrays) outlives the database's
-    close (:meth:`gesturedb.db.database.Database._mapped`)."""
-
-    def __init__(self, fn, name: str):
-        self._fn, self._value, self._exc = fn, None, None
-        self._done = threading.Event()
-        threading.Thread(target=self._run, name=name, daemon=True).start()
-
-    def _run(self) -> None:
-        try:
-            self._value = self._fn()
-        except BaseException as exc:  # noqa: BLE001 - handed to whoever waits for the value
-            self._exc = exc
-        finally:
-            self._done.set()
-
-    def ready(self) -> bool:
-        return self._done.is_set()
-
-    def wait(self) -> None:
-        """Until the computation has ended (a value or an exception)."""
-        self._done.wait()
-
-    def result(self):
-        self._done.wait()
-        if self._exc is not None:
-            raise self._exc
-        return self._value
-
-
-class _Awaited:
-    """A tuple computed by a :class:`_Background`, waited for at its first indexing (``x[0]``)."""
-
-    def __init__(self, job: _Background):
-        self._job = job
-
-    def __getitem__(self, i):
-        return self._job.result()[i]
-
-    def __len__(self) -> int:
-        return len(self._job.result())
-
-    def __iter__(self):
-        return iter(self._job.result())
 
 
 class Searcher:
@@ -155,9 +107,8 @@ class Searcher:
         self.db = db
         self._client, self._parts, self._sharded = scheduler if scheduler is not None else client, parts, None
         self._projection = bool(projection)
-        # the projection and the seams' accelerations, each built once in a thread of its own
-        # (_Background) while the first steps run without them; the lock makes "once" hold when
-        # streams of a server start together
+        # the projection and the seams' accelerations, each built once in a Background thread while
+        # the first steps run without them (the lock: once, also when a server's streams start together)
         self._lock = threading.Lock()
         self._proj_job = None
         self._accel_job = None
@@ -189,7 +140,7 @@ class Searcher:
             return None
         with self._lock:
             if self._proj_job is None:
-                self._proj_job = _Background(self._build_projection, "gesturedb-pose-projection")
+                self._proj_job = Background(self._build_projection, "gesturedb-pose-projection")
         if not (wait or self._proj_job.ready()):
             return None
         proj = self._proj_job.result()
@@ -215,8 +166,8 @@ class Searcher:
         frame (about 1.2 s at paper scale, from 32k sampled frames; the same bits either way)."""
         with self._lock:
             if self._accel_job is None:
-                self._accel_job = _Background(lambda: typical_accelerations(self.db), "gesturedb-seam-accelerations")
-        return _Awaited(self._accel_job)
+                self._accel_job = Background(lambda: typical_accelerations(self.db), "gesturedb-seam-accelerations")
+        return Awaited(self._accel_job)
 
     # -- inputs ---------------------------------------------------------------
     def query_features(self, samples: np.ndarray, sr: int) -> np.ndarray:
