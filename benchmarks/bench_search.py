@@ -1,10 +1,11 @@
 """Benchmark of the rank-sum search at the paper's scale (run by hand, never by pytest).
 
-Database: 9,624 segments x 64 frames = 615,936 frames, pose features of 96
-values, audio features of 14 values, window N = 8 (the same sizes as Habibie
+Database: 9,624 segments x 64 frames = 615,936 frames, pose features of 120
+values (schema 4: frames f-4 .. f+4; "--layout past" for the 96 values of schema 3,
+f .. f-6), audio features of 14 values, window N = 8 (the same sizes as Habibie
 et al. 2022, Sec. 3.3), fixed seed. Pose data: by default ("--data motion")
 synthetic motion with the structure of real pose features (see motion_pose:
-smooth joints stacked over f, f-2, f-4, f-6 in a turning body frame); with
+smooth joints stacked over the layout's frames in a turning body frame); with
 "--data random" i.i.d. Gaussian rows, which have no structure for the
 PoseProjection filter to use (it then keeps most rows: the worst case).
 Prints, in one run:
@@ -17,7 +18,7 @@ Prints, in one run:
     gesturedb's Searcher uses by default);
 (b) the same step written in vectorised numpy (what a user would write) and
     a check that it picks the same window;
-(c) the floors: the time to read the 96-wide pose matrix once at the memory
+(c) the floors: the time to read the DP-wide pose matrix once at the memory
     bandwidth measured now (a streaming sum in C++ on 1 and 2 threads, and
     numpy's sum), and the 24-wide projection once (C++, 2 threads); and the
     floor of an exact step of this design, even one whose filter named every
@@ -53,16 +54,20 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # floors.py, bes
 from floors import load as load_floors  # noqa: E402
 from gesturedb import _core, search  # noqa: E402
 
-M, L, DP, DA, N = 9624, 64, 96, 14, 8
+M, L, DA, N = 9624, 64, 14, 8
+#: stacked frame offsets of each layout (gesturedb.features.pose: schema 4 centred, schema 3 past)
+LAYOUTS = {"centred": (-4, -2, 0, 2, 4), "past": (0, -2, -4, -6)}
+LAGS = LAYOUTS["centred"]
+DP = 24 * len(LAGS)
 FPS, SECONDS = 15, 24
 
 
 def motion_pose(rng, F, n_rec=150):
-    """(F, 96) pose features with the structure of real ones: 8 joints x 3
+    """(F, DP) pose features with the structure of real ones: 8 joints x 3
     coordinates moving smoothly (6 latent Gaussian-filtered signals, about
     5 frames of correlation like the wrists at 15 fps, mapped to the 24
     coordinates, plus 1 cm of jitter),
-    stacked at f, f-2, f-4, f-6 clamped to the recording's first frame, each in
+    stacked at the frames f + LAGS clamped to the recording's ends, each in
     the current frame's slowly turning body frame (as gesturedb.features.pose
     does), over n_rec recordings."""
     from scipy.ndimage import gaussian_filter1d
@@ -81,8 +86,8 @@ def motion_pose(rng, F, n_rec=150):
         yaw = gaussian_filter1d(rng.standard_normal(n), 20.0) * 2.0
         c, sn = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
         f = np.arange(n)
-        for k in range(4):
-            p = x[np.maximum(f - 2 * k, 0)].reshape(n, 8, 3)
+        for k, lag in enumerate(LAGS):
+            p = x[np.clip(f + lag, 0, n - 1)].reshape(n, 8, 3)
             px, pz = p[..., 0], p[..., 2]
             q = np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1)
             out[a:b, 24 * k:24 * (k + 1)] = q.reshape(n, 24)
@@ -160,7 +165,12 @@ def main(argv=None):
                     help="interleaved runs of the batch without and with the projection in (e) (median)")
     ap.add_argument("--data", choices=("motion", "random"), default="motion",
                     help="synthetic pose data: structured motion (default) or i.i.d. Gaussian")
+    ap.add_argument("--layout", choices=tuple(LAYOUTS), default="centred",
+                    help="pose feature frames: centred (schema 4, 120 values, default) or past (schema 3, 96)")
     args = ap.parse_args(argv)
+    global LAGS, DP
+    LAGS = LAYOUTS[args.layout]
+    DP = 24 * len(LAGS)
 
     threads = _core.default_threads()
     floors = load_floors()
@@ -236,7 +246,7 @@ def main(argv=None):
     floor24 = res["floor 24-wide 2 thr"][0]
     print(f"  PoseProjection: step {1e3 * step_proj:.2f} ms = today's pose step / {step_pose / step_proj:.2f} "
           f"(1 thread: / {res['step pose 1 thread'][0] / res['step pose Proj 1 thr'][0]:.2f}); "
-          f"step / 24-wide floor {step_proj / floor24:.2f}; 96-wide floor / 24-wide floor "
+          f"step / 24-wide floor {step_proj / floor24:.2f}; {DP}-wide floor / 24-wide floor "
           f"{res['floor C++ 2 threads'][0] / floor24:.2f}")
     print(f"  PoseProjection step returns the same StepResult: {same_as_exact(pose_proj=proj)}")
     step16, floor16 = res["step pose Proj f16"][0], res["floor 24 f16 2 thr"][0]
