@@ -630,3 +630,19 @@ def test_the_virtual_dataset_mappings_themselves_are_checked(db_copy, tmp_path, 
         h5.create_dataset("frames/local_rotations", data=np.zeros((1, 1, 4), dtype=np.float32))
     with pytest.raises(SchemaError, match=r"frames/local_rotations: expected a virtual dataset over the 2 shard"):
         gesturedb.open(rep.index)
+
+
+def test_upgrading_a_sharded_index_of_an_older_schema_says_how(db_copy):
+    """An index's frames are in its shards: `gesturedb upgrade` refuses it with what to do instead, and
+    leaves every file as it was."""
+    from gesturedb.db.upgrade import upgrade
+
+    rep = shard_database(db_copy, 2)
+    for f in (rep.index, *rep.shards):
+        with h5py.File(f, "r+") as h5:
+            h5.attrs["schema_version"] = 3
+    before = {f: open(f, "rb").read() for f in (rep.index, *rep.shards)}
+    with pytest.raises(SchemaError, match=r"index of a sharded database of schema 3; upgrade the single database "
+                                          r"it was sharded from .*gesturedb shard"):
+        upgrade(rep.index)
+    assert {f: open(f, "rb").read() for f in before} == before

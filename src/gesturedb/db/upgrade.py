@@ -51,7 +51,14 @@ def file_version(path: str | os.PathLike) -> int:
     except OSError as exc:
         raise InputFileError(name, f"not an HDF5 file ({exc})") from None
     with h5:
-        return schema.check_version(h5, name, upgradable=True)
+        got = schema.check_version(h5, name, upgradable=True)
+        if got != schema.SCHEMA_VERSION and schema.SHARDS_ATTR in h5.attrs:
+            # the frames are in the shard files, each a part of one database: upgrading them one by one
+            # could leave a mix of versions; the single file they came from is upgraded in one edit
+            raise SchemaError(name, f"{schema.SHARDS_ATTR}: this is the index of a sharded database of schema "
+                                    f"{got}; upgrade the single database it was sharded from (`gesturedb upgrade "
+                                    f"DB.h5`) and shard it again (`gesturedb shard`), or rebuild it")
+        return got
 
 
 def upgrade(path: str | os.PathLike, *, progress: bool = False, scheduler=None) -> dict:
