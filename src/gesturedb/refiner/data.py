@@ -104,6 +104,8 @@ class TrainingData:
         Global first frame of every window.
     ks : ndarray [shape=(W,)], int64
         The k used for each fake.
+    val : ndarray [shape=(W,)], bool, optional
+        Validation windows (:func:`split_windows`): never sampled for training. None: all train.
     """
 
     frame_audio: np.ndarray
@@ -112,6 +114,17 @@ class TrainingData:
     joints: np.ndarray
     starts: np.ndarray
     ks: np.ndarray
+    val: np.ndarray | None = None
+
+    @property
+    def train_windows(self) -> np.ndarray:
+        """(n,) int64 indices of the windows training samples from."""
+        return np.flatnonzero(~self.val) if self.val is not None else np.arange(self.n_windows)
+
+    @property
+    def val_windows(self) -> np.ndarray:
+        """(n,) int64 indices of the validation windows (empty without a split)."""
+        return np.flatnonzero(self.val) if self.val is not None else np.zeros(0, np.int64)
 
     @property
     def n_windows(self) -> int:
@@ -165,13 +178,13 @@ def frame_arrays(db, joints: np.ndarray, *, chunk: int = 1 << 15) -> tuple[np.nd
 
 
 # -- the cache: <checkpoint>.data.h5 ---------------------------------------------------
-CACHE_FORMAT = 2  # 1: every window's audio, real and fake in one npz (before 2026-11)
+CACHE_FORMAT = 3  # 1: one npz (before 2026-11); 2: no validation split (before issue 40)
 
 
-def cache_settings(db, *, seed: int, window: int, stride: int) -> dict:
+def cache_settings(db, *, seed: int, window: int, stride: int, val_fraction: float = 0.0) -> dict:
     """What a cache must have been made with to be reused."""
     return {"format": CACHE_FORMAT, "identity": database_identity(db), "seed": int(seed),
-            "window": int(window), "stride": int(stride)}
+            "window": int(window), "stride": int(stride), "val_fraction": float(val_fraction)}
 
 
 def load_cache(path, db, settings: dict) -> TrainingData | None:
@@ -187,17 +200,22 @@ def load_cache(path, db, settings: dict) -> TrainingData | None:
     attrs = arrayfile.read_attrs(path)
     if attrs is None or any(attrs.get(k) != v for k, v in settings.items()):
         return None
-    got = arrayfile.read(path, ("starts", "ks", "joints"), "knn")
+    got = arrayfile.read(path, ("starts", "ks", "joints", "val"), "knn")
     if got is None:
         return None
     arrays, knn = got
     starts, ks, joints = (arrays[k].astype(np.int64, copy=False) for k in ("starts", "ks", "joints"))
+    val = arrays["val"].astype(bool, copy=False)
     shape = (len(starts), 6 * len(joints), int(settings["window"]))
-    if knn.shape != shape or knn.dtype != np.float32 or ks.shape != starts.shape:
+    if knn.shape != shape or knn.dtype != np.float32 or ks.shape != starts.shape or val.shape != starts.shape:
         return None
     _check_cache(path, db, knn, starts, ks, joints, int(settings["window"]))
+    want = split_windows(db, starts, float(settings["val_fraction"]), window=int(settings["window"]))
+    if not np.array_equal(val, want):
+        raise InputFileError(path, "val: the validation windows differ from the split of the database's "
+                                   "recordings; delete the file and the training data is made again")
     audio, real = frame_arrays(db, joints)
-    return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks)
+    return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks, val=val)
 
 
 def _check_cache(path: str, db, knn, starts: np.ndarray, ks: np.ndarray, joints: np.ndarray, window: int,
@@ -304,6 +322,41 @@ def window_starts(db, *, window: int = WINDOW, stride: int = STRIDE) -> np.ndarr
     return np.concatenate(out).astype(np.int64)
 
 
+def held_out_from(db, val_fraction: float) -> np.ndarray:
+    """(R,) int64: the first frame (within each recording) of its held-out last ``val_fraction``.
+
+    The cut is taken from the end of each recording's *performance*: a mirrored copy
+    (``NAME~mirror``) has its source's length, so it loses the same stretch, and no
+    validation motion reaches training reflected. ``val_fraction`` 0 holds nothing back
+    (every cut is the recording's length).
+    """
+    f = float(val_fraction)
+    if not (np.isfinite(f) and 0 <= f < 1):
+        raise ParameterError(f"val_fraction: expected a fraction in [0, 1), got {val_fraction!r}")
+    perf = _same_performance(db)
+    n = np.array([r.n_frames for r in db.recordings], dtype=np.int64)
+    shortest = {p: n[perf == p].min() for p in np.unique(perf)}  # a performance's copies: one cut
+    return np.array([n[i] if f == 0 else int(np.floor(shortest[p] * (1 - f))) for i, p in enumerate(perf)],
+                    dtype=np.int64)
+
+
+def split_windows(db, starts: np.ndarray, val_fraction: float, *, window: int = WINDOW) -> np.ndarray:
+    """(W,) bool: which windows validate (they lie wholly in their recording's held-out end,
+    :func:`held_out_from`). :func:`usable_windows` drops the windows that straddle a cut."""
+    cut = held_out_from(db, val_fraction)
+    rec = np.asarray(db.frame_recording[starts], dtype=np.int64)
+    first = np.array([r.start_frame for r in db.recordings], dtype=np.int64)
+    return (np.asarray(starts, dtype=np.int64) - first[rec]) >= cut[rec]
+
+
+def usable_windows(db, starts: np.ndarray, val_fraction: float, *, window: int = WINDOW) -> np.ndarray:
+    """(W,) bool: windows wholly before their recording's cut (training) or wholly after it (validation)."""
+    cut = held_out_from(db, val_fraction)
+    rec = np.asarray(db.frame_recording[starts], dtype=np.int64)
+    a = np.asarray(starts, dtype=np.int64) - np.array([r.start_frame for r in db.recordings], dtype=np.int64)[rec]
+    return (a + window <= cut[rec]) | (a >= cut[rec])
+
+
 def _same_performance(db) -> np.ndarray:
     """(R,) index of the performance each recording belongs to (a mirrored copy shares its source's)."""
     base = [r.name.removesuffix("~mirror") for r in db.recordings]
@@ -311,8 +364,15 @@ def _same_performance(db) -> np.ndarray:
     return np.array([ids[b] for b in base], dtype=np.int64)
 
 
-def exclusion(db, starts: np.ndarray, *, window: int = WINDOW) -> np.ndarray:
-    """(W, M) bool: segments each window may not copy (its neighbourhood in its own performance)."""
+def exclusion(db, starts: np.ndarray, *, window: int = WINDOW, held_out: np.ndarray | None = None,
+              val: np.ndarray | None = None) -> np.ndarray:
+    """(W, M) bool: segments each window may not copy (its neighbourhood in its own performance).
+
+    With ``held_out`` ((R,) first held-out frame per recording, :func:`held_out_from`) and
+    ``val`` ((W,) bool), a training window (``~val``) may not copy any segment that reaches
+    into a held-out stretch either: its fake, the generator's input, then holds no
+    validation frame. Validation windows may copy training frames, as synthesis does.
+    """
     seg = db.chunks
     perf = _same_performance(db)
     recs = db.recordings
@@ -325,12 +385,17 @@ def exclusion(db, starts: np.ndarray, *, window: int = WINDOW) -> np.ndarray:
     lo, hi = w_a - window, w_a + 2 * window
     same = perf[seg_rec][None, :] == perf[w_rec][:, None]
     overlap = (seg_b[None, :] > lo[:, None]) & (seg_a[None, :] < hi[:, None])
-    return np.ascontiguousarray(same & overlap)
+    out = same & overlap
+    if held_out is not None:
+        into = seg_b > np.asarray(held_out, dtype=np.int64)[seg_rec]  # (M,) the segment reaches a held-out frame
+        train = ~np.asarray(val, dtype=bool) if val is not None else np.ones(len(starts), bool)
+        out |= train[:, None] & into[None, :]
+    return np.ascontiguousarray(out)
 
 
 def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int = STRIDE,
                        progress=None, scheduler=None, parts: int = 2, chunk: int | None = None,
-                       workers: int = 1, cache=None) -> TrainingData:
+                       workers: int = 1, cache=None, val_fraction: float = 0.0) -> TrainingData:
     """Search the database for its own audio and pair every window with its k-NN synthesis.
 
     With a Dask ``scheduler`` (a ``distributed.Client``, ``"local:N"`` or ``"tcp://HOST:PORT"``,
@@ -348,12 +413,24 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
     (through a temporary sibling renamed at the end, :func:`load_cache` reads it)
     and the result reads them from it: nothing of size windows x channels x frames
     is held in memory. Without it they are returned in memory.
+
+    ``val_fraction``: the last fraction of every recording (and of its mirrored copy) is
+    held back for validation (:func:`split_windows`); windows that straddle the cut are
+    left out, and training windows' fakes copy nothing from a held-out stretch
+    (:func:`exclusion`), so no validation frame reaches training.
     """
 
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ParameterError(f"workers: expected an int >= 1; got {workers!r}")
     rng = np.random.default_rng(seed)
     starts = window_starts(db, window=window, stride=stride)
+    starts = starts[usable_windows(db, starts, val_fraction, window=window)]
+    val = split_windows(db, starts, val_fraction, window=window)
+    held = held_out_from(db, val_fraction) if val_fraction > 0 else None
+    if val_fraction > 0 and (val.all() or not val.any()):
+        raise ParameterError(f"val_fraction: {val_fraction:g} leaves {int((~val).sum())} training and "
+                             f"{int(val.sum())} validation windows of {window} frames in {db.path}; expected some "
+                             f"of each (recordings of at least {window} frames on each side of the cut)")
     W = len(starts)
     audio_f = np.asarray(db.audio_features)
     queries = [np.ascontiguousarray(audio_f[a:a + window]) for a in starts]
@@ -389,7 +466,8 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
         for a in range(0, W, per):
             b = min(W, a + per)
             for i, res in enumerate(search_chunk(queries[a:b], init[a:b], ks[a:b],
-                                                 exclusion(db, starts[a:b], window=window)), a):
+                                                 exclusion(db, starts[a:b], window=window, held_out=held,
+                                                           val=val[a:b])), a):
                 frame_maps[i] = res.frame_map()
                 seams.append(np.asarray(res.out_frames, dtype=np.int64))
             if progress is not None:
@@ -404,14 +482,15 @@ def make_training_data(db, *, seed: int = 0, window: int = WINDOW, stride: int =
         knn = np.empty(shape, np.float32)
         _assemble_all(db, frame_maps, seams, joints, knn, progress=progress, scheduler=scheduler, workers=workers)
         audio, real = frame_arrays(db, joints)
-        return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks)
+        return TrainingData(frame_audio=audio, frame_real=real, knn=knn, joints=joints, starts=starts, ks=ks,
+                            val=val)
     cache = os.fspath(cache)
-    settings = cache_settings(db, seed=seed, window=window, stride=stride)
+    settings = cache_settings(db, seed=seed, window=window, stride=stride, val_fraction=val_fraction)
     content = ("fakes of the gesturedb refiner's training windows: knn[w] is the k-NN synthesis (channels x "
                "frames) of the audio of frames starts[w] + 0..window-1")
     # a temporary sibling renamed on success, removed on any failure, Ctrl-C or SIGTERM
     arrayfile.write(cache, attrs={**settings, "content": content},
-                    arrays={"starts": starts, "ks": ks, "joints": joints}, block="knn", shape=shape,
+                    arrays={"starts": starts, "ks": ks, "joints": joints, "val": val}, block="knn", shape=shape,
                     dtype=np.float32,
                     fill=lambda knn: _assemble_all(db, frame_maps, seams, joints, knn, progress=progress,
                                                    scheduler=scheduler, workers=workers))
