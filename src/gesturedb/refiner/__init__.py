@@ -1,14 +1,19 @@
 """The cGAN refiner (Habibie et al. 2022, Sec. 3.2): smooths and resynchronises k-NN output.
 
 The only part of gesturedb that imports torch; it is an optional extra
-(``pip install '.[refiner]'``, which pins the CPU build ``torch==2.13.0``).
+(``pip install '.[refiner]'``, which pins the CPU build ``torch==2.13.0``; training
+also runs on a CUDA GPU with a CUDA build of torch, ``--device``).
 Importing this package does not import torch: its modules do, when used.
 
 =====================  =====================================================
 ``representation``     motion <-> network channels (6D local rotations; numpy)
-``model``              generator and discriminator (torch)
-``data``               training windows: real pairs and k-NN fakes (cached)
-``train``              WGAN-GP training, checkpoints, resume; :class:`Refiner`
+``model``              generator, discriminator, critic augmentation (torch)
+``data``               training windows: real pairs and k-NN fakes (cached),
+                       the validation split
+``validation``         validation metrics, score and verdict (numpy)
+``checkpoint``         settings (:class:`TrainConfig`), reading checkpoints
+``train``              WGAN-GP training on CPU or CUDA, validation, resume;
+                       :class:`Refiner`
 =====================  =====================================================
 
     from gesturedb.refiner import load_refiner

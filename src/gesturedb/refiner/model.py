@@ -16,6 +16,8 @@ Deviations from the paper, each for a stated reason:
   windows; at T = 64 this is a fixed pooling).
 - Any T: the input is padded (edge values repeated) to a multiple of the
   generator's pooling factor 8 and the output cropped back.
+- Channels of ``frozen`` joints (the legs, which the assembly planted and
+  refining puts back) get no correction: the critic never sees them either.
 """
 from __future__ import annotations
 
@@ -44,7 +46,8 @@ class Generator(nn.Module):
         Channels of the hidden blocks.
     """
 
-    def __init__(self, gesture_channels: int, *, audio_channels: int = AUDIO_CHANNELS, width: int = 128):
+    def __init__(self, gesture_channels: int, *, audio_channels: int = AUDIO_CHANNELS, width: int = 128,
+                 frozen=None):
         super().__init__()
         self.gesture_channels = gesture_channels
         c_in = audio_channels + gesture_channels
@@ -53,8 +56,14 @@ class Generator(nn.Module):
         self.out = nn.Conv1d(width, gesture_channels, 3, padding=1)
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
+        # fixed, derived from the checkpoint's settings: buffers outside the state dict
+        keep = torch.ones(gesture_channels)
+        if frozen is not None:
+            keep[torch.as_tensor(frozen, dtype=torch.long)] = 0.0
+        self.register_buffer("keep", keep[:, None], persistent=False)
 
-    def forward(self, audio: torch.Tensor, gesture: torch.Tensor) -> torch.Tensor:
+    def correction(self, audio: torch.Tensor, gesture: torch.Tensor) -> torch.Tensor:
+        """(B, C_g, T): what the generator adds to ``gesture`` (zero on frozen channels)."""
         T = gesture.shape[-1]
         pad = (-T) % POOL_FACTOR
         a = F.pad(audio, (0, pad), mode="replicate") if pad else audio
@@ -68,7 +77,10 @@ class Generator(nn.Module):
             h = blk(h)
             if i % 2 == 0 and i < 6:  # three upsamplings undo the three poolings
                 h = F.interpolate(h, scale_factor=2, mode="linear", align_corners=False)
-        return gesture + self.out(h)[..., :T]
+        return self.out(h)[..., :T] * self.keep
+
+    def forward(self, audio: torch.Tensor, gesture: torch.Tensor) -> torch.Tensor:
+        return gesture + self.correction(audio, gesture)
 
 
 class Discriminator(nn.Module):
@@ -109,3 +121,50 @@ def gradient_penalty(critic, real_audio: torch.Tensor, real: torch.Tensor, fake_
     ga, gx = torch.autograd.grad(score.sum(), (a, x), create_graph=True)
     norm = torch.sqrt(ga.flatten(1).pow(2).sum(1) + gx.flatten(1).pow(2).sum(1))
     return ((norm - 1) ** 2).mean()
+
+
+def augment(audio: torch.Tensor, gesture: torch.Tensor, gen: torch.Generator, *, crop: float,
+            warp: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random crops with small time warps of (audio, gesture) pairs, for the critic.
+
+    Each sequence of the batch is resampled (linear interpolation, differentiable) from a
+    random stretch of ``crop * T * s`` frames to ``round(crop * T)`` frames, ``s`` uniform in
+    ``[1 - warp, 1 + warp]`` (capped at T): audio and gesture together, so they stay
+    aligned. With 264 windows the critic learns every real window by heart (its gap grew
+    on training windows and stayed at 0 on validation ones); shifted, shorter and slightly
+    faster or slower copies of them are many more windows. The random numbers come from
+    ``gen`` (on the CPU, so a run resumes on another device with the same draws).
+
+    Parameters
+    ----------
+    audio : (B, A, T), gesture : (B, C, T) tensors on one device
+    crop : float in (0, 1]; warp : float in [0, 1)
+    """
+    B, _, T = gesture.shape
+    L = max(2, min(T, int(round(crop * T))))
+    if L == T and warp == 0:
+        return audio, gesture
+    u = torch.rand(B, 2, generator=gen)
+    src = torch.clamp(L * (1 + warp * (2 * u[:, 0] - 1)), max=float(T))  # source frames spanned
+    start = u[:, 1] * (T - src)
+    pos = start[:, None] + torch.arange(L, dtype=torch.float32)[None] * ((src - 1) / (L - 1))[:, None]
+    pos = pos.clamp(0, T - 1).to(gesture.device)
+    i0 = pos.floor().long().clamp(max=T - 2)
+    w = (pos - i0)[:, None]
+
+    def take(x):
+        idx = i0[:, None].expand(-1, x.shape[1], -1)
+        return torch.gather(x, 2, idx) * (1 - w) + torch.gather(x, 2, idx + 1) * w
+
+    return take(audio), take(gesture)
+
+
+def high_band_energy(x: torch.Tensor, fps: float, cutoff_hz: float) -> torch.Tensor:
+    """(B, C): energy of each channel of ``x`` (B, C, T) at and above ``cutoff_hz`` (Parseval: the sum of
+    squares of the high-passed signal), its mean over time removed."""
+    spec = torch.fft.rfft(x - x.mean(dim=-1, keepdim=True), dim=-1)
+    f = torch.fft.rfftfreq(x.shape[-1], d=1.0 / fps).to(x.device)
+    w = (f >= cutoff_hz).to(x.dtype) * 2.0  # one-sided spectrum: every bin but 0 and Nyquist counts twice
+    if x.shape[-1] % 2 == 0:
+        w[-1] = w[-1] / 2
+    return (spec.real ** 2 + spec.imag ** 2).mul(w).sum(-1) / x.shape[-1]

@@ -1,12 +1,34 @@
-"""WGAN-GP training of the refiner, checkpoints that resume exactly, and applying a trained refiner.
+"""WGAN-GP training of the refiner, validation, checkpoints that resume exactly, and applying it.
 
 Loss (Habibie et al. 2022, Eq. 1-3): the critic D minimises
 ``D(fake) - D(real) + w3 * GP``; the generator G minimises
-``w1 * L1(G_kNN, G(G_kNN)) - w2 * D(G(G_kNN))`` with ``w1, w2, w3 = 0.1, 1, 100``,
-Adam at learning rate 1e-4. ``n_critic`` = 5 critic updates per generator
-update, with Adam betas (0.5, 0.9): the WGAN-GP paper's settings, without which
-the critic does not keep up and the generator's signal is noise (the gesture
-paper does not give them).
+``w1 * L1(G_kNN, G(G_kNN)) - w2 * D(G(G_kNN))``, Adam at learning rate 1e-4.
+``n_critic`` = 5 critic updates per generator update, with Adam betas (0.5, 0.9):
+the WGAN-GP paper's settings (the gesture paper does not give them).
+
+The recipe (``recipe`` 2; docs/refiner.md gives what each part changed, measured):
+
+- **L1 in gradient units.** The L1 term is summed over a window's channels and frames
+  and divided by ``sqrt(channels x frames)``: its gradient at the generator's output
+  then has norm 1 per window (when the correction is non-zero everywhere), the norm
+  the gradient penalty holds the critic's gradient at. ``w1`` is the ratio of the two
+  pulls: 1 = equal. The paper's mean over 20,736 elements made the adversarial
+  gradient about 1,000x the ``0.1 * L1`` one; the ratio is logged (``ratio``).
+- **No added jitter**: ``w_hf`` times the energy the output adds above ``cutoff_hz``
+  (3 Hz) over the input's, relative to the input's (:func:`model.high_band_energy`;
+  one-sided: removing high frequencies, smoothing a seam, costs nothing). The
+  critic's input gradient is broadband, and corrections that followed it doubled the
+  jerk held out. Gesture strokes carry their power below 3 Hz at any frame rate.
+- **Frozen legs** (:class:`model.Generator`): refining puts them back as they were.
+- **Critic augmentation**: crops and time warps (:func:`model.augment`) of reals and
+  fakes alike, in the critic's and the generator's steps.
+- **Reals and fakes processed alike**: fakes are assembled as synthesis assembles
+  them; the same assembly of a real (contiguous) window changes only the legs (foot
+  IK; the upper body within 1e-15), so the critic sees no leg channel.
+- **Validation** (:mod:`gesturedb.refiner.validation`): every ``val_every``
+  iterations the generator refines the held-back windows; the best generator by
+  the validation score is kept in the checkpoint beside the last one (the last
+  resumes, the best is applied), with the verdict against the identity.
 
 Checkpoints hold everything a run needs to continue bit for bit: both models,
 both optimisers, the iteration, the losses so far, the state of the batch
@@ -24,21 +46,34 @@ training run that would replace a checkpoint without ``resume`` or ``overwrite``
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 import signal
+import sys
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from gesturedb.errors import GestureDBError, InputFileError, ParameterError, echo, echo_list
+from gesturedb.errors import GestureDBError, InputFileError, ParameterError
 from gesturedb.io.atomic import atomic_open
 from gesturedb.io.joints import leg_joints
 from gesturedb.motion import Motion
+from gesturedb.refiner.checkpoint import (
+    FORMAT,
+    LIMITS,
+    RECIPE,
+    TrainConfig,
+    _first_line,
+    _is_int,
+    _load_state,
+    _non_finite,
+    _plain,
+    _Recorded,
+    check_compatible,
+    read_checkpoint,
+)
 from gesturedb.refiner.data import (
-    STRIDE,
     WINDOW,
     TrainingData,
     cache_settings,
@@ -47,83 +82,62 @@ from gesturedb.refiner.data import (
     load_cache,
     make_training_data,
 )
-from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty
+from gesturedb.refiner.model import Discriminator, Generator, augment, gradient_penalty, high_band_energy
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
+from gesturedb.refiner.validation import Validator, format_metrics, verdict
 from gesturedb.threads import available_cpus
 
-FORMAT = 1
-
-#: the largest settings a run or a checkpoint may have, checked before any model is built
-#: (a checkpoint saying width 30000 asked for 10.8 GB); far above anything trained here
-LIMITS = {"iterations": 10**9, "batch": 4096, "n_critic": 100, "width": 1024, "stride": 10**6}
-#: joints in a checkpoint's skeleton, and audio channels (the database's 28), at most
-MAX_JOINTS = 1024
-MAX_AUDIO_CHANNELS = 1024
+__all__ = ["FORMAT", "LIMITS", "RECIPE", "Refiner", "TrainConfig", "Trainer", "check_output", "read_checkpoint",
+           "resolve_device", "train"]
+DEVICES = ("auto", "cpu", "cuda")
 
 
-def _is_int(v) -> bool:
-    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+def resolve_device(device: str) -> str:
+    """``"auto"`` -> ``"cuda"`` when torch sees a GPU, else ``"cpu"``; ``"cuda"`` without one is refused."""
+    if device not in DEVICES:
+        raise ParameterError(f"device: expected one of {', '.join(DEVICES)}, got {device!r}")
+    has = torch.cuda.is_available()
+    if device == "cuda" and not has:
+        raise ParameterError("device: cuda asked for, but torch sees no CUDA GPU (torch "
+                             f"{torch.__version__}; the default install is the CPU build); use --device cpu or auto")
+    return "cuda" if device == "cuda" or (device == "auto" and has) else "cpu"
+
+def make_generator(cfg: dict, features: dict, joints, channels: int, audio_channels: int) -> Generator:
+    """The generator of a run's settings: recipe 2 freezes the legs."""
+    width = int(cfg.get("width", TrainConfig.width))
+    if int(cfg.get("recipe", 1)) < 2:
+        return Generator(channels, audio_channels=audio_channels, width=width)
+    return Generator(channels, audio_channels=audio_channels, width=width, frozen=frozen_channels(features, joints))
 
 
-def _is_real(v) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+def jitter_cutoff_hz(config: "TrainConfig", fps: float) -> float | None:
+    """The jitter penalty's cut-off, or None when it lies at or past the Nyquist frequency (or is 0)."""
+    c = float(config.cutoff_hz)
+    return c if 0 < c < float(fps) / 2 else None
 
 
-def _first_line(exc: BaseException) -> str:
-    """The first non-empty line of an exception's message, or its type (an empty message crashed the handler)."""
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    return f"{type(exc).__name__}: {lines[0][:200]}" if lines else type(exc).__name__
-
-
-@dataclass
-class TrainConfig:
-    """Hyper-parameters (paper values where the paper gives them)."""
-
-    iterations: int = 2000
-    batch: int = 32
-    lr: float = 1e-4
-    betas: tuple = (0.5, 0.9)
-    n_critic: int = 5
-    w1: float = 0.1
-    w2: float = 1.0
-    w3: float = 100.0
-    width: int = 64  # 128 trains 1.5x slower on 2 CPU cores for no gain we could measure in minutes
-    seed: int = 0
-    checkpoint_every_s: float = 120.0
-    # frames between training windows (the paper's 5): every frame is in window / stride
-    # windows; a larger stride samples fewer windows, and the fakes' cache (83 kB a window)
-    # and the self-search shrink with it, for databases far past the paper's 11 hours
-    stride: int = STRIDE
-
-    def check(self) -> "TrainConfig":
-        for name, hi in LIMITS.items():
-            v = getattr(self, name)
-            if not _is_int(v) or not 1 <= v <= hi:
-                raise ParameterError(f"{name}: expected an integer from 1 to {hi}, got {v!r}")
-        if not (_is_real(self.lr) and 0 < self.lr <= 1):
-            raise ParameterError(f"lr: expected a learning rate in (0, 1], got {self.lr!r}")
-        b = self.betas
-        if not (isinstance(b, (tuple, list)) and len(b) == 2 and all(_is_real(x) and 0 <= x < 1 for x in b)):
-            raise ParameterError(f"betas: expected two numbers in [0, 1), got {b!r}")
-        for name in ("w1", "w2", "w3"):
-            v = getattr(self, name)
-            if not (_is_real(v) and np.isfinite(v) and v >= 0):
-                raise ParameterError(f"{name}: expected a finite loss weight >= 0, got {v!r}")
-        if not (_is_int(self.seed) and 0 <= self.seed < 2**63 - 1):
-            raise ParameterError(f"seed: expected an integer from 0 to {2**63 - 2}, got {self.seed!r}")
-        if not (_is_real(self.checkpoint_every_s) and self.checkpoint_every_s >= 0):
-            raise ParameterError(f"checkpoint_every_s: expected a number of seconds >= 0, got {self.checkpoint_every_s!r}")
-        return self
+def frozen_channels(features: dict, joints) -> np.ndarray:
+    """(k,) int64: the gesture channels of leg joints (6 per joint), which refining puts back as they were."""
+    names, parents = features.get("joint_names") or [], features.get("parents") or []
+    legs = set(int(j) for j in leg_joints(names, parents)) if len(names) == len(parents) and names else set()
+    pos = [i for i, j in enumerate(np.asarray(joints).tolist()) if j in legs]
+    return (6 * np.asarray(pos, dtype=np.int64)[:, None] + np.arange(6)).ravel()
 
 
 @dataclass
 class Trainer:
-    """One training run over fixed training windows."""
+    """One training run over fixed training windows, on ``device`` ("cpu" or "cuda").
+
+    ``validator`` (:class:`gesturedb.refiner.validation.Validator`, optional) measures the
+    generator on the validation windows; :meth:`validate` keeps the best generator.
+    """
 
     data: TrainingData
     config: TrainConfig
     identity: str
     features: dict
+    device: str = "cpu"
+    validator: Validator | None = None
     G: Generator = field(init=False)
     D: Discriminator = field(init=False)
     iteration: int = 0
@@ -131,29 +145,50 @@ class Trainer:
 
     def __post_init__(self):
         self.config.check()
+        if self.config.recipe != RECIPE:
+            raise ParameterError(f"recipe: a run trains with recipe {RECIPE}, got {self.config.recipe}")
         torch.manual_seed(self.config.seed)
         C = self.data.channels
         A = self.data.audio_channels
-        self.G = Generator(C, audio_channels=A, width=self.config.width)
-        self.D = Discriminator(C, audio_channels=A, width=self.config.width)
+        cfg = dict(self.config.__dict__)
+        self.dev = torch.device(self.device)
+        self.G = make_generator(cfg, self.features, self.data.joints, C, A).to(self.dev)
+        frozen = set(frozen_channels(self.features, self.data.joints).tolist())
+        free = [c for c in range(C) if c not in frozen]
+        self.free = torch.tensor(free, dtype=torch.long, device=self.dev)
+        self.fps = float(self.features.get("fps", 0) or 0)
+        self.cutoff_hz = jitter_cutoff_hz(self.config, self.fps)
+        self.D = Discriminator(len(free), audio_channels=A, width=self.config.width).to(self.dev)
         self.opt_g = torch.optim.Adam(self.G.parameters(), lr=self.config.lr, betas=tuple(self.config.betas))
         self.opt_d = torch.optim.Adam(self.D.parameters(), lr=self.config.lr, betas=tuple(self.config.betas))
-        self.gen = torch.Generator().manual_seed(self.config.seed + 1)
+        self.gen = torch.Generator().manual_seed(self.config.seed + 1)  # CPU: the same draws on any device
+        self.train_idx = self.data.train_windows
+        if self.train_idx.size == 0:
+            raise ParameterError("training data: expected at least one training window, got none")
+        self.val_log: list = []   # [iteration, score, jerk, band..., hellinger, critic_gap, hf]
+        self.best: dict | None = None  # {"iteration", "metrics", "generator" (CPU state dict)}
 
     # -- one iteration ----------------------------------------------------------
     def _batch(self):
-        W = self.data.n_windows
-        i = torch.randint(0, W, (self.config.batch,), generator=self.gen).numpy()
-        j = torch.randint(0, W, (self.config.batch,), generator=self.gen).numpy()  # real windows, independent of the fakes
+        n = len(self.train_idx)
+        i = self.train_idx[torch.randint(0, n, (self.config.batch,), generator=self.gen).numpy()]
+        j = self.train_idx[torch.randint(0, n, (self.config.batch,), generator=self.gen).numpy()]  # independent reals
         d = self.data  # sliced from the per-frame arrays and the fakes' memory map, batch by batch
-        return tuple(torch.from_numpy(x) for x in (d.audio(i), d.fake(i), d.audio(j), d.real(j)))
+        return tuple(torch.from_numpy(x).to(self.dev) for x in (d.audio(i), d.fake(i), d.audio(j), d.real(j)))
+
+    def _critic_view(self, audio, gesture):
+        """What the critic sees of a batch: the free channels, cropped and warped."""
+        c = self.config
+        return augment(audio, gesture.index_select(1, self.free), self.gen, crop=c.crop, warp=c.warp)
 
     def critic_step(self) -> float:
         c = self.config
         a_f, knn, a_r, real = self._batch()
         with torch.no_grad():
             fake = self.G(a_f, knn)
-        eps = torch.rand(c.batch, 1, 1, generator=self.gen)
+        a_f, fake = self._critic_view(a_f, fake)
+        a_r, real = self._critic_view(a_r, real)
+        eps = torch.rand(c.batch, 1, 1, generator=self.gen).to(self.dev)
         gp = gradient_penalty(self.D, a_r, real, a_f, fake, eps)
         loss = self.D(a_f, fake).mean() - self.D(a_r, real).mean() + c.w3 * gp
         self.opt_d.zero_grad()
@@ -161,27 +196,69 @@ class Trainer:
         self.opt_d.step()
         return float(loss.detach())
 
-    def generator_step(self) -> tuple[float, float]:
+    def generator_step(self) -> tuple[float, float, float]:
+        """One generator update; returns (L1 in gradient units, adversarial loss, gradient ratio).
+
+        The ratio is ``|| d(w2 adv + jitter)/d out || / || d(w1 L1)/d out ||`` at the generator's
+        output (NaN while the correction is zero everywhere, where L1 has no gradient)."""
         c = self.config
         a_f, knn, _, _ = self._batch()
         out = self.G(a_f, knn)
-        l1 = (out - knn).abs().mean()
-        adv = -self.D(a_f, out).mean()
-        loss = c.w1 * l1 + c.w2 * adv
+        corr = (out - knn).detach().index_select(1, self.free)
+        n = corr.shape[1] * corr.shape[2]
+        l1 = corr.abs().sum(dim=(1, 2)).mean() / n ** 0.5
+        adv = -self.D(*self._critic_view(a_f, out)).mean()
+        loss = c.w2 * adv
+        if self.cutoff_hz is not None and c.w_hf > 0:
+            e_out = high_band_energy(out.index_select(1, self.free), self.fps, self.cutoff_hz).sum(1)
+            e_in = high_band_energy(knn.index_select(1, self.free), self.fps, self.cutoff_hz).sum(1)
+            loss = loss + c.w_hf * (torch.relu(e_out - e_in) / (e_in + 1e-8)).mean()
+        g_adv, = torch.autograd.grad(loss, out)
+        g_l1 = torch.zeros_like(out)
+        g_l1[:, self.free] = c.w1 * torch.sign(corr) / (n ** 0.5 * out.shape[0])
         self.opt_g.zero_grad()
-        loss.backward()
+        out.backward(g_adv + g_l1)
         self.opt_g.step()
-        return float(l1.detach()), float(adv.detach())
+        norm_l1 = float(g_l1.norm())
+        ratio = float(g_adv.norm()) / norm_l1 if norm_l1 > 0 else float("nan")
+        return float(l1), float(adv.detach()), ratio
 
     def step(self) -> dict:
         self.G.train()
         self.D.train()
         d = [self.critic_step() for _ in range(self.config.n_critic)]
-        l1, adv = self.generator_step()
+        l1, adv, ratio = self.generator_step()
         self.iteration += 1
-        rec = {"iteration": self.iteration, "critic": float(np.mean(d)), "l1": l1, "adv": adv}
+        rec = {"iteration": self.iteration, "critic": float(np.mean(d)), "l1": l1, "adv": adv, "ratio": ratio}
         self.history.append(rec)
         return rec
+
+    # -- validation -------------------------------------------------------------
+    def validate(self) -> dict | None:
+        """Refine the validation windows with the generator of now; log the metrics and keep the
+        generator if it is the best so far. None without a validator."""
+        v = self.validator
+        if v is None:
+            return None
+        self.G.eval()
+        with torch.no_grad():
+            a = torch.from_numpy(v.audio).to(self.dev)
+            out = self.G(a, torch.from_numpy(v.knn).to(self.dev))
+            real = torch.from_numpy(v.real).to(self.dev).index_select(1, self.free)
+            gap = float(self.D(a, real).mean() - self.D(a, out.index_select(1, self.free)).mean())
+        m = v.measure(out.cpu().numpy(), critic_gap=gap)
+        self.val_log.append([self.iteration, m["score"], m["jerk"], *m["band"], m["hellinger"], m["critic_gap"],
+                             m["hf"]])
+        if self.iteration > 0 and (self.best is None or m["score"] < self.best["metrics"]["score"]):
+            self.best = {"iteration": self.iteration, "metrics": m,
+                         "generator": {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}}
+        return m
+
+    def verdict(self) -> dict | None:
+        """The verdict so far (:func:`gesturedb.refiner.validation.verdict`), None before any validation."""
+        if self.validator is None or self.best is None:
+            return None
+        return verdict(self.validator.identity["score"], self.best["metrics"]["score"], self.best["iteration"])
 
     # -- checkpoints ------------------------------------------------------------
     def state(self) -> dict:
@@ -194,7 +271,8 @@ class Trainer:
             "opt_g": self.opt_g.state_dict(),
             "opt_d": self.opt_d.state_dict(),
             "iteration": self.iteration,
-            "history": [[h["iteration"], h["critic"], h["l1"], h["adv"]] for h in self.history],
+            "history": [[h["iteration"], h["critic"], h["l1"], h["adv"], h.get("ratio", float("nan"))]
+                        for h in self.history],
             "sampler_state": self.gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             "config": cfg,
@@ -203,7 +281,25 @@ class Trainer:
             "joints": torch.from_numpy(self.data.joints),
             "data": f"own windows ({WINDOW} frames, stride {self.config.stride}); fakes exclude the window's "
                     f"neighbourhood ({WINDOW} frames each side) in its own recording and its mirrored copy",
+            **self._validation_state(),
         }
+
+    def _validation_state(self) -> dict:
+        if self.validator is None:
+            return {}
+        v = self.validator
+        out = {"validation": {
+            "fraction": float(self.config.val_fraction), "every": int(self.config.val_every),
+            "windows": int(v.n), "train_windows": int(len(self.train_idx)),
+            "capture_jerk_m_s3": float(v.capture["jerk"]), "identity": _plain(v.identity),
+            "log": [[float(x) for x in row] for row in self.val_log],
+            "best": None if self.best is None else {"iteration": int(self.best["iteration"]),
+                                                    "metrics": _plain(self.best["metrics"])},
+            "verdict": self.verdict(),
+        }}
+        if self.best is not None:
+            out["best_generator"] = self.best["generator"]
+        return out
 
     def save(self, path) -> None:
         """Write the checkpoint to a temporary sibling renamed over ``path`` once whole.
@@ -233,206 +329,19 @@ class Trainer:
         _load_state(self.opt_g, ck["opt_g"], path, "opt_g", self.G)
         _load_state(self.opt_d, ck["opt_d"], path, "opt_d", self.D)
         self.iteration = int(ck["iteration"])
-        self.history = [dict(zip(("iteration", "critic", "l1", "adv"), h)) for h in ck["history"]]
+        self.history = [dict(zip(("iteration", "critic", "l1", "adv", "ratio"), h)) for h in ck["history"]]
+        val = ck.get("validation")
+        if val is not None and self.validator is not None:
+            self.val_log = [list(r) for r in val["log"]]
+            if val.get("best") is not None and "best_generator" in ck:
+                self.best = {"iteration": int(val["best"]["iteration"]), "metrics": dict(val["best"]["metrics"]),
+                             "generator": ck["best_generator"]}
         for field_, put in (("sampler_state", self.gen.set_state), ("torch_rng", torch.set_rng_state)):
             try:
                 put(ck[field_])
             except (RuntimeError, TypeError, ValueError) as exc:
                 raise InputFileError(path, f"{field_}: expected a saved random generator state, got one it "
                                            f"refused ({_first_line(exc)})") from None
-
-
-class _Recorded:
-    """A binary file whose write errors are kept: torch.save turns them into ``unexpected pos``."""
-
-    def __init__(self, f):
-        self.f = f
-        self.error: OSError | None = None
-
-    def write(self, b) -> int:
-        try:
-            return self.f.write(b)
-        except OSError as exc:
-            self.error = exc
-            raise
-
-    def flush(self) -> None:
-        self.f.flush()
-
-
-def _non_finite(tensors: dict) -> str | None:
-    """``"<name>: expected finite values, got nan"`` for the first floating tensor with a non-finite value."""
-    for name, t in tensors.items():
-        if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            v = t.detach().flatten()[~torch.isfinite(t.detach().flatten())][0].item()
-            return f"{name}: expected finite values, got {v}"
-    return None
-
-
-def _load_state(target, state: dict, path, field_: str, model=None) -> None:
-    """``target.load_state_dict(state)`` (a module, or an optimiser of ``model``), any refusal one line."""
-    try:
-        target.load_state_dict(state)
-    except (RuntimeError, KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
-        text = " ".join(str(exc).split())[:300] or type(exc).__name__
-        raise InputFileError(path, f"{field_}: does not fit the model of the checkpoint's settings ({text})") from None
-    if model is not None:  # an optimiser: its moments must have the shapes of the parameters
-        for p, st in target.state.items():
-            for k, v in st.items():
-                if isinstance(v, torch.Tensor) and k != "step" and v.shape != p.shape:
-                    raise InputFileError(path, f"{field_}: state {k} has shape {tuple(v.shape)}, expected "
-                                               f"{tuple(p.shape)} (the parameter's)")
-
-
-#: what each entry of a checkpoint is; ``apply`` needs the first five, ``train --resume`` all
-_ENTRIES = {"format": int, "generator": dict, "config": dict, "features": dict, "joints": torch.Tensor,
-            "discriminator": dict, "opt_g": dict, "opt_d": dict, "iteration": int, "history": list,
-            "sampler_state": torch.Tensor, "torch_rng": torch.Tensor, "identity": str}
-_FOR_APPLY = ("format", "generator", "config", "features", "joints")
-
-
-def read_checkpoint(path, *, training: bool = False) -> dict:
-    """Load a checkpoint without executing code from it (``weights_only=True``) and check it.
-
-    Every entry a refiner needs (``training``: also those a resumed run needs) is checked
-    for presence, type, bounds (:data:`LIMITS`) and finite values before anything is built
-    from it; any problem is one :class:`InputFileError` naming the file and the entry.
-    """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise InputFileError(path, "no such refiner checkpoint")
-    _check_archive(path)
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many kinds for a damaged or foreign file
-        raise InputFileError(path, f"expected a gesturedb refiner checkpoint, could not read it ({_first_line(exc)})") from None
-    fmt = ck.get("format") if isinstance(ck, dict) else None
-    if not (_is_int(fmt) and fmt == FORMAT):
-        got = (repr(fmt) if _is_int(fmt) or fmt is None else type(fmt).__name__) if isinstance(ck, dict) \
-            else type(ck).__name__
-        raise InputFileError(path, f"format: expected a gesturedb refiner checkpoint of format {FORMAT}, got {got[:100]}")
-    _check_entries(ck, path, training)
-    return ck
-
-
-def _check_archive(path: str) -> None:
-    """A checkpoint is a zip archive (torch's format) whose members fit in the file: refused before
-    torch reads it, so a header claiming terabytes allocates nothing."""
-    import zipfile
-
-    size = os.path.getsize(path)
-    if size == 0:
-        raise InputFileError(path, "expected a gesturedb refiner checkpoint, got an empty file (0 bytes)")
-    try:
-        with zipfile.ZipFile(path) as z:
-            members = z.infolist()
-    except Exception as exc:  # noqa: BLE001 - zipfile raises several kinds for a damaged archive
-        raise InputFileError(path, f"expected a gesturedb refiner checkpoint (a torch zip archive), could not read "
-                                   f"it ({_first_line(exc)})") from None
-    for m in members:
-        if m.compress_type != zipfile.ZIP_STORED or m.file_size > size:
-            raise InputFileError(path, f"{m.filename[:100]}: expected an uncompressed member of at most the file's "
-                                       f"{size} bytes, got {m.file_size} bytes (compression {m.compress_type})")
-
-
-def _check_entries(ck: dict, path: str, training: bool) -> None:
-    def bad(field_, problem):
-        return InputFileError(path, f"{field_}: {problem}")
-
-    for key in (_ENTRIES if training else _FOR_APPLY):
-        if key not in ck:
-            raise bad(key, "missing; expected a gesturedb refiner checkpoint with this entry")
-        kind, v = _ENTRIES[key], ck[key]
-        if not isinstance(v, kind) or (kind is int and isinstance(v, bool)):
-            raise bad(key, f"expected {kind.__name__}, got {type(v).__name__}")
-    # settings, before anything is sized from them
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    cfg = ck["config"]
-    unknown = sorted(map(str, set(cfg) - known))
-    if unknown:
-        raise bad("config", f"expected settings among {sorted(known)}, got {unknown[0][:50]!r}")
-    try:
-        TrainConfig(**{k: tuple(v) if k == "betas" and isinstance(v, list) else v for k, v in cfg.items()}).check()
-    except ParameterError as exc:
-        raise bad("config", str(exc)) from None
-    fe = ck["features"]
-    names = fe.get("joint_names")
-    if not (isinstance(names, list) and 1 <= len(names) <= MAX_JOINTS and all(isinstance(n, str) for n in names)):
-        raise bad("features.joint_names", f"expected 1 to {MAX_JOINTS} joint names, got {type(names).__name__}")
-    parents = fe.get("parents")
-    if not (isinstance(parents, list) and len(parents) == len(names)
-            and all(_is_int(q) and -1 <= q < len(names) for q in parents)):
-        raise bad("features.parents", f"expected {len(names)} parent indices from -1 to {len(names) - 1}")
-    if not (_is_real(fe.get("fps")) and np.isfinite(fe["fps"]) and 0 < fe["fps"] <= 1000):
-        raise bad("features.fps", f"expected a frame rate in (0, 1000], got {fe.get('fps')!r:.50}")
-    for key, hi in (("audio_channels", MAX_AUDIO_CHANNELS), ("n_mfcc", MAX_AUDIO_CHANNELS)):
-        if not (_is_int(fe.get(key)) and 1 <= fe[key] <= hi):
-            raise bad(f"features.{key}", f"expected an integer from 1 to {hi}, got {fe.get(key)!r:.50}")
-    j = ck["joints"]
-    if j.dtype != torch.int64 or j.ndim != 1 or not 1 <= j.numel() <= len(names):
-        raise bad("joints", f"expected 1 to {len(names)} joint indices (int64, one axis), got {j.dtype} "
-                            f"{tuple(j.shape)}")
-    if not (bool((j[1:] > j[:-1]).all()) and 0 <= int(j[0]) and int(j[-1]) < len(names)):
-        raise bad("joints", f"expected ascending joint indices from 0 to {len(names) - 1}, got "
-                            f"{j[:8].tolist()}{'...' if j.numel() > 8 else ''}")
-    weights = ("generator", "discriminator") if training else ("generator",)
-    for key in weights:
-        if not all(isinstance(k, str) and isinstance(t, torch.Tensor) for k, t in ck[key].items()):
-            raise bad(key, "expected a state dict (names -> tensors)")
-        problem = _non_finite(ck[key])
-        if problem:
-            raise bad(key, problem)
-    if training:
-        if not 0 <= ck["iteration"] <= LIMITS["iterations"]:
-            raise bad("iteration", f"expected an integer from 0 to {LIMITS['iterations']}, got {ck['iteration']}")
-        h = ck["history"]
-        if len(h) > ck["iteration"] or not all(isinstance(r, (list, tuple)) and len(r) == 4
-                                               and all(_is_real(x) for x in r) for r in h):
-            raise bad("history", f"expected at most {ck['iteration']} rows of 4 numbers")
-        for key in ("opt_g", "opt_d"):
-            st = ck[key].get("state")
-            tensors = {f"state {k} {n}": t for k, d in (st.items() if isinstance(st, dict) else ())
-                       if isinstance(d, dict) for n, t in d.items()}
-            problem = _non_finite(tensors)
-            if problem:
-                raise bad(key, problem)
-        for key in ("sampler_state", "torch_rng"):
-            if ck[key].dtype != torch.uint8 or ck[key].ndim != 1:
-                raise bad(key, f"expected a random generator state (uint8, one axis), got {ck[key].dtype} "
-                               f"{tuple(ck[key].shape)}")
-
-
-def check_compatible(ck: dict, db, path) -> None:
-    """Refuse a checkpoint trained for another skeleton or feature configuration."""
-    want = feature_identity(db)
-    got = ck["features"]
-    for key in ("joint_names", "parents", "fps", "audio_channels", "n_mfcc"):
-        if got.get(key) != want[key]:
-            what = {"joint_names": "skeleton joints", "parents": "skeleton hierarchy"}.get(key, key)
-            a, b = got.get(key), want[key]
-            if isinstance(a, list) and isinstance(b, list):
-                raise InputFileError(path, f"{what}: the refiner was trained for {len(a)} entries, database {db.path} "
-                                           f"has {len(b)}; {_list_difference(a, b)}; train a refiner on this database")
-            raise InputFileError(path, f"{what}: the refiner was trained for {echo(a)}, database {db.path} has "
-                                       f"{echo(b)}; train a refiner on this database")
-
-
-def _list_difference(trained: list, database: list) -> str:
-    """Which entries of two lists differ, for a message: by position, then what only one side has.
-
-    ``1 of the first 55 differ: entry 3: 'LeftHand' (refiner) vs 'L_Hand' (database); only in the
-    database: entry 55 'Jaw'``;
-    `echo_list` names the first `MAX_ECHO_ITEMS` of each kind and counts the rest.
-    """
-    n = min(len(trained), len(database))
-    changed = [f"entry {i}: {echo(trained[i])} (refiner) vs {echo(database[i])} (database)"
-               for i in range(n) if trained[i] != database[i]]
-    parts = [f"{len(changed)} of the first {n} differ: {echo_list(changed)}"] if changed else []
-    for side, longer in (("the refiner", trained), ("the database", database)):
-        if len(longer) > n:
-            extra = [f"entry {i} {echo(longer[i])}" for i in range(n, len(longer))]
-            parts.append(f"only in {side}: {echo_list(extra)}")
-    return "; ".join(parts) or "same entries"
 
 
 def check_output(out_path, *, resume: bool, overwrite: bool) -> None:
@@ -446,7 +355,7 @@ def check_output(out_path, *, resume: bool, overwrite: bool) -> None:
 
 def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = False, overwrite: bool = False,
           progress: bool = False, log=None, scheduler=None, parts: int = 2, workers: int = 1,
-          threads: int | None = None, client=None) -> Trainer:
+          threads: int | None = None, client=None, device: str = "auto") -> Trainer:
     """Train (or resume training) a refiner on a database and write its checkpoint.
 
     Parameters
@@ -470,6 +379,12 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         torch's intra-op threads while training (restored afterwards); default
         :func:`gesturedb.threads.available_cpus`, not torch's own choice, which counts the
         machine's cores and ignores a CPU quota.
+    device : {"auto", "cpu", "cuda"}
+        Where to train (:func:`resolve_device`); a run resumes on any device.
+
+    With ``config.val_fraction`` > 0 the generator is validated every ``config.val_every``
+    iterations and at the end (:meth:`Trainer.validate`); :meth:`Trainer.verdict` then says
+    whether its best beat the identity, and the checkpoint records both.
     """
     if client is not None:
         if scheduler is not None:
@@ -478,6 +393,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     if threads is not None and (not _is_int(threads) or threads < 1):
         raise ParameterError(f"threads: expected a positive integer or None, got {threads!r}")
     config = (config or TrainConfig()).check()
+    device = resolve_device(device)
     out_path = os.fspath(out_path)
     folder = os.path.dirname(os.path.abspath(out_path))
     if not os.path.isdir(folder):
@@ -492,12 +408,17 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         if ck["identity"] != identity:
             raise InputFileError(out_path, f"identity: trained on another database than {db.path}; resume needs the same one")
         saved = dict(ck["config"])
+        if int(saved.get("recipe", 1)) != RECIPE:
+            raise InputFileError(out_path, f"config.recipe: trained with recipe {saved.get('recipe', 1)} (before "
+                                           f"validation and the balanced losses), this version trains recipe "
+                                           f"{RECIPE}; start afresh with --overwrite")
         if "betas" in saved:
             saved["betas"] = tuple(saved["betas"])
         saved.update(iterations=config.iterations, checkpoint_every_s=config.checkpoint_every_s)
         config = TrainConfig(**saved)
     cache = out_path + ".data.h5"
-    settings = cache_settings(db, seed=config.seed, window=WINDOW, stride=config.stride)
+    settings = cache_settings(db, seed=config.seed, window=WINDOW, stride=config.stride,
+                              val_fraction=config.val_fraction)
     data = load_cache(cache, db, settings)
     if data is None:
         if log:
@@ -515,11 +436,15 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
 
         try:
             data = make_training_data(db, seed=config.seed, stride=config.stride, scheduler=scheduler, parts=parts,
-                                      workers=workers, progress=report if progress else None, cache=cache)
+                                      workers=workers, progress=report if progress else None, cache=cache,
+                                      val_fraction=config.val_fraction)
         finally:
             for b in bars.values():
                 b.close()
-    tr = Trainer(data, config, identity, feature_identity(db))
+    features = feature_identity(db)
+    cutoff = jitter_cutoff_hz(config, db.fps) or float(db.fps) / 2
+    validator = Validator(db, data, cutoff_hz=cutoff) if config.val_fraction > 0 else None
+    tr = Trainer(data, config, identity, features, device=device, validator=validator)
     if ck is not None:
         if tr.data.channels != 6 * len(ck["joints"]):
             raise InputFileError(out_path, f"joints: the checkpoint has {len(ck['joints'])} moving joints, the "
@@ -529,7 +454,28 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=config.iterations, initial=tr.iteration, unit="it", desc="training", disable=None)
+        bar = tqdm(total=config.iterations, initial=tr.iteration, unit="it", desc=f"training ({device})",
+                   disable=None)
+    shown = {}  # the last validation numbers, on the progress bar
+
+    def validate():
+        m = tr.validate()
+        if m is None:
+            return
+        shown.update(val=f"{m['score']:.3f}", jerk=f"{m['jerk']:.2f}x")
+        line = f"validation at iteration {tr.iteration}: {format_metrics(m)}"
+        if bar is not None:
+            bar.write(line, file=sys.stderr)
+        elif log:
+            log(line)
+
+    if validator is not None:
+        if not tr.val_log:
+            if log:
+                log(f"validation: {validator.n} windows held back (the last {config.val_fraction:.0%} of every "
+                    f"recording and its mirror), {len(tr.train_idx)} train; unrefined: "
+                    f"{format_metrics(validator.identity)}")
+            validate()  # iteration 0: the identity, with the critic of now
     last = time.monotonic()
     saved_at = tr.iteration if ck is not None else None  # the iteration of the checkpoint on disk
     stop = {"now": False}
@@ -545,15 +491,18 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         while tr.iteration < config.iterations and not stop["now"]:
             rec = tr.step()
             _check_losses(rec, out_path, saved_at)
+            if validator is not None and tr.iteration % config.val_every == 0:
+                validate()
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(critic=f"{rec['critic']:.3f}", l1=f"{rec['l1']:.4f}", adv=f"{rec['adv']:.3f}")
+                bar.set_postfix(critic=f"{rec['critic']:.3f}", l1=f"{rec['l1']:.3f}", adv=f"{rec['adv']:.3f}",
+                                ratio=f"{rec['ratio']:.2g}", **shown)
             if time.monotonic() - last > config.checkpoint_every_s:
                 tr.save(out_path)
                 saved_at = tr.iteration
                 last = time.monotonic()
     except KeyboardInterrupt:
-        tr.save(out_path)
+        tr.save(out_path)  # with the verdict so far
         if log:
             log(f"interrupted at iteration {tr.iteration}: checkpoint saved to {out_path} (continue with --resume)")
         raise
@@ -563,6 +512,8 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         if old is not None:
             signal.signal(signal.SIGTERM, old)
         torch.set_num_threads(torch_threads)
+    if validator is not None and (not tr.val_log or tr.val_log[-1][0] != tr.iteration):
+        validate()  # the last iteration is always a candidate
     tr.save(out_path)
     return tr
 
@@ -590,23 +541,48 @@ class Refiner:
     ``Searcher.synthesize(..., refiner=...)``.
     """
 
-    def __init__(self, G: Generator, joints: np.ndarray, features: dict, path: str | None = None):
+    def __init__(self, G: Generator, joints: np.ndarray, features: dict, path: str | None = None,
+                 validation: dict | None = None):
         self.G = G.eval()
         self.joints = np.asarray(joints, dtype=np.int64)
         self.features = features
         self.path = path
+        self.validation = validation
 
     @classmethod
     def load(cls, path, db=None) -> "Refiner":
+        """The checkpoint's best generator by validation (its last one when it has no validation),
+        on the CPU whatever device trained it."""
         ck = read_checkpoint(path)  # every entry used below is checked there, the width bounded
         if db is not None:
             check_compatible(ck, db, path)
         cfg = ck["config"]
         joints = ck["joints"].numpy()
-        G = Generator(6 * len(joints), audio_channels=int(ck["features"]["audio_channels"]),
-                      width=int(cfg.get("width", TrainConfig.width)))
-        _load_state(G, ck["generator"], os.fspath(path), "generator")
-        return cls(G, joints, ck["features"], os.fspath(path))
+        G = make_generator(cfg, ck["features"], joints, 6 * len(joints), int(ck["features"]["audio_channels"]))
+        which = "best_generator" if "best_generator" in ck else "generator"
+        _load_state(G, ck[which], os.fspath(path), which)
+        return cls(G, joints, ck["features"], os.fspath(path), ck.get("validation"))
+
+    @property
+    def verdict(self) -> dict | None:
+        """The validation verdict the checkpoint records (None: trained without validation)."""
+        return (self.validation or {}).get("verdict")
+
+    def assess(self) -> tuple[str, str]:
+        """``("better" | "worse" | "unknown", one line)``: whether this refiner beat the identity on its
+        validation windows, for ``synth --refiner`` to warn or refuse by."""
+        v = self.verdict
+        name = self.path or "refiner"
+        if v is None:
+            return "unknown", (f"{name}: no validation verdict (trained without --val-fraction, or before "
+                               "validation existed): whether it improves on the unrefined motion is unknown")
+        pct = 100 * v["improvement"]
+        if v["beats_identity"]:
+            return "better", (f"{name}: beat the unrefined motion on its validation windows by {pct:.1f}% "
+                              f"(iteration {v['best_iteration']})")
+        return "worse", (f"{name}: did not beat the unrefined motion on its validation windows (best score "
+                         f"{v['best_score']:.3f} at iteration {v['best_iteration']} vs {v['identity_score']:.3f} "
+                         f"unrefined, {pct:+.1f}%; {100 * v.get('margin', 0):.0f}% better needed)")
 
     def check(self, db) -> None:
         check_compatible({"features": self.features}, db, self.path or "refiner")

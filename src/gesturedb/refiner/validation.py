@@ -1,0 +1,178 @@
+"""Validation of a refiner during training: is it better than its input, the identity?
+
+The validation windows (:func:`gesturedb.refiner.data.split_windows`: the last part of
+every recording and of its mirrored copy, never seen by training) are refined by the
+generator and compared, as motion, with the capture of the same windows. The unrefined
+k-NN input is measured the same way once: that is the identity's score, the one a
+refiner has to beat.
+
+Metrics (joint positions of the upper body, the legs being the k-NN's whatever the
+refiner does; root at the origin, so root-relative):
+
+``jerk``
+    Mean norm of the third difference of positions times fps^3 (m/s^3), within each window.
+    Reported as the ratio to the capture's: 1 is the capture's jerk.
+``band``
+    Arm (elbow and wrist) velocity power in each band of :data:`BANDS_HZ` (Welch PSD per
+    window, averaged), the definition of :func:`gesturedb.eval.strokes.band_power`
+    (the refiner sits below ``eval`` and cannot import it); reported as ratios to the capture's.
+``hellinger``
+    Hellinger distance between the joint-speed histograms (1 cm/s bins up to 2 m/s, the
+    last bin holding everything faster) of the output and of the capture, as
+    :func:`gesturedb.eval.metrics.speed_hellinger`.
+``critic_gap``
+    Mean critic score of the capture minus that of the output, with the critic of the
+    moment (logged, not scored: the critic changes while it trains, so its gap on the
+    same output drifts).
+``hf``
+    Relative change of the gesture channels' energy at and above the cut-off
+    (``cutoff_hz``, 3 Hz): output against input; 0 for the identity, < 0 when the
+    refiner smooths, > 0 when it adds jitter (what the training penalises).
+
+The **score** (lower is better, 0 is the capture's statistics):
+``|log jerk ratio| + mean over bands |log band ratio| + hellinger``. Each term is 0 when the
+output moves like the capture and grows as it moves faster or slower (the logs make
+"twice too much" and "half as much" cost the same); the three measure what the refiner
+is for and what made it fail before (jerk doubled held out) on scales of the same order
+(a 10 % jerk error costs 0.095, a speed histogram 10 % off about 0.1). It needs no ground
+truth pose-by-pose: a refiner is asked for capture-like motion, not for the capture's
+gesture. A refiner **beats the identity** when its best score is at least
+:data:`VERDICT_MARGIN` below the identity's.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gesturedb.io.joints import group_joints, leg_joints
+from gesturedb.motion import Motion
+from gesturedb.refiner.representation import from_channels
+from gesturedb.roles import STROKE_JOINT_GROUPS
+
+#: the bands of :data:`gesturedb.eval.strokes.BANDS_HZ` (tests check they agree)
+BANDS_HZ = ((0.5, 2.0), (2.0, 4.0), (4.0, 7.0))
+#: Welch segment (s) of :data:`gesturedb.eval.strokes.WELCH_SEGMENT_S`; a 64-frame window is shorter at 15 fps
+WELCH_SEGMENT_S = 4.0
+#: the speed histogram of :func:`gesturedb.eval.metrics.speed_histogram`'s defaults
+SPEED_BIN_M_S, SPEED_MAX_M_S = 0.01, 2.0
+#: how much lower (relative) than the identity's the best score must be for "better than the identity":
+#: a refiner that changes its input by a hair is not endorsed for it
+VERDICT_MARGIN = 0.02
+METRICS = ("score", "jerk", "band", "hellinger", "critic_gap", "hf")
+
+
+def _welch_arms(vel: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean Welch PSD over windows, axes and joints: vel (n, T-1, j, 3) -> (freqs, psd)."""
+    from scipy.signal import welch
+
+    nper = min(int(round(WELCH_SEGMENT_S * fps)), vel.shape[1])
+    f, p = welch(vel, fs=fps, nperseg=nper, noverlap=nper // 2, detrend="constant", axis=1)
+    return f, p.sum(axis=-1).mean(axis=(0, 2))
+
+
+def _bands(f: np.ndarray, psd: np.ndarray, fps: float) -> np.ndarray:
+    df = f[1] - f[0]
+    return np.array([psd[(f >= lo - 1e-9) & (f < hi - 1e-9)].sum() * df if hi <= fps / 2 + 1e-9 else np.nan
+                     for lo, hi in BANDS_HZ])
+
+
+def _speed_hist(pos: np.ndarray, fps: float) -> np.ndarray:
+    edges = np.arange(int(math.ceil(SPEED_MAX_M_S / SPEED_BIN_M_S - 1e-9)) + 1) * SPEED_BIN_M_S
+    speed = np.linalg.norm(np.diff(pos, axis=1), axis=-1).ravel() * fps
+    return np.histogram(np.minimum(speed, edges[-1]), bins=edges)[0].astype(np.float64)
+
+
+def hellinger(p: np.ndarray, q: np.ndarray) -> float:
+    """Hellinger distance of two histograms (normalised here), in [0, 1]."""
+    return float(min(1.0, math.sqrt(0.5 * np.sum((np.sqrt(p / p.sum()) - np.sqrt(q / q.sum())) ** 2))))
+
+
+class Validator:
+    """The validation windows of a database as motion, and the scores of refined versions of them.
+
+    Parameters
+    ----------
+    db : Database
+        Skeleton, fps and local rotations (the root and fixed joints of every window).
+    data : gesturedb.refiner.data.TrainingData
+        With a split (``data.val``); its validation windows' audio, capture and k-NN input.
+    cutoff_hz : float
+        The cut-off of the ``hf`` metric (Hz).
+    """
+
+    def __init__(self, db, data, *, cutoff_hz: float = 3.0):
+        self.cutoff_hz = float(cutoff_hz)
+        self.idx = data.val_windows
+        if self.idx.size == 0:
+            raise ValueError("Validator: the training data has no validation windows")
+        self.skeleton, self.fps = db.skeleton, float(db.fps)
+        self.joints = data.joints
+        T = data.window
+        frames = data.starts[self.idx][:, None] + np.arange(T)  # (n, T)
+        self.base = np.asarray(db.local_rotations[frames.ravel()], dtype=np.float64)  # (n T, J, 4)
+        names = list(db.skeleton.names)
+        legs = set(int(j) for j in leg_joints(names, db.skeleton.parents))
+        self.upper = np.array([j for j in range(1, len(names)) if j not in legs], dtype=np.int64)
+        arms = group_joints(names, STROKE_JOINT_GROUPS).get("arms")
+        self.arms = np.searchsorted(self.upper, np.asarray(arms, dtype=np.int64)) if arms is not None and len(arms) \
+            else np.arange(len(self.upper))
+        self.n, self.T = len(self.idx), T
+        self.audio = data.audio(self.idx)   # (n, A, T) float32
+        self.knn = data.fake(self.idx)      # (n, C, T)
+        self.real = data.real(self.idx)     # (n, C, T)
+        cap = self._positions(self.real)
+        self.capture = self._stats(cap)
+        self.identity = self.measure(self.knn)
+
+    # -- motion -------------------------------------------------------------------------
+    def _positions(self, channels: np.ndarray) -> np.ndarray:
+        """(n, C, T) channels -> (n, T, upper joints, 3) positions, root at the origin (metres)."""
+        ch = np.asarray(channels, dtype=np.float64).transpose(0, 2, 1).reshape(self.n * self.T, -1)
+        rot = from_channels(ch, self.base, self.joints)
+        m = Motion(skeleton=self.skeleton, fps=self.fps, rotations=rot,
+                   root_positions=np.zeros((rot.shape[0], 3)))
+        return m.positions[:, self.upper].reshape(self.n, self.T, len(self.upper), 3)
+
+    def _stats(self, pos: np.ndarray) -> dict:
+        jerk = float(np.linalg.norm(np.diff(pos, n=3, axis=1), axis=-1).mean() * self.fps ** 3)
+        vel = np.diff(pos[:, :, self.arms], axis=1) * self.fps
+        f, psd = _welch_arms(vel, self.fps)
+        return {"jerk": jerk, "band": _bands(f, psd, self.fps), "hist": _speed_hist(pos, self.fps)}
+
+    def measure(self, channels: np.ndarray, *, critic_gap: float = float("nan")) -> dict:
+        """Metrics of refined validation windows (n, C, T) against the capture (module docstring)."""
+        s = self._stats(self._positions(channels))
+        c = self.capture
+        jerk = s["jerk"] / c["jerk"]
+        band = s["band"] / c["band"]
+        hell = hellinger(s["hist"], c["hist"])
+        ok = np.isfinite(band) & (band > 0)
+        score = abs(math.log(jerk)) + float(np.mean(np.abs(np.log(band[ok])))) + hell
+        e_out = _high_energy(np.asarray(channels, dtype=np.float64), self.fps, self.cutoff_hz)
+        e_in = _high_energy(np.asarray(self.knn, dtype=np.float64), self.fps, self.cutoff_hz)
+        return {"score": score, "jerk": jerk, "band": [float(b) for b in band], "hellinger": hell,
+                "critic_gap": float(critic_gap), "hf": e_out / e_in - 1 if e_in > 0 else 0.0}
+
+
+def _high_energy(x: np.ndarray, fps: float, cutoff_hz: float) -> float:
+    """Energy of ``x`` (n, C, T) at and above ``cutoff_hz`` over every window and channel (any scale)."""
+    spec = np.abs(np.fft.rfft(x - x.mean(axis=-1, keepdims=True), axis=-1)) ** 2
+    f = np.fft.rfftfreq(x.shape[-1], d=1 / fps)
+    return float(spec[..., f >= cutoff_hz].sum())
+
+
+def verdict(identity_score: float, best_score: float, best_iteration: int) -> dict:
+    """Whether the best refiner beats the identity on validation, and by how much (relative, > 0 better)."""
+    gain = (identity_score - best_score) / identity_score if identity_score > 0 else 0.0
+    return {"beats_identity": bool(best_iteration > 0 and gain >= VERDICT_MARGIN), "identity_score": float(identity_score),
+            "best_score": float(best_score), "best_iteration": int(best_iteration), "improvement": float(gain),
+            "margin": VERDICT_MARGIN}
+
+
+def format_metrics(m: dict) -> str:
+    """``score 0.412 jerk 1.21x bands 0.9/1.1/1.3x H 0.08 gap 0.01``: one validation row for a log."""
+    bands = "/".join(f"{b:.2f}" for b in m["band"])
+    return (f"score {m['score']:.3f}  jerk {m['jerk']:.2f}x  bands {bands}x  H(speed) {m['hellinger']:.3f}"
+            + (f"  critic gap {m['critic_gap']:.3f}" if np.isfinite(m["critic_gap"]) else "")
+            + (f"  hf {m['hf']:+.3f}" if m.get("hf") else ""))
