@@ -33,6 +33,14 @@ def add_parser(sub) -> None:
     t.add_argument("--threads", type=int, default=None,
                    help=f"torch threads while training (default: the CPUs this process may use, {available_cpus()})")
     t.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS")
+    t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="where to train: auto = a CUDA GPU when torch sees one, else the CPU (default: auto); a "
+                   "run resumes on any device, and the checkpoint applies on the CPU")
+    t.add_argument("--val-fraction", type=float, default=0.25, metavar="F",
+                   help="hold back the last F of every recording (and of its mirror) for validation; 0: none "
+                   "(default: %(default)s)")
+    t.add_argument("--val-every", type=int, default=100, metavar="N",
+                   help="validate every N iterations and keep the best generator (default: %(default)s)")
     again = t.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
     again.add_argument("--overwrite", action="store_true",
@@ -53,6 +61,32 @@ def add_parser(sub) -> None:
     p.set_defaults(run=run)
 
 
+def verdict_screen(tr) -> str:
+    """The end of a training run on one screen: the validation rows, unrefined and best, and the verdict."""
+    from gesturedb.refiner.validation import format_metrics
+
+    v = tr.validator
+    if v is None:
+        return "no validation (--val-fraction 0): nothing says whether this refiner improves on its input"
+    best = tr.best
+    rows = [f"validation: {v.n} held-back windows, {len(tr.train_idx)} training; score = |log jerk ratio| + "
+            "mean |log band ratio| + H(speed), ratios to the capture, lower is better",
+            f"  unrefined (identity)     {format_metrics(v.identity)}"]
+    if best is not None:
+        rows.append(f"  best, iteration {best['iteration']:<8} {format_metrics(best['metrics'])}")
+    verdict = tr.verdict()
+    if verdict is None:
+        rows.append("verdict: no iteration validated yet")
+    elif verdict["beats_identity"]:
+        rows.append(f"verdict: BETTER than the unrefined motion on validation, score {100 * verdict['improvement']:.1f}% "
+                    f"lower (iteration {verdict['best_iteration']}, kept in the checkpoint)")
+    else:
+        rows.append(f"verdict: NOT better than the unrefined motion on validation (best score "
+                    f"{100 * verdict['improvement']:+.1f}% vs the {100 * verdict['margin']:.0f}% needed); synth "
+                    "--refiner refuses this checkpoint unless --force")
+    return "\n".join(rows)
+
+
 def _positive(name, v):
     if v is not None and v < 1:
         raise ParameterError(f"--{name}: expected a positive integer, got {v}")
@@ -69,20 +103,24 @@ def run(args) -> int:
 
         check_output(args.output, resume=args.resume, overwrite=args.overwrite)  # before a cluster is started
 
-        for name in ("iterations", "batch", "stride", "threads", "parts", "workers"):
-            _positive(name, getattr(args, name))
+        for name in ("iterations", "batch", "stride", "threads", "parts", "workers", "val_every"):
+            _positive(name.replace("_", "-"), getattr(args, name))
         if args.scheduler:
             check_scheduler(args.scheduler)  # before the database is opened or anything is searched
+        if not 0 <= args.val_fraction <= 0.9:
+            raise ParameterError(f"--val-fraction: expected a fraction from 0 to 0.9, got {args.val_fraction}")
         cfg = TrainConfig(iterations=args.iterations, batch=args.batch, seed=args.seed, stride=args.stride,
-                          checkpoint_every_s=args.checkpoint_every)
+                          checkpoint_every_s=args.checkpoint_every, val_fraction=args.val_fraction,
+                          val_every=args.val_every)
 
         with gesturedb.open(args.db) as db, optional_client(args.scheduler or None) as client:
             tr = train(db, args.output, config=cfg, resume=args.resume, overwrite=args.overwrite, progress=True,
                        log=lambda m: print(m, file=sys.stderr), scheduler=client, parts=args.parts,
-                       workers=args.workers, threads=args.threads)
+                       workers=args.workers, threads=args.threads, device=args.device)
         last = tr.history[-1] if tr.history else {}
         print(f"trained {tr.iteration} iterations -> {args.output}"
               + (f" (critic {last['critic']:.3f}, L1 {last['l1']:.4f})" if last else ""))
+        print(verdict_screen(tr))
         return 0
     import numpy as np
 

@@ -6,7 +6,7 @@ import os
 import gesturedb
 from gesturedb.cli._args import add_init_argument, float_range, int_range
 from gesturedb.db.cluster import optional_client
-from gesturedb.errors import ParameterError
+from gesturedb.errors import GestureDBWarning, ParameterError
 from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS
 from gesturedb.io import check_motion_output, read_transcript, write_motion
 from gesturedb.io.npz import write_joint_positions
@@ -68,6 +68,8 @@ def add_parser(sub) -> None:
     p.add_argument("--render", default=None, metavar="OUT.mp4", help="also render the result (mp4/gif/png)")
     p.add_argument("--refiner", default=None, metavar="REFINER.pt",
                    help="refine the result with a trained refiner (gesturedb refiner train)")
+    p.add_argument("--force", action="store_true",
+                   help="with --refiner: use a refiner whose validation says it did not beat the unrefined motion")
     from gesturedb.cli.retarget import add_target_options
 
     add_target_options(p)
@@ -97,6 +99,7 @@ def run(args) -> int:
             from gesturedb.refiner import load_refiner
 
             refiner = load_refiner(args.refiner, db)
+            check_verdict(refiner, force=args.force)
         settings = dict(segments=args.segments, scheduler=client, parts=args.parts)
         synth = method.open(db, **{k: v for k, v in settings.items() if k in method.settings})
         res = synth.synthesize(args.audio, transcript=args.transcript, options=options,
@@ -155,6 +158,19 @@ def method_options(method, args, *, keywords):
                              + (f"with --method {' or '.join(able)} only" if able else "with no single method"))
     fields = set(method.options.field_names())
     return method.options(**{k: v for k, v in given.items() if k in fields and v is not None})
+
+
+def check_verdict(refiner, *, force: bool) -> None:
+    """Refuse a refiner that lost to the identity on its validation windows, unless ``force``; warn
+    when it is used anyway or has no verdict."""
+    import warnings
+
+    kind, message = refiner.assess()
+    if kind == "worse" and not force:
+        raise ParameterError(f"--refiner {message}; --force uses it anyway")
+    if kind != "better":
+        warnings.warn(message + ("; used because of --force" if kind == "worse" else ""), GestureDBWarning,
+                      stacklevel=2)
 
 
 def guard_summary(rep: dict) -> str:
