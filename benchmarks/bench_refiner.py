@@ -12,8 +12,11 @@ windows twice, then prints (medians over --repeat, all measured in this run):
   (identical data, checked here), and the bytes per window each keeps in memory;
 
 - training: seconds per iteration (5 critic updates + 1 generator update,
-  batch 32, width 64) and iterations per second, on the data in memory and on
-  the cached data (batches read through the memory map);
+  batch 32, width 64, the default recipe: critic augmentation, jitter term) and
+  iterations per second, on the data in memory and on the cached data (batches
+  read through the memory map), on every device present (the CPU, and CUDA when
+  torch sees a GPU), and one validation pass (the held-back windows refined and
+  measured, every --val-every iterations of a run);
 - a 60 s synthesis (four input clips joined, trimmed to 60 s): the k-NN
   synthesis alone, the refinement of its result alone, and the ratio
   refinement / synthesis (the goal: refining adds less than 10%).
@@ -59,16 +62,19 @@ def main() -> int:
     from gesturedb.io.audio import read_audio
     from gesturedb.refiner.data import database_identity, feature_identity, make_training_data
     from gesturedb.refiner.train import Refiner, TrainConfig, Trainer
+    from gesturedb.refiner.validation import Validator
     from gesturedb.synth import Searcher
 
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         db = gesturedb.build([DATA / "beat2-scott"], os.path.join(tmp, "scott.h5"), mirror=True)
         t = time.perf_counter()
-        data = make_training_data(db)
+        split = TrainConfig.val_fraction
+        data = make_training_data(db, val_fraction=split)
         t_data = time.perf_counter() - t
         t = time.perf_counter()
-        cached = make_training_data(db, workers=args.workers, cache=os.path.join(tmp, "r.pt.data.h5"))
+        cached = make_training_data(db, workers=args.workers, cache=os.path.join(tmp, "r.pt.data.h5"),
+                                    val_fraction=split)
         t_cached = time.perf_counter() - t
         every = np.arange(data.n_windows)
         assert np.array_equal(cached.fake(every), data.fake(every)), "the cached fakes differ"
@@ -76,16 +82,26 @@ def main() -> int:
         per_window_before = (data.channels * 2 + data.audio_channels) * data.window * 4  # audio, real, fake per window
         resident = (cached.frame_real.nbytes + cached.frame_audio.nbytes) / W
         s_train = {}
-        for name, d in (("memory", data), ("cache", cached)):
-            tr = Trainer(d, TrainConfig(), database_identity(db), feature_identity(db))
+        devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+        runs = [("memory", data, "cpu")] + [("cache", cached, dev) for dev in devices]
+        for name, d, dev in runs:
+            tr = Trainer(d, TrainConfig(), database_identity(db), feature_identity(db), device=dev)
             tr.step()  # warm-up
-            s_train[name] = median_time(lambda tr=tr: [tr.step() for _ in range(args.iterations)], args.repeat) / args.iterations
+
+            def steps(tr=tr, dev=dev):
+                for _ in range(args.iterations):
+                    tr.step()
+                if dev == "cuda":
+                    torch.cuda.synchronize()
+            s_train[(name, dev)] = median_time(steps, args.repeat) / args.iterations
+        tr.validator = Validator(db, cached)
+        s_val = median_time(tr.validate, args.repeat)
 
         rate = db.sample_rate
         clips = sorted((DATA / "beat2-scott" / "inputs").glob("*.wav"))
         y = np.concatenate([read_audio(c, sr=rate)[0] for c in clips])[: 60 * rate]
         searcher = Searcher(db)
-        refiner = Refiner(tr.G, data.joints, feature_identity(db))
+        refiner = Refiner(tr.G.cpu(), data.joints, feature_identity(db))  # applied on the CPU, as synth does
         res = searcher.synthesize(y, sr=rate)
         query = searcher.query_features(y, rate)
         audio = np.concatenate([query, audio_deltas(query)], axis=1)
@@ -98,9 +114,10 @@ def main() -> int:
           f"cache ({t_data / t_cached:.2f}x; identical fakes); in memory per window: {per_window_before / 1e3:.0f} kB "
           f"stored per window before, {resident / 1e3:.1f} kB now (per-frame arrays / windows; the "
           f"{data.channels * data.window * 4 / 1e3:.0f} kB fake stays in the file)")
-    for name, s_it in s_train.items():
-        print(f"training on the data in {name}: {s_it * 1000:.0f} ms per iteration = {1 / s_it:.2f} iterations/s")
-    s_train = s_train["cache"]
+    for (name, dev), s_it in s_train.items():
+        print(f"training on the data in {name}, {dev}: {s_it * 1000:.0f} ms per iteration = {1 / s_it:.2f} "
+              f"iterations/s")
+    print(f"one validation pass ({cached.val_windows.size} windows, on {devices[-1]}): {s_val * 1000:.0f} ms")
     print(f"60 s synthesis: k-NN {s_synth * 1000:.0f} ms, refining it {s_refine * 1000:.0f} ms "
           f"= {100 * s_refine / s_synth:.1f}% of the synthesis (goal < 10%)")
     return 0

@@ -20,6 +20,7 @@ from gesturedb.refiner.data import (  # noqa: E402
     database_identity,
     exclusion,
     feature_identity,
+    usable_windows,
     window_starts,
 )
 from gesturedb.refiner.model import Discriminator, Generator, gradient_penalty  # noqa: E402
@@ -94,7 +95,8 @@ def test_gradient_penalty_of_a_linear_critic_is_known():
 
 
 def test_critic_updates_lower_the_critic_loss_on_a_tiny_batch():
-    tr = Trainer(_tiny_data(), TrainConfig(batch=4, width=16, n_critic=1), "id", {})
+    # augmentation off: this is about the critic update itself, on the very windows it sees
+    tr = Trainer(_tiny_data(), TrainConfig(batch=4, width=16, n_critic=1, crop=1.0, warp=0.0), "id", {})
     data = tr.data
     a, real, knn = (torch.from_numpy(f(np.arange(4))) for f in (data.audio, data.real, data.fake))
 
@@ -237,8 +239,10 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     assert read_checkpoint(ck)["config"]["stride"] == 9 and "stride 9" in read_checkpoint(ck)["data"]
     with gesturedb.open(scott_db_path) as db, h5py.File(tmp_path / "refiner.pt.data.h5", "r") as f:
         assert f.attrs["stride"] == 9
-        np.testing.assert_array_equal(f["starts"][:], window_starts(db, stride=9))
-        assert len(window_starts(db, stride=9)) < len(window_starts(db))
+        # every 9th frame's windows but those straddling the validation cut (the last 25 %)
+        every = window_starts(db, stride=9)
+        np.testing.assert_array_equal(f["starts"][:], every[usable_windows(db, every, 0.25)])
+        assert 0 < f["val"][:].sum() < len(f["starts"]) and len(every) < len(window_starts(db))
     # checkpoint and cache went through temporary siblings that were renamed: nothing else is left
     # (but the cache's write lock, as beside every database)
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == [
@@ -247,8 +251,13 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
     plain, refined = tmp_path / "knn.bvh", tmp_path / "refined.bvh"
     assert gdb("synth", scott_db_path, "--audio", wav, "-o", plain).returncode == 0
+    # three iterations do not beat the identity on validation: refused, then used with --force
     r = gdb("synth", scott_db_path, "--audio", wav, "-o", refined, "--refiner", ck)
+    assert r.returncode == 2 and "did not beat the unrefined motion" in r.stderr and "--force" in r.stderr
+    assert not refined.exists()
+    r = gdb("synth", scott_db_path, "--audio", wav, "-o", refined, "--refiner", ck, "--force")
     assert r.returncode == 0, r.stderr
+    assert "warning: " in r.stderr and "used because of --force" in r.stderr
     from gesturedb.io import read_motion
 
     a, b = read_motion(plain), read_motion(refined)
@@ -328,7 +337,7 @@ def _cache(db, path, *, n=8, poison=None) -> None:
     joints = moving_joints(db.local_rotations)
     starts = window_starts(db)[:n]
     _, real = frame_arrays(db, joints)
-    arrays = {"starts": starts, "ks": np.ones(n, np.int64), "joints": joints,
+    arrays = {"starts": starts, "ks": np.ones(n, np.int64), "joints": joints, "val": np.zeros(n, bool),
               "knn": np.stack([real[s:s + 64].T for s in starts]).astype(np.float32)}
     if poison is not None:
         name, index, value = poison
@@ -340,7 +349,7 @@ def _cache(db, path, *, n=8, poison=None) -> None:
             h5[k] = v
 
 
-_SMALL = dict(iterations=1, batch=2, width=8, n_critic=1)
+_SMALL = dict(iterations=1, batch=2, width=8, n_critic=1, val_fraction=0.0)  # the hand-made cache has no split
 
 
 def _one_line(err: str) -> str:
@@ -497,7 +506,7 @@ def test_a_damaged_checkpoint_is_one_line_naming_the_file_and_entry(change, matc
 
 @pytest.mark.parametrize("change, match", [
     (dict(opt_g=None), r"opt_g: missing"),
-    (dict(history=lambda ck: [[1, "x", 0.0, 0.0]]), r"history: expected at most 1 rows of 4 numbers"),
+    (dict(history=lambda ck: [[1, "x", 0.0, 0.0]]), r"history: expected at most 1 rows of 4 or 5 numbers"),
     (dict(iteration=-1), r"iteration: expected an integer from 0 to 1000000000, got -1"),
     (dict(discriminator=_nan_weight), r"discriminator: enc\.0\.0\.weight: expected finite values, got nan"),
     (dict(sampler_state=lambda ck: ck["sampler_state"].float()), r"sampler_state: expected a random generator state"),

@@ -1,0 +1,333 @@
+"""The refiner's validation (issue 40): the split, the best checkpoint, the verdict and what
+synth does with it, the training recipe's parts, and the device a run trains on."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="the refiner extra (torch==2.13.0) is not installed: "
+                                           "pip install '.[refiner]'")
+
+import gesturedb  # noqa: E402
+from gesturedb.errors import ParameterError  # noqa: E402
+from gesturedb.refiner import data as D  # noqa: E402
+from gesturedb.refiner import validation as V  # noqa: E402
+from gesturedb.refiner.model import Generator, augment, high_band_energy  # noqa: E402
+from gesturedb.refiner.representation import moving_joints  # noqa: E402
+from gesturedb.refiner.train import Refiner, TrainConfig, Trainer, read_checkpoint, resolve_device  # noqa: E402
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU that torch sees")
+
+
+@pytest.fixture(scope="module")
+def mirrored_db_path(scott_dir, tmp_path_factory):
+    """The real recording and its mirrored copy: the split must hold back the same stretch of both."""
+    out = tmp_path_factory.mktemp("mirrored") / "scott_m.h5"
+    gesturedb.build([scott_dir], out, mirror=True).close()
+    return out
+
+
+# -- the split ------------------------------------------------------------------------------
+def test_validation_never_shares_frames_with_training_windows(mirrored_db_path):
+    with gesturedb.open(mirrored_db_path) as db:
+        recs = db.recordings
+        assert len(recs) == 2 and recs[1].name == recs[0].name + "~mirror"
+        starts = D.window_starts(db, stride=3)
+        starts = starts[D.usable_windows(db, starts, 0.25)]
+        val = D.split_windows(db, starts, 0.25)
+        assert 0 < val.sum() < len(val)
+        first = np.array([r.start_frame for r in recs])
+        rec = np.asarray(db.frame_recording[starts])
+        within = starts - first[rec]  # the frame within its recording: the same instant in source and mirror
+        train_frames = {int(a) + t for a in within[~val] for t in range(64)}
+        val_frames = {int(a) + t for a in within[val] for t in range(64)}
+        assert not train_frames & val_frames  # nor reflected: a mirror's frame i is its source's frame i
+        cut = D.held_out_from(db, 0.25)
+        assert cut[0] == cut[1] == int(np.floor(recs[0].n_frames * 0.75))
+        assert max(train_frames) < cut[0] <= min(val_frames)
+        # the training windows' fakes may copy no segment reaching into a held-out stretch, of either copy
+        ex = D.exclusion(db, starts, held_out=cut, val=val)
+        seg = db.chunks
+        seg_rec = np.asarray(seg.recording)
+        reaches = np.asarray(seg.start) + np.asarray(seg.length) - first[seg_rec] > cut[seg_rec]
+        assert reaches.any() and ex[~val][:, reaches].all()
+        assert not ex[val][:, reaches].all()  # validation windows search as synthesis does
+        assert not ex[~val].all(axis=1).any()  # every training window has something left to copy
+
+
+def test_a_split_that_leaves_no_side_is_refused(scott_db):
+    with pytest.raises(ParameterError, match=r"val_fraction: 0.01 leaves \d+ training and 0 validation windows"):
+        D.make_training_data(scott_db, stride=50, val_fraction=0.01)
+    with pytest.raises(ParameterError, match=r"val_fraction: expected a fraction in \[0, 1\), got 1.5"):
+        D.held_out_from(scott_db, 1.5)
+
+
+def test_the_validation_bands_are_the_stroke_tables(scott_db):
+    from gesturedb.eval import strokes
+
+    assert V.BANDS_HZ == strokes.BANDS_HZ and V.WELCH_SEGMENT_S == strokes.WELCH_SEGMENT_S
+
+
+# -- the best checkpoint and the verdict ----------------------------------------------------------
+class _Scripted:
+    """A validator whose scores are given: identity 1.0, then ``scores`` in turn."""
+
+    def __init__(self, data, scores, identity=1.0):
+        idx = np.arange(2)
+        self.audio, self.knn, self.real = data.audio(idx), data.fake(idx), data.real(idx)
+        self.n, self.scores = 2, list(scores)
+        self.capture = {"jerk": 40.0}
+        self.identity = self._m(identity)
+
+    @staticmethod
+    def _m(score):
+        return {"score": score, "jerk": 1.0, "band": [1.0, 1.0, 1.0], "hellinger": 0.0, "critic_gap": 0.0, "hf": 0.0}
+
+    def measure(self, channels, *, critic_gap=float("nan")):
+        return self._m(self.scores.pop(0))
+
+
+def _tiny(seed=0, W=6, T=16):
+    rng = np.random.default_rng(seed)
+    F = 3 * W + T
+    return D.TrainingData(frame_audio=rng.standard_normal((F, 28)).astype(np.float32),
+                          frame_real=rng.standard_normal((F, 12)).astype(np.float32),
+                          knn=rng.standard_normal((W, 12, T)).astype(np.float32), joints=np.arange(1, 3),
+                          starts=3 * np.arange(W), ks=np.ones(W, np.int64))
+
+
+_FEATURES = {"joint_names": ["root", "spine", "head"], "parents": [-1, 0, 1], "fps": 15.0, "audio_channels": 28,
+             "n_mfcc": 13}
+_CFG = dict(batch=3, width=8, n_critic=1, seed=3, w1=0.0)  # w1 0: every step changes the generator
+
+
+@pytest.mark.parametrize("scores, best, beats", [
+    ([1.2, 0.7, 0.9], 2, True),      # iteration 2 is best and 30 % better than the identity
+    ([1.1, 0.99, 1.3], 2, False),    # its best is 1 % better: under the 2 % margin
+    ([1.5, 1.4, 1.6], 2, False),     # worse than the identity all along: the best trained one is kept
+], ids=["better", "within-margin", "worse"])
+def test_the_best_generator_by_validation_is_kept_and_applied(scores, best, beats, tmp_path):
+    tr = Trainer(_tiny(), TrainConfig(**_CFG), "id", _FEATURES, validator=_Scripted(_tiny(), scores))
+    states = {}
+    for _ in scores:
+        tr.step()
+        tr.validate()
+        states[tr.iteration] = {k: v.clone() for k, v in tr.G.state_dict().items()}
+    v = tr.verdict()
+    assert v["best_iteration"] == best and v["beats_identity"] is beats
+    assert v["improvement"] == pytest.approx(1 - min(scores))
+    tr.save(tmp_path / "r.pt")
+    ck = read_checkpoint(tmp_path / "r.pt", training=True)
+    assert ck["validation"]["verdict"] == v and [r[0] for r in ck["validation"]["log"]] == [1, 2, 3]
+    ref = Refiner.load(tmp_path / "r.pt")
+    for k, t in ref.G.state_dict().items():  # the best iteration's weights, not the last
+        assert torch.equal(t, states[best][k]), k
+    assert not all(torch.equal(t, states[3][k]) for k, t in ref.G.state_dict().items())
+    kind, message = ref.assess()
+    assert kind == ("better" if beats else "worse")
+    if not beats:
+        assert f"did not beat the unrefined motion on its validation windows (best score {min(scores):.3f} at " \
+               f"iteration {best} vs 1.000 unrefined" in message
+
+
+def test_resume_keeps_the_validation_log_and_the_best(tmp_path):
+    cfg = TrainConfig(**_CFG)
+    tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.8, 0.9]))
+    for _ in range(2):
+        tr.step()
+        tr.validate()
+    tr.save(tmp_path / "r.pt")
+    again = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.5]))
+    again.restore(read_checkpoint(tmp_path / "r.pt", training=True))
+    assert again.best["iteration"] == 1 and len(again.val_log) == 2
+    again.step()
+    again.validate()
+    assert again.verdict()["best_iteration"] == 3 and again.verdict()["best_score"] == 0.5
+
+
+def test_synth_refuses_a_refiner_that_lost_to_the_identity_unless_forced(scott_db_path, scott_dir, tmp_path,
+                                                                          capsys):
+    from gesturedb.cli.main import main
+    from gesturedb.refiner.data import database_identity, feature_identity
+
+    with gesturedb.open(scott_db_path) as db:
+        joints = moving_joints(db.local_rotations)
+        C, F = 6 * len(joints), 64
+        rng = np.random.default_rng(0)
+        data = D.TrainingData(frame_audio=rng.standard_normal((F, 28)).astype(np.float32),
+                              frame_real=rng.standard_normal((F, C)).astype(np.float32),
+                              knn=rng.standard_normal((2, C, 32)).astype(np.float32), joints=joints,
+                              starts=np.array([0, 16]), ks=np.ones(2, np.int64))
+        identity, features = database_identity(db), feature_identity(db)
+    wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
+    for name, score in (("lost", 1.3), ("won", 0.5)):
+        tr = Trainer(data, TrainConfig(batch=2, width=8, n_critic=1), identity, features,
+                     validator=_Scripted(data, [score]))
+        tr.step()
+        tr.validate()
+        tr.save(tmp_path / f"{name}.pt")
+    out = tmp_path / "out.bvh"
+    capsys.readouterr()
+    assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
+                 str(tmp_path / "lost.pt")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"gesturedb synth: error: --refiner {tmp_path / 'lost.pt'}: did not beat the unrefined "
+                          "motion on its validation windows (best score 1.300 at iteration 1 vs 1.000 unrefined, "
+                          "-30.0%; 2% better needed); --force uses it anyway")
+    assert not out.exists()
+    assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
+                 str(tmp_path / "lost.pt"), "--force"]) == 0
+    assert "warning: " in capsys.readouterr().err and out.exists()
+    out.unlink()
+    assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
+                 str(tmp_path / "won.pt")]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
+# -- the recipe's parts --------------------------------------------------------------------------
+def test_frozen_leg_channels_get_no_correction():
+    G = Generator(18, width=8, frozen=np.arange(6, 12))
+    torch.nn.init.normal_(G.out.weight, std=0.1)
+    torch.nn.init.normal_(G.out.bias, std=0.1)
+    a, x = torch.randn(2, 28, 20), torch.randn(2, 18, 20)
+    c = G.eval().correction(a, x)
+    assert torch.all(c[:, 6:12] == 0) and torch.all(c[:, :6] != 0)
+    assert torch.equal(G(a, x), x + c)
+
+
+def test_the_high_band_energy_is_parseval_above_the_cut_off():
+    fps, T = 15.0, 60
+    t = torch.arange(T) / fps
+    slow, fast = torch.sin(2 * np.pi * 1.0 * t), 0.5 * torch.sin(2 * np.pi * 5.0 * t)
+    x = torch.stack([slow, fast, slow + fast])[None]  # (1, 3, T)
+    e = high_band_energy(x, fps, 3.0)[0]
+    assert float(e[0]) == pytest.approx(0.0, abs=1e-6)
+    assert float(e[1]) == pytest.approx(float((fast ** 2).sum()), rel=1e-5)  # all of it above 3 Hz
+    assert float(e[2]) == pytest.approx(float((fast ** 2).sum()), rel=1e-5)
+
+
+def _output_gradient(tr, correction=None):
+    """The gradient the generator step sends back from the generator's output (all its terms)."""
+    seen = {}
+    real = torch.Tensor.backward
+
+    def spy(self, gradient=None, *args, **kw):
+        seen["g"] = gradient.clone()
+        return real(self, gradient, *args, **kw)
+
+    if correction is not None:
+        c = correction.clone().requires_grad_(True)  # a leaf: the step differentiates through it
+        tr.G.correction = lambda a, g: c
+    torch.Tensor.backward = spy
+    try:
+        tr.generator_step()
+    finally:
+        torch.Tensor.backward = real
+    return seen["g"]
+
+
+def test_adding_jitter_costs_and_smoothing_does_not():
+    """The jitter term alone (w1 = w2 = 0): a correction that adds energy above 3 Hz gets a gradient
+    against it; one that removes some (smoothing, as a refiner should at a seam) gets none."""
+    cfg = TrainConfig(batch=3, width=8, n_critic=1, w2=0.0, w1=0.0, w_hf=1.0, seed=4)
+    data = _tiny(W=3)
+    knn = torch.from_numpy(data.fake(np.arange(3)))  # the batch is all three windows, in some order
+    smooth = torch.nn.functional.avg_pool1d(knn, 3, 1, 1, count_include_pad=False) - knn
+    fps = _FEATURES["fps"]
+    assert bool((high_band_energy(knn + smooth, fps, 3.0).sum(1) < high_band_energy(knn, fps, 3.0).sum(1)).all())
+    tr = Trainer(data, cfg, "id", _FEATURES)
+    order = torch.from_numpy(data.fake(np.arange(3)))
+    # the correction must belong to the batch's windows: the batch is drawn first, so use a shape-only noise
+    jitter = 0.3 * torch.randn_like(order) * torch.tensor([1.0, -1.0]).repeat(8)[None, None, :16]
+    assert float(_output_gradient(tr, jitter).abs().sum()) > 0
+    tr = Trainer(data, cfg, "id", _FEATURES)
+    assert float(_output_gradient(tr, torch.zeros_like(order)).abs().sum()) == 0
+
+
+def test_the_l1_gradient_is_in_gradient_units():
+    """w1 = 1 gives the L1 term a gradient of norm 1 per window at the output (1/sqrt(B) for the batch's
+    mean), the norm the gradient penalty holds the critic's at: w1 is the ratio of the two pulls."""
+    tr = Trainer(_tiny(), TrainConfig(batch=4, width=8, n_critic=1, w1=1.0, w2=0.0, w_hf=0.0), "id", _FEATURES)
+    torch.nn.init.normal_(tr.G.out.weight, std=0.1)  # a correction that is non-zero everywhere
+    g = _output_gradient(tr)
+    assert float(g.norm()) == pytest.approx(1 / 4 ** 0.5, rel=1e-5)
+    assert torch.allclose(g.flatten(1).norm(dim=1), torch.full((4,), 1 / 4), rtol=1e-5)
+
+
+@pytest.mark.parametrize("crop, warp", [(1.0, 0.0), (0.75, 0.0), (0.75, 0.1)])
+def test_augmentation_crops_and_warps_audio_and_gesture_together(crop, warp):
+    T = 64
+    ramp = torch.arange(T, dtype=torch.float32)
+    a = ramp.expand(3, 2, T).clone()
+    x = (10 * ramp).expand(3, 5, T).clone().requires_grad_(True)
+    a2, x2 = augment(a, x, torch.Generator().manual_seed(0), crop=crop, warp=warp)
+    L = int(round(crop * T))
+    assert a2.shape == (3, 2, L) and x2.shape == (3, 5, L)
+    assert torch.allclose(x2, 10 * a2[:, :1].expand(-1, 5, -1), atol=1e-4)  # the same resampling of both
+    step = a2[:, 0, 1:] - a2[:, 0, :-1]  # a ramp resampled: a constant step per sequence
+    assert torch.allclose(step, step[:, :1].expand_as(step), atol=1e-4)
+    if crop == 1.0 and warp == 0:
+        assert torch.equal(x2, x)
+    lo, hi = ((L * (1 - warp) - 1) / (L - 1), (L * (1 + warp) - 1) / (L - 1)) if warp else (1.0, 1.0)
+    assert float(step.min()) >= lo - 1e-4 and float(step.max()) <= hi + 1e-4
+    x2.sum().backward()  # differentiable: the generator learns through the critic's view
+    assert float(x.grad.sum()) == pytest.approx(3 * 5 * L, rel=1e-4)
+
+
+# -- devices -------------------------------------------------------------------------------------
+def test_device_selection(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == "cpu" and resolve_device("cpu") == "cpu"
+    with pytest.raises(ParameterError, match=r"^device: cuda asked for, but torch sees no CUDA GPU"):
+        resolve_device("cuda")
+    with pytest.raises(ParameterError, match=r"^device: expected one of auto, cpu, cuda, got 'tpu'"):
+        resolve_device("tpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("auto") == "cuda"
+
+
+def test_cli_device_flag_without_a_gpu_is_one_line(scott_db_path, tmp_path, capsys, monkeypatch):
+    from gesturedb.cli.main import main
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert main(["refiner", "train", str(scott_db_path), "-o", str(tmp_path / "r.pt"), "--device", "cuda"]) == 2
+    assert "error: device: cuda asked for, but torch sees no CUDA GPU" in capsys.readouterr().err
+
+
+def _same_weights(a, b):
+    return all(torch.equal(t.cpu(), b[k].cpu()) for k, t in a.items())
+
+
+@CUDA
+def test_training_on_cuda_resumes_on_the_cpu_and_applies_there(tmp_path):
+    cfg = TrainConfig(**dict(_CFG, w1=0.01))
+    gpu = Trainer(_tiny(), cfg, "id", _FEATURES, device="cuda")
+    gpu.step()
+    gpu.save(tmp_path / "r.pt")
+    cpu = Trainer(_tiny(), cfg, "id", _FEATURES, device="cpu")
+    cpu.restore(read_checkpoint(tmp_path / "r.pt", training=True))
+    assert _same_weights(gpu.G.state_dict(), cpu.G.state_dict())
+    cpu.step()  # the optimiser's moments came back on the CPU
+    assert cpu.iteration == 2 and next(Refiner.load(tmp_path / "r.pt").G.parameters()).device.type == "cpu"
+    back = Trainer(_tiny(), cfg, "id", _FEATURES, device="cuda")
+    cpu.save(tmp_path / "r2.pt")
+    back.restore(read_checkpoint(tmp_path / "r2.pt", training=True))
+    back.step()
+    assert back.iteration == 3
+
+
+def test_a_cpu_checkpoint_restores_on_the_cpu_with_the_sampler_state(tmp_path):
+    """Resuming is device-agnostic: the sampler's generator lives on the CPU, so the batches after a
+    resume are those of an uninterrupted run (here both on the CPU; on CUDA by the test above)."""
+    cfg = TrainConfig(**dict(_CFG, w1=0.01))
+    straight = Trainer(_tiny(), cfg, "id", _FEATURES, device="cpu")
+    for _ in range(3):
+        straight.step()
+    first = Trainer(_tiny(), cfg, "id", _FEATURES, device="cpu")
+    first.step()
+    first.save(tmp_path / "r.pt")
+    second = Trainer(_tiny(), cfg, "id", _FEATURES, device="cpu")
+    second.restore(read_checkpoint(tmp_path / "r.pt", training=True))
+    for _ in range(2):
+        second.step()
+    assert _same_weights(straight.G.state_dict(), second.G.state_dict())
