@@ -112,7 +112,7 @@ def test_training_from_the_cache_is_training_from_memory(scott_db, serial, tmp_p
     cfg = TrainConfig(batch=4, width=8, n_critic=2, seed=5)
     a, b = Trainer(serial, cfg, "id", {}), Trainer(cached, cfg, "id", {})
     for _ in range(2):
-        assert a.step() == b.step()
+        np.testing.assert_equal(a.step(), b.step())  # a NaN ratio (no L1 gradient yet) equals NaN
     for k, v in a.G.state_dict().items():
         assert torch.equal(v, b.G.state_dict()[k]), k
 
