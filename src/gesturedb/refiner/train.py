@@ -463,7 +463,9 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
         if m is None:
             return
         shown.update(val=f"{m['score']:.3f}", jerk=f"{m['jerk']:.2f}x")
-        line = f"validation at iteration {tr.iteration}: {format_metrics(m)}"
+        ident = validator.identity["score"]
+        line = (f"validation at iteration {tr.iteration}: {format_metrics(m)}; unrefined score {ident:.3f} "
+                f"({100 * (ident - m['score']) / ident:+.1f}% better)")
         if bar is not None:
             bar.write(line, file=sys.stderr)
         elif log:
