@@ -278,16 +278,20 @@ def test_holdout_has_every_system_and_the_ground_truth(holdout, scott_dir):
     assert inp.metrics["random"]["average_jerk_m_s3"] > gt_row["average_jerk_m_s3"]
 
 
-def test_default_search_meets_the_placement_goals_on_the_held_out_stretch(holdout):
-    """Issue 9's goals, with the default settings (random start, seed 0), against the capture
-    it never saw: pelvis mean speed within 1.3x, largest per-frame root step within 1.5x and foot
-    skating within 1.5x. The mean start (the old default) moves the pelvis at 1.41x here."""
-    m = holdout.inputs[0].metrics
-    assert holdout.settings["init"] == "random" and holdout.settings["seed"] == 0
-    gt, got = m["ground_truth"], m["ranksum_pose"]
-    assert got["pelvis_speed_m_s"] <= 1.3 * gt["pelvis_speed_m_s"]
-    assert got["max_root_step_m"] <= 1.5 * gt["max_root_step_m"]
-    assert got["foot_skating_m_s"] <= 1.5 * gt["foot_skating_m_s"]
+def test_default_search_meets_the_placement_goals_on_the_held_out_stretch(scott_dir):
+    """Issue 9's goals, with the default settings (random starts), against the capture it never saw:
+    pelvis mean speed within 1.3x, largest per-frame root step within 1.5x and foot skating within
+    1.5x, on the mean of 4 starts (seeds 0-3). One start is one path, and on this 15 s stretch the
+    pelvis swings 0.13-0.18 m/s from start to start (0.12-0.17 with the past-only pose feature of
+    schema 3, whose seed 0 happened to be its slowest): a single start tests the seed more than the
+    search. The mean start (the old default) moved the pelvis at 1.41x here."""
+    ev = E.evaluate_holdout(scott_dir, 48.0, 63.5, mirror=True, systems=["ground_truth", "ranksum_pose"], starts=4)
+    inp = ev.inputs[0]
+    assert ev.settings["init"] == "random" and [r["seed"] for r in inp.starts["ranksum_pose"]] == [0, 1, 2, 3]
+    gt, got = inp.metrics["ground_truth"], inp.starts_summary()["ranksum_pose"]
+    assert got["pelvis_speed_m_s"]["mean"] <= 1.3 * gt["pelvis_speed_m_s"]
+    assert got["max_root_step_m"]["mean"] <= 1.5 * gt["max_root_step_m"]
+    assert got["foot_skating_m_s"]["mean"] <= 1.5 * gt["foot_skating_m_s"]
 
 
 def test_holdout_metrics_cross_check_the_metric_functions(holdout):
