@@ -111,10 +111,11 @@ def test_hand_speed_of_known_wrist_motion():
     sp = hand_speed(pos, joints=J, fps=fps, smooth_s=0)
     np.testing.assert_allclose(sp[:29], 1.0, atol=1e-9)
     np.testing.assert_allclose(sp[32:], 0.5, atol=1e-9)
-    # turning and walking with the arms fixed to the body is not hand motion
+    # turning and walking with the arms fixed to the body is not hand motion (away from the ends, where
+    # the facing smoothing, sigma 2/15 s = 4 frames here, sees a turn that stops: 2.5 sigma)
     still = np.repeat(rest_positions()[None], n, axis=0)
     moving = rigid(still, np.linspace(0, 1, n), np.arange(n)[:, None] / fps * [0.5, 0, 0.5])
-    np.testing.assert_allclose(hand_speed(moving, joints=J, fps=fps)[5:-5], 0.0, atol=0.02)
+    np.testing.assert_allclose(hand_speed(moving, joints=J, fps=fps)[10:-10], 0.0, atol=0.02)
 
 
 def test_popcount_fallback_for_old_numpy_matches(monkeypatch):
