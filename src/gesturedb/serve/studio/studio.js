@@ -142,6 +142,12 @@ function frameBody() {
   const dist = Math.max(h / 2 / tanHalf, w / 2 / (tanHalf * view.camera.aspect)) + (hi.z - lo.z) / 2;
   const t = new THREE.Vector3((lo.x + hi.x) / 2, (Math.min(lo.y, 0) - 0.1 + hi.y + head + 0.1) / 2, (lo.z + hi.z) / 2);
   if (!view.target) { view.target = t; view.dist = dist; } else { view.target.lerp(t, 0.05); view.dist += 0.05 * (dist - view.dist); }
+  // the slow follow never lets the body leave the view: a hand thrown up faster than the camera follows
+  // moves it back at once, as far as the lagging target needs for the head, the feet and the hands
+  const up = hi.y + head + 0.1 - view.target.y, down = view.target.y - (Math.min(lo.y, 0) - 0.1);
+  const side = Math.max(hi.x + 0.15 - view.target.x, view.target.x - (lo.x - 0.15));
+  const need = Math.max(Math.max(up, down) / tanHalf, side / (tanHalf * view.camera.aspect)) + (hi.z - lo.z) / 2;
+  view.dist = Math.max(view.dist, need);
   view.camera.position.set(view.target.x, view.target.y, view.target.z + view.dist);
   view.camera.lookAt(view.target);
 }
