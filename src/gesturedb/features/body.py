@@ -35,7 +35,7 @@ __all__ = [
 
 #: Default Gaussian sigma (frames) of the facing-direction smoothing in :func:`body_frame`.
 FACING_SMOOTH_FRAMES: float = 2.0
-#: The same sigma in seconds, for callers that know the frame rate (``FACING_SMOOTH_S * fps``
+#: The same sigma in seconds, what :func:`body_frame` uses given the frame rate (``FACING_SMOOTH_S * fps``
 #: frames: 2.0 exactly at the paper's 15 fps, 4.0 at 30 fps).
 FACING_SMOOTH_S: float = 2.0 / 15.0
 
@@ -52,7 +52,8 @@ def body_frame(
     positions: np.ndarray,
     *,
     joints: Mapping[str, int],
-    smooth_frames: float = FACING_SMOOTH_FRAMES,
+    fps: float | None = None,
+    smooth_frames: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Origin and yaw rotation of the speaker's body frame in every frame.
 
@@ -68,14 +69,16 @@ def body_frame(
         World joint positions, y up.
     joints : mapping of str to int
         Joint index of each role in :data:`BODY_ROLES` (other keys are ignored).
-    smooth_frames : float >= 0, keyword-only
+    fps : float > 0 or None, keyword-only
+        Frame rate (Hz): the default smoothing is then :data:`FACING_SMOOTH_S` in frames, the
+        same time at any rate (2 frames at 15 fps); without it, :data:`FACING_SMOOTH_FRAMES`.
+    smooth_frames : float >= 0 or None, keyword-only
         Gaussian sigma, in frames, applied to the unit facing vectors before they
         are renormalised, so that marker noise on the hips and shoulders does not
         make the whole frame (and with it every hand feature) jitter. The default
-        of 2 frames (67 ms at 30 fps) removes frame-to-frame noise but follows any
-        real turn of the body within a few frames. Smoothing is linear, so a
-        constant rotation of the whole recording about the vertical axis commutes
-        with it exactly. 0 disables it.
+        of 2/15 s removes frame-to-frame noise but follows any real turn of the body
+        within a few frames. Smoothing is linear, so a constant rotation of the whole
+        recording about the vertical axis commutes with it exactly. 0 disables it.
 
     Returns
     -------
@@ -96,6 +99,8 @@ def body_frame(
     """
     positions = check_positions(positions)
     idx = check_joints(joints, BODY_ROLES, n_joints=positions.shape[1])
+    if smooth_frames is None:
+        smooth_frames = FACING_SMOOTH_FRAMES if fps is None else FACING_SMOOTH_S * check_fps(fps)
     smooth_frames = _check_nonnegative("smooth_frames", smooth_frames)
 
     origin = positions[:, idx["root"], :].copy()

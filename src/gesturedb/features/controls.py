@@ -15,10 +15,8 @@ import numpy as np
 
 from gesturedb.features.body import (
     BODY_ROLES,
-    FACING_SMOOTH_S,
     SPEED_SMOOTH_S,
     body_frame,
-    check_fps,
     check_joints,
     check_positions,
     point_speeds,
@@ -95,9 +93,7 @@ def control_features(
     """
     positions = check_positions(positions)
     idx = check_joints(joints, WRIST_ROLES + BODY_ROLES, n_joints=positions.shape[1])
-    fps = check_fps(fps)
-    # the facing smoothed over the same time at any frame rate (2 frames at 15 fps)
-    origin, rotation = body_frame(positions, joints=idx, smooth_frames=FACING_SMOOTH_S * fps)
+    origin, rotation = body_frame(positions, joints=idx, fps=fps)
     wrists = to_body_frame(positions[:, [idx[r] for r in WRIST_ROLES]], origin, rotation)  # (F, 2, 3)
     left, right = wrists[:, 0], wrists[:, 1]
     speeds = point_speeds(wrists, fps=fps, smooth_s=smooth_s)  # (F, 2)

@@ -19,7 +19,6 @@ import numpy as np
 from gesturedb.errors import ParameterError
 from gesturedb.features.body import (
     BODY_ROLES,
-    FACING_SMOOTH_S,
     SPEED_SMOOTH_S,
     body_frame,
     check_fps,
@@ -152,8 +151,7 @@ def hand_speed(
     """
     positions = check_positions(positions)
     idx = check_joints(joints, WRIST_ROLES + BODY_ROLES, n_joints=positions.shape[1])
-    # the facing smoothed over the same time at any frame rate (2 frames at 15 fps)
-    origin, rotation = body_frame(positions, joints=idx, smooth_frames=FACING_SMOOTH_S * check_fps(fps))
+    origin, rotation = body_frame(positions, joints=idx, fps=fps)
     wrists = to_body_frame(positions[:, [idx[r] for r in WRIST_ROLES]], origin, rotation)
     return point_speeds(wrists, fps=fps, smooth_s=smooth_s).max(axis=1)
 

@@ -14,10 +14,8 @@ import numpy as np
 from gesturedb.errors import ParameterError
 from gesturedb.features.body import (
     BODY_ROLES,
-    FACING_SMOOTH_S,
     SPEED_SMOOTH_S,
     body_frame,
-    check_fps,
     check_joints,
     check_positions,
     point_speeds,
@@ -88,8 +86,7 @@ def style_signatures(
             f"got clip {k}: start {st[k]}, length {ln[k]}"
         )
 
-    # the facing smoothed over the same time as the control features' (2 frames at 15 fps)
-    origin, rotation = body_frame(positions, joints=idx, smooth_frames=FACING_SMOOTH_S * check_fps(fps))
+    origin, rotation = body_frame(positions, joints=idx, fps=fps)
     wrists = to_body_frame(positions[:, [idx[r] for r in WRIST_ROLES]], origin, rotation)  # (F, 2, 3)
     per_frame = np.stack(
         [
