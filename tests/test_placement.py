@@ -266,6 +266,27 @@ def test_a_released_ankle_eases_back_to_the_motion():
     np.testing.assert_allclose(target[10 + C.RELEASE_FRAMES + 1:], free[10 + C.RELEASE_FRAMES + 1:])  # ...to none
 
 
+def test_a_planted_ankle_ignores_a_lift_of_the_root_and_settles_with_a_drop():
+    """A seam's offset moves the root up and down for a fraction of a second: a planted ankle keeps the
+    lowest height its contact has had (it never rises with the root, it settles when the root goes down),
+    and after the contact it eases back to the motion's height."""
+    from gesturedb.synth import contacts as C
+
+    T = 60
+    free = np.zeros((T, 3))
+    free[:, 1] = 0.08 + 0.03 * np.sin(np.arange(T) / 3.0)  # bobbing by 3 cm
+    planted = np.ones(T, dtype=bool)
+    planted[40:] = False
+    target, weight = C._ankle_targets(free, planted)
+    np.testing.assert_allclose(target[:40, 1], np.minimum.accumulate(free[:40, 1]))
+    assert np.all(np.diff(target[:40, 1]) <= 0)
+    after = 40 + C.RELEASE_FRAMES + 1
+    np.testing.assert_allclose(target[after:], free[after:])
+    # no jump: the release spreads the gap over its frames (a sampled smoothstep peaks at about 1.5x the mean)
+    gap = abs(free[40, 1] - target[39, 1])
+    assert np.abs(np.diff(target[:, 1])).max() <= 1.6 * gap / C.RELEASE_FRAMES + np.abs(np.diff(free[:, 1])).max()
+
+
 def test_holding_feet_adds_no_ankle_jump_on_real_speech(scott_db, scott_dir):
     """On real speech the leg IK (holds, steps, releases, re-plants) makes no ankle jump: in one frame no
     ankle moves much further than the motion without it already does (a re-plant during a release once

@@ -3,8 +3,9 @@
 Used by :func:`gesturedb.synth.assemble.assemble_pieces`: contacts are detected on
 each source piece (so a mirrored recording or a time-warped clip is treated like
 any other), and after placement the ankles of planted feet are held where the
-contact began by rotating hip and knee (analytic two-bone IK); the ankle keeps
-its world orientation so the sole stays flat. The root is not moved.
+contact began (horizontally; vertically at the lowest height the contact has had)
+by rotating hip and knee (analytic two-bone IK); the ankle keeps its world
+orientation so the sole stays flat. The root is not moved.
 """
 from __future__ import annotations
 
@@ -286,22 +287,25 @@ class _Targets:
                     n = end - i + 1
                     u = np.arange(1, n + 1) / n
                     w = smoothstep(u)[:, None]
-                    target[i:end + 1, [0, 2]] = (1 - w) * anchor[[0, 2]] + w * free[end, [0, 2]]
-                    target[i:end + 1, 1] = free[i:end + 1, 1] + self.step_height_m * np.sin(np.pi * u)
+                    target[i:end + 1] = (1 - w) * anchor + w * free[end]
+                    target[i:end + 1, 1] += self.step_height_m * np.sin(np.pi * u)
                     weight[i:end + 1] = True
                     self.anchor = free[end].copy()
                     self.since_release = 0 if planted[end] else 1
                     t = end + base + 1
                     continue
+                # held at the lowest height the contact has had: a seam's offset that lifts the root does
+                # not lift a planted foot, one that lowers it settles the foot (the floor bounds it)
+                anchor[1] = min(anchor[1], free[i, 1])
                 self.anchor = anchor
-                target[i, [0, 2]] = anchor[[0, 2]]
+                target[i] = anchor
                 weight[i] = True
                 self.since_release = 0
             elif self.anchor is not None:
                 self.since_release += 1
                 w = 1.0 - smoothstep(self.since_release / (self.release_frames + 1))
                 if self.since_release <= self.release_frames:
-                    target[i, [0, 2]] = w * self.anchor[[0, 2]] + (1 - w) * free[i, [0, 2]]
+                    target[i] = w * self.anchor + (1 - w) * free[i]
                     weight[i] = True
                 else:
                     self.anchor = None
@@ -314,8 +318,12 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
                    step_height_m: float = STEP_HEIGHT_M) -> tuple[np.ndarray, np.ndarray]:
     """Where one ankle should be (T, 3) and whether the IK applies (T,) bool, for :func:`plant_feet`.
 
-    ``free`` is the ankle where the motion puts it, ``planted`` its contacts. Horizontal
-    targets only, except during a step, which also lifts the ankle. The defaults are the
+    ``free`` is the ankle where the motion puts it, ``planted`` its contacts. A planted
+    ankle is held where its contact began, at the lowest height the contact has had so
+    far (a seam's offset that lifts the root would lift the foot with it: planted ankles
+    moved vertically at 0.05 m/s on the BEAT2 inputs, 0.035 since; following the motion
+    down settles a foot that landed a little high, and the floor bounds it). A step
+    goes from there to where the motion has the foot at its end, lifted on the way. The defaults are the
     15 fps values; :func:`plant_feet` derives them from the frame rate and the rig.
     """
     target = np.array(free, dtype=np.float64, copy=True)
@@ -456,7 +464,7 @@ class FootPlanter:
 
 
 def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, contacts: np.ndarray) -> np.ndarray:
-    """Hold each planted ankle where its contact began (horizontally), by leg IK.
+    """Hold each planted ankle where its contact began, by leg IK (:func:`_ankle_targets`).
 
     Parameters
     ----------
