@@ -812,3 +812,58 @@ def test_add_graph_checks_the_scheduler_before_copying_the_database(scott_db_pat
     with pytest.raises(ParameterError, match="scheduler: expected 'local:N' or 'tcp://HOST:PORT'; got 'udp://x'"):
         G.add_graph(scott_db_path, scheduler="udp://x")
     assert copies == []
+
+
+@pytest.mark.parametrize("n,speed", [(60, 1.25), (60, 0.8), (17, 1.2), (40, 1.0), (9, 0.8)])
+def test_a_fitted_clip_keeps_its_own_pace_and_cuts_where_the_hands_rest(n, speed):
+    """fit_times: every output frame plays a source frame at the clip's own pace (rate 1), except one cut
+    that skips (clip longer than its input clip) or repeats (shorter) k frames where the hands are slowest;
+    the clip's first and last frames are its own (the word gaps and transition costs stay where they are)."""
+    from gesturedb.synth.graph import fit_times
+    from gesturedb.synth.seams import LEAD_FRAMES
+
+    k = int(round((n - 1) * (speed - 1)))
+    m = n + max(k, 0)
+    hand = np.full(m, 1.0)
+    rest = slice(m // 2 - 2, m // 2 + 3)  # a hold in the middle
+    hand[rest] = 0.01
+    t, cut = fit_times(hand, n, speed)
+    assert t.shape == (n,) and t[0] == 0
+    steps = np.diff(t)
+    if k == 0:
+        assert cut is None and np.all(steps == 1)
+        return
+    if n < 2 * LEAD_FRAMES + 2 * max(-k, 0):  # no room for a cut: the uniform warp
+        assert cut is None
+        np.testing.assert_allclose(t, np.arange(n) * speed)
+        return
+    assert cut is not None and LEAD_FRAMES <= cut <= n - LEAD_FRAMES and t[-1] == (n - 1) + k
+    assert np.all(np.delete(steps, cut - 1) == 1) and steps[cut - 1] == 1 + k
+    # the source frames between where the cut leaves and where it resumes lie in the hold where they fit
+    span = hand[min(cut, cut + k):max(cut, cut + k) + 1]
+    assert span.max() == pytest.approx(0.01) or span.size > 5
+
+
+def test_graph_clips_play_at_their_own_pace_and_keep_the_strokes(mirrored_db, scott_dir):
+    """On a real input the upper body plays whole source frames one after another except at seams (the
+    clips' boundaries and the cuts that fit them), so the arms keep the database's band power: the BEAT2
+    input 2_2, whose clips are mostly longer than its phrases, had 1.8x / 2.6x the database's arm power at
+    2-4 / 4-7 Hz when the clips were played faster (0.97/1.11/1.17 now, seam/inside jerk 0.88)."""
+    from gesturedb.eval import strokes as ST
+    from gesturedb.eval.metrics import seam_jerk
+
+    wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
+    with gesturedb.open(mirrored_db) as db:
+        res = GraphSynthesizer(db).synthesize(wav, transcript=wav.with_suffix(".TextGrid"))
+        src = np.asarray(res.source_frames)
+        jumps = np.flatnonzero(np.diff(src) != 1) + 1
+        assert set(jumps.tolist()) <= set(np.asarray(res.boundaries).tolist())
+        clip_starts = {s["out_start"] for s in res.steps[1:]}
+        assert set(res.boundaries.tolist()) > clip_starts  # some clips were fitted by a cut
+        arms = ST.band_groups(db.joint_names)["arms"]
+        recs = [np.asarray(db.joint_positions[r.start_frame:r.start_frame + r.n_frames], dtype=np.float64)
+                for r in db.recordings]
+        ref = ST.pooled_band_power(recs, fps=db.fps, joints=arms)
+        ratios = ST.band_ratios(ST.band_power(res.positions, fps=db.fps, joints=arms), ref)
+        assert all(0.67 <= v <= 1.5 for v in ratios.values()), ratios
+        assert seam_jerk(res.positions, fps=db.fps, boundaries=res.boundaries, joints=arms)["ratio"] < 1.1

@@ -9,7 +9,7 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
    VAD by default, or the energy detector; voiced stretches separated by >= 80 ms of silence
    count as "words"; measured accuracy in :mod:`gesturedb.features.pauses`). Input clips longer
    than the longest database clip are split at their deepest pause (or in the middle),
-   so every clip has a node that can be warped to it.
+   so every clip has a node that can be fitted to it.
 2. **Signatures.** Rhythm: word onsets over 32 bins (Sec. 3.2). Style: predicted from the
    clip's audio by the ridge model stored with the graph.
 3. **Data term** ``C_d = l5 * |style_in - style_d| + l6 * Hamming(rhythm_in, rhythm_motion_d)
@@ -23,9 +23,11 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
    (``../shared/spec/graph.md``) over the upper-body graph. Defaults from Sec. 5: l3 = 1,
    l4 = 3, l5 = 1, l6 = 0.1. The graph has no self-edges, so the same clip is never played
    twice in a row. The lower body has its own search (below).
-5. **Fitting.** Each chosen upper-body clip is played at speed ``clamp(len_d / len_i, 1/1.25, 1.25)``
-   (Catmull-Rom between the four nearest source frames, rotations and root); where it is still longer it is
-   trimmed, where shorter it runs on into its recording's following frames. Pieces go
+5. **Fitting.** Each chosen upper-body clip is fitted to its input clip at ``clamp(len_d / len_i, 1/1.25,
+   1.25)`` times its length without changing its pace (:func:`fit_times`): the surplus frames are cut out,
+   or the missing ones played twice, where its hands are slowest, a seam like the others (played faster
+   or slower, its velocity power above 2 Hz changed as about the 4th power of the rate). Where it is still
+   longer it is trimmed, where shorter it runs on into its recording's following frames. Pieces go
    through :func:`gesturedb.synth.assemble.assemble_pieces` (placement, seams inertialized
    as for the k-NN). GestureMaster's Savitzky-Golay filter per joint group (Sec. 4.2:
    window 7 frames at its 30 fps, order 2 for arms, hands and head; order 1 for the rest
@@ -41,14 +43,14 @@ transition cost, measured at the end of a node, the one that plays), a stepping 
 whose feet move more than the database's median clip costs the log of the ratio: transitions
 alone chose the stretches where the speaker walks about) and the penalty for a node whose
 recording ends before the clip does. The lower body carries no rhythm, so it is
-not time-warped: each node plays at its own speed, trimmed or run on into its recording
-(warped like the upper body, its feet slid: on the four BEAT2 inputs with 30 nodes, skating
+not fitted: each node plays as it is, trimmed or run on into its recording (time-warped,
+as the upper body once was, its feet slid: on the four BEAT2 inputs with 30 nodes, skating
 0.085 against 0.064 m/s unwarped). The two motions are joined: upper-body local rotations
 from the first (the spine's first joint keeping its own orientation in the world, less the
 heading, :func:`join_upper_body`), root and legs from the second (feet planted on those).
 
 Offline only (``METHOD.streams`` is False): an input clip ends at the next pause longer than
-``gap_s``, its style comes from its whole audio and its node is warped to its whole length,
+``gap_s``, its style comes from its whole audio and its node is fitted to its whole length,
 and the exact path search (:func:`viterbi`) chooses every clip knowing all the others; a
 live graph would wait a phrase (seconds) before its first frame. The k-NN streams
 (:class:`gesturedb.synth.stream.Stream`).
@@ -62,11 +64,13 @@ import numpy as np
 from gesturedb import rotations as R
 from gesturedb.db.graph import body_parts, clip_audio_inputs, predict_style, suggest_gap_s
 from gesturedb.errors import ParameterError, SchemaError
+from gesturedb.features.body import BODY_ROLES
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
-from gesturedb.features.rhythm import audio_rhythm, hamming
+from gesturedb.features.rhythm import audio_rhythm, hamming, hand_speed
 from gesturedb.features.segments import word_gap_clips
 from gesturedb.io.transcripts import Words
 from gesturedb.motion import Motion
+from gesturedb.roles import WRIST_ROLES
 from gesturedb.synth import inputs
 from gesturedb.synth.assemble import (
     SMOOTH_WINDOW_S,
@@ -88,7 +92,7 @@ from gesturedb.synth.viterbi import viterbi
 
 __all__ = ["viterbi", "GraphSynthesizer", "GraphOptions", "voiced_segments", "MAX_SPEED", "METHOD"]
 
-#: bounded speed range of the time warp: 1/MAX_SPEED .. MAX_SPEED times the source speed
+#: a clip is fitted (:func:`fit_times`) to 1/MAX_SPEED .. MAX_SPEED times its own length; beyond, trimmed or run on
 MAX_SPEED = 1.25
 #: penalty added to C_d when a clip cannot be fitted even with its continuation
 UNFIT_PENALTY = 1000.0
@@ -128,6 +132,46 @@ def join_upper_body(skeleton, rot: np.ndarray, upper_rot: np.ndarray, upper_join
         world = R.multiply(turn, R.multiply(upper_rot[:, 0], upper_rot[:, j]))
         out[:, j] = R.multiply(R.inverse(rot[:, 0]), world)
     return out
+
+
+def fit_times(hand: np.ndarray, n: int, speed: float, *, margin: int = LEAD_FRAMES) -> tuple[np.ndarray, int | None]:
+    """Source times (n,), in frames from a clip's first, that fit the clip to ``n`` output frames where
+    it has ``(n - 1) * speed + 1``, and the output frame where a cut resumes it (None without a cut).
+
+    The clip is not resampled: played uniformly at 1.25x its arms' velocity power above 2 Hz was
+    2.2-2.6x what the same clips carry at their own pace (on the BEAT2 database's clips; it grows as
+    about ``speed ** 4``, the spectrum falling steeply and moving up), at 0.8x 0.26-0.28x; weighting the
+    warp towards the holds (slow hands) was no better above 4 Hz. Instead ``k = round((n - 1) * (speed -
+    1))`` frames are cut out (``k > 0``) or played twice (``k < 0``: the clip jumps back by ``-k`` frames)
+    where the hands are slowest (the span between the cut's two source frames whose summed hand speed is
+    least, which also bounds how far the pose moves across the cut), at least ``margin`` frames from
+    either end: the clip keeps its own pace, and still starts and ends where its word gaps and the
+    graph's transition costs are. The cut is a seam of its own, treated like the others. Without room
+    for a cut (a clip shorter than ``2 * margin + |k|``): the uniform warp.
+
+    Parameters
+    ----------
+    hand : ndarray [shape=(m,)], m/s
+        Hand speed of the clip's source frames from its first on (at least ``n + k`` of them).
+    n : int
+        Output frames.
+    speed : float > 0
+        The clip's length over the output's.
+    """
+    uniform = np.arange(n) * float(speed)
+    k = int(round((n - 1) * (float(speed) - 1.0)))
+    if k == 0:
+        return np.arange(n, dtype=np.float64), None
+    lo, hi = margin + max(-k, 0), n - margin + min(k, 0)  # the output frame that resumes after the cut
+    if hi < lo or hand.size < n + k:
+        return uniform, None
+    cs = np.concatenate([[0.0], np.cumsum(np.asarray(hand, dtype=np.float64))])
+    c = np.arange(lo, hi + 1)
+    first, last = np.minimum(c, c + k), np.maximum(c, c + k)
+    c0 = int(c[np.argmin(cs[last + 1] - cs[first])])  # hand speed summed over the cut's span
+    t = np.arange(n, dtype=np.float64)
+    t[c0:] += k
+    return t, c0
 
 
 def _split_long(bounds: list[int], w_start, w_end, fps: float, max_len: int) -> list[int]:
@@ -210,6 +254,11 @@ class GraphSynthesizer:
         self.avail = rec_end[self.recording] - self.start  # frames from clip start to its recording's end
         self.rec_start = np.array([r.start_frame for r in db.recordings], dtype=np.int64)[self.recording]
         self.stepping = self._stepping()
+        # the roles the hand speed needs (the database's feature joints), None where it lacks them
+        names = {n: j for j, n in enumerate(db.skeleton.names)}
+        fj = {r: names.get(n) for r, n in db.feature_joints.items()}
+        need = WRIST_ROLES + BODY_ROLES
+        self._hand_joints = {r: fj[r] for r in need} if all(fj.get(r) is not None for r in need) else None
 
     def _stepping(self) -> np.ndarray:
         """Per node: how much more its feet move than the database's typical clip, ``max(0, log(s / median s))``
@@ -342,7 +391,7 @@ class GraphSynthesizer:
         if excl is not None:
             unary_low[:, excl] = np.inf
         path_low, total_low = viterbi(unary_low, *self.lower_graph, w_data=w_data, w_trans=w_trans)
-        motion, source, steps = self._assemble(path, path_low, bounds, terms, unary, unary_low, labels,
+        motion, source, steps, cuts = self._assemble(path, path_low, bounds, terms, unary, unary_low, labels,
                                                seam_decay_s=seam_decay_s, smooth=smooth)
         options = dict(method="graph", gap_s=self.last_gap_s, w_data=w_data, w_trans=w_trans, l5=l5, l6=l6, l_dur=l_dur,
                        seam_decay_s=seam_decay_s, smooth=smooth, total_cost=total, total_cost_lower=total_low,
@@ -350,7 +399,9 @@ class GraphSynthesizer:
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        transcript=transcript is not None, vad=None if transcript is not None else vad,
                        database=db.path, **({"speaker": opts.speaker} if opts.speaker is not None else {}))
-        return SynthResult(motion=motion, source_frames=source, boundaries=bounds[1:-1], steps=steps,
+        # every seam: the clips' and the cuts that fitted a longer clip (fit_times)
+        seams = np.union1d(bounds[1:-1], np.asarray(cuts, dtype=np.int64))
+        return SynthResult(motion=motion, source_frames=source, boundaries=seams, steps=steps,
                            fps=db.fps, audio_path=audio_path, options=options)
 
     def _apply_masks(self, unary, bounds, T, *, control, transcript, keywords, exclude):
@@ -408,7 +459,8 @@ class GraphSynthesizer:
         return labels, kw_ok
 
     def _pieces(self, path, bounds, speeds, seam_decay_s):
-        """The time-warped source pieces of a path, their source frames (T,) and warp times per clip.
+        """The fitted source pieces of a path (:func:`fit_times`), their source frames (T,), the source times per
+        clip and the output frames where a clip resumes after a cut.
 
         ``speeds``: (n, K) warp rate of node ``d`` for clip ``i``, or None for the source speed.
         """
@@ -417,6 +469,7 @@ class GraphSynthesizer:
         pieces, times = [], []
         source = np.empty(int(bounds[-1]), dtype=np.int64)
         prev = None  # (time of the previous piece's last frame, its speed, its recording's last frame)
+        cuts = []  # output frames where a clip resumes after a cut (fit_times)
 
         def warped(t, lo, hi):
             """Source motion at fractional frames t, held at frames lo and hi (its recording's ends).
@@ -442,24 +495,47 @@ class GraphSynthesizer:
             a, b = int(bounds[i]), int(bounds[i + 1])
             L = b - a
             speed = 1.0 if speeds is None else float(speeds[i, d])
-            t = self.start[d] + np.arange(L) * speed
             hi = self.start[d] + self.avail[d] - 1  # hold the recording's last frame if it runs out
             lo = int(self.rec_start[d])
+            rel, cut = fit_times(self._hand_speed(int(d), int(np.ceil((L - 1) * speed)) + 1), L, speed)
+            t = self.start[d] + rel
             rot, root = warped(t, lo, hi)
+            if cut is not None:  # the part before the cut, then the rest with the cut's own seam
+                cont = warped(t[cut - 1] + np.arange(1, LEAD_FRAMES + 1), lo, hi)
+                rest = Piece(out_start=a + cut, rotations=rot[cut:], root=root[cut:], lead_in=cont)
+                rot, root = rot[:cut], root[:cut]
+                cuts.append(a + cut)
             lead = None
             if prev is not None and seam_decay_s > 0:
                 # how the previous piece goes on: its own recording, at its own warp rate, from the time
                 # after its last frame (the next source frame would skip or repeat part of a frame)
-                t_prev, s_prev, hi_prev, lo_prev = prev
+                t_prev, s_prev, hi_prev, lo_prev = prev  # s_prev: the rate of its last frame
                 tl = t_prev + s_prev * np.arange(1, LEAD_FRAMES + 1)
                 tl = tl[tl <= hi_prev]
                 if tl.size:
                     lead = warped(tl, lo_prev, hi_prev)
             pieces.append(Piece(out_start=a, rotations=rot, root=root, lead_in=lead))
+            if cut is not None:
+                pieces.append(rest)
             source[a:b] = np.rint(t).astype(np.int64).clip(max=hi)
-            prev = (float(t[-1]), speed, int(self.start[d] + self.avail[d] - 1) if t[-1] <= hi else -1, lo)
+            last_rate = float(t[-1] - t[-2]) if L > 1 else speed
+            prev = (float(t[-1]), last_rate, int(self.start[d] + self.avail[d] - 1) if t[-1] <= hi else -1, lo)
             times.append(t)
-        return pieces, source, times
+        return pieces, source, times, cuts
+
+    def _hand_speed(self, d: int, m: int) -> np.ndarray:
+        """Hand speed (m/s, :func:`gesturedb.features.rhythm.hand_speed`) of node ``d``'s first ``m`` source
+        frames (fewer where its recording ends), from a few frames of context on either side."""
+        db = self.db
+        if self._hand_joints is None:
+            return np.zeros(0)
+        pad = max(2, int(np.ceil(0.2 * db.fps)))  # the speed's smoothing and differences need context
+        a0, end = int(self.start[d]), int(self.start[d] + self.avail[d])
+        lo, hi = max(int(self.rec_start[d]), a0 - pad), min(end, a0 + m + pad)
+        if hi - lo < 3:
+            return np.zeros(0)
+        pos = np.asarray(db.rows("joint_positions", np.arange(lo, hi)), dtype=np.float64)
+        return hand_speed(pos, joints=self._hand_joints, fps=db.fps)[a0 - lo: min(a0 + m, end) - lo]
 
     def _edge(self, graph, p, q):
         indptr, indices, cost = graph
@@ -478,8 +554,8 @@ class GraphSynthesizer:
         db = self.db
         recs = db.recordings
         T = int(bounds[-1])
-        up_pieces, source, up_t = self._pieces(path, bounds, terms["speed"], seam_decay_s)
-        low_pieces, _, low_t = self._pieces(path_low, bounds, None, seam_decay_s)
+        up_pieces, source, up_t, cuts = self._pieces(path, bounds, terms["speed"], seam_decay_s)
+        low_pieces, _, low_t, _ = self._pieces(path_low, bounds, None, seam_decay_s)
         accel = typical_accelerations(db) if seam_decay_s > 0 else None
         upper = assemble_pieces(db.skeleton, db.fps, up_pieces, n_frames=T, seam_decay_s=seam_decay_s, smooth=False,
                                 lock_feet=False, seam_accel=accel)  # its legs are dropped
@@ -516,7 +592,7 @@ class GraphSynthesizer:
             })
         if smooth:
             motion = self._smooth(motion)
-        return motion, source, steps
+        return motion, source, steps, cuts
 
     def _smooth(self, motion):
         """Savitzky-Golay per joint group (Sec. 4.2): order 2 for arms/hands/head, 1 elsewhere; window in seconds."""
