@@ -62,10 +62,27 @@ def test_a_split_that_leaves_no_side_is_refused(scott_db):
         D.held_out_from(scott_db, 1.5)
 
 
-def test_the_validation_bands_are_the_stroke_tables(scott_db):
+def test_the_validation_measures_bands_and_speeds_as_eval_does():
+    # one home for the definitions (gesturedb.measures): the validator's band power of windows is the
+    # stroke tables' band power of those windows pooled as recordings, its speed histogram eval's
+    from gesturedb.eval import metrics as M
     from gesturedb.eval import strokes
 
-    assert V.BANDS_HZ == strokes.BANDS_HZ and V.WELCH_SEGMENT_S == strokes.WELCH_SEGMENT_S
+    rng = np.random.default_rng(4)
+    fps = 15.0
+    pos = np.cumsum(rng.standard_normal((3, 64, 4, 3)) * 0.01, axis=1)
+    pos[:, :, 0] = 0.0  # the validator's windows are root-relative already
+    arms = [1, 3]
+    bands = V._arm_bands(np.diff(pos[:, :, arms], axis=1) * fps, fps)
+    pooled = strokes.pooled_band_power(list(pos), fps=fps, joints=arms)
+    assert list(pooled) == [strokes.band_key(b) for b in strokes.BANDS_HZ]
+    np.testing.assert_allclose(bands, list(pooled.values()), rtol=1e-12)
+    one = strokes.band_power(pos[0], fps=fps, joints=arms)
+    np.testing.assert_allclose(V._arm_bands(np.diff(pos[:1, :, arms], axis=1) * fps, fps), list(one.values()),
+                               rtol=1e-12)
+    hist = V._speed_hist(pos[:1], fps)
+    counts, _ = M.speed_histogram(pos[0], fps=fps)
+    assert np.array_equal(hist, counts)
 
 
 # -- the best checkpoint and the verdict ----------------------------------------------------------

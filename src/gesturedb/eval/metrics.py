@@ -13,7 +13,8 @@ average_acceleration, average_jerk
     finite difference times fps^k, averaged over frames, then joints.
 speed_histogram, hellinger_distance, speed_hellinger
     GENEA "histogram of moving distance" of joint speeds and the Hellinger
-    distance between the generated and the ground-truth histogram.
+    distance between the generated and the ground-truth histogram (the bins and
+    the distance are :mod:`gesturedb.measures`', shared with the refiner's validation).
 motion_beats, audio_beats, beat_align_score, beat_align
     BeatAlign (Liu et al. 2022, BEAT): Gaussian-weighted distance from motion
     beats (local minima of wrist speed) to audio beats (speech onsets).
@@ -33,6 +34,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from gesturedb.errors import ParameterError
+from gesturedb.measures import SPEED_BIN_M_S, SPEED_MAX_M_S, hellinger_distance, speed_bins, speed_counts
 
 __all__ = [
     "average_acceleration",
@@ -187,17 +189,7 @@ def joint_speeds(positions, *, fps, joints=None):
     return _finite_difference_norms(pos, 1, _fps(fps))
 
 
-def _speed_bins(bin_width_m_s: float, max_speed_m_s: float) -> np.ndarray:
-    if not (bin_width_m_s > 0 and max_speed_m_s > bin_width_m_s):
-        raise ParameterError(
-            "bins: expected 0 < bin_width_m_s < max_speed_m_s; "
-            f"got bin_width_m_s={bin_width_m_s!r}, max_speed_m_s={max_speed_m_s!r}"
-        )
-    n_bins = int(math.ceil(max_speed_m_s / bin_width_m_s - 1e-9))
-    return np.arange(n_bins + 1) * bin_width_m_s
-
-
-def speed_histogram(positions, *, fps, joints=None, bin_width_m_s=0.01, max_speed_m_s=2.0):
+def speed_histogram(positions, *, fps, joints=None, bin_width_m_s=SPEED_BIN_M_S, max_speed_m_s=SPEED_MAX_M_S):
     """Histogram of joint speeds pooled over the selected joints (GENEA HMD, "Total").
 
     Speeds at or above ``max_speed_m_s`` are counted in the last bin (GENEA
@@ -219,45 +211,12 @@ def speed_histogram(positions, *, fps, joints=None, bin_width_m_s=0.01, max_spee
         Number of (frame, joint) speed samples per bin, summed over joints.
     edges : ndarray [shape=(n_bins + 1,)], m/s
     """
-    edges = _speed_bins(float(bin_width_m_s), float(max_speed_m_s))
-    speeds = joint_speeds(positions, fps=fps, joints=joints).ravel()
-    # Clip into the last bin; np.histogram's last bin is closed on the right.
-    speeds = np.minimum(speeds, edges[-1])
-    counts, _ = np.histogram(speeds, bins=edges)
-    return counts.astype(np.int64), edges
+    edges = speed_bins(float(bin_width_m_s), float(max_speed_m_s))
+    return speed_counts(joint_speeds(positions, fps=fps, joints=joints), edges), edges
 
 
-def hellinger_distance(p, q):
-    """Hellinger distance between two histograms.
-
-    ``H(p, q) = sqrt(1 - sum_i sqrt(p_i q_i))`` after normalising each to sum 1
-    (GENEA's formula), evaluated as the equal ``sqrt(sum_i (sqrt(p_i) - sqrt(q_i))^2 / 2)``,
-    which is exactly 0 for identical histograms instead of ``sqrt(rounding error)``.
-    0 for identical distributions, 1 for disjoint supports.
-
-    Parameters
-    ----------
-    p, q : array_like [shape=(n_bins,)]
-        Non-negative counts or weights over the same bins.
-
-    Returns
-    -------
-    float in [0, 1]
-    """
-    p = np.asarray(p, dtype=np.float64)
-    q = np.asarray(q, dtype=np.float64)
-    if p.ndim != 1 or p.shape != q.shape:
-        raise ParameterError(
-            f"histograms: expected two 1-D arrays of the same length; got shapes {p.shape} and {q.shape}"
-        )
-    for name, h in (("p", p), ("q", q)):
-        if not np.all(np.isfinite(h)) or np.any(h < 0) or h.sum() <= 0:
-            raise ParameterError(f"histogram {name}: expected finite non-negative weights with a positive sum")
-    h2 = 0.5 * np.sum((np.sqrt(p / p.sum()) - np.sqrt(q / q.sum())) ** 2)
-    return float(min(1.0, math.sqrt(h2)))
-
-
-def speed_hellinger(generated, ground_truth, *, fps, joints=None, bin_width_m_s=0.01, max_speed_m_s=2.0):
+def speed_hellinger(generated, ground_truth, *, fps, joints=None, bin_width_m_s=SPEED_BIN_M_S,
+                    max_speed_m_s=SPEED_MAX_M_S):
     """Hellinger distance between the speed histograms of two motions.
 
     Parameters

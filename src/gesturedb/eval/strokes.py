@@ -19,7 +19,8 @@ apart (it weights 7 Hz 16x more than 2 Hz and mixes both); band power can.
     Band power of a motion divided by a reference's (the database's own motion,
     or the ground truth).
 
-Every length is in seconds, so a 30 fps database is measured like a 15 fps one
+The bands, the Welch estimate and the band integrals are :mod:`gesturedb.measures`', the
+definitions the refiner's validation measures with too. Every length is in seconds, so a 30 fps database is measured like a 15 fps one
 (the bands must lie below the Nyquist frequency: a band reaching past it is NaN).
 Definitions: ``docs/metrics.md``.
 """
@@ -33,26 +34,18 @@ from gesturedb.errors import ParameterError
 from gesturedb.eval.metrics import find_wrists
 from gesturedb.eval.placement import root_relative
 from gesturedb.io.joints import group_joints
+from gesturedb.measures import BANDS_HZ, WELCH_SEGMENT_S, band_integrals, band_key, welch_psd
 from gesturedb.roles import STROKE_JOINT_GROUPS
 
 __all__ = ["BANDS_HZ", "WELCH_SEGMENT_S", "STROKE_PERCENTILE", "band_groups", "band_psd", "band_power",
            "band_ratios", "stroke_strength", "band_key", "pooled_band_power", "stroke_metrics", "database_strokes",
            "STROKE_GROUPS", "STROKE_COLUMNS", "STROKE_GT_COLUMNS", "group_band_power"]
 
-#: Frequency bands (Hz): slow movement and sway, gesture phrases, beat strokes.
-BANDS_HZ: tuple[tuple[float, float], ...] = ((0.5, 2.0), (2.0, 4.0), (4.0, 7.0))
-#: Welch segment length (s): 0.25 Hz resolution, several segments in a 15 s stretch.
-WELCH_SEGMENT_S = 4.0
 #: Percentile of wrist speed reported as stroke strength.
 STROKE_PERCENTILE = 95.0
 
 #: Joint groups of the stroke tables, in table order (:data:`gesturedb.roles.STROKE_JOINT_GROUPS`).
 STROKE_GROUPS = tuple(STROKE_JOINT_GROUPS)
-
-
-def band_key(band: Sequence[float]) -> str:
-    """``"0.5-2"`` for (0.5, 2.0): the name of a band in tables and JSON."""
-    return "-".join(f"{x:g}" for x in band)
 
 
 #: (key, header, format) of ``gesturedb eval motion``'s stroke table against the database's own motion
@@ -101,31 +94,13 @@ def band_psd(positions, *, fps: float, joints, root: int = 0,
     n_segments : int
         Welch segments averaged (weight when pooling several recordings).
     """
-    from scipy.signal import welch
-
     pos, fps = _check(positions, fps)
     joints = np.asarray(joints, dtype=np.int64)
     vel = np.diff(root_relative(pos, root=root)[:, joints], axis=0) * fps  # (F-1, j, 3)
-    n = vel.shape[0]
-    nper = int(round(segment_s * fps))
-    if n < 4:
+    if vel.shape[0] < 4:
         raise ParameterError(f"positions: expected at least 5 frames for a band power; got {pos.shape[0]}")
-    nper = min(nper, n)
-    f, p = welch(vel, fs=fps, nperseg=nper, noverlap=nper // 2, detrend="constant", axis=0)
-    n_seg = 1 + (n - nper) // (nper - nper // 2)
+    f, p, n_seg = welch_psd(vel, fps=fps, axis=0, segment_s=segment_s)
     return f, p.sum(axis=-1).mean(axis=-1), n_seg
-
-
-def _integrate(f: np.ndarray, psd: np.ndarray, fps: float, bands) -> dict[str, float]:
-    df = f[1] - f[0] if f.size > 1 else 0.0
-    out = {}
-    for lo, hi in bands:
-        if hi > fps / 2 + 1e-9:
-            out[band_key((lo, hi))] = float("nan")  # the band reaches past what this frame rate can carry
-            continue
-        sel = (f >= lo - 1e-9) & (f < hi - 1e-9)
-        out[band_key((lo, hi))] = float(psd[sel].sum() * df)
-    return out
 
 
 def band_power(positions, *, fps: float, joints, root: int = 0, bands=BANDS_HZ,
@@ -142,7 +117,7 @@ def band_power(positions, *, fps: float, joints, root: int = 0, bands=BANDS_HZ,
     dict band name (:func:`band_key`) -> power, NaN for a band past the Nyquist frequency.
     """
     f, p, _ = band_psd(positions, fps=fps, joints=joints, root=root, segment_s=segment_s)
-    return _integrate(f, p, float(fps), bands)
+    return band_integrals(f, p, fps=float(fps), bands=bands)
 
 
 def pooled_band_power(recordings: Sequence[np.ndarray], *, fps: float, joints, root: int = 0, bands=BANDS_HZ,
@@ -163,7 +138,7 @@ def pooled_band_power(recordings: Sequence[np.ndarray], *, fps: float, joints, r
             continue  # a shorter recording's coarser spectrum: pooled only with its own kind
         acc = p * n if acc is None else acc + p * n
         tot += n
-    return _integrate(f, acc / tot, fps, bands)
+    return band_integrals(f, acc / tot, fps=fps, bands=bands)
 
 
 def band_ratios(power: dict[str, float], reference: dict[str, float]) -> dict[str, float]:

@@ -13,13 +13,14 @@ refiner does; root at the origin, so root-relative):
     Mean norm of the third difference of positions times fps^3 (m/s^3), within each window.
     Reported as the ratio to the capture's: 1 is the capture's jerk.
 ``band``
-    Arm (elbow and wrist) velocity power in each band of :data:`BANDS_HZ` (Welch PSD per
-    window, averaged), the definition of :func:`gesturedb.eval.strokes.band_power`
-    (the refiner sits below ``eval`` and cannot import it); reported as ratios to the capture's.
+    Arm (elbow and wrist) velocity power in each band of :data:`gesturedb.measures.BANDS_HZ`
+    (Welch PSD per window, averaged over windows and joints, then integrated per band): the
+    primitives of :mod:`gesturedb.measures` that :func:`gesturedb.eval.strokes.band_power`
+    uses; reported as ratios to the capture's.
 ``hellinger``
     Hellinger distance between the joint-speed histograms (1 cm/s bins up to 2 m/s, the
-    last bin holding everything faster) of the output and of the capture, as
-    :func:`gesturedb.eval.metrics.speed_hellinger`.
+    last bin holding everything faster) of the output and of the capture: the bins and
+    distance of :mod:`gesturedb.measures`, as :func:`gesturedb.eval.metrics.speed_hellinger`.
 ``critic_gap``
     Mean critic score of the capture minus that of the output, with the critic of the
     moment (logged, not scored: the critic changes while it trains, so its gap on the
@@ -46,46 +47,28 @@ import math
 import numpy as np
 
 from gesturedb.io.joints import group_joints, leg_joints
+from gesturedb.measures import band_integrals, hellinger_distance, speed_bins, speed_counts, welch_psd
 from gesturedb.motion import Motion
 from gesturedb.refiner.representation import from_channels
 from gesturedb.roles import STROKE_JOINT_GROUPS
 
-#: the bands of :data:`gesturedb.eval.strokes.BANDS_HZ` (tests check they agree)
-BANDS_HZ = ((0.5, 2.0), (2.0, 4.0), (4.0, 7.0))
-#: Welch segment (s) of :data:`gesturedb.eval.strokes.WELCH_SEGMENT_S`; a 64-frame window is shorter at 15 fps
-WELCH_SEGMENT_S = 4.0
-#: the speed histogram of :func:`gesturedb.eval.metrics.speed_histogram`'s defaults
-SPEED_BIN_M_S, SPEED_MAX_M_S = 0.01, 2.0
 #: how much lower (relative) than the identity's the best score must be for "better than the identity":
 #: a refiner that changes its input by a hair is not endorsed for it
 VERDICT_MARGIN = 0.02
 METRICS = ("score", "jerk", "band", "hellinger", "critic_gap", "hf")
 
 
-def _welch_arms(vel: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean Welch PSD over windows, axes and joints: vel (n, T-1, j, 3) -> (freqs, psd)."""
-    from scipy.signal import welch
-
-    nper = min(int(round(WELCH_SEGMENT_S * fps)), vel.shape[1])
-    f, p = welch(vel, fs=fps, nperseg=nper, noverlap=nper // 2, detrend="constant", axis=1)
-    return f, p.sum(axis=-1).mean(axis=(0, 2))
-
-
-def _bands(f: np.ndarray, psd: np.ndarray, fps: float) -> np.ndarray:
-    df = f[1] - f[0]
-    return np.array([psd[(f >= lo - 1e-9) & (f < hi - 1e-9)].sum() * df if hi <= fps / 2 + 1e-9 else np.nan
-                     for lo, hi in BANDS_HZ])
+def _arm_bands(vel: np.ndarray, fps: float) -> np.ndarray:
+    """Arm velocity power per band: vel (n windows, T-1, j, 3) -> (bands,), the Welch PSD of every window
+    summed over x, y, z and averaged over windows and joints (a 64-frame window is shorter than
+    a Welch segment at 15 fps: one segment each)."""
+    f, p, _ = welch_psd(vel, fps=fps, axis=1)
+    return np.array(list(band_integrals(f, p.sum(axis=-1).mean(axis=(0, 2)), fps=fps).values()))
 
 
 def _speed_hist(pos: np.ndarray, fps: float) -> np.ndarray:
-    edges = np.arange(int(math.ceil(SPEED_MAX_M_S / SPEED_BIN_M_S - 1e-9)) + 1) * SPEED_BIN_M_S
-    speed = np.linalg.norm(np.diff(pos, axis=1), axis=-1).ravel() * fps
-    return np.histogram(np.minimum(speed, edges[-1]), bins=edges)[0].astype(np.float64)
-
-
-def hellinger(p: np.ndarray, q: np.ndarray) -> float:
-    """Hellinger distance of two histograms (normalised here), in [0, 1]."""
-    return float(min(1.0, math.sqrt(0.5 * np.sum((np.sqrt(p / p.sum()) - np.sqrt(q / q.sum())) ** 2))))
+    """Joint-speed histogram of windows (n, T, j, 3), the speeds within each window."""
+    return speed_counts(np.linalg.norm(np.diff(pos, axis=1), axis=-1) * fps, speed_bins())
 
 
 class Validator:
@@ -137,8 +120,7 @@ class Validator:
     def _stats(self, pos: np.ndarray) -> dict:
         jerk = float(np.linalg.norm(np.diff(pos, n=3, axis=1), axis=-1).mean() * self.fps ** 3)
         vel = np.diff(pos[:, :, self.arms], axis=1) * self.fps
-        f, psd = _welch_arms(vel, self.fps)
-        return {"jerk": jerk, "band": _bands(f, psd, self.fps), "hist": _speed_hist(pos, self.fps)}
+        return {"jerk": jerk, "band": _arm_bands(vel, self.fps), "hist": _speed_hist(pos, self.fps)}
 
     def measure(self, channels: np.ndarray, *, critic_gap: float = float("nan")) -> dict:
         """Metrics of refined validation windows (n, C, T) against the capture (module docstring)."""
@@ -146,7 +128,7 @@ class Validator:
         c = self.capture
         jerk = s["jerk"] / c["jerk"]
         band = s["band"] / c["band"]
-        hell = hellinger(s["hist"], c["hist"])
+        hell = hellinger_distance(s["hist"], c["hist"])
         ok = np.isfinite(band) & (band > 0)
         score = abs(math.log(jerk)) + float(np.mean(np.abs(np.log(band[ok])))) + hell
         e_out = _high_energy(np.asarray(channels, dtype=np.float64), self.fps, self.cutoff_hz)
