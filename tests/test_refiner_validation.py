@@ -2,6 +2,10 @@
 synth does with it, the training recipe's parts, and the device a run trains on."""
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -348,3 +352,61 @@ def test_a_cpu_checkpoint_restores_on_the_cpu_with_the_sampler_state(tmp_path):
     for _ in range(2):
         second.step()
     assert _same_weights(straight.G.state_dict(), second.G.state_dict())
+
+
+def test_a_checkpoint_written_on_a_gpu_resumes_and_applies_on_the_cpu(tmp_path, monkeypatch):
+    """Without a GPU at hand: a checkpoint whose every storage says ``cuda:0`` (what a run on a GPU
+    writes) is mapped to the CPU when read, resumes there and applies there."""
+    import torch.serialization as S
+
+    cfg = TrainConfig(**dict(_CFG, w1=0.01))
+    tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.5]))
+    tr.step()
+    tr.validate()
+    with monkeypatch.context() as m:  # tag every storage as a CUDA one while saving
+        m.setattr(S, "_package_registry", [(0, lambda storage: "cuda:0", None)] + list(S._package_registry))
+        tr.save(tmp_path / "gpu.pt")
+    if not torch.cuda.is_available():  # the file does claim CUDA: read as it is, it is refused here
+        with pytest.raises(RuntimeError, match="CUDA"):
+            torch.load(tmp_path / "gpu.pt", weights_only=True)
+    ck = read_checkpoint(tmp_path / "gpu.pt", training=True)  # map_location="cpu"
+    assert all(t.device.type == "cpu" for t in ck["generator"].values())
+    cpu = Trainer(_tiny(), cfg, "id", _FEATURES, device="cpu", validator=_Scripted(_tiny(), [0.7]))
+    cpu.restore(ck, tmp_path / "gpu.pt")
+    assert _same_weights(tr.G.state_dict(), cpu.G.state_dict()) and cpu.best["iteration"] == 1
+    cpu.step()  # the optimisers' moments came back on the CPU too
+    assert cpu.iteration == 2
+    ref = Refiner.load(tmp_path / "gpu.pt")
+    assert next(ref.G.parameters()).device.type == "cpu" and _same_weights(ref.G.state_dict(), tr.best["generator"])
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity mask on this OS")
+def test_training_threads_default_to_the_affinity_mask(scott_db, tmp_path):
+    """Under a one-CPU affinity mask (``taskset -c N``) training runs torch on one thread and the
+    command line says so, whatever torch's thread count was (here 3; torch's own default counts the
+    machine's cores)."""
+    from test_refiner import _SMALL, _cache
+
+    _cache(scott_db, tmp_path / "r.pt.data.h5")
+    cpu = min(os.sched_getaffinity(0))
+    code = f"""
+import os, sys
+os.sched_setaffinity(0, {{{cpu}}})
+import torch
+import gesturedb
+from gesturedb.cli.main import main
+from gesturedb.refiner import train as T
+from gesturedb.refiner.train import TrainConfig
+seen = []
+step = T.Trainer.step
+torch.set_num_threads(3)  # what torch might take from the machine's cores: train() must not keep it
+T.Trainer.step = lambda self: (seen.append(torch.get_num_threads()), step(self))[1]
+with gesturedb.open({str(scott_db.path)!r}) as db:
+    T.train(db, {str(tmp_path / "r.pt")!r}, config=TrainConfig(**{_SMALL!r}))
+print(seen)
+main(["refiner", "train", "--help"])
+"""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.splitlines()[0] == "[1]"
+    assert "the CPUs this process may use, 1)" in " ".join(res.stdout.split())
