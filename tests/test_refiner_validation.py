@@ -151,6 +151,72 @@ def test_the_best_generator_by_validation_is_kept_and_applied(scores, best, beat
                f"iteration {best} vs 1.000 unrefined" in message
 
 
+def test_the_database_guards_measure_against_the_training_windows_capture(scott_db):
+    """With the capture itself as the input, the validator scores 0 against the validation stretch's
+    capture; against the database's own motion it measures the training windows' capture, computed
+    here independently by forward kinematics of the database's frames."""
+    from gesturedb.eval import metrics as M
+    from gesturedb.measures import hellinger_distance
+
+    joints = moving_joints(scott_db.local_rotations)
+    starts = D.window_starts(scott_db, stride=16)
+    starts = starts[D.usable_windows(scott_db, starts, 0.25)]
+    val = D.split_windows(scott_db, starts, 0.25)
+    audio, real = D.frame_arrays(scott_db, joints)
+    data = D.TrainingData(frame_audio=audio, frame_real=real, joints=joints, starts=starts,
+                          knn=np.stack([real[s:s + 64].T for s in starts]), ks=np.ones(len(starts), np.int64), val=val)
+    v = V.Validator(scott_db, data)
+    m = v.identity
+    assert m["score"] == pytest.approx(0, abs=1e-9) and m["hellinger"] == 0.0
+    pos = scott_db.motion_from_frames(np.arange(len(scott_db.local_rotations))).positions
+    pos = pos - pos[:, :1]  # root-relative, as the validator's windows are
+
+    def hist(which):
+        return sum(M.speed_histogram(pos[s:s + 64], fps=scott_db.fps, joints=v.upper)[0] for s in starts[which])
+
+    # abs: the validator's positions come back from float32 channels, a speed on a bin edge may move
+    assert m["hellinger_db"] == pytest.approx(hellinger_distance(hist(val), hist(~val)), abs=2e-3)
+    assert m["hellinger_db"] > 0.05  # the held-back stretch moves unlike the rest of the recording
+
+
+def test_a_lower_score_that_moves_unlike_the_database_is_not_better(tmp_path):
+    """The guards: the run of issue 40 scored 5.7 % below the identity with every term of the score
+    better, and H(speed) against the database's motion 22 % worse (held out and on the inputs it was
+    worse against the database too). Its verdict is 'not better', and synth's message says on what."""
+    identity = {"score": 2.277, "jerk": 2.45, "band": [1.80, 4.73, 4.71], "hellinger": 0.151, "hellinger_db": 0.0735,
+                "band_db": 0.454}
+    best = {"score": 2.147, "jerk": 2.42, "band": [1.60, 4.14, 4.30], "hellinger": 0.147, "hellinger_db": 0.0897,
+            "band_db": 0.342}
+    v = V.verdict(identity["score"], best["score"], 1650, identity=identity, best=best)
+    assert v["improvement"] == pytest.approx(0.0571, abs=1e-4) and not v["beats_identity"]
+    assert v["worse"] == {"hellinger_db": [0.0735, 0.0897]}
+    assert V.describe_worse(v["worse"]) == "H(speed) vs the database's motion 0.0735 -> 0.0897 (+22%)"
+    within = dict(best, hellinger_db=0.0735 * 1.019)  # worse by less than the 2 % margin: still better
+    assert V.verdict(2.277, 2.147, 1650, identity=identity, best=within)["beats_identity"]
+    slower = dict(within, jerk=1 / 2.45 / 1.03)  # jerk now too low, by more than it was too high
+    assert V.verdict(2.277, 2.147, 1650, identity=identity, best=slower)["worse"].keys() == {"jerk_error"}
+    assert V.verdict(2.277, 2.147, 1650)["beats_identity"]  # without metrics: the score alone, as before
+
+    class _Guarded(_Scripted):
+        def measure(self, channels, *, critic_gap=float("nan")):
+            return dict(best, critic_gap=0.0, hf=0.0)
+
+    tr = Trainer(_tiny(), TrainConfig(**_CFG), "id", _FEATURES, validator=_Guarded(_tiny(), []))
+    tr.validator.identity = dict(identity, critic_gap=0.0, hf=0.0)
+    tr.step()
+    tr.validate()
+    assert tr.verdict()["worse"] == {"hellinger_db": [0.0735, 0.0897]}
+    tr.save(tmp_path / "r.pt")
+    kind, message = Refiner.load(tmp_path / "r.pt").assess()
+    assert kind == "worse" and message.endswith(
+        "did not beat the unrefined motion on its validation windows: its score is 5.7% lower (iteration 1) but it "
+        "is worse on H(speed) vs the database's motion 0.0735 -> 0.0897 (+22%)")
+    from gesturedb.cli.refiner import verdict_screen
+
+    assert "verdict: NOT better than the unrefined motion on validation: score 5.7% lower (iteration 1) but " \
+           "worse on H(speed) vs the database's motion" in verdict_screen(tr)
+
+
 def test_resume_keeps_the_validation_log_and_the_best(tmp_path):
     cfg = TrainConfig(**_CFG)
     tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.8, 0.9]))

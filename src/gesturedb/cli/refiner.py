@@ -63,20 +63,25 @@ def add_parser(sub) -> None:
 
 def verdict_screen(tr) -> str:
     """The end of a training run on one screen: the validation rows, unrefined and best, and the verdict."""
-    from gesturedb.refiner.validation import format_metrics
+    from gesturedb.refiner.validation import describe_worse, format_metrics
 
     v = tr.validator
     if v is None:
         return "no validation (--val-fraction 0): nothing says whether this refiner improves on its input"
     best = tr.best
     rows = [f"validation: {v.n} held-back windows, {len(tr.train_idx)} training; score = |log jerk ratio| + "
-            "mean |log band ratio| + H(speed), ratios to the capture, lower is better",
+            "mean |log band ratio| + H(speed), ratios to the capture, lower is better; vs DB: against the "
+            "database's own motion",
             f"  unrefined (identity)     {format_metrics(v.identity)}"]
     if best is not None:
         rows.append(f"  best, iteration {best['iteration']:<8} {format_metrics(best['metrics'])}")
     verdict = tr.verdict()
     if verdict is None:
         rows.append("verdict: no iteration validated yet")
+    elif verdict.get("worse"):
+        rows.append(f"verdict: NOT better than the unrefined motion on validation: score {100 * verdict['improvement']:.1f}% "
+                    f"lower (iteration {verdict['best_iteration']}) but worse on {describe_worse(verdict['worse'])}; "
+                    "synth --refiner refuses this checkpoint unless --force")
     elif verdict["beats_identity"]:
         rows.append(f"verdict: BETTER than the unrefined motion on validation, score {100 * verdict['improvement']:.1f}% "
                     f"lower (iteration {verdict['best_iteration']}, kept in the checkpoint)")

@@ -84,7 +84,7 @@ from gesturedb.refiner.data import (
 )
 from gesturedb.refiner.model import Discriminator, Generator, augment, gradient_penalty, high_band_energy
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
-from gesturedb.refiner.validation import Validator, format_metrics, verdict
+from gesturedb.refiner.validation import Validator, describe_worse, format_metrics, verdict
 from gesturedb.threads import available_cpus
 
 __all__ = ["FORMAT", "LIMITS", "RECIPE", "Refiner", "TrainConfig", "Trainer", "check_output", "read_checkpoint",
@@ -165,7 +165,7 @@ class Trainer:
         self.train_idx = self.data.train_windows
         if self.train_idx.size == 0:
             raise ParameterError("training data: expected at least one training window, got none")
-        self.val_log: list = []   # [iteration, score, jerk, band..., hellinger, critic_gap, hf]
+        self.val_log: list = []   # [iteration, score, jerk, band..., hellinger, critic_gap, hf, hellinger_db, band_db]
         self.best: dict | None = None  # {"iteration", "metrics", "generator" (CPU state dict)}
 
     # -- one iteration ----------------------------------------------------------
@@ -248,7 +248,7 @@ class Trainer:
             gap = float(self.D(a, real).mean() - self.D(a, out.index_select(1, self.free)).mean())
         m = v.measure(out.cpu().numpy(), critic_gap=gap)
         self.val_log.append([self.iteration, m["score"], m["jerk"], *m["band"], m["hellinger"], m["critic_gap"],
-                             m["hf"]])
+                             m["hf"], m.get("hellinger_db", float("nan")), m.get("band_db", float("nan"))])
         if self.iteration > 0 and (self.best is None or m["score"] < self.best["metrics"]["score"]):
             self.best = {"iteration": self.iteration, "metrics": m,
                          "generator": {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}}
@@ -258,7 +258,8 @@ class Trainer:
         """The verdict so far (:func:`gesturedb.refiner.validation.verdict`), None before any validation."""
         if self.validator is None or self.best is None:
             return None
-        return verdict(self.validator.identity["score"], self.best["metrics"]["score"], self.best["iteration"])
+        return verdict(self.validator.identity["score"], self.best["metrics"]["score"], self.best["iteration"],
+                       identity=self.validator.identity, best=self.best["metrics"])
 
     # -- checkpoints ------------------------------------------------------------
     def state(self) -> dict:
@@ -579,6 +580,10 @@ class Refiner:
             return "unknown", (f"{name}: no validation verdict (trained without --val-fraction, or before "
                                "validation existed): whether it improves on the unrefined motion is unknown")
         pct = 100 * v["improvement"]
+        if v.get("worse"):
+            return "worse", (f"{name}: did not beat the unrefined motion on its validation windows: its score is "
+                             f"{pct:.1f}% lower (iteration {v['best_iteration']}) but it is worse on "
+                             f"{describe_worse(v['worse'])}")
         if v["beats_identity"]:
             return "better", (f"{name}: beat the unrefined motion on its validation windows by {pct:.1f}% "
                               f"(iteration {v['best_iteration']})")
