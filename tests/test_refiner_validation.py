@@ -151,7 +151,7 @@ def test_the_best_generator_by_validation_is_kept_and_applied(scores, best, beat
                f"iteration {best} vs 1.000 unrefined" in message
 
 
-def test_the_database_guards_measure_against_the_training_windows_capture(scott_db):
+def test_the_database_guards_measure_against_the_training_windows_capture(scott_db, monkeypatch):
     """With the capture itself as the input, the validator scores 0 against the validation stretch's
     capture; against the database's own motion it measures the training windows' capture, computed
     here independently by forward kinematics of the database's frames."""
@@ -177,6 +177,9 @@ def test_the_database_guards_measure_against_the_training_windows_capture(scott_
     # abs: the validator's positions come back from float32 channels, a speed on a bin edge may move
     assert m["hellinger_db"] == pytest.approx(hellinger_distance(hist(val), hist(~val)), abs=2e-3)
     assert m["hellinger_db"] > 0.05  # the held-back stretch moves unlike the rest of the recording
+    assert v.database["hist"].sum() == (~val).sum() * 63 * len(v.upper)  # every training window's speeds
+    monkeypatch.setattr(V, "DATABASE_WINDOWS", 2)  # a large database: a few evenly spread windows stand for it
+    assert V.Validator(scott_db, data).database["hist"].sum() == 2 * 63 * len(v.upper)
 
 
 def test_a_lower_score_that_moves_unlike_the_database_is_not_better(tmp_path):

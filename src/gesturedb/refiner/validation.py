@@ -70,6 +70,8 @@ from gesturedb.roles import STROKE_JOINT_GROUPS
 #: a refiner that changes its input by a hair is not endorsed for it
 VERDICT_MARGIN = 0.02
 METRICS = ("score", "jerk", "band", "hellinger", "critic_gap", "hf", "hellinger_db", "band_db")
+#: training windows whose capture stands for the database's own motion, at most (evenly spread)
+DATABASE_WINDOWS = 1024
 #: what a better refiner must not make worse than the identity (each a distance, 0 best), with its name in messages
 GUARDS = {"jerk_error": "|log jerk ratio|", "hellinger": "H(speed) vs the capture",
           "hellinger_db": "H(speed) vs the database's motion", "band_db": "arm bands vs the database's motion"}
@@ -123,8 +125,11 @@ class Validator:
         self.real = data.real(self.idx)     # (n, C, T)
         cap = self._positions(self.real)
         self.capture = self._stats(cap)
-        # the database's own motion: the capture of the training windows (never the validation stretch)
-        train = np.asarray(getattr(data, "train_windows", np.zeros(0, np.int64)), dtype=np.int64)
+        # the database's own motion: the capture of the training windows (never the validation stretch),
+        # at most DATABASE_WINDOWS of them evenly spread (at the paper's 10^5 windows all would be 11 GB)
+        train = np.asarray(data.train_windows, dtype=np.int64)
+        if train.size > DATABASE_WINDOWS:
+            train = train[np.linspace(0, train.size - 1, DATABASE_WINDOWS).round().astype(np.int64)]
         if train.size:
             tf = data.starts[train][:, None] + np.arange(T)
             tbase = np.asarray(db.local_rotations[tf.ravel()], dtype=np.float64)
