@@ -220,6 +220,31 @@ def test_a_lower_score_that_moves_unlike_the_database_is_not_better(tmp_path):
            "worse on H(speed) vs the database's motion" in verdict_screen(tr)
 
 
+@pytest.mark.parametrize("runs, best, beats", [
+    ([(0.7, 0.09), (0.9, 0.074), (0.8, 0.09)], 2, True),   # the lowest score that keeps the guards
+    ([(0.7, 0.09), (0.6, 0.09)], 2, False),                # none keeps them: the lowest score, not better
+    ([(0.9, 0.074), (0.5, 0.09), (0.85, 0.073)], 3, True),  # a lower score never displaces a guarded best
+], ids=["guarded", "none-guarded", "stays-guarded"])
+def test_the_best_generator_keeps_the_guards_when_one_does(runs, best, beats):
+    class _WithDatabase(_Scripted):
+        def __init__(self, data):
+            super().__init__(data, [])
+            self.identity = dict(self._m(1.0), hellinger_db=0.0735, band_db=0.45)
+            self.runs = list(runs)
+
+        def measure(self, channels, *, critic_gap=float("nan")):
+            score, h_db = self.runs.pop(0)
+            return dict(self._m(score), hellinger_db=h_db, band_db=0.45)
+
+    tr = Trainer(_tiny(), TrainConfig(**_CFG), "id", _FEATURES, validator=_WithDatabase(_tiny()))
+    for _ in runs:
+        tr.step()
+        tr.validate()
+    v = tr.verdict()
+    assert v["best_iteration"] == best and v["beats_identity"] is beats
+    assert bool(v["worse"]) is not beats
+
+
 def test_resume_keeps_the_validation_log_and_the_best(tmp_path):
     cfg = TrainConfig(**_CFG)
     tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.8, 0.9]))

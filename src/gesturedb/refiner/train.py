@@ -27,7 +27,8 @@ The recipe (``recipe`` 2; docs/refiner.md gives what each part changed, measured
   IK; the upper body within 1e-15), so the critic sees no leg channel.
 - **Validation** (:mod:`gesturedb.refiner.validation`): every ``val_every``
   iterations the generator refines the held-back windows; the best generator by
-  the validation score is kept in the checkpoint beside the last one (the last
+  the validation score among those that keep the verdict's guards (by the score
+  alone while none does) is kept in the checkpoint beside the last one (the last
   resumes, the best is applied), with the verdict against the identity.
 
 Checkpoints hold everything a run needs to continue bit for bit: both models,
@@ -84,7 +85,7 @@ from gesturedb.refiner.data import (
 )
 from gesturedb.refiner.model import Discriminator, Generator, augment, gradient_penalty, high_band_energy
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
-from gesturedb.refiner.validation import Validator, describe_worse, format_metrics, verdict
+from gesturedb.refiner.validation import Validator, describe_worse, format_metrics, verdict, worse_guards
 from gesturedb.threads import available_cpus
 
 __all__ = ["FORMAT", "LIMITS", "RECIPE", "Refiner", "TrainConfig", "Trainer", "check_output", "read_checkpoint",
@@ -249,10 +250,20 @@ class Trainer:
         m = v.measure(out.cpu().numpy(), critic_gap=gap)
         self.val_log.append([self.iteration, m["score"], m["jerk"], *m["band"], m["hellinger"], m["critic_gap"],
                              m["hf"], m.get("hellinger_db", float("nan")), m.get("band_db", float("nan"))])
-        if self.iteration > 0 and (self.best is None or m["score"] < self.best["metrics"]["score"]):
+        if self.iteration > 0 and self._better(m):
             self.best = {"iteration": self.iteration, "metrics": m,
                          "generator": {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}}
         return m
+
+    def _better(self, m: dict) -> bool:
+        """Whether validation metrics ``m`` make a better best than the one kept: one that keeps every
+        guard (:data:`gesturedb.refiner.validation.GUARDS`) beats one that does not, then the lower
+        score wins. So the kept generator is one the verdict can endorse whenever some iteration was."""
+        if self.best is None:
+            return True
+        ident = self.validator.identity
+        keeps, kept = not worse_guards(ident, m), not worse_guards(ident, self.best["metrics"])
+        return keeps > kept or (keeps == kept and m["score"] < self.best["metrics"]["score"])
 
     def verdict(self) -> dict | None:
         """The verdict so far (:func:`gesturedb.refiner.validation.verdict`), None before any validation."""
