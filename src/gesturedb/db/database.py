@@ -183,7 +183,7 @@ class Database:
             raise InputFileError(self.path, f"not an HDF5 file ({exc})") from None
         try:
             try:
-                schema.check_file(self._h5, self.path)
+                schema.check_file(self._h5, self.path, sample=self._check_rows)
             except OSError as exc:  # HDF5 reading a shard that vanished under the check's sampled rows
                 raise SchemaError(self.path, f"cannot read while checking the file: {exc}") from None
             self._shard_files = self._open_shards()
@@ -371,6 +371,24 @@ class Database:
                     "audio_deltas": schema.AUDIO_DELTAS, "joint_positions": schema.JOINT_POSITIONS,
                     "local_rotations": schema.LOCAL_ROTATIONS, "root_positions": schema.ROOT_POSITIONS,
                     "frame_recording": schema.FRAME_RECORDING}
+
+    def _check_rows(self, path: str, rows: np.ndarray) -> np.ndarray | None:
+        """``schema.check_file``'s sampled rows of a per-frame array, from its memory map (None: not mappable,
+        h5py reads them). The map is kept as the array's attribute (:meth:`_mapped`), so the open maps each
+        array once and the check reads the very bytes the search will (a few milliseconds against h5py's
+        0.27 s at 616k frames)."""
+        name = next((k for k, v in self.FRAME_ARRAYS.items() if v == path), None)
+        ds = self._h5.get(path)
+        if (name is None or ds is None or not self.map_frames or schema.SHARDS_ATTR in self._h5.attrs
+                or ds.dtype != np.dtype(schema.FIELDS_BY_PATH[path].dtype) or not mappable(ds, self._h5)):
+            return None
+        arr = self.__dict__.get(name)
+        if arr is None:
+            arr = self._mapped(path)
+            if arr is None:
+                return None
+            self.__dict__[name] = arr  # the cached_property's slot: pose_features etc. are this map from now on
+        return arr[rows]
 
     def _frame_dataset(self, name: str):
         """The h5py dataset of a per-frame array, checked once against the schema (dtype, F rows)."""
