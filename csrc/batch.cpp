@@ -47,14 +47,14 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
             if (q.table_s != nullptr) {
                 StepOptions opt;
                 opt.preselect = preselect;
-                opt.allowed = allowed.at(0);
+                opt.allowed = query_allowed(q, allowed).at(0);
                 opt.exclude = q.exclude;
                 engines[tid]->preselect(q.init_pose, q.audio.data, q.audio.rows, opt, q.table_s, q.table_dp,
                                         q.table_da);
                 return;
             }
             q.failed_step = run_search(*engines[tid], db, q.audio, q.init_pose, window, q.k, preselect,
-                                       allowed, q.exclude, q.out);
+                                       query_allowed(q, allowed), q.exclude, q.out);
         });
         return;
     }
@@ -93,7 +93,7 @@ int64_t check_table_queries(const Database& db, std::vector<BatchQuery>& queries
         if (q.table_s == nullptr || q.table_dp == nullptr || q.table_da == nullptr)
             throw std::invalid_argument("BatchPlan::preselect: every query needs its table rows");
         q.k = 1;
-        check_search_args(db, q.audio, n, 1, allowed);
+        check_search_args(db, q.audio, n, 1, query_allowed(q, allowed));
     }
     return n;
 }
@@ -104,7 +104,10 @@ void rank_sum_search_batch(const Kernels& kernels, const Database& db, std::vect
                            int64_t window, Preselect preselect, const AllowedSchedule& allowed, int threads,
                            BatchMethod method) {
     for (auto& q : queries) {
-        check_search_args(db, q.audio, window, q.k, allowed);
+        if (q.has_allowed && allowed.per_step)
+            throw std::invalid_argument(
+                "allowed: expected either a schedule for every query or a bitset per query");
+        check_search_args(db, q.audio, window, q.k, query_allowed(q, allowed));
         q.table_s = nullptr;
     }
     run_batch(kernels, db, queries, window, preselect, allowed, threads, method);

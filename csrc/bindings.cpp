@@ -11,10 +11,12 @@
 #include <pybind11/stl.h>
 
 #include <array>
+#include <cstring>
 #include <limits>
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include "kernels.h"
@@ -176,6 +178,33 @@ AllowedSchedule make_allowed(const std::optional<U64>& allowed, const Database& 
     }
     throw std::invalid_argument(std::string("allowed: expected ") + (allow_2d ? "1-d or 2-d" : "1-d") +
                                 " uint64 array; got shape " + shape_str(a));
+}
+
+// A (Q, words) array of per-query bitsets (BatchPlan.tables) as each query's
+// BatchQuery::allowed; rows with equal words point at the first of them, so
+// that the blocked batch runs the queries of one bitset as one group.
+void set_query_allowed(std::vector<BatchQuery>& batch, const U64& a, const Database& db) {
+    const int64_t words = (db.n_frames() + 63) / 64, Q = int64_t(batch.size());
+    if (a.ndim() != 2 || a.shape(0) != Q || a.shape(1) != words)
+        throw std::invalid_argument("allowed: expected (" + std::to_string(Q) + ", " + std::to_string(words) +
+                                    ") uint64 bitsets (one per query); got shape " + shape_str(a));
+    const uint64_t* base = a.data();
+    std::unordered_map<uint64_t, std::vector<int64_t>> seen;  // FNV-1a of a row -> rows with it
+    for (int64_t i = 0; i < Q; ++i) {
+        const uint64_t* row = base + i * words;
+        uint64_t h = 1469598103934665603ull;
+        for (int64_t w = 0; w < words; ++w) h = (h ^ row[w]) * 1099511628211ull;
+        const uint64_t* use = row;
+        auto& same = seen[h];
+        for (int64_t j : same)
+            if (std::memcmp(base + j * words, row, size_t(words) * 8) == 0) {
+                use = base + j * words;
+                break;
+            }
+        if (use == row) same.push_back(i);
+        batch[i].has_allowed = true;
+        batch[i].allowed = BitsetView{use, words};
+    }
 }
 
 // Output arrays of a search, allocated with the GIL held.
@@ -644,7 +673,10 @@ PYBIND11_MODULE(_core, m) {
                                                 ", n >= 1, " + std::to_string(db.audio.cols) + "); got " +
                                                 shape_str(windows));
                 const BatchMethod bm = parse_method(method);
-                const AllowedSchedule sched = make_allowed(allowed, db, false);
+                // one bitset for every query, or (Q, words): each query's own
+                const bool per_query = allowed && allowed->ndim() == 2;
+                const AllowedSchedule sched =
+                    per_query ? AllowedSchedule{} : make_allowed(allowed, db, false);
                 const BatchExclude ex = batch_exclude(exclude, Q, M);
                 const int64_t n = windows.shape(1), Da = db.audio.cols;
                 py::array_t<int64_t> s({Q, M});
@@ -660,6 +692,7 @@ PYBIND11_MODULE(_core, m) {
                     batch[i].table_dp = dp.mutable_data() + i * M;
                     batch[i].table_da = da.mutable_data() + i * M;
                 }
+                if (per_query) set_query_allowed(batch, *allowed, db);
                 {
                     py::gil_scoped_release release;
                     p.plan->preselect(batch, sched, threads, bm);

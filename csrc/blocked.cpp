@@ -42,6 +42,13 @@ struct BlockedBatch::Run {
     std::vector<float> best_dp;
     std::vector<double> best_da;
     std::vector<int64_t> lanes;  // lane -> index in block
+    // the step's distinct bitsets (views) and (views x words) the lanes of each;
+    // per segment each view's allowed candidates (okbuf rows, view_okp: null
+    // for all of them), whether it has any, and whether a group took it already
+    std::vector<BitsetView> views;
+    std::vector<uint64_t> view_lanes, group;
+    std::vector<uint8_t> okbuf, view_any, view_done;
+    std::vector<const uint8_t*> view_okp;
     // bit per lane: the step's lanes, and (M x words) the lanes excluded from each segment
     std::vector<uint64_t> valid, ex_bits, inc;
     std::vector<QueryStep> lane_step;
@@ -100,6 +107,7 @@ struct BlockedBatch::Run {
         valid.resize(words);
         ex_bits.resize(size_t(M) * words);
         inc.resize(words);
+        group.resize(words);
         lane_step.resize(qp);
         live.resize(words);
         lane_ok.resize(words);
@@ -131,13 +139,13 @@ void BlockedBatch::run(BatchQuery* const* block, int64_t nq, const AllowedSchedu
     Run r(*this, block, nq);
     for (int64_t step = 0; step < r.max_steps; ++step) {
         r.t = step * N_;
-        const BitsetView allowed = allowed_steps.at(step);
-        if (take_lanes(r, step, allowed) == 0) continue;
+        if (take_lanes(r, step, allowed_steps) == 0) continue;
+        lane_views(r, allowed_steps.at(step));
         mark_lanes(r);
         load_panel(r);
         for (int64_t m = 0; m < r.M; ++m) {
             if (m + 1 < r.M) prefetch_rows(m + 1);
-            preselect_segment(r, m, allowed);
+            preselect_segment(r, m);
         }
         rank_lanes(r, step);
     }
@@ -146,7 +154,7 @@ void BlockedBatch::run(BatchQuery* const* block, int64_t nq, const AllowedSchedu
 // The step's lanes: every query with a full window at this step. A query in
 // its last, partial window takes one exact step of the single path here.
 // Returns the number of lanes.
-int64_t BlockedBatch::take_lanes(Run& r, int64_t step, const BitsetView& allowed) const {
+int64_t BlockedBatch::take_lanes(Run& r, int64_t step, const AllowedSchedule& allowed_steps) const {
     BatchQuery* const* block = r.block;
     const int64_t t = r.t;
     r.lanes.clear();
@@ -162,7 +170,7 @@ int64_t BlockedBatch::take_lanes(Run& r, int64_t step, const BitsetView& allowed
         StepOptions opt;
         opt.k = block[i]->k;
         opt.preselect = pre_;
-        opt.allowed = allowed;
+        opt.allowed = query_allowed(*block[i], allowed_steps).at(step);
         opt.exclude = block[i]->exclude;
         if (block[i]->table_s != nullptr) {
             r.single->preselect(r.prev[i], block[i]->audio.row(t), n, opt, block[i]->table_s,
@@ -174,6 +182,31 @@ int64_t BlockedBatch::take_lanes(Run& r, int64_t step, const BitsetView& allowed
     }
     r.nl = int64_t(r.lanes.size());
     return r.nl;
+}
+
+// The step's distinct bitsets (a query's own or the batch's shared one, told
+// apart by their words pointer) and the lanes of each.
+void BlockedBatch::lane_views(Run& r, const BitsetView& shared) const {
+    r.views.clear();
+    r.view_lanes.clear();
+    for (int64_t l = 0; l < r.nl; ++l) {
+        const BatchQuery* bq = r.block[r.lanes[l]];
+        const BitsetView v = bq->has_allowed ? bq->allowed : shared;
+        size_t d = 0;
+        while (d < r.views.size() && r.views[d].words != v.words) ++d;
+        if (d == r.views.size()) {
+            r.views.push_back(v);
+            r.view_lanes.resize(r.view_lanes.size() + size_t(r.words), uint64_t(0));
+        }
+        r.view_lanes[d * size_t(r.words) + size_t(l / 64)] |= uint64_t(1) << (l % 64);
+    }
+    const size_t D = r.views.size();
+    if (D > 1) {
+        r.okbuf.resize(D * r.ok.size());
+        r.view_okp.resize(D);
+        r.view_any.resize(D);
+        r.view_done.resize(D);
+    }
 }
 
 // Lanes of this step, and per segment the lanes excluded from it (one scan of
@@ -233,15 +266,52 @@ void BlockedBatch::load_panel(Run& r) const {
         std::fill(&r.sel_s[r.lanes[l] * M], &r.sel_s[r.lanes[l] * M] + M, int64_t(-1));
 }
 
-// Spec steps 1-3 of segment m for every lane of the step: the blocked filter
-// over the segment's candidates in tiles, the exact recomputation of what it
-// keeps, then each lane's pre-selected candidate and its other distance.
-void BlockedBatch::preselect_segment(Run& r, int64_t m, const BitsetView& allowed) const {
+// Spec steps 1-3 of segment m for every lane of the step, a group of lanes
+// (those whose bitsets allow the same candidates here) at a time.
+void BlockedBatch::preselect_segment(Run& r, int64_t m) const {
     const int64_t n_cand = db_.seg_len[m] - N_;
     if (n_cand < 1) return;
-    const uint8_t* okp = nullptr;
-    if (!allowed_candidates(r, m, allowed, okp)) return;
-    if (!segment_lanes(r, m)) return;
+    const size_t D = r.views.size();
+    if (D == 1) {
+        const uint8_t* okp = nullptr;
+        if (allowed_candidates(m, r.views[0], r.ok.data(), okp))
+            segment_group(r, m, r.views[0], okp, nullptr);
+        return;
+    }
+    const size_t stride = r.ok.size();
+    for (size_t d = 0; d < D; ++d) {
+        r.view_any[d] = allowed_candidates(m, r.views[d], &r.okbuf[d * stride], r.view_okp[d]);
+        // every candidate allowed reads as no mask, so that it groups with the lanes without one
+        const uint8_t* p = r.view_okp[d];
+        if (p != nullptr && std::find(p, p + n_cand, uint8_t(0)) == p + n_cand) r.view_okp[d] = nullptr;
+        r.view_done[d] = 0;
+    }
+    for (size_t d = 0; d < D; ++d) {
+        if (!r.view_any[d] || r.view_done[d]) continue;
+        const uint8_t* pd = r.view_okp[d];
+        std::copy(&r.view_lanes[d * r.words], &r.view_lanes[(d + 1) * r.words], r.group.begin());
+        for (size_t e = d + 1; e < D; ++e) {
+            const uint8_t* pe = r.view_okp[e];
+            if (!r.view_any[e] || r.view_done[e]) continue;
+            const bool same =
+                (pd == nullptr || pe == nullptr) ? pd == pe : std::memcmp(pd, pe, size_t(n_cand)) == 0;
+            if (!same) continue;
+            for (int64_t w = 0; w < r.words; ++w) r.group[w] |= r.view_lanes[e * r.words + w];
+            r.view_done[e] = 1;
+        }
+        // the group's candidates are the same under each of its bitsets: view d's stands for all
+        segment_group(r, m, r.views[d], pd, r.group.data());
+    }
+}
+
+// Segment m for the lanes of group (null: every lane), whose bitsets allow
+// the candidates okp (null: all): the blocked filter over the segment's
+// candidates in tiles, the exact recomputation of what it keeps, then each
+// lane's pre-selected candidate and its other distance.
+void BlockedBatch::segment_group(Run& r, int64_t m, const BitsetView& allowed, const uint8_t* okp,
+                                 const uint64_t* group) const {
+    const int64_t n_cand = db_.seg_len[m] - N_;
+    if (!segment_lanes(r, m, group)) return;
     std::fill(r.minhi.begin(), r.minhi.end(), std::numeric_limits<float>::infinity());
     std::fill(r.best.begin(), r.best.begin() + r.nl, int64_t(-1));
     for (int64_t i0 = 0; r.any_live && i0 < n_cand; i0 += kRowTile) {
@@ -253,9 +323,9 @@ void BlockedBatch::preselect_segment(Run& r, int64_t m, const BitsetView& allowe
     other_distances(r, m, n_fin);
 }
 
-// Which candidates of segment m the step's bitset allows: okp = null when all
-// of them, else a byte per candidate in r.ok. False when none is.
-bool BlockedBatch::allowed_candidates(Run& r, int64_t m, const BitsetView& allowed,
+// Which candidates of segment m the bitset allows: okp = null when all of
+// them, else a byte per candidate in ok. False when none is.
+bool BlockedBatch::allowed_candidates(int64_t m, const BitsetView& allowed, uint8_t* ok,
                                       const uint8_t*& okp) const {
     const int64_t n_cand = db_.seg_len[m] - N_;
     const int64_t seg0 = db_.seg_start[m];
@@ -264,24 +334,25 @@ bool BlockedBatch::allowed_candidates(Run& r, int64_t m, const BitsetView& allow
     if (allowed.all()) {
         any = true;
     } else {
-        std::fill(r.ok.begin(), r.ok.begin() + n_cand, uint8_t(0));
+        std::fill(ok, ok + n_cand, uint8_t(0));
         for_each_allowed_run(allowed, seg0 + 1, n_cand, N_ - 1, [&](int64_t i0, int64_t i1) {
-            std::fill(r.ok.begin() + i0, r.ok.begin() + i1, uint8_t(1));
+            std::fill(ok + i0, ok + i1, uint8_t(1));
             any = true;
         });
-        okp = r.ok.data();
+        okp = ok;
     }
     return any;
 }
 
-// Lanes in segment m (inc: not excluded from it) and those that filter it
-// (live: also a usable bound; r.any_live). False when no lane is in it.
-bool BlockedBatch::segment_lanes(Run& r, int64_t m) const {
+// Lanes of group (null: all) in segment m (inc: not excluded from it) and
+// those that filter it (live: also a usable bound; r.any_live). False when no
+// lane is in it.
+bool BlockedBatch::segment_lanes(Run& r, int64_t m, const uint64_t* group) const {
     const bool seg_filtered = !(proj_ && seg_bad_[m]);
     const uint64_t* exm = &r.ex_bits[size_t(m) * r.words];
     bool any_inc = false, any_live = false;
     for (int64_t w = 0; w < r.words; ++w) {
-        r.inc[w] = r.any_ex ? r.valid[w] & ~exm[w] : r.valid[w];
+        r.inc[w] = (r.any_ex ? r.valid[w] & ~exm[w] : r.valid[w]) & (group ? group[w] : ~uint64_t(0));
         r.live[w] = seg_filtered ? r.lane_ok[w] & r.inc[w] : 0;
         any_inc |= r.inc[w] != 0;
         any_live |= r.live[w] != 0;

@@ -52,7 +52,13 @@ public:
     const std::shared_ptr<const ProjRows>& proj_rows() const { return pr_; }
 
     // Runs every query of the block through all its steps (allowed: the
-    // bitset of each step).
+    // bitset of each step; a query with its own, BatchQuery::allowed, uses that).
+    //
+    // Lanes with different bitsets: per segment, the lanes whose bitsets allow
+    // the same candidates of it form a group, and each group is one pass of the
+    // blocked filter over the segment's rows (which stay in cache from one
+    // group to the next): lanes that differ only where the segment has nothing
+    // of theirs share a pass, and the database is still streamed once a step.
     void run(BatchQuery* const* block, int64_t nq, const AllowedSchedule& allowed_steps) const;
 
 private:
@@ -60,12 +66,15 @@ private:
     struct Run;
 
     // The pieces of run(), in the order each step calls them.
-    int64_t take_lanes(Run& r, int64_t step, const BitsetView& allowed) const;
+    int64_t take_lanes(Run& r, int64_t step, const AllowedSchedule& allowed_steps) const;
+    void lane_views(Run& r, const BitsetView& shared) const;
     void mark_lanes(Run& r) const;
     void load_panel(Run& r) const;
-    void preselect_segment(Run& r, int64_t m, const BitsetView& allowed) const;
-    bool allowed_candidates(Run& r, int64_t m, const BitsetView& allowed, const uint8_t*& okp) const;
-    bool segment_lanes(Run& r, int64_t m) const;
+    void preselect_segment(Run& r, int64_t m) const;
+    void segment_group(Run& r, int64_t m, const BitsetView& allowed, const uint8_t* okp,
+                       const uint64_t* group) const;
+    bool allowed_candidates(int64_t m, const BitsetView& allowed, uint8_t* ok, const uint8_t*& okp) const;
+    bool segment_lanes(Run& r, int64_t m, const uint64_t* group) const;
     void filter_tile(Run& r, int64_t m, int64_t i0, int64_t nr, const uint8_t* okp) const;
     void recompute_kept(Run& r, int64_t m, int64_t i0, int64_t nr) const;
     int64_t choose_candidates(Run& r, int64_t m, const BitsetView& allowed) const;

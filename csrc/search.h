@@ -162,7 +162,13 @@ struct BatchQuery {
     Span2<const float> audio;  // (T_i, Da)
     const float* init_pose;    // (Dp,)
     int64_t k;
-    const bool* exclude;       // (M,) or null
+    const bool* exclude;  // (M,) or null
+    // The query's own bitset, in place of the batch's for every step (has_allowed;
+    // allowed.all(): every frame): clients with different controls in one batch.
+    // Queries whose bitsets are the same words pointer share the blocked filter's
+    // passes (the bindings point equal rows at one).
+    bool has_allowed = false;
+    BitsetView allowed;
     SearchOutput out;          // (S_i,) each
     int64_t failed_step = -1;  // written: -1 or the failing step
     // Set by preselect_batch: the query's one window is pre-selected into

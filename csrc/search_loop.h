@@ -26,6 +26,17 @@ inline void write_step(const SearchOutput& out, int64_t i, int64_t t, const Step
     out.n_candidates[i] = r.n_candidates;
 }
 
+// The bitsets query q searches under: its own (BatchQuery::allowed) or the batch's.
+inline AllowedSchedule query_allowed(const BatchQuery& q, const AllowedSchedule& batch) {
+    if (!q.has_allowed) return batch;
+    AllowedSchedule s;
+    if (q.allowed.all()) return s;
+    s.words = q.allowed.words;
+    s.n_words = q.allowed.n_words;
+    s.n_rows = 1;
+    return s;
+}
+
 // Throws std::invalid_argument unless query, window, k and allowed fit db.
 void check_search_args(const Database& db, Span2<const float> query, int64_t window, int64_t k,
                        const AllowedSchedule& allowed);

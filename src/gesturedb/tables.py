@@ -111,7 +111,10 @@ class PreselectBatch:
         query_windows : ndarray [shape=(Q, n, Da)], float32
             Each query's audio window (all of the same length n).
         allowed : ndarray, uint64, optional
-            One packed bitset over the frames for all queries.
+            One packed bitset over the frames ``(ceil(F/64),)`` for all queries, or
+            ``(Q, ceil(F/64))``: each query's own (clients with different controls in one
+            call). Queries with equal rows share the blocked filter's passes; per segment,
+            queries whose bitsets allow the same candidates of it share one.
         exclude : ndarray, bool, optional
             ``(M,)`` for all queries or ``(Q, M)`` per query.
         threads : int, optional
@@ -131,9 +134,14 @@ class PreselectBatch:
         q = _float_array(query_windows, "query_windows", f"({Q}, n, {Da})", 3)
         if q.shape[0] != Q or q.shape[1] < 1 or q.shape[2] != Da:
             raise ParameterError(f"query_windows: expected ({Q}, n >= 1, {Da}); got {q.shape}")
-        allowed = _allowed(allowed, F)
-        if allowed is not None and allowed.ndim != 1:
-            raise ParameterError(f"allowed: expected one bitset for all queries; got {allowed.shape}")
+        W = (F + 63) // 64
+        if isinstance(allowed, np.ndarray) and allowed.ndim == 2 and allowed.dtype == np.uint64:
+            if allowed.shape != (Q, W):
+                raise ParameterError(f"allowed: expected one bitset ({W},) for all queries or ({Q}, {W}) one per "
+                                     f"query (F = {F} frames); got shape {allowed.shape}")
+            allowed = np.ascontiguousarray(allowed)
+        else:
+            allowed = _allowed(allowed, F)
         exclude = _exclude(exclude, M, Q)
         if method not in METHODS:
             raise ParameterError(f"method: expected 'auto', 'blocked' or 'per_query'; got {method!r}")

@@ -1,0 +1,128 @@
+"""A batch of pre-selection tables with a bitset per query (issue 39: clients with different
+controls searched in one pass): each row is exactly the query's table alone, on every ISA,
+and the choice ranked from it is the float64 oracle's."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gesturedb import search, tables
+from gesturedb.errors import ParameterError
+from test_search import exact_db, oracle_step, pack_bits
+from test_search_proj import stacked_recordings
+
+ISAS = search.kernels()
+
+
+def _masks(rng, st, ln, F):
+    """Bitsets as clients bring them: every frame; controls that hold over whole stretches (so
+    that two of them often agree on a segment); one of those with a few recent windows cleared
+    (the repeat guard); a sparse random one; and every frame again as a separate array."""
+    def stretches(p):
+        keep = np.zeros(F, bool)
+        for a, n in zip(st, ln):
+            if rng.random() < p:
+                keep[a:a + n] = True
+        return keep
+
+    ctrl = stretches(0.6)
+    guarded = ctrl.copy()
+    for a in rng.integers(0, F - 10, 3):
+        guarded[a:a + 8] = False
+    rows = [np.ones(F, bool), ctrl, stretches(0.5) | ctrl, guarded, rng.random(F) < 0.5, np.ones(F, bool)]
+    return np.stack([pack_bits(r) for r in rows])
+
+
+def _per_query(rng, masks, Q):
+    which = rng.integers(0, masks.shape[0], Q)
+    return which, np.ascontiguousarray(masks[which])
+
+
+@pytest.mark.parametrize("method", ["blocked", "per_query"])
+@pytest.mark.parametrize("data", ["exact", "stacked"])
+def test_rows_are_each_querys_table_alone_on_every_isa(method, data):
+    """70 queries (two 64-lane panels) with six bitsets among them, with per-query exclusion,
+    pose and audio pre-selection, with the projection filter, windows of N and shorter."""
+    rng = np.random.default_rng(53)
+    if data == "exact":
+        P, A, st, ln = exact_db(rng, Dp=12, Da=3, n_segments=60)
+    else:
+        P, A, st, ln = stacked_recordings(rng, n_rec=14)
+    F, M, Q = P.shape[0], st.shape[0], 70
+    masks = _masks(rng, st, ln, F)
+    which, allowed = _per_query(rng, masks, Q)
+    prevs = P[rng.integers(0, F, Q)]
+    exclude = rng.random((Q, M)) < 0.2
+    proj = search.PoseProjection(P)
+    variants = [dict(), dict(preselect="audio"), dict(exclude=exclude), dict(pose_proj=proj, exclude=exclude)]
+    scalar = {}
+    for isa in ISAS:
+        with search.simd(isa):
+            for n in (4, 3):
+                wins = (rng if isa == ISAS[0] else np.random.default_rng(n)).standard_normal(
+                    (Q, n, A.shape[1])).astype(np.float32)
+                if data == "exact":
+                    wins = np.round(wins).astype(np.float32)
+                wins = scalar.setdefault(("wins", n), wins)
+                for v, kw in enumerate(variants):
+                    got = tables.preselect_table_batch(P, A, st, ln, prevs, wins, allowed=allowed, method=method,
+                                                       **kw)
+                    for i in range(Q):
+                        one = dict(kw, allowed=allowed[i])
+                        if "exclude" in one:
+                            one["exclude"] = exclude[i]
+                        want = tables.preselect_table(P, A, st, ln, prevs[i], wins[i], **one)
+                        for g, w in zip(got, want):
+                            np.testing.assert_array_equal(g[i], w, err_msg=f"{isa} {method} n={n} v{v} q{i}")
+                    if data == "exact":  # integer data: every ISA's sums are exact, so the bits agree too
+                        for g, w in zip(got, scalar.setdefault((n, v), got)):
+                            np.testing.assert_array_equal(g, w, err_msg=f"{isa} vs {ISAS[0]} n={n} v{v}")
+
+
+def test_scalar_rows_rank_to_the_float64_oracle():
+    """The scalar kernel's batched rows, ranked, choose what spec steps 1-5 in float64 choose for
+    each query under its own bitset (exact data: no near ties)."""
+    rng = np.random.default_rng(59)
+    P, A, st, ln = exact_db(rng, Dp=6, Da=3, n_segments=50)
+    F, M, Q = P.shape[0], st.shape[0], 40
+    masks = _masks(rng, st, ln, F)
+    which, allowed = _per_query(rng, masks, Q)
+    prevs = P[rng.integers(0, F, Q)]
+    wins = rng.integers(-2, 3, size=(Q, 8, A.shape[1])).astype(np.float32)
+    exclude = rng.random((Q, M)) < 0.1
+    with search.simd("scalar"):
+        s, dp, da = tables.preselect_table_batch(P, A, st, ln, prevs, wins, allowed=allowed, exclude=exclude,
+                                                 method="blocked")
+    checked = 0
+    for i in range(Q):
+        want, near = oracle_step(P, A, st, ln, prevs[i], wins[i], allowed=allowed[i], exclude=exclude[i])
+        got = tables.rank_table(s[i], dp[i], da[i], k=1)
+        if want is None:
+            assert got is None, i
+            continue
+        if near:
+            continue
+        m, rp, ra, K = got
+        assert (m, int(s[i, m]), rp, ra, K) == (want["segment"], want["start"], want["pose_rank"],
+                                                want["audio_rank"], want["n_candidates"]), i
+        checked += 1
+    assert checked > Q // 2
+
+
+def test_per_query_bitsets_are_validated():
+    rng = np.random.default_rng(61)
+    P, A, st, ln = exact_db(rng)
+    F, Q = P.shape[0], 3
+    W = (F + 63) // 64
+    prevs, wins = P[:Q], np.zeros((Q, 8, A.shape[1]), np.float32)
+    batch = tables.PreselectBatch(P, A, st, ln)
+    with pytest.raises(ParameterError, match=rf"allowed: expected one bitset \({W},\) for all queries or "
+                                              rf"\({Q}, {W}\) one per query \(F = {F} frames\); got shape \(4, {W}\)"):
+        batch.tables(prevs, wins, allowed=np.zeros((Q + 1, W), np.uint64))
+    with pytest.raises(ParameterError, match="allowed: expected uint64"):
+        batch.tables(prevs, wins, allowed=np.zeros((Q, W), np.int64))
+    # no frame allowed for one query: its row has no candidate, the others are untouched
+    allowed = np.stack([pack_bits(np.ones(F, bool)), np.zeros(W, np.uint64), pack_bits(np.ones(F, bool))])
+    s, _, _ = batch.tables(prevs, wins, allowed=allowed, method="blocked")
+    assert (s[1] == -1).all() and (s[0] >= 0).any()
+    np.testing.assert_array_equal(s[0], batch.tables(prevs, wins)[0][0])
