@@ -9,7 +9,12 @@ the server does: it holds a step's audio until the step can be complete), the st
 preparation, the search alone, the search batched, the apply (window, seams, feet) and the
 frames message (``pack_frames`` with its provenance JSON).
 
-Usage:  python benchmarks/bench_live_steps.py DB.h5 [--streams 50] [--seconds 12] [--threads 1]
+``--controls C``: stream j steers with the saved mask ``CONTROLS[j % C]`` (C = 1: none), and
+the batched search is timed twice, alternating: one call for every stream (each step with its
+control's bitset: the kernel's per-query bitsets) and one call per control (what StepBatch did
+before the kernel took a bitset per query: a pass over the database per control).
+
+Usage:  python benchmarks/bench_live_steps.py DB.h5 [--streams 50] [--seconds 12] [--threads 1] [--controls 1]
 """
 from __future__ import annotations
 
@@ -22,6 +27,9 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_WAV = os.path.join(HERE, "..", "..", "shared", "data", "beat2-scott", "2_scott_0_1_1.wav")
+#: the controls of --controls (saved masks every built database has), the first one none
+CONTROLS = (None, "left_wrist_height_high", "hand_speed_high", "right_wrist_height_high", "hand_distance_low",
+            "left_wrist_speed_high", "height_asymmetry_high", "right_wrist_forward_high")
 
 
 def main(argv=None) -> int:
@@ -31,7 +39,11 @@ def main(argv=None) -> int:
     ap.add_argument("--streams", type=int, default=50)
     ap.add_argument("--seconds", type=float, default=12.0)
     ap.add_argument("--threads", type=int, default=1, help="threads of the batched search (the server: 1); the search alone takes every CPU, as a stream does")
+    ap.add_argument("--controls", type=int, default=1, help=f"streams steer with this many different controls "
+                                                            f"(1 to {len(CONTROLS)}; 1: none)")
     args = ap.parse_args(argv)
+    if not 1 <= args.controls <= len(CONTROLS):
+        ap.error(f"--controls: expected 1 to {len(CONTROLS)}")
 
     import gesturedb
     from gesturedb.io import read_audio
@@ -49,10 +61,13 @@ def main(argv=None) -> int:
     Q, piece = args.streams, 640
     n = int(args.seconds * sr)
     starts = np.random.default_rng(0).integers(0, max(1, x.shape[0] - n), Q)
-    pieces = [searcher.stream(SearchOptions(seed=j), sample_rate=sr) for j in range(Q)]  # fed in 40 ms pieces
-    steps = [searcher.stream(SearchOptions(seed=j), sample_rate=sr) for j in range(Q)]  # fed once per step
+    def opts(j):
+        return SearchOptions(seed=j, control=CONTROLS[j % args.controls])
+
+    pieces = [searcher.stream(opts(j), sample_rate=sr) for j in range(Q)]  # fed in 40 ms pieces
+    steps = [searcher.stream(opts(j), sample_rate=sr) for j in range(Q)]  # fed once per step
     batch = StepBatch(searcher, threads=args.threads)
-    t_piece = t_step = t_prep = t_alone = t_batch = t_apply = t_pack = 0.0
+    t_piece = t_step = t_prep = t_alone = t_batch = t_per_control = t_apply = t_pack = 0.0
     n_steps = n_calls = 0
     fed = [0] * Q
     for a in range(0, n, piece):
@@ -79,9 +94,24 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         alone = [steps[j].search_step(sq) for j, sq in ready]
         t_alone += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        got = batch.search([sq for _, sq in ready])
-        t_batch += time.perf_counter() - t0
+        def per_control(ready):
+            out = {}
+            for c in range(args.controls):
+                part = [(j, sq) for j, sq in ready if j % args.controls == c]
+                out.update(zip([j for j, _ in part], batch.search([sq for _, sq in part]) if part else []))
+            return [out[j] for j, _ in ready]
+
+        for first in ((0, 1) if n_calls % 2 else (1, 0)) if args.controls > 1 else (0,):
+            t0 = time.perf_counter()
+            if first == 0:
+                got = batch.search([sq for _, sq in ready])
+                t_batch += time.perf_counter() - t0
+            else:
+                split = per_control(ready)
+                t_per_control += time.perf_counter() - t0
+        if args.controls > 1:
+            for g, h in zip(got, split):
+                assert int(g[0].frames[0]) == int(h[0].frames[0]), "one call and one per control differ"
         n_calls += 1
         for (j, sq), g, o in zip(ready, got, alone):
             assert int(g[0].frames[0]) == int(o[0].frames[0]) and g[1] == o[1], "batched and alone differ"
@@ -98,6 +128,7 @@ def main(argv=None) -> int:
     print(f"steps {n_steps} in {n_calls} calls (mean batch {n_steps / max(n_calls, 1):.1f}); ms per step:")
     for name, v in (("features, fed in 40 ms pieces", t_piece), ("features, fed once per step", t_step),
                     ("prepare", t_prep), ("search alone", t_alone), ("search batched", t_batch),
+                    *((("search batched, a call per control", t_per_control),) if args.controls > 1 else ()),
                     ("apply (window, seams, feet)", t_apply), ("frames message", t_pack)):
         print(f"  {name:<32} {v * ms:8.2f}")
     print(f"load average {os.getloadavg()[0]:.1f} at the end")

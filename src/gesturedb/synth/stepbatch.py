@@ -8,14 +8,17 @@ blocked kernel over the database serves every step of a batch (each candidate ro
 per block of steps instead of once per step), and each step gets exactly the window its stream
 would have chosen alone.
 
-How a batch stays exact. The kernel's batch takes one allowed bitset for all its queries, but
-each stream's step has its own: its control, and the repeat guard, which clears the frames of
-the stream's recent windows (:mod:`gesturedb.synth.repeats`). Pre-selection (spec steps 1-3) is
-per segment and a segment reads only the bits of its own frames, so
+How a batch stays exact. Each stream's step has its own bitset: its control, and the repeat
+guard, which clears the frames of the stream's recent windows (:mod:`gesturedb.synth.repeats`).
+Pre-selection (spec steps 1-3) is per segment and a segment reads only the bits of its own
+frames, so
 
-1. steps that share a control bitset (or have none) are one call of
-   :meth:`gesturedb.tables.PreselectBatch.tables`, each step excluding the few segments its
-   recent windows touch: every other segment sees the same bits with or without the guard;
+1. the steps of one window length and pre-selection mode are one call of
+   :meth:`gesturedb.tables.PreselectBatch.tables`, each step with its control's bitset (the
+   kernel takes one per query: per segment, the steps whose controls allow the same candidates
+   share a pass of the blocked filter, and the database is read once for all of them), each
+   excluding the few segments its recent windows touch: every other segment sees the same bits
+   with or without the guard;
 2. each step's touched segments are pre-selected alone under its guarded bitset
    (:func:`gesturedb.tables.preselect_table` with every other segment excluded) and put
    into its table;
@@ -88,9 +91,8 @@ class StepBatch:
         groups: dict[tuple, list[int]] = {}
         for j, sq in enumerate(steps):
             if self._batchable(sq):
-                key = (sq.stream.options.preselect, sq.n, None if sq.row is None else sq.row.tobytes())
-                groups.setdefault(key, []).append(j)
-        for (preselect, _, _), idx in groups.items():
+                groups.setdefault((sq.stream.options.preselect, sq.n), []).append(j)
+        for (preselect, _), idx in groups.items():
             try:
                 got = self._search_group([steps[j] for j in idx], preselect)
             except Exception:  # noqa: BLE001 - whatever one step brought, each step is searched alone below
@@ -123,8 +125,8 @@ class StepBatch:
             return self._batches[preselect]
 
     def _search_group(self, group: list, preselect: str) -> list:
-        """Steps of one pre-selection mode and length sharing one control bitset: ``(res, False)`` per
-        step, or None where the guard leaves no candidate (that step then runs alone)."""
+        """Steps of one pre-selection mode and length, each under its control's bitset: ``(res, False)``
+        per step, or None where the guard leaves no candidate (that step then runs alone)."""
         s, db = self.searcher, self.searcher.db
         M = s.seg_start.shape[0]
         touched = [self._touched(sq.recent) for sq in group]
@@ -135,9 +137,13 @@ class StepBatch:
             exclude[r, tm] = True
         prevs = np.stack([sq.prev for sq in group]).astype(np.float32, copy=False)
         windows = np.stack([sq.query for sq in group]).astype(np.float32, copy=False)
-        row = group[0].row  # shared by the group (its key); None: every frame
+        rows = {None if sq.row is None else sq.row.tobytes() for sq in group}
+        if len(rows) == 1:  # one control (or none) for all: one bitset
+            allowed = group[0].row
+        else:  # one per step (every frame where a step has none); equal rows share the filter's passes
+            allowed = np.stack([sq.allowed for sq in group])
         starts, pose_d, audio_d = self._preselect_batch(preselect).tables(
-            prevs, windows, allowed=row, exclude=exclude, threads=self.threads, method=self.method)
+            prevs, windows, allowed=allowed, exclude=exclude, threads=self.threads, method=self.method)
         self.n_calls += 1
         proj = s.pose_projection() if preselect == "pose" else None
         out = []
