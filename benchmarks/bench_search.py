@@ -32,8 +32,17 @@ Prints, in one run:
     the same batch with the PoseProjection (what the refiner's training data
     uses) in the same run, the ratio, and a check that all results are identical.
 
+--masks DB.h5 measures only this, on a built database (its Searcher's segments and pose
+projection, what the server searches): one step's pre-selection tables for --queries queries
+(previous poses and audio windows at random frames), each with the bitset of one of C
+controls (the database's saved masks; query i takes control i % C, the first none), through
+tables.PreselectBatch (blocked, one thread): one call with a bitset per query, one call per
+control (what gesturedb serve's StepBatch did before the kernel took a bitset per query), and,
+for scale, one call with no bitset; interleaved, median ms per call. C = --controls (a list).
+
 Usage:  python benchmarks/bench_search.py [--reps 41] [--loop-subset 24] [--skip-batch]
                                           [--batch-reps 1] [--data motion|random]
+        python benchmarks/bench_search.py --masks DB.h5 [--queries 50] [--controls 1,2,4,8] [--reps 9]
 The machine is shared: every timing is a median over interleaved repetitions,
 and (e) also reports CPU time, which other processes do not inflate. The C++
 floors of (c) are benchmark code (benchmarks/floors.cpp, not in gesturedb._core):
@@ -155,8 +164,72 @@ def cpu_seconds():
     return r.ru_utime + r.ru_stime
 
 
+MASKS = ("left_wrist_height_high", "hand_speed_high", "right_wrist_height_high", "hand_distance_low",
+         "left_wrist_speed_high", "height_asymmetry_high", "right_wrist_forward_high")
+
+
+def bench_masks(args) -> None:
+    """--masks: a bitset per query in one call against a call per control (see the module notes)."""
+    import gesturedb
+    from gesturedb import tables
+    from gesturedb.synth import Searcher
+
+    db = gesturedb.open(args.masks)
+    s = Searcher(db)
+    t = time.perf_counter()
+    proj = s.pose_projection()
+    print(f"{args.masks}: {db.n_frames} frames, {s.seg_start.shape[0]} segments; pose projection "
+          f"{time.perf_counter() - t:.1f} s; simd = {search.get_simd()}; load average {os.getloadavg()[0]:.1f}")
+    P, A = db.pose_features, db.audio_features
+    rng = np.random.default_rng(0)
+    Q = args.queries
+    F = db.n_frames
+    prevs = np.ascontiguousarray(P[rng.integers(0, F, Q)])
+    wins = np.ascontiguousarray(A[rng.integers(0, F - N, Q)[:, None] + np.arange(N)])
+    batch = tables.PreselectBatch(P, A, s.seg_start, s.seg_len, pose_f16=s._half, pose_proj=proj)
+    every = np.full((F + 63) // 64, np.uint64(0xFFFFFFFFFFFFFFFF))
+    bits = [every] + [db.mask_datasets[name] if name in db.mask_datasets else None for name in MASKS]
+    bits = [b if b is None else np.ascontiguousarray(b, dtype=np.uint64) for b in bits]
+    print(f"{Q} queries, one step (N = {N}), blocked, 1 thread; ms per call (median of {args.reps}, interleaved); "
+          "kept: the share of frames each control allows")
+    for C in (int(c) for c in args.controls.split(",")):
+        if C > len(bits) or any(b is None for b in bits[:C]):
+            print(f"  {C} controls: the database lacks the saved masks {MASKS[:C - 1]}")
+            continue
+        which = np.arange(Q) % C
+        per_query = np.ascontiguousarray(np.stack([bits[c] for c in which]))
+
+        def one_call(per_query=per_query):
+            return batch.tables(prevs, wins, allowed=per_query, threads=1, method="blocked")
+
+        def per_control(C=C, which=which):
+            out = [None] * Q
+            for c in range(C):
+                idx = np.flatnonzero(which == c)
+                got = batch.tables(prevs[idx], wins[idx], allowed=None if c == 0 else bits[c], threads=1,
+                                   method="blocked")
+                for r, i in enumerate(idx):
+                    out[i] = tuple(g[r] for g in got)
+            return out
+
+        a, b = one_call(), per_control()
+        for i in range(Q):
+            for x, y in zip((a[0][i], a[1][i], a[2][i]), b[i]):
+                np.testing.assert_array_equal(x, y)
+        got = interleaved({"one": one_call, "per": per_control,
+                           "none": lambda: batch.tables(prevs, wins, threads=1, method="blocked")}, args.reps)
+        kept = [float(np.unpackbits(bits[c].view(np.uint8)).mean()) for c in range(1, C)]
+        print(f"  {C} controls (kept {', '.join(f'{k:.0%}' for k in kept) or '-'}): one call {got['one'][0] * 1e3:.1f}, "
+              f"a call per control {got['per'][0] * 1e3:.1f}, no bitset {got['none'][0] * 1e3:.1f} "
+              f"(the same tables)")
+    print(f"load average {os.getloadavg()[0]:.1f} at the end")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--masks", metavar="DB", help="only the per-query bitsets on this database (see the notes)")
+    ap.add_argument("--queries", type=int, default=50, help="--masks: queries in a call")
+    ap.add_argument("--controls", default="1,2,4,8", help="--masks: numbers of controls among them")
     ap.add_argument("--reps", type=int, default=41, help="repetitions of each timed step")
     ap.add_argument("--loop-subset", type=int, default=24,
                     help="queries timed one by one to extrapolate the loop in (e)")
@@ -168,6 +241,9 @@ def main(argv=None):
     ap.add_argument("--layout", choices=tuple(LAYOUTS), default="centred",
                     help="pose feature frames: centred (schema 4, 120 values, default) or past (schema 3, 96)")
     args = ap.parse_args(argv)
+    if args.masks:
+        bench_masks(args)
+        return 0
     global LAGS, DP
     LAGS = LAYOUTS[args.layout]
     DP = 24 * len(LAGS)

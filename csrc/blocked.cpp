@@ -312,6 +312,11 @@ void BlockedBatch::segment_group(Run& r, int64_t m, const BitsetView& allowed, c
                                  const uint64_t* group) const {
     const int64_t n_cand = db_.seg_len[m] - N_;
     if (!segment_lanes(r, m, group)) return;
+    if (r.any_live && okp != nullptr && sparse_enough(r, okp, n_cand)) {
+        // few candidates allowed: the group's lanes scan just those, exactly (choose_candidates)
+        std::fill(r.live.begin(), r.live.end(), uint64_t(0));
+        r.any_live = false;
+    }
     std::fill(r.minhi.begin(), r.minhi.end(), std::numeric_limits<float>::infinity());
     std::fill(r.best.begin(), r.best.begin() + r.nl, int64_t(-1));
     for (int64_t i0 = 0; r.any_live && i0 < n_cand; i0 += kRowTile) {
@@ -321,6 +326,20 @@ void BlockedBatch::segment_group(Run& r, int64_t m, const BitsetView& allowed, c
     }
     const int64_t n_fin = choose_candidates(r, m, allowed);
     other_distances(r, m, n_fin);
+}
+
+// Whether the lanes in the segment (r.inc) scanning only the allowed
+// candidates okp exactly cost less than the blocked filter over all of them:
+// the filter reads every candidate row for a whole panel of lanes (r.len
+// values a lane), the exact scan only the allowed rows for each lane (Dp pose
+// values or an N-frame audio window). A control that keeps a few percent of
+// the frames, or a group of a few lanes, is cheaper exactly.
+bool BlockedBatch::sparse_enough(const Run& r, const uint8_t* okp, int64_t n_cand) const {
+    int64_t n_ok = 0, lanes = 0;
+    for (int64_t i = 0; i < n_cand; ++i) n_ok += okp[i];
+    for (int64_t w = 0; w < r.words; ++w) lanes += __builtin_popcountll(r.inc[w]);
+    const int64_t exact_len = pre_ == Preselect::Pose ? r.Dp : N_ * r.Da;
+    return n_ok * lanes * exact_len < n_cand * r.qp * r.len;
 }
 
 // Which candidates of segment m the bitset allows: okp = null when all of

@@ -75,6 +75,7 @@ private:
                        const uint64_t* group) const;
     bool allowed_candidates(int64_t m, const BitsetView& allowed, uint8_t* ok, const uint8_t*& okp) const;
     bool segment_lanes(Run& r, int64_t m, const uint64_t* group) const;
+    bool sparse_enough(const Run& r, const uint8_t* okp, int64_t n_cand) const;
     void filter_tile(Run& r, int64_t m, int64_t i0, int64_t nr, const uint8_t* okp) const;
     void recompute_kept(Run& r, int64_t m, int64_t i0, int64_t nr) const;
     int64_t choose_candidates(Run& r, int64_t m, const BitsetView& allowed) const;
