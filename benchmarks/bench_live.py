@@ -60,9 +60,9 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(db: str, port: int, batch: bool = True) -> subprocess.Popen:
+def start_server(db: str, port: int, batch: bool = True, workers: int = 1) -> subprocess.Popen:
     p = subprocess.Popen([sys.executable, "-m", "gesturedb.cli.main", "serve", db, "--port", str(port),
-                          "--max-streams", "1000"] + ([] if batch else ["--no-batch"]),
+                          "--max-streams", "1000", "--workers", str(workers)] + ([] if batch else ["--no-batch"]),
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     t = time.monotonic()
     while time.monotonic() - t < 300:
@@ -275,7 +275,10 @@ def main(argv=None) -> int:
     ap.add_argument("--budget-ms", type=float, default=100.0)
     ap.add_argument("--modes", default="batch,alone",
                     help="servers to compare, in this order: batch (steps of all streams searched in one call), "
-                         "alone (gesturedb serve --no-batch: each stream searches its own)")
+                         "alone (gesturedb serve --no-batch: each stream searches its own), workers (batch, "
+                         "from --workers processes)")
+    ap.add_argument("--workers", type=int, default=2,
+                    help="processes of the 'workers' mode's server (gesturedb serve --workers; batched in each)")
     ap.add_argument("--client-procs", type=int, default=4,
                     help="processes the clients are spread over (threads in each; default: %(default)s)")
     ap.add_argument("--give-up-ms", type=float, default=2000.0,
@@ -305,8 +308,8 @@ def main(argv=None) -> int:
     counts = [int(c) for c in args.clients.split(",")]
     modes = args.modes.split(",")
     for mode in modes:
-        if mode not in ("batch", "alone"):
-            raise SystemExit(f"--modes: expected batch and/or alone; got {mode!r}")
+        if mode not in ("batch", "alone", "workers"):
+            raise SystemExit(f"--modes: expected batch, alone and/or workers; got {mode!r}")
     print(f"{x.shape[0] / SR:.1f} s of speech per client in {args.chunk_ms:g} ms chunks; late = step latency over "
           f"{args.budget_ms:g} ms; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start")
     # both servers up at once and the modes alternating count by count, so that a change of the
@@ -316,7 +319,8 @@ def main(argv=None) -> int:
         for mode in modes:
             port = free_port()
             t = time.perf_counter()
-            servers[mode] = (start_server(args.db, port, batch=mode == "batch"), port)
+            servers[mode] = (start_server(args.db, port, batch=mode != "alone",
+                                          workers=args.workers if mode == "workers" else 1), port)
             print(f"[{mode}] server up in {time.perf_counter() - t:.1f} s (warm-up included)")
         print(f"{'server':>6} {'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6} "
               f"{'batch':>6} {'search ms/step':>15} {'load':>5}")
@@ -344,9 +348,11 @@ def health(port: int) -> dict:
 
 def measure(args, x: np.ndarray, n: int, mode: str, port: int) -> tuple[bool, float]:
     """n clients at once on the server at ``port``; prints a row; (no late step, p50 in ms)."""
-    before = health(port).get("batch")
+    # a server of several processes answers /health from one of them: its batch counts are not the server's
+    stats = mode != "workers"
+    before = health(port).get("batch") if stats else None
     lat, errors = run_procs(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms, args.client_procs)
-    after = health(port).get("batch")
+    after = health(port).get("batch") if stats else None
     ms = np.array(lat) * 1000
     late = int((ms > args.budget_ms).sum())
     p50, p99, mx = (np.percentile(ms, 50), np.percentile(ms, 99), ms.max()) if ms.size else (np.nan,) * 3

@@ -26,6 +26,10 @@ def add_parser(sub) -> None:
                    help="close a stream silent for this many seconds (default: %(default)g)")
     p.add_argument("--max-upload-mb", type=float_range(0.001, 65536), default=d.max_upload_bytes / 2**20,
                    help="largest POST /synth body, MiB (default: %(default)g)")
+    p.add_argument("--workers", default="1", metavar="N",
+                   help="serve from N processes, each applying its clients' steps (the apply is Python, one step "
+                        "at a time per process); 'auto': the CPUs this process may use (default: %(default)s; "
+                        "docs/live.md, 'Many streams')")
     p.add_argument("--no-batch", dest="batch_steps", action="store_false",
                    help="search each stream's steps alone instead of the waiting steps of all streams in one call "
                         "(the same frames; for comparison)")
@@ -38,11 +42,13 @@ def run(args) -> int:
     from gesturedb.serve.limits import Limits
 
     try:
-        import uvicorn
+        import uvicorn  # noqa: F401 - the extra is there
 
+        from gesturedb.serve import workers as W
         from gesturedb.serve.app import create_app
     except ImportError as exc:
         raise ParameterError(f"serve needs the 'serve' extra: pip install 'gesturedb[serve]' ({exc})") from None
+    n_workers = W.resolve_workers(args.workers)
     logging.basicConfig(level=logging.INFO, format="gesturedb serve: %(message)s")
     limits = Limits(max_streams=args.max_streams, idle_s=args.idle_s,
                     max_upload_bytes=int(args.max_upload_mb * 2**20))
@@ -51,8 +57,8 @@ def run(args) -> int:
         warm_s = app.state.gesturedb.warm_s  # create_app paid what the first stream would pay
         shown = f"[{args.host}]" if ":" in args.host else args.host
         print(f"gesturedb serve: {db.path} ({db.n_frames} frames at {db.fps:g} fps); studio at "
-              f"http://{shown}:{args.port}/ , stream at ws://{shown}:{args.port}/stream (ready in {warm_s:.2f} s; Ctrl-C "
-              "stops)", flush=True)
-        uvicorn.run(app, host=args.host, port=args.port, ws_max_size=limits.ws_max_size,
-                    ws_ping_interval=20.0, ws_ping_timeout=20.0, log_level="warning")
+              f"http://{shown}:{args.port}/ , stream at ws://{shown}:{args.port}/stream (ready in {warm_s:.2f} s"
+              + (f"; {n_workers} worker processes" if n_workers > 1 else "") + "; Ctrl-C stops)", flush=True)
+        W.serve(app, args.host, args.port, n_workers, ws_max_size=limits.ws_max_size,
+                ws_ping_interval=20.0, ws_ping_timeout=20.0, log_level="warning")
     return 0

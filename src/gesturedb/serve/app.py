@@ -297,7 +297,7 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
             "status": "ok", "version": __version__, "database": os.path.basename(str(db.path)),
             "fps": float(db.fps), "frames": int(db.n_frames), "joints": db.skeleton.n_joints,
             "stream": state.stream_factory is not None, "stream_error": state.stream_unavailable,
-            "streams": state.streams, "three_js": state.three is not None, "protocol": P.PROTOCOL_VERSION,
+            "streams": state.streams, "pid": os.getpid(), "three_js": state.three is not None, "protocol": P.PROTOCOL_VERSION,
             "batch": None if state.scheduler is None else state.scheduler.stats(),
             "gltf_loader": state.gltf_loader is not None,
         })
