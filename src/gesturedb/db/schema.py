@@ -486,18 +486,9 @@ def check_file(h5, filename: str | os.PathLike | None = None, *, sample=None) ->
     ``feature_joints`` JSON), every declared dataset present with its dtype kind
     and shape, index ranges (recordings, chunks, clips, words, skeleton parents),
     finite audio statistics, and finite values / non-zero quaternions in up to
-    :data:`CHECK_SAMPLE_ROWS` rows of each per-frame array.
-
-    Parameters
-    ----------
-    h5 : h5py.File
-    filename : str or os.PathLike, optional
-        The name the messages give (default ``h5.filename``).
-    sample : callable, optional
-        ``sample(path, rows) -> ndarray or None``: the rows ``rows`` (sorted int64) of the
-        per-frame dataset ``path``, or None to read them here. :class:`gesturedb.db.database.Database`
-        passes its memory maps: h5py's point selection of the sampled rows cost 0.27 s of a
-        616k-frame database's 0.4 s open, indexing the mapped arrays a few milliseconds.
+    :data:`CHECK_SAMPLE_ROWS` rows of each per-frame array. ``sample(path, rows)``, optional, reads
+    those rows of ``path`` instead of h5py's point selection (most of a 616k-frame database's
+    open): ``Database`` reads them from its memory maps.
     """
     h5py = _h5py()
     name = os.fspath(filename) if filename is not None else h5.filename
@@ -600,13 +591,14 @@ def check_file(h5, filename: str | os.PathLike | None = None, *, sample=None) ->
     if have("audio/std") and (ints("audio/std") <= 0).any():
         fail("audio/std: expected positive standard deviations")
     rows = np.unique(np.linspace(0, F - 1, min(F, CHECK_SAMPLE_ROWS)).astype(np.int64))
+    sample = sample or (lambda path, rows: h5[path][rows])
     for path in ("frames/pose_features", "frames/audio_features", "frames/joint_positions",
                  "frames/local_rotations", "frames/root_positions"):
         if not have(path) or F < 1:
             continue
         if path in MEAN_FIELDS:
             read_mean(h5, path, name)
-        a = _sampled(h5, path, rows, sample)
+        a = np.asarray(sample(path, rows))
         if not np.isfinite(a).all():
             r = int(rows[np.argwhere(~np.isfinite(a))[0][0]])
             fail(f"{path}: expected finite values, got a non-finite value at frame {r}")
@@ -615,7 +607,7 @@ def check_file(h5, filename: str | os.PathLike | None = None, *, sample=None) ->
             if (np.abs(norm - 1.0) > 1e-2).any():
                 r, j = (int(v) for v in np.argwhere(np.abs(norm - 1.0) > 1e-2)[0])
                 fail(f"{path}: expected unit quaternions, got norm {norm[r, j]:.3g} at frame {int(rows[r])}, joint {j}")
-    fr = _sampled(h5, "frames/recording", rows, sample) if have("frames/recording") and F >= 1 else np.zeros(0, np.int64)
+    fr = sample("frames/recording", rows) if have("frames/recording") and F >= 1 else np.zeros(0, np.int64)
     if ((fr < 0) | (fr >= R)).any():
         fail(f"frames/recording: expected recordings in 0..{R - 1}, got {int(fr[(fr < 0) | (fr >= R)][0])}")
     B = (F + 63) // 64
@@ -628,12 +620,6 @@ def check_file(h5, filename: str | os.PathLike | None = None, *, sample=None) ->
                      f"`gesturedb masks DB remove {k}`" if group == MASKS_GROUP else f"{group}/{k}: expected a dataset")
             if ds.shape != want_shape or ds.dtype.kind != kind:
                 fail(f"{group}/{k}: expected shape {want_shape} of kind {kind!r}, got {ds.dtype} {ds.shape}")
-
-
-def _sampled(h5, path: str, rows: np.ndarray, sample) -> np.ndarray:
-    """Rows ``rows`` of the dataset ``path``: from ``sample`` (see :func:`check_file`) where it gives them."""
-    got = sample(path, rows) if sample is not None else None
-    return h5[path][rows] if got is None else np.asarray(got)
 
 
 def shard_entries(h5, filename: str | os.PathLike | None = None) -> list[dict]:
