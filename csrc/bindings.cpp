@@ -714,7 +714,8 @@ PYBIND11_MODULE(_core, m) {
            const std::vector<F32>& queries, const F32& init_poses, int64_t window, const I64& k,
            const std::string& preselect, const std::optional<U64>& allowed,
            const std::optional<Bool>& exclude, int threads, const std::string& method,
-           const std::optional<U16>& pose_f16, const std::optional<py::tuple>& pose_proj) {
+           const std::optional<U16>& pose_f16, const std::optional<py::tuple>& pose_proj,
+           const std::optional<U64>& query_allowed) {
             const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
             const int64_t Q = int64_t(queries.size());
             const BatchMethod bm = parse_method(method);
@@ -748,6 +749,11 @@ PYBIND11_MODULE(_core, m) {
                 batch[i].exclude = ex.row(i);
                 batch[i].out = out.view(off[i]);
             }
+            if (query_allowed) {
+                if (allowed)
+                    throw std::invalid_argument("allowed: expected either it or query_allowed, not both");
+                set_query_allowed(batch, *query_allowed, db);
+            }
             const Kernels& kern = active_kernels();
             I64 failed(Q);
             {
@@ -764,6 +770,7 @@ PYBIND11_MODULE(_core, m) {
         py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
         py::arg("threads") = 0, py::arg("method") = "auto",
         py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+        py::arg("query_allowed").noconvert().none(true) = py::none(),
         "Many searches -> (dict of concatenated arrays, offsets (Q+1,), failed step per query) "
         "(use gesturedb.search.rank_sum_search_batch, which validates).");
 }

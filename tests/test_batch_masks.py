@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from gesturedb import search, tables
-from gesturedb.errors import ParameterError
-from test_search import exact_db, oracle_step, pack_bits
+from gesturedb.errors import ParameterError, SearchError
+from test_search import assert_same_search, exact_db, oracle_step, pack_bits
 from test_search_proj import stacked_recordings
 
 ISAS = search.kernels()
@@ -126,3 +126,46 @@ def test_per_query_bitsets_are_validated():
     s, _, _ = batch.tables(prevs, wins, allowed=allowed, method="blocked")
     assert (s[1] == -1).all() and (s[0] >= 0).any()
     np.testing.assert_array_equal(s[0], batch.tables(prevs, wins)[0][0])
+
+
+@pytest.mark.parametrize("method", ["blocked", "per_query"])
+def test_whole_searches_with_a_bitset_per_query_are_each_search_alone(method):
+    """rank_sum_search_batch(query_allowed=...): 70 queries of different lengths (partial last
+    windows), per-query k and exclusion, the projection filter; every ISA."""
+    rng = np.random.default_rng(67)
+    P, A, st, ln = stacked_recordings(rng, n_rec=14)
+    F, M, Q = P.shape[0], st.shape[0], 70
+    which, allowed = _per_query(rng, _masks(rng, st, ln, F), Q)
+    queries = [rng.standard_normal((int(rng.choice([24, 21, 40])), A.shape[1])).astype(np.float32) for _ in range(Q)]
+    init = P[rng.integers(0, F, Q)]
+    ks = rng.integers(1, 5, Q)
+    exclude = rng.random((Q, M)) < 0.2
+    proj = search.PoseProjection(P)
+    for isa in ISAS:
+        with search.simd(isa):
+            for kw in (dict(), dict(pose_proj=proj, exclude=exclude), dict(preselect="audio")):
+                got = search.rank_sum_search_batch(P, A, st, ln, queries, init, step=4, k=ks, query_allowed=allowed,
+                                                   method=method, **kw)
+                for i in range(Q):
+                    one = dict(kw, allowed=allowed[i])
+                    if "exclude" in one:
+                        one["exclude"] = exclude[i]
+                    want = search.rank_sum_search(P, A, st, ln, queries[i], init[i], step=4, k=int(ks[i]), **one)
+                    assert_same_search(got[i], want, f"{isa} {method} {sorted(kw)} query {i}")
+
+
+def test_whole_search_bitsets_are_validated_and_failures_named():
+    rng = np.random.default_rng(71)
+    P, A, st, ln = exact_db(rng)
+    F, Q = P.shape[0], 3
+    W = (F + 63) // 64
+    queries = [np.ones((16, A.shape[1]), np.float32)] * Q
+    every = pack_bits(np.ones(F, bool))
+    with pytest.raises(ParameterError, match="allowed, query_allowed: expected one of them"):
+        search.rank_sum_search_batch(P, A, st, ln, queries, P[:Q], allowed=every,
+                                     query_allowed=np.stack([every] * Q))
+    with pytest.raises(ParameterError, match=rf"query_allowed: expected uint64 bitsets \({Q}, {W}\) \(one per query"):
+        search.rank_sum_search_batch(P, A, st, ln, queries, P[:Q], query_allowed=np.stack([every] * (Q + 1)))
+    none = np.stack([every, np.zeros(W, np.uint64), every])
+    with pytest.raises(SearchError, match="query 1"):
+        search.rank_sum_search_batch(P, A, st, ln, queries, P[:Q], query_allowed=none)

@@ -570,7 +570,7 @@ def rank_sum_search(pose, audio, seg_start, seg_len, query_audio, init_pose, *, 
 def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, init_poses, *,
                           step=STEP_FRAMES, k=1, preselect="pose", allowed=None, exclude=None,
                           threads=None, method="auto", pose_f16=None,
-                          pose_proj=None) -> list[SearchResult]:
+                          pose_proj=None, query_allowed=None) -> list[SearchResult]:
     """Run many independent searches in one call.
 
     Each result equals what :func:`rank_sum_search` returns for that query
@@ -604,6 +604,11 @@ def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, in
     exclude : ndarray, bool, optional
         ``(M,)`` for all queries or ``(Q, M)`` per query (e.g. each query's own
         segment when the queries are the database's audio).
+    query_allowed : ndarray [shape=(Q, ceil(F/64))], uint64, optional
+        Instead of ``allowed``: each query's own bitset, for all its steps (clients with
+        different controls in one batch). Queries with equal rows share the blocked
+        filter's passes; per segment, queries whose bitsets allow the same candidates of
+        it share one.
     threads : int, optional
         Worker threads (default: the CPUs this process may use, ``_core.default_threads()``:
         its affinity mask bounded by the cgroup CPU quota).
@@ -664,6 +669,16 @@ def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, in
     else:
         allowed = _allowed(allowed, pose.shape[0])
     exclude = _exclude(exclude, M, Q)
+    if query_allowed is not None:
+        W = (pose.shape[0] + 63) // 64
+        if allowed is not None:
+            raise ParameterError("allowed, query_allowed: expected one of them (a bitset or schedule for every "
+                                 "query, or a bitset per query); got both")
+        if (not isinstance(query_allowed, np.ndarray) or query_allowed.dtype != np.uint64
+                or query_allowed.shape != (Q, W)):
+            raise ParameterError(f"query_allowed: expected uint64 bitsets ({Q}, {W}) (one per query, F = "
+                                 f"{pose.shape[0]} frames); got {_describe(query_allowed)}")
+        query_allowed = np.ascontiguousarray(query_allowed)
     if method not in ("auto", "blocked", "per_query"):
         raise ParameterError(f"method: expected 'auto', 'blocked' or 'per_query'; got {method!r}")
     if Q == 0:
@@ -672,13 +687,14 @@ def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, in
     proj = _pose_proj(pose_proj, pose)
     d, offsets, failed = _core().search_batch(pose, audio, seg_start, seg_len, qs, init, N, ks,
                                               preselect, allowed, exclude, _threads(threads), method,
-                                              half, proj)
+                                              half, proj, query_allowed)
     bad = np.flatnonzero(failed >= 0)
     if bad.size:
         i = int(bad[0])
         s = int(failed[i])
         t = s * N
         row = None if allowed is None else (allowed[s] if allowed.ndim == 2 else allowed)
+        row = row if query_allowed is None else query_allowed[i]
         ex = None if exclude is None else (exclude[i] if exclude.ndim == 2 else exclude)
         err = _no_candidate_error(s, t, min(N, qs[i].shape[0] - t), seg_len, ex, row, query=i)
         if bad.size > 1:
