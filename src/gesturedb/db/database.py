@@ -177,6 +177,7 @@ class Database:
     def _open(self) -> None:
         import h5py
 
+        self._check_maps: dict = {}  # path -> the check's memory map, until the attribute takes it (per attempt)
         try:
             self._h5 = h5py.File(self.path, "r")
         except OSError as exc:
@@ -349,6 +350,8 @@ class Database:
         ds = self._h5.get(path)
         if not self.map_frames or ds is None or not mappable(ds, self._h5):
             return None
+        if path in self._check_maps:  # the map the open's check made: the same bytes, mapped once
+            return self._check_maps.pop(path)
         fd = _open_same_file(self._h5.id.get_vfd_handle(), self.path)
         if fd is None:
             return None
@@ -374,21 +377,18 @@ class Database:
 
     def _check_rows(self, path: str, rows: np.ndarray) -> np.ndarray:
         """``schema.check_file``'s sampled rows of a per-frame array, from its memory map (read through h5py
-        where it is not mappable). The map is kept as the array's attribute (:meth:`_mapped`), so the open
-        maps each array once and the check reads the very bytes the search will (a few milliseconds against
-        h5py's point selection, 0.08-0.27 s at 616k frames)."""
+        where it is not mappable), kept until the array's attribute takes it (:meth:`_mapped`): each array is
+        mapped once and the check reads the bytes the search will (milliseconds against h5py's 0.08-0.27 s at
+        616k frames); the attribute stays unset till used, so ``map_frames = False`` after the open reads."""
         name = next((k for k, v in self.FRAME_ARRAYS.items() if v == path), None)
         ds = self._h5.get(path)
         if (name is None or ds is None or not self.map_frames or schema.SHARDS_ATTR in self._h5.attrs
                 or ds.dtype != np.dtype(schema.FIELDS_BY_PATH[path].dtype) or not mappable(ds, self._h5)):
             return self._h5[path][rows]
-        arr = self.__dict__.get(name)
+        arr = self.__dict__.get(name, self._check_maps.get(path))
         if arr is None:
-            arr = self._mapped(path)
-            if arr is None:
-                return self._h5[path][rows]
-            self.__dict__[name] = arr  # the cached_property's slot: pose_features etc. are this map from now on
-        return arr[rows]
+            arr = self._check_maps[path] = self._mapped(path)
+        return self._h5[path][rows] if arr is None else arr[rows]
 
     def _frame_dataset(self, name: str):
         """The h5py dataset of a per-frame array, checked once against the schema (dtype, F rows)."""
