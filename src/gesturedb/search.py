@@ -693,8 +693,8 @@ def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, in
         i = int(bad[0])
         s = int(failed[i])
         t = s * N
-        row = None if allowed is None else (allowed[s] if allowed.ndim == 2 else allowed)
-        row = row if query_allowed is None else query_allowed[i]
+        row = query_allowed[i] if query_allowed is not None else (
+            None if allowed is None else (allowed[s] if allowed.ndim == 2 else allowed))
         ex = None if exclude is None else (exclude[i] if exclude.ndim == 2 else exclude)
         err = _no_candidate_error(s, t, min(N, qs[i].shape[0] - t), seg_len, ex, row, query=i)
         if bad.size > 1:

@@ -63,11 +63,12 @@ import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.db.graph import body_parts, clip_audio_inputs, predict_style, suggest_gap_s
-from gesturedb.errors import ParameterError, SchemaError
+from gesturedb.errors import InputFileError, ParameterError, SchemaError
 from gesturedb.features.body import BODY_ROLES
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
 from gesturedb.features.rhythm import audio_rhythm, hamming, hand_speed, speed_minima
 from gesturedb.features.segments import word_gap_clips
+from gesturedb.io.joints import find_joints
 from gesturedb.io.transcripts import Words
 from gesturedb.motion import Motion
 from gesturedb.roles import WRIST_ROLES
@@ -220,10 +221,8 @@ def fit_times(hand: np.ndarray, n: int, speed: float, *, fps: float,
 def _cut_fits(cuts, leave, resume, m, margin) -> bool:
     """Whether a cut (play up to ``leave - 1``, then ``resume`` on) fits after ``cuts``: every source frame it
     plays inside the clip, ``margin`` frames of the clip kept at either end, one frame at least between cuts."""
-    prev = cuts[-1][1] if cuts else 0
-    lo = max(prev + 1, margin) if cuts else margin
-    return (leave >= lo and min(leave, resume) >= margin and max(leave, resume) <= m - margin
-            and resume >= (prev if cuts else 0))
+    prev = cuts[-1][1] if cuts else 0  # where the last cut resumed (margin >= 1 covers the first cut)
+    return leave >= max(prev + 1, margin) and resume >= max(prev, margin) and max(leave, resume) <= m - margin
 
 
 def _slowest_cut(h, cuts, d, m, margin):
@@ -322,10 +321,11 @@ class GraphSynthesizer:
         self.rec_start = np.array([r.start_frame for r in db.recordings], dtype=np.int64)[self.recording]
         self.stepping = self._stepping()
         # the roles the hand speed needs (the database's feature joints), None where it lacks them
-        names = {n: j for j, n in enumerate(db.skeleton.names)}
-        fj = {r: names.get(n) for r, n in db.feature_joints.items()}
-        need = WRIST_ROLES + BODY_ROLES
-        self._hand_joints = {r: fj[r] for r in need} if all(fj.get(r) is not None for r in need) else None
+        try:
+            self._hand_joints = find_joints(db.skeleton.names, WRIST_ROLES + BODY_ROLES,
+                                            mapping=db.feature_joints or None, source=db.path)
+        except (InputFileError, ParameterError):
+            self._hand_joints = None
 
     def _stepping(self) -> np.ndarray:
         """Per node: how much more its feet move than the database's typical clip, ``max(0, log(s / median s))``
@@ -564,8 +564,9 @@ class GraphSynthesizer:
             speed = 1.0 if speeds is None else float(speeds[i, d])
             hi = self.start[d] + self.avail[d] - 1  # hold the recording's last frame if it runs out
             lo = int(self.rec_start[d])
-            rel, fit_cuts = fit_times(self._hand_speed(int(d), int(np.ceil((L - 1) * speed)) + 1), L, speed,
-                                      fps=db.fps)
+            # a piece played as it is (the lower body's) needs no hand speed: no read for it
+            hand = self._hand_speed(int(d), int(np.ceil((L - 1) * speed)) + 1) if speed != 1.0 else np.zeros(0)
+            rel, fit_cuts = fit_times(hand, L, speed, fps=db.fps)
             t = self.start[d] + rel
             rot, root = warped(t, lo, hi)
             # the parts after the cuts, each with the seam from how the part before it goes on
