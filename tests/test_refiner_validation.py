@@ -102,7 +102,8 @@ class _Scripted:
 
     @staticmethod
     def _m(score):
-        return {"score": score, "jerk": 1.0, "band": [1.0, 1.0, 1.0], "hellinger": 0.0, "critic_gap": 0.0, "hf": 0.0}
+        return {"score": score, "jerk": 1.0, "band": [1.0, 1.0, 1.0], "hellinger": 0.0, "critic_gap": 0.0, "hf": 0.0,
+                "hellinger_db": 0.0, "band_db": 0.0}  # every metric a Validator measures, the guards' included
 
     def measure(self, channels, *, critic_gap=float("nan")):
         return self._m(self.scores.pop(0))
@@ -260,12 +261,12 @@ def test_resume_keeps_the_validation_log_and_the_best(tmp_path):
     assert again.verdict()["best_iteration"] == 3 and again.verdict()["best_score"] == 0.5
 
 
-def test_synth_refuses_a_refiner_that_lost_to_the_identity_unless_forced(scott_db_path, scott_dir, tmp_path,
-                                                                          capsys):
-    from gesturedb.cli.main import main
+def _db_checkpoints(db_path, folder, runs) -> None:
+    """``folder/NAME.pt`` for each ``(NAME, validation score)`` of ``runs`` (None: trained without
+    validation): one iteration on random data of the database's skeleton, so synth accepts them."""
     from gesturedb.refiner.data import database_identity, feature_identity
 
-    with gesturedb.open(scott_db_path) as db:
+    with gesturedb.open(db_path) as db:
         joints = moving_joints(db.local_rotations)
         C, F = 6 * len(joints), 64
         rng = np.random.default_rng(0)
@@ -274,13 +275,33 @@ def test_synth_refuses_a_refiner_that_lost_to_the_identity_unless_forced(scott_d
                               knn=rng.standard_normal((2, C, 32)).astype(np.float32), joints=joints,
                               starts=np.array([0, 16]), ks=np.ones(2, np.int64))
         identity, features = database_identity(db), feature_identity(db)
-    wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
-    for name, score in (("lost", 1.3), ("won", 0.5)):
+    for name, score in runs:
         tr = Trainer(data, TrainConfig(batch=2, width=8, n_critic=1), identity, features,
-                     validator=_Scripted(data, [score]))
+                     validator=None if score is None else _Scripted(data, [score]))
         tr.step()
         tr.validate()
-        tr.save(tmp_path / f"{name}.pt")
+        tr.save(folder / f"{name}.pt")
+
+
+def _before_the_guards(path) -> None:
+    """Rewrite checkpoint ``path`` as one written before the verdict's guards existed: its verdict
+    without ``guards`` and ``worse``, its validation metrics without the database's (what the
+    1,652-iteration run of issue 40 holds: a verdict 'better' on its score alone)."""
+    ck = torch.load(path, weights_only=True)
+    val = ck["validation"]
+    for m in [val["identity"], val["best"]["metrics"]]:
+        m.pop("hellinger_db"), m.pop("band_db")
+    val["verdict"].pop("guards"), val["verdict"].pop("worse")
+    val["log"] = [row[:-2] for row in val["log"]]
+    torch.save(ck, path)
+
+
+def test_synth_refuses_a_refiner_that_lost_to_the_identity_unless_forced(scott_db_path, scott_dir, tmp_path,
+                                                                          capsys):
+    from gesturedb.cli.main import main
+
+    wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
+    _db_checkpoints(scott_db_path, tmp_path, [("lost", 1.3), ("won", 0.5)])
     out = tmp_path / "out.bvh"
     capsys.readouterr()
     assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
@@ -504,3 +525,93 @@ main(["refiner", "train", "--help"])
     assert res.returncode == 0, res.stderr
     assert res.stdout.splitlines()[0] == "[1]"
     assert "the CPUs this process may use, 1)" in " ".join(res.stdout.split())
+
+
+@pytest.mark.parametrize("kind", ["before-guards", "no-validation"])
+def test_synth_refuses_a_refiner_without_a_whole_verdict_unless_forced(kind, scott_db_path, scott_dir, tmp_path,
+                                                                       capsys):
+    """A checkpoint whose verdict cannot be checked is no endorsement: one recorded before the
+    guards (which says 'better' on its score alone, as the 1,652-iteration run did while the guards
+    call it not better) and one without validation are refused like a losing one, with a message
+    naming the file and what is missing, and used with --force and a warning."""
+    from gesturedb.cli.main import main
+
+    wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
+    ck = tmp_path / "old.pt"
+    _db_checkpoints(scott_db_path, tmp_path, [("old", 0.5 if kind == "before-guards" else None)])
+    if kind == "before-guards":
+        _before_the_guards(ck)
+        assert read_checkpoint(ck)["validation"]["verdict"]["beats_identity"] is True  # what it claims
+        want = (f"gesturedb synth: error: --refiner {ck}: its validation verdict (better: score +50.0% at "
+                "iteration 1) was recorded without the guards a verdict needs now, so whether it improves on the "
+                "unrefined motion is unknown: it did not check |log jerk ratio|, H(speed) vs the capture, H(speed) "
+                "vs the database's motion, arm bands vs the database's motion; `gesturedb refiner train DB.h5 -o "
+                f"{ck} --resume --iterations 1` on the database it was trained on measures it again; --force uses "
+                "it anyway")
+    else:
+        assert "validation" not in read_checkpoint(ck)
+        want = (f"gesturedb synth: error: --refiner {ck}: no validation verdict (trained with --val-fraction 0, "
+                "or before validation existed): whether it improves on the unrefined motion is unknown; train one "
+                "with validation (refiner train --val-fraction, default 0.25); --force uses it anyway")
+    out = tmp_path / "out.bvh"
+    capsys.readouterr()
+    assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner", str(ck)]) == 2
+    assert capsys.readouterr().err.strip() == want and not out.exists()
+    assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner", str(ck),
+                 "--force"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {ck}: " in err and "used because of --force" in err and out.exists()
+
+
+def test_a_partial_verdict_is_unknown_and_a_whole_one_is_not():
+    identity = _Scripted._m(1.0)
+    whole = V.verdict(1.0, 0.5, 3, identity=identity, best=_Scripted._m(0.5))
+    assert whole["guards"] == list(V.GUARDS) and V.missing_guards(whole) == []
+    older = {k: v for k, v in _Scripted._m(0.5).items() if k not in ("hellinger_db", "band_db")}
+    part = V.verdict(1.0, 0.5, 3, identity=identity, best=older)
+    assert part["beats_identity"] and V.missing_guards(part) == ["hellinger_db", "band_db"]
+    assert V.missing_guards({k: v for k, v in whole.items() if k != "guards"}) == list(V.GUARDS)
+    ref = Refiner(Generator(12, audio_channels=28, width=8), np.arange(1, 3), _FEATURES, "r.pt",
+                  {"verdict": part}, 3)
+    kind, message = ref.assess()
+    assert kind == "unknown" and message.startswith("r.pt: its validation verdict (better: score +50.0% at iteration "
+                                                    "3) was recorded without the guards") \
+        and "it did not check H(speed) vs the database's motion, arm bands vs the database's motion;" in message
+
+
+def test_resuming_a_checkpoint_from_before_the_guards_measures_its_best_again(tmp_path):
+    """Resuming measures the best generator again on the validation windows, so the verdict saved
+    next is a whole one; it draws nothing from the RNGs a resumed run continues with."""
+    cfg = TrainConfig(**_CFG)
+    tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.5, 0.7]))
+    for _ in range(2):
+        tr.step()
+        tr.validate()
+    tr.save(tmp_path / "fresh.pt")
+    tr.save(tmp_path / "old.pt")
+    _before_the_guards(tmp_path / "old.pt")
+    fresh = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.9]))
+    fresh.restore(read_checkpoint(tmp_path / "fresh.pt", training=True))
+    assert fresh.remeasured is None
+    seen = []
+
+    class _Measured(_Scripted):  # the best generator, measured again: its weights must be iteration 1's
+        def measure(self, channels, *, critic_gap=float("nan")):
+            seen.append(channels)
+            return self._m(0.6)
+
+    old = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Measured(_tiny(), []))
+    old.restore(read_checkpoint(tmp_path / "old.pt", training=True), tmp_path / "old.pt")
+    assert old.remeasured == 1 and old.best["metrics"]["score"] == 0.6 and len(seen) == 1
+    G = Generator(12, audio_channels=28, width=8)
+    G.load_state_dict(tr.best["generator"])
+    G.eval()
+    with torch.no_grad():
+        want = G(torch.from_numpy(old.validator.audio), torch.from_numpy(old.validator.knn)).numpy()
+    np.testing.assert_array_equal(seen[0], want)
+    v = old.verdict()
+    assert v["beats_identity"] and v["best_iteration"] == 1 and V.missing_guards(v) == []
+    old.save(tmp_path / "old.pt")
+    assert V.missing_guards(read_checkpoint(tmp_path / "old.pt")["validation"]["verdict"]) == []
+    fresh.step(), old.step()
+    assert _same_weights(fresh.G.state_dict(), old.G.state_dict())  # the RNG states are the saved ones

@@ -69,7 +69,8 @@ def add_parser(sub) -> None:
     p.add_argument("--refiner", default=None, metavar="REFINER.pt",
                    help="refine the result with a trained refiner (gesturedb refiner train)")
     p.add_argument("--force", action="store_true",
-                   help="with --refiner: use a refiner whose validation says it did not beat the unrefined motion")
+                   help="with --refiner: use a refiner whose validation does not say it beat the unrefined "
+                        "motion (it lost, or its checkpoint has no verdict or one recorded before the guards)")
     from gesturedb.cli.retarget import add_target_options
 
     add_target_options(p)
@@ -161,16 +162,20 @@ def method_options(method, args, *, keywords):
 
 
 def check_verdict(refiner, *, force: bool) -> None:
-    """Refuse a refiner that lost to the identity on its validation windows, unless ``force``; warn
-    when it is used anyway or has no verdict."""
+    """Refuse a refiner whose validation does not say it beat the identity (it lost, or it has no
+    verdict, or one recorded before the verdict's guards), unless ``force``, which uses it with a warning.
+
+    A missing or partial verdict is refused like a losing one: the 1,652-iteration run of issue 40
+    recorded "better" before the guards existed and measures worse against the database's motion, so
+    a verdict that cannot be checked is no endorsement."""
     import warnings
 
     kind, message = refiner.assess()
-    if kind == "worse" and not force:
+    if kind == "better":
+        return
+    if not force:
         raise ParameterError(f"--refiner {message}; --force uses it anyway")
-    if kind != "better":
-        warnings.warn(message + ("; used because of --force" if kind == "worse" else ""), GestureDBWarning,
-                      stacklevel=2)
+    warnings.warn(message + "; used because of --force", GestureDBWarning, stacklevel=2)
 
 
 def guard_summary(rep: dict) -> str:

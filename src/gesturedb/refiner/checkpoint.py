@@ -289,6 +289,9 @@ def _check_validation(ck: dict, bad) -> None:
                               and _is_int(v.get("best_iteration"))):
         raise bad("validation.verdict", "expected beats_identity (bool), identity_score, best_score, improvement "
                                         "(numbers) and best_iteration (int)")
+    if v is not None and "guards" in v and not (isinstance(v["guards"], list)
+                                                and all(isinstance(g, str) for g in v["guards"])):
+        raise bad("validation.verdict.guards", f"expected a list of guard names, got {echo(v['guards'])}")
     if v is not None and "best_generator" not in ck:
         raise bad("best_generator", "missing; the validation verdict names a best iteration, whose weights it holds")
 

@@ -85,7 +85,16 @@ from gesturedb.refiner.data import (
 )
 from gesturedb.refiner.model import Discriminator, Generator, augment, gradient_penalty, high_band_energy
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
-from gesturedb.refiner.validation import Validator, describe_worse, format_metrics, verdict, worse_guards
+from gesturedb.refiner.validation import (
+    GUARDS,
+    Validator,
+    describe_worse,
+    format_metrics,
+    guard_values,
+    missing_guards,
+    verdict,
+    worse_guards,
+)
 from gesturedb.threads import available_cpus
 
 __all__ = ["FORMAT", "LIMITS", "RECIPE", "Refiner", "TrainConfig", "Trainer", "check_output", "read_checkpoint",
@@ -168,6 +177,7 @@ class Trainer:
             raise ParameterError("training data: expected at least one training window, got none")
         self.val_log: list = []   # [iteration, score, jerk, band..., hellinger, critic_gap, hf, hellinger_db, band_db]
         self.best: dict | None = None  # {"iteration", "metrics", "generator" (CPU state dict)}
+        self.remeasured: int | None = None  # the best's iteration, when restore() had to measure it again
 
     # -- one iteration ----------------------------------------------------------
     def _batch(self):
@@ -241,19 +251,24 @@ class Trainer:
         v = self.validator
         if v is None:
             return None
-        self.G.eval()
-        with torch.no_grad():
-            a = torch.from_numpy(v.audio).to(self.dev)
-            out = self.G(a, torch.from_numpy(v.knn).to(self.dev))
-            real = torch.from_numpy(v.real).to(self.dev).index_select(1, self.free)
-            gap = float(self.D(a, real).mean() - self.D(a, out.index_select(1, self.free)).mean())
-        m = v.measure(out.cpu().numpy(), critic_gap=gap)
+        m = self._measure(self.G)
         self.val_log.append([self.iteration, m["score"], m["jerk"], *m["band"], m["hellinger"], m["critic_gap"],
                              m["hf"], m.get("hellinger_db", float("nan")), m.get("band_db", float("nan"))])
         if self.iteration > 0 and self._better(m):
             self.best = {"iteration": self.iteration, "metrics": m,
                          "generator": {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}}
         return m
+
+    def _measure(self, G: Generator) -> dict:
+        """Validation metrics of generator ``G`` on the validation windows, the critic gap by the critic of now."""
+        v = self.validator
+        G.eval()
+        with torch.no_grad():
+            a = torch.from_numpy(v.audio).to(self.dev)
+            out = G(a, torch.from_numpy(v.knn).to(self.dev))
+            real = torch.from_numpy(v.real).to(self.dev).index_select(1, self.free)
+            gap = float(self.D(a, real).mean() - self.D(a, out.index_select(1, self.free)).mean())
+        return v.measure(out.cpu().numpy(), critic_gap=gap)
 
     def _better(self, m: dict) -> bool:
         """Whether validation metrics ``m`` make a better best than the one kept: one that keeps every
@@ -348,6 +363,16 @@ class Trainer:
             if val.get("best") is not None and "best_generator" in ck:
                 self.best = {"iteration": int(val["best"]["iteration"]), "metrics": dict(val["best"]["metrics"]),
                              "generator": ck["best_generator"]}
+                if set(GUARDS) - set(guard_values(self.best["metrics"])):
+                    # kept before the verdict's guards existed: the metrics they need were never measured,
+                    # and a verdict from the rest would call better what the guards may not. Measured
+                    # again here, before the RNG states are restored below (building a generator draws
+                    # from torch's RNG), so the resumed run stays bit for bit the uninterrupted one
+                    G = make_generator(dict(self.config.__dict__), self.features, self.data.joints,
+                                       self.data.channels, self.data.audio_channels).to(self.dev)
+                    _load_state(G, ck["best_generator"], path, "best_generator")
+                    self.best["metrics"] = self._measure(G)
+                    self.remeasured = self.best["iteration"]
         for field_, put in (("sampler_state", self.gen.set_state), ("torch_rng", torch.set_rng_state)):
             try:
                 put(ck[field_])
@@ -462,6 +487,9 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
             raise InputFileError(out_path, f"joints: the checkpoint has {len(ck['joints'])} moving joints, the "
                                            f"training data {tr.data.channels // 6}")
         tr.restore(ck, out_path)
+        if tr.remeasured is not None and log:
+            log(f"{out_path}: its verdict predates the guards (docs/refiner.md); its best generator (iteration "
+                f"{tr.remeasured}) was measured again on the validation windows")
     bar = None
     if progress:
         from tqdm import tqdm
@@ -556,12 +584,13 @@ class Refiner:
     """
 
     def __init__(self, G: Generator, joints: np.ndarray, features: dict, path: str | None = None,
-                 validation: dict | None = None):
+                 validation: dict | None = None, iteration: int | None = None):
         self.G = G.eval()
         self.joints = np.asarray(joints, dtype=np.int64)
         self.features = features
         self.path = path
         self.validation = validation
+        self.iteration = iteration  # the checkpoint's last iteration: resuming up to it trains nothing
 
     @classmethod
     def load(cls, path, db=None) -> "Refiner":
@@ -575,7 +604,8 @@ class Refiner:
         G = make_generator(cfg, ck["features"], joints, 6 * len(joints), int(ck["features"]["audio_channels"]))
         which = "best_generator" if "best_generator" in ck else "generator"
         _load_state(G, ck[which], os.fspath(path), which)
-        return cls(G, joints, ck["features"], os.fspath(path), ck.get("validation"))
+        it = ck.get("iteration")
+        return cls(G, joints, ck["features"], os.fspath(path), ck.get("validation"), it if _is_int(it) else None)
 
     @property
     def verdict(self) -> dict | None:
@@ -584,13 +614,27 @@ class Refiner:
 
     def assess(self) -> tuple[str, str]:
         """``("better" | "worse" | "unknown", one line)``: whether this refiner beat the identity on its
-        validation windows, for ``synth --refiner`` to warn or refuse by."""
+        validation windows, for ``synth --refiner`` to refuse by (all but "better", unless ``--force``).
+
+        "unknown": no verdict (``--val-fraction 0``, or a checkpoint from before validation), or one
+        recorded before the verdict's guards existed (:func:`~gesturedb.refiner.validation.missing_guards`),
+        whose "better" may be one the guards refuse; the line says what is missing and how to measure it."""
         v = self.verdict
         name = self.path or "refiner"
         if v is None:
-            return "unknown", (f"{name}: no validation verdict (trained without --val-fraction, or before "
-                               "validation existed): whether it improves on the unrefined motion is unknown")
+            return "unknown", (f"{name}: no validation verdict (trained with --val-fraction 0, or before "
+                               "validation existed): whether it improves on the unrefined motion is unknown; "
+                               "train one with validation (refiner train --val-fraction, default 0.25)")
         pct = 100 * v["improvement"]
+        missing = missing_guards(v)
+        if missing:
+            said = "better" if v["beats_identity"] else "not better"
+            again = f" --iterations {self.iteration}" if self.iteration is not None else ""
+            return "unknown", (f"{name}: its validation verdict ({said}: score {pct:+.1f}% at iteration "
+                               f"{v['best_iteration']}) was recorded without the guards a verdict needs now, so "
+                               f"whether it improves on the unrefined motion is unknown: it did not check "
+                               f"{', '.join(GUARDS[k] for k in missing)}; `gesturedb refiner train DB.h5 -o {name} "
+                               f"--resume{again}` on the database it was trained on measures it again")
         if v.get("worse"):
             return "worse", (f"{name}: did not beat the unrefined motion on its validation windows: its score is "
                              f"{pct:.1f}% lower (iteration {v['best_iteration']}) but it is worse on "

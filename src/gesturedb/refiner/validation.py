@@ -209,10 +209,27 @@ def verdict(identity_score: float, best_score: float, best_iteration: int, *, id
     of :data:`GUARDS` (:func:`worse_guards`, listed under ``"worse"``) does not beat the identity."""
     gain = (identity_score - best_score) / identity_score if identity_score > 0 else 0.0
     worse = worse_guards(identity, best) if identity is not None and best is not None else {}
+    # which guards were compared: a metric missing on either side (a validation of an older version)
+    # leaves its guard unchecked, and missing_guards() tells a reader the verdict is not the whole one
+    have = set(guard_values(identity)) & set(guard_values(best)) if identity is not None and best is not None else set()
     return {"beats_identity": bool(best_iteration > 0 and gain >= VERDICT_MARGIN and not worse),
             "identity_score": float(identity_score), "best_score": float(best_score),
             "best_iteration": int(best_iteration), "improvement": float(gain), "margin": VERDICT_MARGIN,
-            "worse": worse}
+            "worse": worse, "guards": [k for k in GUARDS if k in have]}
+
+
+def missing_guards(v: dict) -> list[str]:
+    """The :data:`GUARDS` a recorded verdict did not check; [] for a whole verdict.
+
+    A verdict written before the guards existed has no ``guards`` entry and checked none (the
+    1,652-iteration run of issue 40 says *better* on its score alone, and is not); one whose
+    validation lacked a metric checked only the guards it could. Such a verdict cannot be trusted
+    as it stands: ``synth --refiner`` refuses it unless ``--force``, and resuming the run measures
+    its best generator again (:meth:`gesturedb.refiner.train.Trainer.restore`)."""
+    checked = v.get("guards")
+    if not isinstance(checked, list):
+        return list(GUARDS)
+    return [k for k in GUARDS if k not in checked]
 
 
 def describe_worse(worse: dict) -> str:
