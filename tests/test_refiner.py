@@ -319,6 +319,38 @@ def test_refining_keeps_the_root_and_the_planted_legs(scott_db):
     assert not np.allclose(out.rotations[:, arms], motion.rotations[:, arms])
 
 
+def test_refining_runs_on_its_own_threads_and_gives_torch_its_setting_back(scott_db):
+    """Refining takes REFINE_THREADS intra-op threads whatever torch was set to (two threads were 4x
+    slower on a shared machine), puts torch's setting back, and its result does not depend on either."""
+    from gesturedb.refiner import train as T
+
+    joints = moving_joints(scott_db.local_rotations)
+    G = Generator(6 * len(joints), width=8)
+    torch.nn.init.normal_(G.out.weight, std=0.1)
+    motion = scott_db.motion(scott_db.recordings[0].name, 0.0, 6.0)
+    audio = np.random.default_rng(0).standard_normal((motion.n_frames, 28)).astype(np.float32)
+    seen = []
+    forward = G.forward
+    G.forward = lambda *a: (seen.append(torch.get_num_threads()), forward(*a))[1]
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        one = Refiner(G, joints, feature_identity(scott_db)).refine(motion, audio)
+        two = Refiner(G, joints, feature_identity(scott_db), threads=2).refine(motion, audio)
+        assert seen == [T.REFINE_THREADS, 2] and torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
+    np.testing.assert_allclose(one.rotations, two.rotations, atol=1e-6)
+    with torch.no_grad():  # inference mode changes no number
+        x = to_channels_torch(motion.rotations, joints)
+        ref = from_channels_torch(forward(torch.from_numpy(np.ascontiguousarray(audio.T[None])), x)[0],
+                                  motion.rotations, joints)
+    arms = [j for j in joints if j not in set(T.leg_joints(scott_db.skeleton.names, scott_db.skeleton.parents))]
+    np.testing.assert_allclose(one.rotations[:, arms], ref[:, arms], atol=1e-6)
+    with pytest.raises(gesturedb.ParameterError, match=r"^threads: expected a positive integer, got 0$"):
+        Refiner(G, joints, feature_identity(scott_db), threads=0)
+
+
 def test_refiner_commands_never_write_over_their_inputs(scott_db_path, tmp_path):
     from gesturedb.cli.main import main
 

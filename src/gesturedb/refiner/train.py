@@ -576,21 +576,31 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
+#: torch's intra-op threads while refining. A minute of motion is about 10 ms of convolutions on one
+#: core; on this shared 2-core machine two threads made it 4x slower (median 302 ms against 73 ms,
+#: benchmarks/RESULTS.md), since each waits for the other whenever another process holds a core
+REFINE_THREADS = 1
+
+
 class Refiner:
     """A trained generator that refines whole motions of any length in one pass.
 
     Use :meth:`refine` directly, or hand the object to
-    ``Searcher.synthesize(..., refiner=...)``.
+    ``Searcher.synthesize(..., refiner=...)``. ``threads``: torch's intra-op threads while
+    refining (:data:`REFINE_THREADS`; torch's own setting is restored after each call).
     """
 
     def __init__(self, G: Generator, joints: np.ndarray, features: dict, path: str | None = None,
-                 validation: dict | None = None, iteration: int | None = None):
+                 validation: dict | None = None, iteration: int | None = None, *, threads: int = REFINE_THREADS):
+        if not (_is_int(threads) and threads >= 1):
+            raise ParameterError(f"threads: expected a positive integer, got {threads!r}")
         self.G = G.eval()
         self.joints = np.asarray(joints, dtype=np.int64)
         self.features = features
         self.path = path
         self.validation = validation
         self.iteration = iteration  # the checkpoint's last iteration: resuming up to it trains nothing
+        self.threads = int(threads)
 
     @classmethod
     def load(cls, path, db=None) -> "Refiner":
@@ -674,10 +684,17 @@ class Refiner:
         if list(motion.skeleton.names) != list(self.features["joint_names"]):
             raise GestureDBError(f"refiner {self.path}: motion skeleton has joints {len(motion.skeleton.names)}, "
                                  f"the refiner was trained for {len(self.features['joint_names'])}")
-        x = to_channels_torch(motion.rotations, self.joints)
-        a = torch.from_numpy(np.ascontiguousarray(audio.T[None]))
-        with torch.no_grad():
-            rot = from_channels_torch(self.G(a, x)[0], motion.rotations, self.joints)
+        before = torch.get_num_threads()
+        if before != self.threads:  # setting it costs a little even when unchanged
+            torch.set_num_threads(self.threads)
+        try:
+            x = to_channels_torch(motion.rotations, self.joints)
+            a = torch.from_numpy(np.ascontiguousarray(audio.T[None]))
+            with torch.inference_mode():  # no autograd bookkeeping at all (no_grad still tracks versions)
+                rot = from_channels_torch(self.G(a, x)[0], motion.rotations, self.joints)
+        finally:
+            if before != self.threads:
+                torch.set_num_threads(before)
         # the legs stay the k-NN's: assembly planted the feet with leg IK, and a refined
         # leg would slide them again (measured: skating 0.05 -> 0.18 m/s on held-out speech)
         legs = leg_joints(motion.skeleton.names, motion.skeleton.parents)
