@@ -615,3 +615,51 @@ def test_resuming_a_checkpoint_from_before_the_guards_measures_its_best_again(tm
     assert V.missing_guards(read_checkpoint(tmp_path / "old.pt")["validation"]["verdict"]) == []
     fresh.step(), old.step()
     assert _same_weights(fresh.G.state_dict(), old.G.state_dict())  # the RNG states are the saved ones
+
+
+def test_progress_shows_the_losses_and_the_last_validation(scott_db, tmp_path, monkeypatch):
+    """On a terminal the bar's postfix holds the losses, the gradient ratio and the last validation
+    score and jerk ratio; without one (a log file) the same numbers come as lines, every LOG_EVERY_S."""
+    import tqdm as tqdm_module
+
+    from gesturedb.refiner import train as T
+
+    cfg = TrainConfig(iterations=2, batch=2, width=8, n_critic=1, stride=20, val_every=1)
+    lines = []
+    monkeypatch.setattr(T, "LOG_EVERY_S", 0.0)
+    tr = T.train(scott_db, tmp_path / "r.pt", config=cfg, progress=True, log=lines.append)  # stderr: no terminal
+    rows = [ln for ln in lines if ln.startswith("iteration ")]
+    assert [r.split(":")[0] for r in rows] == ["iteration 1/2", "iteration 2/2"]
+    last = tr.val_log[-1]
+    assert rows[-1].startswith(f"iteration 2/2: critic {tr.history[-1]['critic']:.3f}, l1 ") and \
+        rows[-1].endswith(f", val {last[1]:.3f}, jerk {last[2]:.2f}x")
+    assert ", adv " in rows[-1] and ", ratio " in rows[-1]
+
+    postfixes = []
+
+    class _Terminal:  # an enabled bar, as on a terminal
+        disable = False
+
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def update(self, n=1):
+            pass
+
+        def set_postfix(self, **kw):
+            postfixes.append(kw)
+
+        def write(self, line, file=None):
+            lines.append(line)
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(tqdm_module, "tqdm", _Terminal)
+    lines.clear()
+    tr = T.train(scott_db, tmp_path / "r.pt", config=cfg, progress=True, log=lines.append, overwrite=True)
+    last = tr.val_log[-1]
+    assert len(postfixes) == 2 and set(postfixes[-1]) == {"critic", "l1", "adv", "ratio", "val", "jerk"}
+    assert postfixes[-1]["val"] == f"{last[1]:.3f}" and postfixes[-1]["jerk"] == f"{last[2]:.2f}x"
+    assert not [ln for ln in lines if ln.startswith("iteration ")]  # the bar shows them
+    assert any(ln.startswith("validation at iteration 2: score ") for ln in lines)

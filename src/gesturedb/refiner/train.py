@@ -100,6 +100,9 @@ from gesturedb.threads import available_cpus
 __all__ = ["FORMAT", "LIMITS", "RECIPE", "Refiner", "TrainConfig", "Trainer", "check_output", "read_checkpoint",
            "resolve_device", "train"]
 DEVICES = ("auto", "cpu", "cuda")
+#: seconds between progress lines while the progress bar is off (stderr is not a terminal: a log file,
+#: a batch job), so a log shows the losses more often than every validation (minutes on a CPU)
+LOG_EVERY_S = 60.0
 
 
 def resolve_device(device: str) -> str:
@@ -518,7 +521,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
                     f"recording and its mirror), {len(tr.train_idx)} train; unrefined: "
                     f"{format_metrics(validator.identity)}")
             validate()  # iteration 0: the identity, with the critic of now
-    last = time.monotonic()
+    last = logged = time.monotonic()
     saved_at = tr.iteration if ck is not None else None  # the iteration of the checkpoint on disk
     stop = {"now": False}
 
@@ -537,8 +540,13 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
                 validate()
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(critic=f"{rec['critic']:.3f}", l1=f"{rec['l1']:.3f}", adv=f"{rec['adv']:.3f}",
-                                ratio=f"{rec['ratio']:.2g}", **shown)
+                post = dict(critic=f"{rec['critic']:.3f}", l1=f"{rec['l1']:.3f}", adv=f"{rec['adv']:.3f}",
+                            ratio=f"{rec['ratio']:.2g}", **shown)
+                bar.set_postfix(**post)
+                if bar.disable and log and time.monotonic() - logged >= LOG_EVERY_S:
+                    log(f"iteration {tr.iteration}/{config.iterations}: "
+                        + ", ".join(f"{k} {v}" for k, v in post.items()))
+                    logged = time.monotonic()
             if time.monotonic() - last > config.checkpoint_every_s:
                 tr.save(out_path)
                 saved_at = tr.iteration
