@@ -561,6 +561,11 @@ def test_synth_refuses_a_refiner_without_a_whole_verdict_unless_forced(kind, sco
                  "--force"]) == 0
     err = capsys.readouterr().err
     assert f"warning: {ck}: " in err and "used because of --force" in err and out.exists()
+    # refiner apply refines the file it is given, and says the same
+    assert main(["refiner", "apply", str(ck), "--db", str(scott_db_path), "--audio", str(wav), "--input", str(out),
+                 "-o", str(tmp_path / "applied.bvh")]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {ck}: " in err and "applied as asked (synth --refiner refuses it without --force)" in err
 
 
 def test_a_partial_verdict_is_unknown_and_a_whole_one_is_not():

@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import sys
+import warnings
 
 import gesturedb
 from gesturedb.cli._args import int_range
 from gesturedb.db.cluster import check_scheduler, optional_client
-from gesturedb.errors import InputFileError, ParameterError
+from gesturedb.errors import GestureDBWarning, InputFileError, ParameterError
 from gesturedb.features.audio import audio_deltas
 from gesturedb.io import read_motion, write_motion
 from gesturedb.io.audio import read_audio
@@ -52,7 +53,8 @@ def add_parser(sub) -> None:
     t.add_argument("--parts", type=int_range(1, 256), default=2, help="shards with --scheduler (default: %(default)s)")
     t.add_argument("-j", "--workers", type=int_range(1, 256), default=min(2, available_cpus()),
                    help="local processes assembling the training windows without --scheduler (default: %(default)s)")
-    a = ops.add_parser("apply", help="refine motion that already exists (BVH on the database's skeleton)")
+    a = ops.add_parser("apply", help="refine motion that already exists (BVH on the database's skeleton); "
+                       "warns when the refiner's validation does not say it beat the unrefined motion")
     a.add_argument("refiner", metavar="REFINER.pt")
     a.add_argument("--db", required=True, metavar="DB.h5")
     a.add_argument("--audio", required=True, metavar="SPEECH.wav")
@@ -135,6 +137,10 @@ def run(args) -> int:
     check_outputs({"-o": args.output}, [args.refiner, args.db, args.audio, args.input])
     with gesturedb.open(args.db) as db:
         refiner = load_refiner(args.refiner, db)
+        kind, message = refiner.assess()
+        if kind != "better":  # applied as asked (a file named on purpose, often to compare), but not silently
+            warnings.warn(f"{message}; applied as asked (synth --refiner refuses it without --force)",
+                          GestureDBWarning, stacklevel=1)
         motion = read_motion(args.input)
         names, want = list(motion.skeleton.names), list(db.skeleton.names)
         if sorted(names) != sorted(want):
