@@ -21,7 +21,9 @@ windows twice, then prints (medians over --repeat, all measured in this run):
   synthesis alone, the refinement of its result alone, and the ratio
   refinement / synthesis (the goal: refining adds less than 10%). Refining runs
   as synth runs it (REFINE_THREADS torch threads, whatever --threads says) and,
-  interleaved with it, on torch's default thread count (what it ran on before).
+  interleaved with it, on torch's default thread count (what it ran on before);
+  synthesis and refining take turns, round after round, and the share is the
+  median of the rounds' shares (each round's parts see about the same load).
 The refiner is untrained here: its cost does not depend on its weights.
 """
 from __future__ import annotations
@@ -109,15 +111,20 @@ def main() -> int:
         res = searcher.synthesize(y, sr=rate)
         query = searcher.query_features(y, rate)
         audio = np.concatenate([query, audio_deltas(query)], axis=1)
-        s_synth = median_time(lambda: searcher.synthesize(y, sr=rate), args.repeat)
-        # interleaved, so both see the same load: the load of a shared machine moves within seconds
-        times = {1: [], 2: []}
+        # synthesis and both ways of refining in turn, round after round, so that all three see the
+        # same load (a shared machine's moves within seconds); the share is the median of the
+        # rounds' shares
+        times = {"synth": [], "refine": [], "before": []}
         for _ in range(max(args.repeat, 5)):
-            for key, r in ((1, refiner), (2, before)):
+            for key, fn in (("synth", lambda: searcher.synthesize(y, sr=rate)),
+                            ("refine", lambda: refiner.refine(res.motion, audio)),
+                            ("before", lambda: before.refine(res.motion, audio))):
                 t = time.perf_counter()
-                r.refine(res.motion, audio)
+                fn()
                 times[key].append(time.perf_counter() - t)
-        s_refine, s_before = statistics.median(times[1]), statistics.median(times[2])
+        s_synth, s_refine, s_before = (statistics.median(times[k]) for k in ("synth", "refine", "before"))
+        share = statistics.median(r / s for r, s in zip(times["refine"], times["synth"]))
+        share_before = statistics.median(r / s for r, s in zip(times["before"], times["synth"]))
 
     print(f"torch {torch.__version__}, {args.threads} threads; database {db.n_frames} frames; "
           f"{W} training windows of {data.channels} channels")
@@ -129,9 +136,9 @@ def main() -> int:
         print(f"training on the data in {name}, {dev}: {s_it * 1000:.0f} ms per iteration = {1 / s_it:.2f} "
               f"iterations/s")
     print(f"one validation pass ({cached.val_windows.size} windows, on {devices[-1]}): {s_val * 1000:.0f} ms")
-    print(f"60 s synthesis: k-NN {s_synth * 1000:.0f} ms, refining it {s_refine * 1000:.0f} ms "
-          f"= {100 * s_refine / s_synth:.1f}% of the synthesis (goal < 10%; torch on {REFINE_THREADS} thread(s)); "
-          f"on torch's default {default_threads} threads {s_before * 1000:.0f} ms = {100 * s_before / s_synth:.1f}%")
+    print(f"60 s synthesis ({len(times['synth'])} rounds, medians): k-NN {s_synth * 1000:.0f} ms, refining it "
+          f"{s_refine * 1000:.0f} ms on {REFINE_THREADS} torch thread(s): {100 * share:.1f}% of the synthesis (goal "
+          f"< 10%); on torch's default {default_threads} threads {s_before * 1000:.0f} ms: {100 * share_before:.1f}%")
     return 0
 
 
