@@ -585,8 +585,8 @@ def _main_thread() -> bool:
 
 
 #: torch's intra-op threads while refining. A minute of motion is about 10 ms of convolutions on one
-#: core; on this shared 2-core machine two threads made it 4x slower (median 302 ms against 73 ms,
-#: benchmarks/RESULTS.md), since each waits for the other whenever another process holds a core
+#: core; on the shared 2-core machine torch's default two threads made refining 3 to 30 times slower
+#: (benchmarks/RESULTS.md), since each waits for the other whenever another process holds a core
 REFINE_THREADS = 1
 
 
