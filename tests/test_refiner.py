@@ -524,8 +524,12 @@ def _nan_weight(ck):
     (dict(generator=_nan_weight), r"generator: enc\.0\.0\.weight: expected finite values, got nan"),
     (dict(format=2), r"format: expected a gesturedb refiner checkpoint of format 1, got 2"),
     (dict(format=lambda ck: torch.ones(2)), r"format: expected a gesturedb refiner checkpoint of format 1, got Tensor"),
+    (dict(validation={"log": [], "verdict": {"beats_identity": True, "identity_score": 1.0, "best_score": 0.5,
+                                             "improvement": 0.5, "best_iteration": 1, "guards": "all"}},
+          best_generator=lambda ck: ck["generator"]),
+     r"validation\.verdict\.guards: expected a list of guard names, got 'all'"),
 ], ids=["missing", "mistyped", "joints-list", "width-30000", "unknown-setting", "width-mismatch", "audio-str",
-        "no-features", "joint-999", "nan-weight", "format", "format-tensor"])  # format-tensor: found by fuzz_checkpoint
+        "no-features", "joint-999", "nan-weight", "format", "format-tensor", "guards-str"])  # format-tensor: found by fuzz_checkpoint
 def test_a_damaged_checkpoint_is_one_line_naming_the_file_and_entry(change, match, tmp_path):
     """Missing or mistyped entries gave KeyError, AttributeError or TypeError; a width of 30000
     tried to allocate 10.8 GB; NaN weights were loaded. All are refused on load, before any
