@@ -3,9 +3,9 @@
 Used by :func:`gesturedb.synth.assemble.assemble_pieces`: contacts are detected on
 each source piece (so a mirrored recording or a time-warped clip is treated like
 any other), and after placement the ankles of planted feet are held where the
-contact began (horizontally; vertically at the lowest height the contact has had)
-by rotating hip and knee (analytic two-bone IK); the ankle keeps its world
-orientation so the sole stays flat. The root is not moved.
+contact began (at the height it began at too) by rotating hip and knee (analytic
+two-bone IK); a lifted foot glides straight to where it comes down. The ankle keeps its
+world orientation so the sole stays flat. The root is not moved.
 """
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ __all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "MAX_FILL_GAP_S", "FootPlant
 CONTACT_HEIGHT_M = 0.05
 #: ... and its ankle moves horizontally slower than this (m/s).
 CONTACT_SPEED_M_S = 0.3
-#: Frames over which a released foot returns from its anchor to where the motion puts it.
+#: Least frames of a lifted foot's glide from its anchor to where it comes down; its height returns to the
+#: motion's over half of them.
 RELEASE_FRAMES = 6
 #: A foot that is nearly still (ankle slower than this, m/s) is planted up to ``RESTING_HEIGHT_M`` above the
 #: floor: a foot resting on its heel or toe has its lowest joint a few centimetres higher than one flat on the
@@ -259,6 +260,9 @@ class _Targets:
         self.release_frames, self.step_height_m = release_frames, step_height_m
         self.anchor = None
         self.since_release = release_frames + 1
+        #: a lifted foot's way down: (first frame of the lift, frame where its glide ends, where it ends (3,));
+        #: None while planted or once the glide is over
+        self.glide = None
         self.n_done = 0
 
     def run(self, free: np.ndarray, planted: np.ndarray, target: np.ndarray, weight: np.ndarray, *,
@@ -271,13 +275,18 @@ class _Targets:
         t = self.n_done
         while t < T:
             i = t - base
-            if planted[i]:
+            if self.glide is None and self.anchor is not None and not planted[i] and self.since_release == 0:
+                if not self._lift(i, t, free, planted, final=final):
+                    break  # where the foot comes down is not known yet: the state stays as it was before frame t
+            if self.glide is not None:
+                self._glide(i, t, free, target, weight)
+            elif planted[i]:
                 anchor = self.anchor
                 if anchor is None:
                     anchor = free[i].copy()
                 elif self.since_release > 0:
-                    # planted again while easing back from the last anchor: the new contact starts where the
-                    # ankle is now (going back to the old anchor would be a jump)
+                    # planted again after a step that ended in the air: the new contact starts where the ankle
+                    # is now (going back to the old anchor would be a jump)
                     anchor = target[i - 1].copy()
                 if np.linalg.norm((free[i] - anchor)[[0, 2]]) > self.max_drift_m:
                     # a step: from the anchor to where the motion has the foot at the step's end
@@ -294,28 +303,71 @@ class _Targets:
                     self.since_release = 0 if planted[end] else 1
                     t = end + base + 1
                     continue
-                # held at the lowest height the contact has had: a seam's offset that lifts the root does
-                # not lift a planted foot, one that lowers it settles the foot (the floor bounds it)
-                anchor[1] = min(anchor[1], free[i, 1])
+                # held at the height where the contact began: a seam's offset that moves the root up or down
+                # bends the knee instead of moving the foot (the floor bounds it); following the motion down
+                # (the lowest height the contact had, until the strokes issue) ratcheted planted ankles down
+                # and the floor pushed them up again: 0.029-0.032 m/s of vertical motion held out, where the
+                # capture's planted ankles have 0.014-0.022
                 self.anchor = anchor
                 target[i] = anchor
                 weight[i] = True
                 self.since_release = 0
-            elif self.anchor is not None:
-                self.since_release += 1
-                w = 1.0 - smoothstep(self.since_release / (self.release_frames + 1))
-                if self.since_release <= self.release_frames:
-                    target[i, [0, 2]] = w * self.anchor[[0, 2]] + (1 - w) * free[i, [0, 2]]
-                    # the height returns over half the release: a foot that leaves the floor rises before it
-                    # slides (eased over the whole release, the feet slid low over the floor: skating 0.037-0.054
-                    # m/s on the BEAT2 inputs against 0.028-0.048 this way, 0.027-0.046 before the hold)
-                    wy = 1.0 - smoothstep(self.since_release / (self.release_frames / 2 + 1))
-                    target[i, 1] = wy * self.anchor[1] + (1 - wy) * free[i, 1]
-                    weight[i] = True
-                else:
-                    self.anchor = None
+            else:  # in the air after a step that ended there: the motion's own path
+                self.anchor = None
             t += 1
         self.n_done = t
+
+    def _lift(self, i: int, t: int, free: np.ndarray, planted: np.ndarray, *, final: bool) -> bool:
+        """The planted foot lifts at frame ``t`` (row ``i``): plan its glide from the anchor straight to where it
+        comes down, the next contact if one comes within ``step_frames``, else onto the motion's path
+        ``step_frames`` on. False when the contacts that decide it are not known yet.
+
+        Gliding straight instead of easing back to the motion's path and following it: that path sweeps with
+        every seam's offset on the legs (held out, seed 0, the feet moved 1.66x the capture's, 1.54x
+        gliding). The capture's gaps between contacts last 0.4-1.6 s, about half within ``step_frames``;
+        waiting for the longer ones would delay a live stream's frames by as much. A glide takes at least
+        ``release_frames``: a contact that comes a frame after the lift, further than a foot's length away,
+        would otherwise be a jump (0.31 m in a frame on a BEAT2 input)."""
+        n = planted.shape[0]  # rows whose contacts are decided
+        ahead = np.flatnonzero(planted[i + 1:min(i + 1 + self.step_frames, n)])
+        if ahead.size:
+            land = i + 1 + int(ahead[0])
+            last = max(land - 1, i + self.release_frames - 1)
+        else:
+            if i + self.step_frames >= n and not final:
+                return False
+            land = last = min(i + self.step_frames - 1, n - 1)
+        # no faster than a step: a foot far from its anchor (the motion swept it 0.64 m away on a BEAT2 input)
+        # takes longer; the frames after ``land`` are not read, so this waits for nothing
+        dist = float(np.linalg.norm((free[land] - self.anchor)[[0, 2]]))
+        last = max(last, i + int(np.ceil(dist * self.step_frames / self.max_drift_m)) - 1)
+        self.glide = (t, last + (t - i), free[land].copy(), bool(ahead.size))
+        return True
+
+    def _glide(self, i: int, t: int, free: np.ndarray, target: np.ndarray, weight: np.ndarray) -> None:
+        """Frame ``t`` (row ``i``) of the glide :meth:`_lift` planned."""
+        g0, g1, land, lands = self.glide
+        self.since_release += 1
+        w = smoothstep((t - g0 + 1) / (g1 - g0 + 1))
+        to = land if lands else free[i]  # a foot still in the air eases back onto the motion's path
+        target[i, [0, 2]] = (1 - w) * self.anchor[[0, 2]] + w * to[[0, 2]]
+        # the height returns to the motion's over half the release: a foot that leaves the floor rises before it
+        # slides (eased over the whole release, the feet slid low over the floor: skating 0.037-0.054 m/s on the
+        # BEAT2 inputs against 0.028-0.048 this way, 0.027-0.046 before the hold) ...
+        wy = 1.0 - smoothstep(self.since_release / (self.release_frames / 2 + 1))
+        # and at least a step's arc, lower for a shorter way: a foot the motion barely lifts slid low over the
+        # floor (skating 0.056-0.063 m/s on the inputs without the arc, 0.020-0.037 with it)
+        u = (t - g0 + 1) / (g1 - g0 + 1)
+        lift = self.step_height_m * min(1.0, float(np.linalg.norm((to - self.anchor)[[0, 2]])) / self.max_drift_m)
+        arc = (1 - w) * self.anchor[1] + w * to[1] + lift * np.sin(np.pi * u)
+        target[i, 1] = max(wy * self.anchor[1] + (1 - wy) * free[i, 1], arc)
+        weight[i] = True
+        if t == g1:  # over: the foot stands where it landed (and lifts again from there), or is released
+            self.glide = None
+            if lands:
+                self.anchor, self.since_release = target[i].copy(), 0
+            else:
+                self.anchor = None
 
 
 def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float = MAX_ANCHOR_DRIFT_M,
@@ -324,12 +376,12 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
     """Where one ankle should be (T, 3) and whether the IK applies (T,) bool, for :func:`plant_feet`.
 
     ``free`` is the ankle where the motion puts it, ``planted`` its contacts. A planted
-    ankle is held where its contact began, at the lowest height the contact has had so
-    far (a seam's offset that lifts the root would lift the foot with it: planted ankles
-    moved vertically at 0.05 m/s on the BEAT2 inputs, 0.035 since; following the motion
-    down settles a foot that landed a little high, and the floor bounds it). A step
-    goes from there to where the motion has the foot at its end, lifted on the way. The defaults are the
-    15 fps values; :func:`plant_feet` derives them from the frame rate and the rig.
+    ankle is held where its contact began, at the height it began at (a seam's offset
+    that moves the root up or down bends the knee instead). A step goes from there to
+    where the motion has the foot at its end, lifted on the way. A lifted foot glides
+    straight from its anchor to where it comes down (:meth:`_Targets._lift`). The
+    defaults are the 15 fps values; :func:`plant_feet` derives them from the frame rate
+    and the rig.
     """
     target = np.array(free, dtype=np.float64, copy=True)
     weight = np.zeros(free.shape[0], dtype=bool)
@@ -485,8 +537,9 @@ def plant_feet(skeleton, fps: float, rotations: np.ndarray, root: np.ndarray, co
     ndarray [shape=(T, J, 4)]
         Local rotations with the legs adjusted; the root and every other joint unchanged.
         A gap of up to :data:`MAX_FILL_GAP_S` between two contacts that is not a step keeps
-        the foot planted (:func:`fill_non_steps`). After a contact the ankle returns to the
-        motion's own path over ``RELEASE_FRAMES`` frames (smoothstep). When the motion
+        the foot planted (:func:`fill_non_steps`). After a contact the ankle glides (smoothstep)
+        straight to where its next contact begins, if that comes within ``STEP_FRAMES``,
+        else onto the motion's own path, over at least ``RELEASE_FRAMES``. When the motion
         carries a planted foot more than ``MAX_ANCHOR_DRIFT_M`` from its anchor (the body
         moved over it, or a seam changed the stance), the foot steps: over
         ``STEP_FRAMES`` frames the ankle follows a smoothstep from the anchor to
