@@ -297,10 +297,11 @@ def test_a_lifted_foot_glides_straight_to_where_it_lands():
     assert np.linalg.norm(np.diff(free[:, [0, 2]], axis=0), axis=-1).sum() > path.sum() + 0.1
 
 
-def test_a_planted_ankle_holds_the_height_its_contact_began_at():
-    """A seam's offset moves the root up and down for a fraction of a second: a planted ankle keeps the
-    height at which its contact began (the knee bends instead), and after the contact it returns to the
-    motion's height over half a release, without a jump."""
+def test_a_planted_ankle_holds_one_height_through_its_contact():
+    """A seam's offset moves the root up and down for a fraction of a second: a planted ankle keeps one
+    height all through its contact (the knee bends instead), the lowest the motion has it over the
+    contact's first step of frames (a foot comes down on its toe or heel, ankle still high), and after the
+    contact it returns to the motion's height over half a release, without a jump."""
     from gesturedb.synth import contacts as C
 
     T = 60
@@ -309,11 +310,10 @@ def test_a_planted_ankle_holds_the_height_its_contact_began_at():
     planted = np.ones(T, dtype=bool)
     planted[40:] = False
     target, weight = C._ankle_targets(free, planted)
-    np.testing.assert_allclose(target[:40, 1], free[0, 1])
+    np.testing.assert_allclose(target[:40, 1], free[:C.STEP_FRAMES + 1, 1].min())
+    assert free[:40, 1].min() < free[:C.STEP_FRAMES + 1, 1].min() - 0.005  # later dips do not move it
     after = 40 + C.STEP_FRAMES
     np.testing.assert_allclose(target[after:], free[after:])
-    # from half a release on the ankle is at least as high as the motion has it (the glide's arc may keep it higher)
-    assert np.all(target[40 + C.RELEASE_FRAMES // 2 + 1:, 1] >= free[40 + C.RELEASE_FRAMES // 2 + 1:, 1] - 1e-12)
     # no jump: the release spreads the gap over half its frames (a sampled smoothstep peaks at about 1.5x the mean)
     gap = abs(free[40, 1] - target[39, 1])
     assert (np.abs(np.diff(target[:, 1])).max()

@@ -3,7 +3,7 @@
 Used by :func:`gesturedb.synth.assemble.assemble_pieces`: contacts are detected on
 each source piece (so a mirrored recording or a time-warped clip is treated like
 any other), and after placement the ankles of planted feet are held where the
-contact began (at the height it began at too) by rotating hip and knee (analytic
+contact began (at one height through the contact) by rotating hip and knee (analytic
 two-bone IK); a lifted foot glides straight to where it comes down. The ankle keeps its
 world orientation so the sole stays flat. The root is not moved.
 """
@@ -283,7 +283,10 @@ class _Targets:
             elif planted[i]:
                 anchor = self.anchor
                 if anchor is None:
+                    if not final and i + self.step_frames >= planted.shape[0]:
+                        break  # the contact's next frames are not known yet: the state stays as before frame t
                     anchor = free[i].copy()
+                    anchor[1] = self._settled(free, planted, i, i + self.step_frames)
                 elif self.since_release > 0:
                     # planted again after a step that ended in the air: the new contact starts where the ankle
                     # is now (going back to the old anchor would be a jump)
@@ -303,11 +306,10 @@ class _Targets:
                     self.since_release = 0 if planted[end] else 1
                     t = end + base + 1
                     continue
-                # held at the height where the contact began: a seam's offset that moves the root up or down
-                # bends the knee instead of moving the foot (the floor bounds it); following the motion down
-                # (the lowest height the contact had, until the strokes issue) ratcheted planted ankles down
-                # and the floor pushed them up again: 0.029-0.032 m/s of vertical motion held out, where the
-                # capture's planted ankles have 0.014-0.022
+                # held at one height (_settled): a seam's offset that moves the root up or down bends the knee
+                # instead of moving the foot (the floor bounds it); following the motion down all through the
+                # contact (until the strokes issue) ratcheted planted ankles down and the floor pushed them up
+                # again: 0.029-0.032 m/s of vertical motion held out, the capture's planted ankles 0.014-0.022
                 self.anchor = anchor
                 target[i] = anchor
                 weight[i] = True
@@ -329,20 +331,35 @@ class _Targets:
         ``release_frames``: a contact that comes a frame after the lift, further than a foot's length away,
         would otherwise be a jump (0.31 m in a frame on a BEAT2 input)."""
         n = planted.shape[0]  # rows whose contacts are decided
+        if i + self.step_frames >= n and not final:
+            return False
         ahead = np.flatnonzero(planted[i + 1:min(i + 1 + self.step_frames, n)])
         if ahead.size:
             land = i + 1 + int(ahead[0])
             last = max(land - 1, i + self.release_frames - 1)
         else:
-            if i + self.step_frames >= n and not final:
-                return False
             land = last = min(i + self.step_frames - 1, n - 1)
         # no faster than a step: a foot far from its anchor (the motion swept it 0.64 m away on a BEAT2 input)
         # takes longer; the frames after ``land`` are not read, so this waits for nothing
         dist = float(np.linalg.norm((free[land] - self.anchor)[[0, 2]]))
         last = max(last, i + int(np.ceil(dist * self.step_frames / self.max_drift_m)) - 1)
-        self.glide = (t, last + (t - i), free[land].copy(), bool(ahead.size))
+        to = free[land].copy()
+        if ahead.size:
+            to[1] = self._settled(free, planted, land, i + self.step_frames)
+        self.glide = (t, last + (t - i), to, bool(ahead.size))
         return True
+
+    @staticmethod
+    def _settled(free: np.ndarray, planted: np.ndarray, i: int, stop: int) -> float:
+        """The height a contact starting at row ``i`` holds its ankle at: the lowest the motion has it over the
+        contact's rows up to ``stop`` (inclusive, as far as they are known). A contact begins as the foot comes
+        down, often on its toe or heel with the ankle still high: held at its first height, a foot stood 6 cm
+        up for seconds; following the motion down all through the contact (until the strokes issue) bobbed the
+        planted ankles at 0.03 m/s with every seam's offset."""
+        j = i + 1
+        while j <= min(stop, planted.shape[0] - 1) and planted[j]:
+            j += 1
+        return float(free[i:j, 1].min())
 
     def _glide(self, i: int, t: int, free: np.ndarray, target: np.ndarray, weight: np.ndarray) -> None:
         """Frame ``t`` (row ``i``) of the glide :meth:`_lift` planned."""
@@ -356,11 +373,14 @@ class _Targets:
         # BEAT2 inputs against 0.028-0.048 this way, 0.027-0.046 before the hold) ...
         wy = 1.0 - smoothstep(self.since_release / (self.release_frames / 2 + 1))
         # and at least a step's arc, lower for a shorter way: a foot the motion barely lifts slid low over the
-        # floor (skating 0.056-0.063 m/s on the inputs without the arc, 0.020-0.037 with it)
+        # floor (skating 0.056-0.063 m/s on the inputs without the arc, 0.020-0.037 with it). The motion's own
+        # lift shows in the middle only: the glide ends at the height where the foot lands (ending where the
+        # motion had the foot just before, still coming down, held a foot 6 cm up for seconds)
         u = (t - g0 + 1) / (g1 - g0 + 1)
         lift = self.step_height_m * min(1.0, float(np.linalg.norm((to - self.anchor)[[0, 2]])) / self.max_drift_m)
         arc = (1 - w) * self.anchor[1] + w * to[1] + lift * np.sin(np.pi * u)
-        target[i, 1] = max(wy * self.anchor[1] + (1 - wy) * free[i, 1], arc)
+        motion = wy * self.anchor[1] + (1 - wy) * free[i, 1]
+        target[i, 1] = arc + max(0.0, motion - arc) * np.sin(np.pi * u)
         weight[i] = True
         if t == g1:  # over: the foot stands where it landed (and lifts again from there), or is released
             self.glide = None
@@ -376,8 +396,8 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
     """Where one ankle should be (T, 3) and whether the IK applies (T,) bool, for :func:`plant_feet`.
 
     ``free`` is the ankle where the motion puts it, ``planted`` its contacts. A planted
-    ankle is held where its contact began, at the height it began at (a seam's offset
-    that moves the root up or down bends the knee instead). A step goes from there to
+    ankle is held where its contact began, at one height (:meth:`_Targets._settled`; a
+    seam's offset that moves the root up or down bends the knee instead). A step goes from there to
     where the motion has the foot at its end, lifted on the way. A lifted foot glides
     straight from its anchor to where it comes down (:meth:`_Targets._lift`). The
     defaults are the 15 fps values; :func:`plant_feet` derives them from the frame rate
