@@ -233,7 +233,7 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     # resumed without --seed: it keeps its own seed, so its cached training data is still its own
     r = gdb("refiner", "train", scott_db_path, "-o", ck, "--iterations", 3, "--batch", 4, "--resume")
     assert r.returncode == 0, r.stderr
-    assert "trained 3 iterations" in r.stdout and "searching the database" not in r.stderr
+    assert "trained 1 iterations (3 in all)" in r.stdout and "searching the database" not in r.stderr
     assert read_checkpoint(ck)["iteration"] == 3 and read_checkpoint(ck)["config"]["seed"] == 5
     # and its own stride: the cached windows are every 9th frame's, not the default 5th
     assert read_checkpoint(ck)["config"]["stride"] == 9 and "stride 9" in read_checkpoint(ck)["data"]

@@ -125,7 +125,9 @@ def run(args) -> int:
                        log=lambda m: print(m, file=sys.stderr), scheduler=client, parts=args.parts,
                        workers=args.workers, threads=args.threads, device=args.device)
         last = tr.history[-1] if tr.history else {}
-        print(f"trained {tr.iteration} iterations -> {args.output}"
+        ran = tr.iteration - tr.resumed_from  # a resume up to where the checkpoint already is trains nothing
+        print(f"trained {ran} iterations" + (f" ({tr.iteration} in all)" if tr.resumed_from else "")
+              + f" -> {args.output}"
               + (f" (critic {last['critic']:.3f}, L1 {last['l1']:.4f})" if last else ""))
         print(verdict_screen(tr))
         return 0

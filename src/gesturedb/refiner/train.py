@@ -154,6 +154,8 @@ class Trainer:
     G: Generator = field(init=False)
     D: Discriminator = field(init=False)
     iteration: int = 0
+    #: the checkpoint's iteration when this run resumed it (0: a new run)
+    resumed_from: int = 0
     history: list = field(default_factory=list)
 
     def __post_init__(self):
@@ -490,6 +492,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
             raise InputFileError(out_path, f"joints: the checkpoint has {len(ck['joints'])} moving joints, the "
                                            f"training data {tr.data.channels // 6}")
         tr.restore(ck, out_path)
+        tr.resumed_from = tr.iteration
         if tr.remeasured is not None and log:
             log(f"{out_path}: its verdict predates the guards (docs/refiner.md); its best generator (iteration "
                 f"{tr.remeasured}) was measured again on the validation windows")
