@@ -252,16 +252,16 @@ def fill_non_steps(planted: np.ndarray, free: np.ndarray, min_step_m: float, max
 
 
 class _Targets:
-    """:func:`_ankle_targets` one frame at a time: a step needs the frames up to its end, so
-    ``target[:n_done]`` is final ``step_frames`` frames after the contacts are."""
+    """:func:`_ankle_targets` one frame at a time: a step, a lift and a contact's start read the contacts
+    ``step_frames`` ahead, so ``target[:n_done]`` is final ``step_frames`` frames after the contacts are."""
 
     def __init__(self, *, max_drift_m: float, step_frames: int, release_frames: int, step_height_m: float):
         self.max_drift_m, self.step_frames = max_drift_m, step_frames
         self.release_frames, self.step_height_m = release_frames, step_height_m
         self.anchor = None
         self.since_release = release_frames + 1
-        #: a lifted foot's way down: (first frame of the lift, frame where its glide ends, where it ends (3,));
-        #: None while planted or once the glide is over
+        #: a lifted foot's glide (:meth:`_lift`): (its first frame, its last frame, where it goes (3,), whether it
+        #: lands there); None while planted or once the glide is over
         self.glide = None
         self.n_done = 0
 
