@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "kernels.h"
+#include "preselect.h"
 #include "search.h"
 #include "threads.h"
 
@@ -552,6 +553,43 @@ PYBIND11_MODULE(_core, m) {
         py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
         py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
         "Pre-selection table of one step (use gesturedb.tables.preselect_table, which validates).");
+
+    m.def(
+        "audio_distances",
+        [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len, const I64& starts,
+           const F32& query) {
+            const Database db = make_db(pose, audio, seg_start, seg_len);
+            const int64_t M = db.n_segments();
+            require_ndim(starts, 1, "starts");
+            if (starts.shape(0) != M)
+                throw std::invalid_argument("starts: expected (" + std::to_string(M) + ",); got " +
+                                            shape_str(starts));
+            const Span2<const float> q = span2(query, "query_audio");
+            if (q.cols != db.audio.cols || q.rows < 1)
+                throw std::invalid_argument("query_audio: expected (n >= 1, " +
+                                            std::to_string(db.audio.cols) + "); got " + shape_str(query));
+            const int64_t* ps = starts.data();
+            for (int64_t m = 0; m < M; ++m) {
+                // a window must lie inside its segment, after its entry frame (spec step 1)
+                if (ps[m] != -1 && (ps[m] < 1 || ps[m] > db.seg_len[m] - q.rows))
+                    throw std::invalid_argument(
+                        "starts[" + std::to_string(m) +
+                        "]: expected -1 or 1 <= s <= " + std::to_string(db.seg_len[m] - q.rows) +
+                        " (segment of " + std::to_string(db.seg_len[m]) + " frames, window of " +
+                        std::to_string(q.rows) + "); got " + std::to_string(ps[m]));
+            }
+            py::array_t<double> da(M);
+            double* pda = da.mutable_data();
+            {
+                py::gil_scoped_release release;
+                audio_distances(active_kernels(), db, ps, q.data, q.rows, pda);
+            }
+            return da;
+        },
+        py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+        py::arg("seg_len").noconvert(), py::arg("starts").noconvert(), py::arg("query").noconvert(),
+        "Audio distance of each segment's given start (use gesturedb.tables.audio_distances, which "
+        "validates).");
 
     m.def(
         "rank_table",

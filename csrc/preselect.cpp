@@ -4,6 +4,7 @@
 #include "allowed.h"
 #include "order.h"
 
+#include <algorithm>
 #include <cstring>
 
 namespace gesturedb {
@@ -65,6 +66,23 @@ int64_t preselect_exact(const Kernels& kern, const Database& db, int64_t m, cons
         if (best >= 0) sel.da[m] = best_da;
     }
     return best;
+}
+
+void audio_distances(const Kernels& kern, const Database& db, const int64_t* starts, const float* q,
+                     int64_t n, double* out) {
+    const int64_t M = db.n_segments(), Da = db.audio.cols;
+    QueryStep qs{nullptr, q, query_norm2(kern, q, n * Da), n};
+    // the candidates are scattered over the database: fetch a few segments ahead
+    constexpr int64_t kAhead = 8;
+    auto fetch = [&](int64_t m) {
+        if (starts[m] >= 0)
+            prefetch_bytes(db.audio.row(db.seg_start[m] + starts[m]), n * Da * int64_t(sizeof(float)));
+    };
+    for (int64_t m = 0; m < std::min(M, kAhead); ++m) fetch(m);
+    for (int64_t m = 0; m < M; ++m) {
+        if (m + kAhead < M) fetch(m + kAhead);
+        out[m] = starts[m] < 0 ? 0.0 : window_audio_distance(kern, db, db.seg_start[m] + starts[m], qs);
+    }
 }
 
 int64_t argmin_kept(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,

@@ -50,18 +50,32 @@ int64_t preselect_exact(const Kernels& kern, const Database& db, int64_t m, cons
                         Preselect pre, const BitsetView& allowed, float* scratch_a, float* scratch_b,
                         Selection& sel);
 
+// The audio distance of the window starting at global frame g (spec step 2).
+inline double window_audio_distance(const Kernels& kern, const Database& db, int64_t g, const QueryStep& qs) {
+    float qa = 0.0f, aa = 0.0f;
+    kern.cosdots_f32(db.audio.row(g), 1, db.audio.cols, qs.n * db.audio.cols, qs.q, &qa, &aa);
+    return cosine_distance(qa, qs.qq, aa);
+}
+
 // Spec steps 1-3, second half: the other distance of the pre-selected candidate.
 inline void complete_other(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
                            Preselect pre, Selection& sel) {
     const int64_t g = db.seg_start[m] + sel.s[m];
     if (pre == Preselect::Pose) {
-        float qa = 0.0f, aa = 0.0f;
-        kern.cosdots_f32(db.audio.row(g), 1, db.audio.cols, qs.n * db.audio.cols, qs.q, &qa, &aa);
-        sel.da[m] = cosine_distance(qa, qs.qq, aa);
+        sel.da[m] = window_audio_distance(kern, db, g, qs);
     } else {
         kern.l2sq_rows_f32(db.pose.row(g - 1), 1, db.pose.cols, qs.prev, &sel.dp[m]);
     }
 }
+
+// complete_other's audio distance for a whole table: the pre-selected start
+// starts[m] of every segment (-1: none, then 0 as in the tables) and one query
+// window q of n frames. A stream that pre-selected by pose before its audio
+// came (the pose pass depends on the previous pose and the bitsets only)
+// finishes its step with these, and gets the values every path computes, bit
+// for bit, so that ranks and ties are the same.
+void audio_distances(const Kernels& kern, const Database& db, const int64_t* starts, const float* q,
+                     int64_t n, double* out);
 
 // The rows complete_other will read for segment m: fetched ahead because the
 // pre-selected candidates are scattered and each would otherwise be a cache miss.

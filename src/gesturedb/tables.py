@@ -11,6 +11,8 @@ global segment order, are exactly the ranks of one database holding them all
   database, the blocked kernel's per-frame set-up kept between calls (what a
   shard keeps on its worker).
 - :func:`preselect_table_batch`: one such call without keeping anything.
+- :func:`audio_distances`: the audio distances of a table's pre-selected candidates for a
+  query window (a table pre-selected by pose before the step's audio came, finished).
 - :func:`rank_table`: the kernel's ranker over a table.
 - :func:`top_lists`: the first rows of tables by each distance, as the ranker
   orders them (what a shard sends instead of its table).
@@ -37,7 +39,8 @@ from gesturedb.search import (
     _threads,
 )
 
-__all__ = ["preselect_table", "PreselectBatch", "preselect_table_batch", "rank_table", "top_lists"]
+__all__ = ["preselect_table", "PreselectBatch", "preselect_table_batch", "audio_distances", "rank_table",
+           "top_lists"]
 
 METHODS = ("auto", "blocked", "per_query")
 
@@ -157,6 +160,37 @@ def preselect_table_batch(pose, audio, seg_start, seg_len, prev_poses, query_win
                            pose_proj=pose_proj)
     return batch.tables(prev_poses, query_windows, allowed=allowed, exclude=exclude, threads=threads,
                         method=method)
+
+
+def audio_distances(pose, audio, seg_start, seg_len, starts, query_audio):
+    """The audio distance (spec step 2) of each segment's given candidate for one query window.
+
+    With pre-selection ``"pose"`` a table's starts and pose distances depend on the previous
+    pose and the bitsets only; a step can pre-select before its audio has come and finish with
+    this when it has. The values are those of :func:`preselect_table` (the kernel's own
+    arithmetic, bit for bit), so the ranks and their ties are the same.
+
+    Parameters
+    ----------
+    pose, audio, seg_start, seg_len
+        The database, as in :func:`gesturedb.search.rank_sum_step`.
+    starts : ndarray [shape=(M,)], int64
+        Each segment's candidate ``s`` (``1 <= s <= seg_len - n``), -1 for none.
+    query_audio : ndarray [shape=(n, Da)], float32
+        The step's audio window.
+
+    Returns
+    -------
+    audio_dist : ndarray [shape=(M,)], float64
+        ``1 - <q, a> / (|q| |a|)`` of each candidate's window (1 when a norm is 0), 0 where
+        ``starts`` is -1.
+    """
+    seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
+    q = _query(query_audio, audio.shape[1], "query_audio")
+    s = np.asarray(starts)
+    if s.dtype != np.int64 or s.shape != seg_start.shape:
+        raise ParameterError(f"starts: expected int64 {seg_start.shape}; got {s.dtype} {s.shape}")
+    return _core().audio_distances(pose, audio, seg_start, seg_len, np.ascontiguousarray(s), q)
 
 
 def rank_table(starts, pose_dist, audio_dist, *, k=1):
