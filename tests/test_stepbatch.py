@@ -157,3 +157,105 @@ def test_a_broken_step_does_not_take_the_others_with_it(scott_db, scott_dir):
     want = good.search_step(sq_good)
     assert int(got_good[0].frames[0]) == int(want[0].frames[0]) and got_good[1] == want[1]
     assert batch.n_alone == 2  # the group failed as a whole: each step went alone
+
+
+CHANGE_AT = 10  # step from which a stream's control changes (after its pre-selection was made)
+NEW_CONTROL = "hand_speed_low"
+
+
+def _driven(searcher, options, x, sr, chunk, step_of, applied=None):
+    """A stream fed chunk by chunk, each ready step searched by ``step_of(stream, sq)`` (then
+    ``applied(stream)``), its control changed to NEW_CONTROL once CHANGE_AT steps have run."""
+    s = searcher.stream(options, sample_rate=sr)
+    if applied is not None:
+        applied(s)
+    out, changed = [], False
+    for a in range(0, x.shape[0], chunk):
+        s.feed(x[a:a + chunk])
+        while (sq := s.next_step()) is not None:
+            s.complete_step(sq, *step_of(s, sq))
+            if applied is not None:
+                applied(s)
+        if not changed and s.n_steps >= CHANGE_AT:
+            s.set_control(NEW_CONTROL)
+            changed = True
+        out.append(s.take_chunk())
+    return _joined(out + [s.finish()])
+
+
+def test_steps_preselected_ahead_of_their_speech_are_the_usual_ones(scott_db, scott_dir):
+    """Each step pre-selected by pose as soon as the step before it is applied (StepBatch.speculate), then
+    finished with its audio (StepBatch.finish), gives the windows of the usual search bit for bit: with
+    controls, a schedule, the repeat guard and a control changed after the pre-selection (found stale)."""
+    searcher = Searcher(scott_db)
+    batch = StepBatch(searcher)
+    opts = [o for o in OPTIONS if o.preselect == "pose"]
+    stats = {"used": 0, "stale": 0, "none": 0}
+    ahead: dict = {}
+
+    def usual(s, sq):
+        return s.search_step(sq)
+
+    def with_ahead(s, sq):
+        up, table = ahead.pop(s, (None, None))
+        if up is not None and table is not None and up.same_but_audio(sq):
+            stats["used"] += 1
+            got = batch.finish(sq, table)
+        else:
+            stats["stale" if up is not None and table is not None else "none"] += 1
+            got = batch.search([sq])[0]
+        return got
+
+    def applied(s):
+        # the coming step, pre-selected now (a server batches those of many streams in one call)
+        up = s.upcoming_step()
+        ahead[s] = (up, batch.speculate([up])[0])
+
+    speech = [_speech(scott_dir, j, 16.0) for j in range(len(opts))]
+    for o, (x, sr) in zip(opts, speech):
+        rot, root, steps = _driven(searcher, o, x, sr, 640, usual)
+        got = _driven(searcher, o, x, sr, 640, with_ahead, applied)
+        assert np.array_equal(got[0], rot) and np.array_equal(got[1], root), o
+        assert got[2] == steps, o
+        assert any(st["repeat_of"] is not None or st["guard_relaxed"] for st in steps) or o.repeat_guard_s == 0
+        assert steps[CHANGE_AT]["control"] == NEW_CONTROL
+    # every stream's step CHANGE_AT was pre-selected under the old control: found stale, searched as usual
+    assert stats["stale"] >= len(opts)
+    assert stats["used"] > 0.8 * sum(stats.values())
+
+
+def test_audio_distances_are_the_tables_own(scott_db, scott_dir):
+    """tables.audio_distances over a table's starts gives the kernel's audio distances bit for bit (every
+    ISA this machine runs, window lengths 1 to 8), and the spec's cosine distance in float64."""
+    from gesturedb import search, tables
+
+    searcher = Searcher(scott_db)
+    db = scott_db
+    P, A = db.pose_features, db.audio_features
+    x, sr = _speech(scott_dir, 1, 4.0)
+    q = searcher.query_features(x, sr)
+    was = search.get_simd()
+    try:
+        for isa in search.kernels():
+            search.set_simd(isa)
+            for n in (1, 3, 8):
+                st, dp, da = tables.preselect_table(P, A, searcher.seg_start, searcher.seg_len, P[100],
+                                                    q[5:5 + n], allowed=None)
+                got = tables.audio_distances(P, A, searcher.seg_start, searcher.seg_len, st, q[5:5 + n])
+                assert np.array_equal(got, da), (isa, n)
+                # the spec in float64 (independent of the kernel)
+                m = np.flatnonzero(st >= 0)
+                g = searcher.seg_start[m] + st[m]
+                win = np.stack([A[g + i] for i in range(n)], axis=1).reshape(len(m), -1).astype(np.float64)
+                qv = q[5:5 + n].reshape(-1).astype(np.float64)
+                ref = 1 - win @ qv / (np.linalg.norm(win, axis=1) * np.linalg.norm(qv))
+                assert np.allclose(got[m], ref, atol=1e-5), (isa, n)
+                assert np.all(got[st < 0] == 0)
+    finally:
+        search.set_simd(was)
+    with pytest.raises(ParameterError, match="starts"):
+        tables.audio_distances(P, A, searcher.seg_start, searcher.seg_len, st.astype(np.int32), q[:8])
+    bad = st.copy()
+    bad[np.flatnonzero(st >= 0)[0]] = 0  # s = 0 would read the entry frame's window
+    with pytest.raises(ValueError, match=r"expected -1 or 1 <= s"):
+        tables.audio_distances(P, A, searcher.seg_start, searcher.seg_len, bad, q[:8])

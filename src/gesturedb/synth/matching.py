@@ -446,6 +446,17 @@ class StepQuery:
     label: tuple | None
     kw_row: np.ndarray | None
 
+    def same_but_audio(self, other: StepQuery) -> bool:
+        """Whether ``other`` is this step with the same search inputs but for its audio: the same stream,
+        step and length, previous pose, bitset and repeat guard (a step prepared ahead of its speech by
+        :meth:`Stream.upcoming_step`, checked against the step once its speech came)."""
+        def same(a, b):
+            return a is b or (a is not None and b is not None and np.array_equal(a, b))
+
+        return (self.stream is other.stream and self.i == other.i and self.n == other.n
+                and same(self.prev, other.prev) and same(self.allowed, other.allowed)
+                and self.recent == other.recent)
+
 
 class Stream:
     """The k-NN synthesis of speech that arrives in chunks.
@@ -574,6 +585,16 @@ class Stream:
             return None
         return self._prepare_step(self.step)
 
+    def upcoming_step(self) -> StepQuery | None:
+        """The next step as it would be prepared now, before its speech has come (``query`` without rows):
+        with pre-selection ``"pose"`` its table but for the audio distances depends on nothing else, so a
+        server pre-selects it while the speech arrives (:meth:`gesturedb.synth.stepbatch.StepBatch.speculate`)
+        and checks it against :meth:`next_step`'s with :meth:`StepQuery.same_but_audio` (a control or words
+        pushed in between make it stale). None once the stream is finished or with pre-selection ``"audio"``."""
+        if self._finished or self.options.preselect != "pose":
+            return None
+        return self._prepare_step(self.step, with_query=False)
+
     def search_step(self, sq: StepQuery):
         """``(res, relaxed)``: step ``sq`` searched alone, as :meth:`push` searches it (with the repeat
         guard, then without it when the guard leaves no candidate, ``relaxed`` True). ``res`` is a
@@ -653,8 +674,9 @@ class Stream:
         sq = self._prepare_step(n)
         self._apply_step(sq, *self._search_step(sq))
 
-    def _prepare_step(self, n: int) -> StepQuery:
-        """Step ``len(windows)`` of ``n`` frames: its query rows, previous pose and allowed rows."""
+    def _prepare_step(self, n: int, *, with_query: bool = True) -> StepQuery:
+        """Step ``len(windows)`` of ``n`` frames: its query rows (none without ``with_query``), previous
+        pose and allowed rows."""
         i = len(self._windows)
         t = i * self.step
         if i == 0:
@@ -667,7 +689,8 @@ class Stream:
                 break
             recent.append((g, g + m))
         recent.reverse()
-        return StepQuery(stream=self, i=i, t=t, n=n, query=self._query[t:t + n], prev=self._prev,
+        query = self._query[t:t + n] if with_query else self._query[:0]
+        return StepQuery(stream=self, i=i, t=t, n=n, query=query, prev=self._prev,
                          row=None if row is None else allowed, allowed=allowed, recent=recent,
                          guarded=clear_frames(allowed, recent) if recent else None, label=label, kw_row=kw_row)
 

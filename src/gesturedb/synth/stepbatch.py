@@ -127,6 +127,15 @@ class StepBatch:
     def _search_group(self, group: list, preselect: str) -> list:
         """Steps of one pre-selection mode and length, each under its control's bitset: ``(res, False)``
         per step, or None where the guard leaves no candidate (that step then runs alone)."""
+        windows = np.stack([sq.query for sq in group]).astype(np.float32, copy=False)
+        out = []
+        for sq, (st, dp, da) in zip(group, self._tables(group, preselect, windows)):
+            out.append(self._ranked(sq, st, dp, da))
+        return out
+
+    def _tables(self, group: list, preselect: str, windows: np.ndarray) -> list:
+        """Each step's pre-selection table ``(starts, pose_dist, audio_dist)``, (M,) each, under its guarded
+        bitset: one batch call for all, then the segments its recent windows touch, each step alone."""
         s, db = self.searcher, self.searcher.db
         M = s.seg_start.shape[0]
         touched = [self._touched(sq.recent) for sq in group]
@@ -136,7 +145,6 @@ class StepBatch:
                 exclude[r] = sq.stream._excl
             exclude[r, tm] = True
         prevs = np.stack([sq.prev for sq in group]).astype(np.float32, copy=False)
-        windows = np.stack([sq.query for sq in group]).astype(np.float32, copy=False)
         rows = {None if sq.row is None else sq.row.tobytes() for sq in group}
         if len(rows) == 1:  # one control (or none) for all: one bitset
             allowed = group[0].row
@@ -156,27 +164,77 @@ class StepBatch:
                 if sq.stream._excl is not None:
                     only |= sq.stream._excl
                 s1, dp1, da1 = tables.preselect_table(
-                    db.pose_features, db.audio_features, s.seg_start, s.seg_len, sq.prev, sq.query,
+                    db.pose_features, db.audio_features, s.seg_start, s.seg_len, sq.prev, windows[r],
                     preselect=preselect, allowed=sq.guarded, exclude=only, threads=self.threads,
                     pose_f16=s._half, pose_proj=proj)
                 st[tm], dp[tm], da[tm] = s1[tm], dp1[tm], da1[tm]
-            got = tables.rank_table(st, dp, da, k=sq.stream.options.k)
-            if got is None:
-                out.append(None)
-                continue
-            m, rp, ra, K = got
-            start = int(st[m])
-
-            def one(v, dtype=np.int64):
-                return np.array([v], dtype=dtype)
-
-            res = SearchResult(segments=one(m), starts=one(start), frames=one(int(s.seg_start[m]) + start),
-                               lengths=one(sq.n), out_frames=one(0), pose_dist=one(float(dp[m]), np.float64),
-                               audio_dist=one(float(da[m]), np.float64), pose_rank=one(rp), audio_rank=one(ra),
-                               n_candidates=one(K), n_frames=sq.n)
-            out.append((res, False))
-            self.n_batched += 1
+            out.append((st, dp, da))
         return out
+
+    def _ranked(self, sq, st, dp, da):
+        """``(res, False)`` of step ``sq`` ranked over its table, or None when the table has no candidate."""
+        got = tables.rank_table(st, dp, da, k=sq.stream.options.k)
+        if got is None:
+            return None
+        m, rp, ra, K = got
+        start = int(st[m])
+
+        def one(v, dtype=np.int64):
+            return np.array([v], dtype=dtype)
+
+        seg_start = self.searcher.seg_start
+        res = SearchResult(segments=one(m), starts=one(start), frames=one(int(seg_start[m]) + start),
+                           lengths=one(sq.n), out_frames=one(0), pose_dist=one(float(dp[m]), np.float64),
+                           audio_dist=one(float(da[m]), np.float64), pose_rank=one(rp), audio_rank=one(ra),
+                           n_candidates=one(K), n_frames=sq.n)
+        self.n_batched += 1
+        return res, False
+
+    # -- pose pre-selection ahead of the audio ------------------------------------------
+    def speculate(self, steps: Sequence) -> list:
+        """Pre-select the coming steps of streams before their audio has come.
+
+        With pre-selection ``"pose"`` a step's table, but for its audio distances, depends on its
+        previous pose, its bitsets and its length only (spec steps 1-3): all known once the step
+        before it is applied. ``steps`` are such steps (:meth:`gesturedb.synth.matching.Stream.upcoming_step`,
+        ``query`` empty); all are pre-selected in one call of the blocked kernel.
+
+        Returns
+        -------
+        list
+            Per step: ``(starts, pose_dist)``, (M,) int64 and float32, the table that :meth:`finish`
+            completes once the step's audio is there; or None where the step cannot be finished so (its
+            stream searches another way, its guard leaves no candidate, or the call failed): that step is
+            searched as usual.
+        """
+        out: list = [None] * len(steps)
+        groups: dict[int, list[int]] = {}
+        for j, sq in enumerate(steps):
+            if self._batchable(sq) and sq.stream.options.preselect == "pose":
+                groups.setdefault(sq.n, []).append(j)
+        Da = self.searcher.db.audio_features.shape[1]
+        for n, idx in groups.items():
+            group = [steps[j] for j in idx]
+            # the audio distances of this call are not used: any window gives the same starts and pose distances
+            windows = np.zeros((len(group), n, Da), dtype=np.float32)
+            try:
+                got = self._tables(group, "pose", windows)
+            except Exception:  # noqa: BLE001 - those steps are searched as usual, each with its own outcome
+                continue
+            for j, (st, dp, _) in zip(idx, got):
+                if (st >= 0).any():  # else the guard is relaxed: the usual search handles it
+                    out[j] = (st, dp)
+        return out
+
+    def finish(self, sq, table) -> tuple:
+        """``(res, relaxed)`` of step ``sq`` (its audio now there) from its speculative ``table`` (one of
+        :meth:`speculate`'s, for a step with the same inputs but the audio): the audio distances of the
+        pre-selected candidates and the ranks, bit for bit what :meth:`search` gives."""
+        st, dp = table
+        db = self.searcher.db
+        da = tables.audio_distances(db.pose_features, db.audio_features, self.searcher.seg_start,
+                                    self.searcher.seg_len, st, np.ascontiguousarray(sq.query, dtype=np.float32))
+        return self._ranked(sq, st, dp, da)
 
     def _touched(self, recent: list) -> np.ndarray:
         """Segments (indices) that read a bit of the frame ranges ``recent`` (``[a, b)`` each): segment m
