@@ -68,15 +68,20 @@ def _client(url, x, control, out, j):
         out[j] = exc
 
 
-def test_concurrent_streams_through_the_batcher_are_each_alone_bit_for_bit(db, scott_dir):
+@pytest.mark.parametrize("ahead", [True, False], ids=["ahead", "batched"])
+def test_concurrent_streams_through_the_batcher_are_each_alone_bit_for_bit(db, scott_dir, ahead):
+    """With the coming steps pre-selected ahead of their speech (finished from that table) and without
+    (every step in the batched search), each client gets what its stream makes alone."""
     speech = [_speech(scott_dir, j) for j in range(len(CONTROLS))]
     lim = Limits()
     app = create_app(db, limits=lim)
     sched = app.state.gesturedb.scheduler
     assert sched is not None
+    sched.ahead_enabled = ahead
     out = [None] * len(CONTROLS)
     with LiveServer(app, lim) as srv:
         calls0, steps0 = sched.n_calls, sched.n_steps  # after the warm-up's batches
+        used0, ahead_calls0 = sched.n_ahead_used, sched.n_ahead_calls
         threads = [threading.Thread(target=_client, args=(srv.ws, x, c, out, j))
                    for j, (x, c) in enumerate(zip(speech, CONTROLS))]
         [t.start() for t in threads]
@@ -87,9 +92,13 @@ def test_concurrent_streams_through_the_batcher_are_each_alone_bit_for_bit(db, s
         assert np.array_equal(out[j][1], rot) and np.array_equal(out[j][0], root), j
         assert out[j][2] == steps, j
     # the steps went through the scheduler, several per call
-    n_steps = sched.n_steps - steps0
-    assert n_steps >= sum(len(o[2]) for o in out) - 2 * len(out)  # finish() runs a stream's last steps itself
-    assert sched.n_calls - calls0 < n_steps
+    n_steps, n_used = sched.n_steps - steps0, sched.n_ahead_used - used0
+    assert n_steps + n_used >= sum(len(o[2]) for o in out) - 2 * len(out)  # finish() runs the last steps itself
+    if ahead:  # (a step whose speech came before its pre-selection started is searched as usual)
+        assert n_used >= 0.8 * (n_steps + n_used) and sched.n_ahead_calls - ahead_calls0 < n_used
+        assert sched.n_ahead_stale == 0  # controls by schedule are known ahead
+    else:
+        assert n_used == 0 and sched.n_calls - calls0 < n_steps
 
 
 def test_a_failing_stream_does_not_disturb_the_batch(db, scott_dir):

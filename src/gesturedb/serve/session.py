@@ -74,6 +74,9 @@ class StreamSession:
             log.exception("stream failed")
             await self._close(_Close(P.CLOSE_INTERNAL, "internal", f"the synthesizer failed: {type(exc).__name__}: "
                                                                    f"{str(exc)[:300]}"))
+        finally:
+            if self.state.scheduler is not None and self.stream is not None:
+                self.state.scheduler.forget(self.stream)
 
     async def _serve(self) -> None:
         start = await self._receive()
@@ -170,6 +173,7 @@ class StreamSession:
         self.control = control
         if req.get("words") is not None:
             await self._words({"words": req["words"]})
+        await self._ahead()
         sk = self.state.db.skeleton
         await self._send_json({
             "type": "ready", "protocol": P.PROTOCOL_VERSION, "layout": P.LAYOUT_VERSION,
@@ -215,8 +219,16 @@ class StreamSession:
                 res, relaxed = await sched.search(sq)
             except GestureDBError as exc:
                 raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
-            sq, chunk = await self._synth(_complete, self.stream, sq, res, relaxed)
+            sq, chunk, up = await self._synth(_complete, self.stream, sq, res, relaxed, sched.ahead_enabled)
+            if up is not None:  # the coming step, pre-selected while its speech arrives
+                sched.ahead(up)
         return chunk
+
+    async def _ahead(self) -> None:
+        """Have the stream's coming step pre-selected now (its inputs changed: the start, a control)."""
+        sched = self.state.scheduler
+        if sched is not None and sched.ahead_enabled and hasattr(self.stream, "upcoming_step"):
+            sched.ahead(await self._synth(self.stream.upcoming_step))
 
     async def _control(self, req: dict) -> None:
         try:
@@ -230,6 +242,7 @@ class StreamSession:
             await self._reject("bad_control", f"{exc}; the stream keeps {echo(self.control)}")
             return
         self.control = control
+        await self._ahead()
         await self._send_json({"type": "control", "control": control, "from_frame": self.n_sent})
 
     async def _words(self, req: dict) -> None:
@@ -319,11 +332,15 @@ def _feed(stream, pieces: list[np.ndarray]):
     return sq, (stream.take_chunk() if sq is None else None)
 
 
-def _complete(stream, sq, res, relaxed: bool):
-    """Apply a step's result; ``(next step or None, chunk or None)`` as :func:`_feed`."""
+def _complete(stream, sq, res, relaxed: bool, ahead: bool):
+    """Apply a step's result; ``(next step or None, chunk or None, coming step or None)``: the next step
+    and chunk as :func:`_feed`, and with ``ahead``, once no step is ready, the coming one prepared without
+    its speech (:meth:`~gesturedb.synth.matching.Stream.upcoming_step`)."""
     stream.complete_step(sq, res, relaxed)
     sq = stream.next_step()
-    return sq, (stream.take_chunk() if sq is None else None)
+    if sq is not None:
+        return sq, None, None
+    return None, stream.take_chunk(), (stream.upcoming_step() if ahead else None)
 
 
 def check_words(words) -> list[tuple[float, float, str]]:
