@@ -52,6 +52,8 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_WAV = os.path.join(HERE, "..", "..", "shared", "data", "beat2-scott", "2_scott_0_1_1.wav")
 SR = 16000
+#: the servers --modes compares
+MODES = ("batch", "noahead", "alone", "workers", "workers-noahead")
 
 
 def free_port() -> int:
@@ -60,9 +62,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(db: str, port: int, batch: bool = True, workers: int = 1) -> subprocess.Popen:
+def start_server(db: str, port: int, batch: bool = True, workers: int = 1, ahead: bool = True) -> subprocess.Popen:
     p = subprocess.Popen([sys.executable, "-m", "gesturedb.cli.main", "serve", db, "--port", str(port),
-                          "--max-streams", "1000", "--workers", str(workers)] + ([] if batch else ["--no-batch"]),
+                          "--max-streams", "1000", "--workers", str(workers)] + ([] if batch else ["--no-batch"])
+                         + ([] if ahead else ["--no-ahead"]),
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     t = time.monotonic()
     while time.monotonic() - t < 300:
@@ -274,9 +277,11 @@ def main(argv=None) -> int:
     ap.add_argument("--chunk-ms", type=float, default=40.0)
     ap.add_argument("--budget-ms", type=float, default=100.0)
     ap.add_argument("--modes", default="batch,alone",
-                    help="servers to compare, in this order: batch (steps of all streams searched in one call), "
-                         "alone (gesturedb serve --no-batch: each stream searches its own), workers (batch, "
-                         "from --workers processes)")
+                    help="servers to compare, in this order: batch (steps of all streams searched in one call, "
+                         "each pre-selected by pose while its speech arrives), noahead (batch with --no-ahead: "
+                         "searched once the speech has come), alone (gesturedb serve --no-batch: each stream "
+                         "searches its own), workers and workers-noahead (batch and noahead from --workers "
+                         "processes)")
     ap.add_argument("--workers", type=int, default=2,
                     help="processes of the 'workers' mode's server (gesturedb serve --workers; batched in each)")
     ap.add_argument("--client-procs", type=int, default=4,
@@ -308,8 +313,8 @@ def main(argv=None) -> int:
     counts = [int(c) for c in args.clients.split(",")]
     modes = args.modes.split(",")
     for mode in modes:
-        if mode not in ("batch", "alone", "workers"):
-            raise SystemExit(f"--modes: expected batch, alone and/or workers; got {mode!r}")
+        if mode not in MODES:
+            raise SystemExit(f"--modes: expected some of {', '.join(MODES)}; got {mode!r}")
     print(f"{x.shape[0] / SR:.1f} s of speech per client in {args.chunk_ms:g} ms chunks; late = step latency over "
           f"{args.budget_ms:g} ms; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start")
     # both servers up at once and the modes alternating count by count, so that a change of the
@@ -319,11 +324,11 @@ def main(argv=None) -> int:
         for mode in modes:
             port = free_port()
             t = time.perf_counter()
-            servers[mode] = (start_server(args.db, port, batch=mode != "alone",
-                                          workers=args.workers if mode == "workers" else 1), port)
+            servers[mode] = (start_server(args.db, port, batch=mode != "alone", ahead="noahead" not in mode,
+                                          workers=args.workers if mode.startswith("workers") else 1), port)
             print(f"[{mode}] server up in {time.perf_counter() - t:.1f} s (warm-up included)")
         print(f"{'server':>6} {'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6} "
-              f"{'batch':>6} {'search ms/step':>15} {'load':>5}")
+              f"{'batch':>6} {'search ms/step':>15} {'load':>5} {'ahead used ms/call':>14}")
         best = {mode: 0 for mode in modes}
         live = list(modes)
         for n in counts:
@@ -349,21 +354,26 @@ def health(port: int) -> dict:
 def measure(args, x: np.ndarray, n: int, mode: str, port: int) -> tuple[bool, float]:
     """n clients at once on the server at ``port``; prints a row; (no late step, p50 in ms)."""
     # a server of several processes answers /health from one of them: its batch counts are not the server's
-    stats = mode != "workers"
+    stats = not mode.startswith("workers")
     before = health(port).get("batch") if stats else None
     lat, errors = run_procs(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms, args.client_procs)
     after = health(port).get("batch") if stats else None
     ms = np.array(lat) * 1000
     late = int((ms > args.budget_ms).sum())
     p50, p99, mx = (np.percentile(ms, 50), np.percentile(ms, 99), ms.max()) if ms.size else (np.nan,) * 3
-    batch = search = "-"
+    batch = search = ahead = "-"
     if before is not None and after is not None and after["calls"] > before["calls"]:
         steps = after["steps"] - before["steps"]
         batch = f"{steps / (after['calls'] - before['calls']):.1f}"  # mean steps per search call
         search = f"{(after['busy_s'] - before['busy_s']) * 1000 / steps:.2f}"  # the search thread's time per step
+    if before is not None and after is not None and "ahead" in after:
+        a, b = after["ahead"], before["ahead"]
+        used, calls = a["used"] - b["used"], a["calls"] - b["calls"]
+        if calls:  # steps finished from their pre-selection, and the pre-selecting thread's ms per call
+            ahead = f"{used}/{used + after['steps'] - before['steps']} {(a['busy_s'] - b['busy_s']) * 1000 / calls:.0f}"
     print(f"{mode:>6} {n:>8} {ms.size:>7} {p50:>8.1f} {p99:>8.1f} {mx:>8.1f} {late:>6} {batch:>6} {search:>15} "
-          f"{os.getloadavg()[0]:>5.1f}" + (f"  ({len(errors)} clients failed: {errors[0]})" if errors else ""),
-          flush=True)
+          f"{os.getloadavg()[0]:>5.1f} {ahead:>14}"
+          + (f"  ({len(errors)} clients failed: {errors[0]})" if errors else ""), flush=True)
     return late == 0 and not errors and ms.size > 0, float(p50)
 
 

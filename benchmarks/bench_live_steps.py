@@ -7,7 +7,11 @@ without batching runs) and in one call for all streams (``StepBatch.search``, wh
 milliseconds per step of: the audio features fed per 40 ms piece and fed once per step (what
 the server does: it holds a step's audio until the step can be complete), the step's
 preparation, the search alone, the search batched, the apply (window, seams, feet) and the
-frames message (``pack_frames`` with its provenance JSON).
+frames message (``pack_frames`` with its provenance JSON). And the pose pre-selection ahead of
+the speech (what ``gesturedb serve`` does by default): after each round's apply every stream's
+coming step is pre-selected in one call (``StepBatch.speculate``, off the latency path), and
+once its speech has come finished (``StepBatch.finish``: the audio distances and the ranks, on
+the path), checked to agree with the batched search.
 
 ``--controls C``: stream j steers with the saved mask ``CONTROLS[j % C]`` (C = 1: none), and
 the batched search is timed twice, alternating: one call for every stream (each step with its
@@ -68,6 +72,9 @@ def main(argv=None) -> int:
     steps = [searcher.stream(opts(j), sample_rate=sr) for j in range(Q)]  # fed once per step
     batch = StepBatch(searcher, threads=args.threads)
     t_piece = t_step = t_prep = t_alone = t_batch = t_per_control = t_apply = t_pack = 0.0
+    t_ahead = t_finish = t_upcoming = 0.0
+    n_finished = n_ahead_calls = 0
+    ahead = {}  # stream index -> (its coming step, its pre-selected table)
     n_steps = n_calls = 0
     fed = [0] * Q
     for a in range(0, n, piece):
@@ -113,6 +120,14 @@ def main(argv=None) -> int:
             for g, h in zip(got, split):
                 assert int(g[0].frames[0]) == int(h[0].frames[0]), "one call and one per control differ"
         n_calls += 1
+        for (j, sq), g in zip(ready, got):
+            up, table = ahead.pop(j, (None, None))
+            if table is not None and up.same_but_audio(sq):
+                t0 = time.perf_counter()
+                f = batch.finish(sq, table)
+                t_finish += time.perf_counter() - t0
+                n_finished += 1
+                assert int(f[0].frames[0]) == int(g[0].frames[0]) and f[1] == g[1], "ahead and batched differ"
         for (j, sq), g, o in zip(ready, got, alone):
             assert int(g[0].frames[0]) == int(o[0].frames[0]) and g[1] == o[1], "batched and alone differ"
             t0 = time.perf_counter()
@@ -124,13 +139,24 @@ def main(argv=None) -> int:
                           np.asarray(c.motion.rotations, np.float32), c.steps, samples=fed[j])
             t_pack += time.perf_counter() - t0
             n_steps += 1
+        t0 = time.perf_counter()
+        ups = [(j, steps[j].upcoming_step()) for j, _ in ready]
+        t_upcoming += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        tabs = batch.speculate([up for _, up in ups])
+        t_ahead += time.perf_counter() - t0
+        n_ahead_calls += 1
+        ahead.update({j: (up, tab) for (j, up), tab in zip(ups, tabs)})
     ms = 1000.0 / max(n_steps, 1)
     print(f"steps {n_steps} in {n_calls} calls (mean batch {n_steps / max(n_calls, 1):.1f}); ms per step:")
     for name, v in (("features, fed in 40 ms pieces", t_piece), ("features, fed once per step", t_step),
                     ("prepare", t_prep), ("search alone", t_alone), ("search batched", t_batch),
                     *((("search batched, a call per control", t_per_control),) if args.controls > 1 else ()),
-                    ("apply (window, seams, feet)", t_apply), ("frames message", t_pack)):
+                    ("apply (window, seams, feet)", t_apply), ("frames message", t_pack),
+                    ("coming step prepared (ahead)", t_upcoming), ("pre-selected ahead, batched", t_ahead)):
         print(f"  {name:<32} {v * ms:8.2f}")
+    print(f"  {'finished from the pre-selection':<32} {t_finish * 1000 / max(n_finished, 1):8.2f}  "
+          f"({n_finished} steps; pre-selection {t_ahead * 1000 / max(n_ahead_calls, 1):.1f} ms per call)")
     print(f"load average {os.getloadavg()[0]:.1f} at the end")
     return 0
 

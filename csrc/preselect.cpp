@@ -73,7 +73,7 @@ void audio_distances(const Kernels& kern, const Database& db, const int64_t* sta
     const int64_t M = db.n_segments(), Da = db.audio.cols;
     QueryStep qs{nullptr, q, query_norm2(kern, q, n * Da), n};
     // the candidates are scattered over the database: fetch a few segments ahead
-    constexpr int64_t kAhead = 8;
+    constexpr int64_t kAhead = 32;
     auto fetch = [&](int64_t m) {
         if (starts[m] >= 0)
             prefetch_bytes(db.audio.row(db.seg_start[m] + starts[m]), n * Da * int64_t(sizeof(float)));

@@ -33,6 +33,9 @@ def add_parser(sub) -> None:
     p.add_argument("--no-batch", dest="batch_steps", action="store_false",
                    help="search each stream's steps alone instead of the waiting steps of all streams in one call "
                         "(the same frames; for comparison)")
+    p.add_argument("--no-ahead", dest="ahead", action="store_false",
+                   help="search each step only once its speech has come instead of pre-selecting it by pose "
+                        "while its speech arrives (the same frames; for comparison; docs/live.md)")
     p.set_defaults(run=run)
 
 
@@ -53,7 +56,7 @@ def run(args) -> int:
     limits = Limits(max_streams=args.max_streams, idle_s=args.idle_s,
                     max_upload_bytes=int(args.max_upload_mb * 2**20))
     with gesturedb.open(args.db) as db:
-        app = create_app(db, limits=limits, batch_steps=args.batch_steps)
+        app = create_app(db, limits=limits, batch_steps=args.batch_steps, ahead=args.ahead)
         warm_s = app.state.gesturedb.warm_s  # create_app paid what the first stream would pay
         shown = f"[{args.host}]" if ":" in args.host else args.host
         print(f"gesturedb serve: {db.path} ({db.n_frames} frames at {db.fps:g} fps); studio at "

@@ -112,7 +112,7 @@ class ResultStore:
 class ServerState:
     """What every request and stream shares: the database (opened once), limits, the synthesizers."""
 
-    def __init__(self, db, limits: Limits, stream_factory, *, batch_steps: bool = True):
+    def __init__(self, db, limits: Limits, stream_factory, *, batch_steps: bool = True, ahead: bool = True):
         self.db = db
         self.limits = limits
         why = None
@@ -135,7 +135,7 @@ class ServerState:
         self._offline_lock = threading.Lock()
         self._searcher = None
         if batch_steps and stream_factory is not None and why is None and self._default_factory:
-            self.scheduler = StepScheduler(self.searcher())
+            self.scheduler = StepScheduler(self.searcher(), ahead=ahead)
 
     def check_control(self, control) -> str | None:
         """A client's control: None (no control), a mask expression or saved mask name, or a schedule of
@@ -265,7 +265,8 @@ def _same_origin(headers, scope) -> bool:
     return urlsplit(origin).netloc == headers.get("host", "")
 
 
-def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_steps: bool = True) -> Starlette:
+def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_steps: bool = True,
+               ahead: bool = True) -> Starlette:
     """The ASGI app serving ``db`` (an open :class:`gesturedb.db.database.Database`).
 
     Parameters
@@ -281,9 +282,12 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
         Search the steps that concurrent streams wait on in one call
         (:class:`gesturedb.serve.batcher.StepScheduler`; the same frames, less time per step with
         many streams); False: each stream searches its own. Only for the default ``stream_factory``.
+    ahead : bool
+        With ``batch_steps``, pre-select each stream's coming step by pose while its speech arrives
+        (:mod:`gesturedb.serve.batcher`; the same frames, a shorter search once the speech has come).
     """
     limits = limits or Limits()
-    state = ServerState(db, limits, stream_factory, batch_steps=batch_steps)
+    state = ServerState(db, limits, stream_factory, batch_steps=batch_steps, ahead=ahead)
     state.warm_s = state.warm()
     state.gltf_loader = find_gltf_loader(state.three)  # the studio's own character (a .glb the user picks)
     if state.three is None:
