@@ -1,4 +1,6 @@
 // The only file that includes pybind11: checks, pointers, outputs, GIL.
+// It is over the package's 800-line mark on purpose: one file holds every binding's
+// checks and GIL release, so the rest of csrc/ knows nothing of Python.
 //
 // gesturedb/search.py validates every argument with messages for users; the
 // checks here are the backstop that keeps C++ from reading out of bounds if
@@ -19,6 +21,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "fk.h"
 #include "kernels.h"
 #include "preselect.h"
 #include "search.h"
@@ -553,6 +556,44 @@ PYBIND11_MODULE(_core, m) {
         py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
         py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
         "Pre-selection table of one step (use gesturedb.tables.preselect_table, which validates).");
+
+    m.def(
+        "forward_kinematics",
+        [](const F64& mats, const F64& root, const I64& parents, const F64& offsets, bool want_worlds) {
+            // (F, J, 3, 3), (F, 3), (J,), (J, 3): checked here too, a wrong shape would read out of bounds
+            require_ndim(mats, 4, "mats");
+            const int64_t F = mats.shape(0), J = mats.shape(1);
+            if (J < 1 || mats.shape(2) != 3 || mats.shape(3) != 3)
+                throw std::invalid_argument("mats: expected (F, J >= 1, 3, 3); got " + shape_str(mats));
+            if (root.ndim() != 2 || root.shape(0) != F || root.shape(1) != 3)
+                throw std::invalid_argument("root: expected (" + std::to_string(F) + ", 3); got " +
+                                            shape_str(root));
+            if (parents.ndim() != 1 || parents.shape(0) != J)
+                throw std::invalid_argument("parents: expected (" + std::to_string(J) + ",); got " +
+                                            shape_str(parents));
+            if (offsets.ndim() != 2 || offsets.shape(0) != J || offsets.shape(1) != 3)
+                throw std::invalid_argument("offsets: expected (" + std::to_string(J) + ", 3); got " +
+                                            shape_str(offsets));
+            const int64_t* par = parents.data();
+            for (int64_t j = 1; j < J; ++j)
+                if (par[j] < 0 || par[j] >= j)
+                    throw std::invalid_argument("parents[" + std::to_string(j) +
+                                                "]: expected 0 <= parent < " + std::to_string(j) +
+                                                " (parents first); got " + std::to_string(par[j]));
+            py::array_t<double> pos({F, J, int64_t(3)});
+            py::array_t<double> worlds(want_worlds ? std::vector<int64_t>{F, J, 3, 3}
+                                                   : std::vector<int64_t>{0});
+            double* pw = want_worlds ? worlds.mutable_data() : nullptr;
+            double* pp = pos.mutable_data();
+            {
+                py::gil_scoped_release release;
+                forward_kinematics(mats.data(), root.data(), par, offsets.data(), F, J, pp, pw);
+            }
+            return py::make_tuple(pos, want_worlds ? py::object(worlds) : py::object(py::none()));
+        },
+        py::arg("mats").noconvert(), py::arg("root").noconvert(), py::arg("parents").noconvert(),
+        py::arg("offsets").noconvert(), py::arg("want_worlds"),
+        "Joint positions (F, J, 3) and world matrices (F, J, 3, 3) or None (use gesturedb.motion.Motion).");
 
     m.def(
         "audio_distances",

@@ -78,6 +78,37 @@ def test_fk_matches_independent_scipy_fk_on_random_trees():
     assert np.max(rt.angle_between(grot[:, j], rt.multiply(grot[:, p], m.rotations[:, j]))) < 1e-12
 
 
+@pytest.mark.parametrize("n_f", [1, 3, 8, 17])
+def test_fk_of_any_split_of_the_frames_is_the_same_bits(n_f):
+    """The C++ chain (csrc/fk.cpp) takes every frame on its own: a stream's 8-frame pieces get the bits
+    of one pass over the whole clip, and the scipy oracle's values."""
+    skel = _random_skeleton(9)
+    m = _random_motion(skel, n_f=n_f)
+    pos, grot = m.forward_kinematics()
+    assert pos.shape == (n_f, 9, 3) and grot.shape == (n_f, 9, 4)
+    np.testing.assert_allclose(pos, _fk_scipy(skel, m.rotations, m.root_positions), atol=1e-12)
+    for cut in sorted({0, n_f // 3, n_f}):
+        parts = [m.rotations[:cut], m.rotations[cut:]]
+        roots = [m.root_positions[:cut], m.root_positions[cut:]]
+        got = [Motion(skel, m.fps, q, r).forward_kinematics() for q, r in zip(parts, roots) if q.shape[0]]
+        if got:
+            assert np.array_equal(np.concatenate([g[0] for g in got]), pos)
+            assert np.array_equal(np.concatenate([g[1] for g in got]), grot)
+
+
+def test_fk_core_refuses_bad_shapes_and_parents_after_children():
+    from gesturedb import _core
+
+    mats, root = np.tile(np.eye(3), (2, 3, 1, 1)), np.zeros((2, 3))
+    offsets = np.zeros((3, 3))
+    with pytest.raises(ValueError, match=r"parents\[2\]: expected 0 <= parent < 2 \(parents first\); got 2"):
+        _core.forward_kinematics(mats, root, np.array([-1, 0, 2]), offsets, False)
+    with pytest.raises(ValueError, match=r"root: expected \(2, 3\); got \(1, 3\)"):
+        _core.forward_kinematics(mats, root[:1], np.array([-1, 0, 1]), offsets, False)
+    pos, worlds = _core.forward_kinematics(mats, root, np.array([-1, 0, 1]), offsets, False)
+    assert worlds is None and pos.shape == (2, 3, 3)
+
+
 def test_fk_on_real_smplx_motion_matches_scipy(scott_dir):
     m = read_smplx(scott_dir / "2_scott_0_1_1.npz")[:1100]  # more than one FK block of frames
     np.testing.assert_allclose(m.positions, _fk_scipy(m.skeleton, m.rotations, m.root_positions), atol=1e-12)

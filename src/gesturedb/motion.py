@@ -363,25 +363,27 @@ class Motion:
 
     def _fk(self, want_rotations: bool):
         sk = self.skeleton
+        # local on purpose, as in gesturedb.search: the compiled core is no stage of the layers
+        from gesturedb import _core
+
         n_f, n_j = self.n_frames, sk.n_joints
         pos = np.empty((n_f, n_j, 3))
         grot = np.empty((n_f, n_j, 4)) if want_rotations else None
-        # Blocks of frames keep the (block, J, 3, 3) temporaries small and reused: one pass
+        offsets = np.ascontiguousarray(sk.offsets, dtype=np.float64)
+        parents = np.ascontiguousarray(sk.parents, dtype=np.int64)
+        # Blocks of frames keep the (block, J, 3, 3) matrices small and reused: one pass
         # over a long clip would allocate hundreds of MB of fresh pages (3x slower here).
         for a in range(0, n_f, _FK_BLOCK):
             b = min(n_f, a + _FK_BLOCK)
-            mats = rot.to_matrix(self.rotations[a:b])  # local rotations (block, J, 3, 3)
-            # world rotation matrices per joint: two batched matmuls per joint are the
-            # cheapest numpy ops here
-            worlds = [mats[:, 0]] + [None] * (n_j - 1)
-            blk = pos[a:b]
-            blk[:, 0] = self.root_positions[a:b]
-            for j in range(1, n_j):
-                p = sk.parents[j]
-                blk[:, j] = blk[:, p] + worlds[p] @ sk.offsets[j]
-                worlds[j] = worlds[p] @ mats[:, j]
+            mats = np.ascontiguousarray(rot.to_matrix(self.rotations[a:b]))  # local rotations (block, J, 3, 3)
+            # the chain in C++ (csrc/fk.cpp): the numpy loop over joints cost a live step 1.3 ms per
+            # 8-frame piece in call overhead; tests/test_motion.py checks it against that loop
+            blk, worlds = _core.forward_kinematics(mats, np.ascontiguousarray(self.root_positions[a:b],
+                                                                              dtype=np.float64),
+                                                   parents, offsets, want_rotations)
+            pos[a:b] = blk
             if want_rotations:
-                grot[a:b] = rot.from_matrix(np.stack(worlds, axis=1))
+                grot[a:b] = rot.from_matrix(worlds)
         return pos, grot
 
     def forward_kinematics(self) -> tuple[np.ndarray, np.ndarray]:
