@@ -53,7 +53,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_WAV = os.path.join(HERE, "..", "..", "shared", "data", "beat2-scott", "2_scott_0_1_1.wav")
 SR = 16000
 #: the servers --modes compares
-MODES = ("batch", "noahead", "alone", "workers", "workers-noahead")
+MODES = ("batch", "noahead", "alone", "workers", "workers-noahead", "base", "workers-base")
 
 
 def free_port() -> int:
@@ -62,11 +62,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(db: str, port: int, batch: bool = True, workers: int = 1, ahead: bool = True) -> subprocess.Popen:
+def start_server(db: str, port: int, batch: bool = True, workers: int = 1, ahead: bool = True,
+                 src: str | None = None) -> subprocess.Popen:
+    """``gesturedb serve`` in its own process (gesturedb imported from ``src`` when given: a baseline)."""
+    env = None if src is None else dict(os.environ, PYTHONPATH=os.path.abspath(src))
     p = subprocess.Popen([sys.executable, "-m", "gesturedb.cli.main", "serve", db, "--port", str(port),
                           "--max-streams", "1000", "--workers", str(workers)] + ([] if batch else ["--no-batch"])
                          + ([] if ahead else ["--no-ahead"]),
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     t = time.monotonic()
     while time.monotonic() - t < 300:
         try:
@@ -281,7 +284,8 @@ def main(argv=None) -> int:
                          "each pre-selected by pose while its speech arrives), noahead (batch with --no-ahead: "
                          "searched once the speech has come), alone (gesturedb serve --no-batch: each stream "
                          "searches its own), workers and workers-noahead (batch and noahead from --workers "
-                         "processes)")
+                         "processes), base and workers-base (the default server, one process or --workers, with "
+                         "gesturedb imported from --baseline-src: the code before a change)")
     ap.add_argument("--workers", type=int, default=2,
                     help="processes of the 'workers' mode's server (gesturedb serve --workers; batched in each)")
     ap.add_argument("--client-procs", type=int, default=4,
@@ -292,7 +296,8 @@ def main(argv=None) -> int:
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--chunked", help="--startup: also this database with chunked per-frame arrays")
     ap.add_argument("--baseline-src", help="--startup: also import gesturedb from this src/ folder (the code before a "
-                                           "change), alternating with this one")
+                                           "change), alternating with this one; the servers of --modes base, "
+                                           "workers-base import it")
     ap.add_argument("--paper", help="write a paper-scale database here (DB's recordings repeated), then stop")
     ap.add_argument("--paper-chunked", help="also write it with chunked per-frame arrays here")
     ap.add_argument("--paper-frames", type=int, default=PAPER_FRAMES)
@@ -324,8 +329,11 @@ def main(argv=None) -> int:
         for mode in modes:
             port = free_port()
             t = time.perf_counter()
+            if "base" in mode and not args.baseline_src:
+                raise SystemExit(f"--modes {mode}: needs --baseline-src")
             servers[mode] = (start_server(args.db, port, batch=mode != "alone", ahead="noahead" not in mode,
-                                          workers=args.workers if mode.startswith("workers") else 1), port)
+                                          workers=args.workers if mode.startswith("workers") else 1,
+                                          src=args.baseline_src if "base" in mode else None), port)
             print(f"[{mode}] server up in {time.perf_counter() - t:.1f} s (warm-up included)")
         print(f"{'server':>6} {'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6} "
               f"{'batch':>6} {'search ms/step':>15} {'load':>5} {'ahead used ms/call':>14}")
