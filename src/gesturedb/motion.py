@@ -364,7 +364,7 @@ class Motion:
     def _fk(self, want_rotations: bool):
         sk = self.skeleton
         # local on purpose, as in gesturedb.search: the compiled core is no stage of the layers
-        from gesturedb import _core
+        import gesturedb._core as _core
 
         n_f, n_j = self.n_frames, sk.n_joints
         pos = np.empty((n_f, n_j, 3))
