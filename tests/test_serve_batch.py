@@ -94,7 +94,7 @@ def test_concurrent_streams_through_the_batcher_are_each_alone_bit_for_bit(db, s
     # the steps went through the scheduler, several per call
     n_steps, n_used = sched.n_steps - steps0, sched.n_ahead_used - used0
     assert n_steps + n_used >= sum(len(o[2]) for o in out) - 2 * len(out)  # finish() runs the last steps itself
-    if ahead:  # (a step whose speech came before its pre-selection started is searched as usual)
+    if ahead:  # (a stale pre-selection or a guard without candidate takes the usual search)
         assert n_used >= 0.8 * (n_steps + n_used) and sched.n_ahead_calls - ahead_calls0 < n_used
         assert sched.n_ahead_stale == 0  # controls by schedule are known ahead
     else:

@@ -14,12 +14,13 @@ but for its audio distances reads only what is known once the step before it is 
 previous pose, the bitsets and the length. A session hands its stream's coming step to
 :meth:`StepScheduler.ahead` right after applying a step; a second worker thread pre-selects the
 coming steps of all streams in one call of the blocked kernel (:meth:`StepBatch.speculate`) while
-their speech arrives (a step's 0.53 s). When the step's speech has come, :meth:`StepScheduler.search`
-checks that its inputs are still those (a control or words in between make them stale) and finishes
-it in the session's own thread: the audio distances of the pre-selected candidates and the ranks
-(:meth:`StepBatch.finish`, about a millisecond at paper scale instead of a pass over the database).
-The result is bit for bit the one of the usual search; a stale or missing pre-selection takes the
-usual way.
+their speech arrives (a step's 0.53 s), waiting up to ``AHEAD_GATHER_S`` for ``BLOCK_MIN`` of them
+(at once when a waiting step's speech has come). When the step's speech has come,
+:meth:`StepScheduler.search` checks that its inputs are still those (a control or words in between
+make them stale) and finishes it in the session's own thread: the audio distances of the
+pre-selected candidates and the ranks (:meth:`StepBatch.finish`, 2-6 ms at paper scale instead of
+a pass over the database). The result is bit for bit the one of the usual search; a stale or
+missing pre-selection takes the usual way.
 """
 from __future__ import annotations
 
@@ -38,6 +39,11 @@ log = logging.getLogger("gesturedb.serve")
 MAX_BATCH = 256
 #: Seconds the worker thread waits without a step before it ends (the next step starts it again).
 IDLE_EXIT_S = 5.0
+#: Steps from which the blocked kernel serves a call ("auto"): below it each step costs a pass of its own.
+BLOCK_MIN = 16
+#: Seconds a coming step may wait for others before its pre-selection starts: a step's speech takes
+#: 0.53 s to come, so waiting a little lets one blocked call serve many streams' coming steps.
+AHEAD_GATHER_S = 0.15
 
 
 class StepScheduler:
@@ -66,7 +72,11 @@ class StepScheduler:
         self.batch = StepBatch(searcher, threads=threads)
         self.max_batch = max_batch
         self._waiting: list[tuple] = []  # (step, future, its event loop)
-        self._cond = threading.Condition()
+        lock = threading.RLock()
+        self._cond = threading.Condition(lock)
+        # the pre-selecting thread's own condition on the same lock: a step never wakes it, nor a
+        # coming step the search's worker
+        self._ahead_cond = threading.Condition(lock)
         self._worker: threading.Thread | None = None
         self.n_steps = self.n_calls = 0
         self.busy_s = 0.0
@@ -74,6 +84,7 @@ class StepScheduler:
         self.ahead_enabled = ahead
         self._ahead: dict = {}  # stream -> _Ahead, its coming step
         self._ahead_queue: list[_Ahead] = []
+        self._ahead_now = False  # a queued step's speech has come: start the next call without waiting
         self._ahead_worker: threading.Thread | None = None
         #: steps finished from their pre-selection, pre-selections found stale, calls, seconds in them
         self.n_ahead_used = self.n_ahead_stale = self.n_ahead_calls = 0
@@ -107,7 +118,7 @@ class StepScheduler:
                 self._ahead_worker = threading.Thread(target=self._run_ahead, name="gesturedb-step-ahead",
                                                       daemon=True)
                 self._ahead_worker.start()
-            self._cond.notify_all()
+            self._ahead_cond.notify()
 
     def forget(self, stream) -> None:
         """Drop what is kept for ``stream`` (its session ended)."""
@@ -123,10 +134,10 @@ class StepScheduler:
             entry = self._ahead.pop(sq.stream, None)
             if entry is None:
                 return None
-            if entry.state == _QUEUED:  # not started: the usual search is as quick as waiting for it
-                self._ahead_queue.remove(entry)
-                return None
-        if entry.state == _RUNNING:
+            if entry.state == _QUEUED:  # its speech came first: pre-select now, without gathering more
+                self._ahead_now = True
+                self._ahead_cond.notify()
+        if entry.state != _DONE:
             await entry.fut
         if entry.table is None:
             return None
@@ -139,10 +150,18 @@ class StepScheduler:
         while True:
             with self._cond:
                 if not self._ahead_queue:
-                    self._cond.wait(IDLE_EXIT_S)
+                    self._ahead_cond.wait(IDLE_EXIT_S)
                 if not self._ahead_queue:
                     self._ahead_worker = None
                     return
+                # fewer steps than a blocked call wants: wait a little for more (off every step's path:
+                # the speech of the oldest is still coming), then take what is there
+                while 0 < len(self._ahead_queue) < BLOCK_MIN and not self._ahead_now:
+                    left = self._ahead_queue[0].t + AHEAD_GATHER_S - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._ahead_cond.wait(left)
+                self._ahead_now = False
                 todo, self._ahead_queue = self._ahead_queue[:self.max_batch], self._ahead_queue[self.max_batch:]
                 for e in todo:
                     e.state = _RUNNING
@@ -213,10 +232,11 @@ _QUEUED, _RUNNING, _DONE = range(3)
 class _Ahead:
     """A stream's coming step, pre-selected (or to be) ahead of its speech."""
 
-    __slots__ = ("sq", "loop", "fut", "state", "table")
+    __slots__ = ("sq", "loop", "fut", "state", "table", "t")
 
     def __init__(self, sq, loop):
         self.sq, self.loop = sq, loop
+        self.t = time.monotonic()  # when it was queued
         self.fut = loop.create_future()  # resolved when the worker is done with it
         self.state = _QUEUED
         self.table = None  # (starts, pose_dist) once done; None when it cannot be finished so
