@@ -253,6 +253,7 @@ class StreamSession:
             return
         if words:
             await self._synth(self.stream.push_words, words)
+            await self._ahead()  # the coming step's keyword bitset may have changed
 
     async def _end(self) -> None:
         if self._unfed:  # audio held for the next step's feed (see _push): the stream needs it all now
