@@ -298,10 +298,10 @@ def test_a_lifted_foot_glides_straight_to_where_it_lands():
 
 
 def test_a_planted_ankle_holds_one_height_through_its_contact():
-    """A seam's offset moves the root up and down for a fraction of a second: a planted ankle keeps one
-    height all through its contact (the knee bends instead), the lowest the motion has it over the
-    contact's first step of frames (a foot comes down on its toe or heel, ankle still high), and after the
-    contact it returns to the motion's height over half a release, without a jump."""
+    """A seam's offset moves the root up and down for a fraction of a second: a planted ankle settles down
+    with the motion over its contact's first release of frames (a foot comes down on its toe or heel, ankle
+    still high), keeps that height for the rest of the contact (the knee bends instead), and after the
+    contact returns to the motion's height over half a release, without a jump."""
     from gesturedb.synth import contacts as C
 
     T = 60
@@ -310,8 +310,10 @@ def test_a_planted_ankle_holds_one_height_through_its_contact():
     planted = np.ones(T, dtype=bool)
     planted[40:] = False
     target, weight = C._ankle_targets(free, planted)
-    np.testing.assert_allclose(target[:40, 1], free[:C.STEP_FRAMES + 1, 1].min())
-    assert free[:40, 1].min() < free[:C.STEP_FRAMES + 1, 1].min() - 0.005  # later dips do not move it
+    R = C.RELEASE_FRAMES
+    np.testing.assert_allclose(target[:R, 1], np.minimum.accumulate(free[:R, 1]))
+    np.testing.assert_allclose(target[R:40, 1], free[:R, 1].min())
+    assert free[:40, 1].min() < free[:R, 1].min() - 0.005  # later dips do not move it
     after = 40 + C.STEP_FRAMES
     np.testing.assert_allclose(target[after:], free[after:])
     # no jump: the release spreads the gap over half its frames (a sampled smoothstep peaks at about 1.5x the mean)

@@ -252,8 +252,8 @@ def fill_non_steps(planted: np.ndarray, free: np.ndarray, min_step_m: float, max
 
 
 class _Targets:
-    """:func:`_ankle_targets` one frame at a time: a step, a lift and a contact's start read the contacts
-    ``step_frames`` ahead, so ``target[:n_done]`` is final ``step_frames`` frames after the contacts are."""
+    """:func:`_ankle_targets` one frame at a time: a step and a lift read the contacts up to ``step_frames``
+    ahead, so ``target[:n_done]`` is final at most ``step_frames`` frames after the contacts are."""
 
     def __init__(self, *, max_drift_m: float, step_frames: int, release_frames: int, step_height_m: float):
         self.max_drift_m, self.step_frames = max_drift_m, step_frames
@@ -263,6 +263,7 @@ class _Targets:
         #: a lifted foot's glide (:meth:`_lift`): (its first frame, its last frame, where it goes (3,), whether it
         #: lands there); None while planted or once the glide is over
         self.glide = None
+        self.settle_until = 0  # frames before it: the planted ankle settles down with the motion
         self.n_done = 0
 
     def run(self, free: np.ndarray, planted: np.ndarray, target: np.ndarray, weight: np.ndarray, *,
@@ -283,10 +284,8 @@ class _Targets:
             elif planted[i]:
                 anchor = self.anchor
                 if anchor is None:
-                    if not final and i + self.step_frames >= planted.shape[0]:
-                        break  # the contact's next frames are not known yet: the state stays as before frame t
                     anchor = free[i].copy()
-                    anchor[1] = self._settled(free, planted, i, i + self.step_frames)
+                    self.settle_until = t + self.release_frames
                 elif self.since_release > 0:
                     # planted again after a step that ended in the air: the new contact starts where the ankle
                     # is now (going back to the old anchor would be a jump)
@@ -306,10 +305,15 @@ class _Targets:
                     self.since_release = 0 if planted[end] else 1
                     t = end + base + 1
                     continue
-                # held at one height (_settled): a seam's offset that moves the root up or down bends the knee
-                # instead of moving the foot (the floor bounds it); following the motion down all through the
-                # contact (until the strokes issue) ratcheted planted ankles down and the floor pushed them up
-                # again: 0.029-0.032 m/s of vertical motion held out, the capture's planted ankles 0.014-0.022
+                if t < self.settle_until:
+                    # a contact begins as the foot comes down, often on its toe or heel with the ankle still high:
+                    # over its first release of frames the ankle settles with the motion (held at the contact's
+                    # first height, a foot stood 6 cm up for seconds); then it keeps that height, and a seam's offset
+                    # that moves the root up or down bends the knee instead of moving the foot (the floor bounds
+                    # it). Following the motion down all through the contact (until the strokes issue) ratcheted
+                    # planted ankles down and the floor pushed them up again: 0.029-0.032 m/s of vertical motion
+                    # held out, where the capture's planted ankles have 0.014-0.022
+                    anchor[1] = min(anchor[1], free[i, 1])
                 self.anchor = anchor
                 target[i] = anchor
                 weight[i] = True
@@ -331,35 +335,20 @@ class _Targets:
         ``release_frames``: a contact that comes a frame after the lift, further than a foot's length away,
         would otherwise be a jump (0.31 m in a frame on a BEAT2 input)."""
         n = planted.shape[0]  # rows whose contacts are decided
-        if i + self.step_frames >= n and not final:
-            return False
         ahead = np.flatnonzero(planted[i + 1:min(i + 1 + self.step_frames, n)])
         if ahead.size:
             land = i + 1 + int(ahead[0])
             last = max(land - 1, i + self.release_frames - 1)
         else:
+            if i + self.step_frames >= n and not final:
+                return False
             land = last = min(i + self.step_frames - 1, n - 1)
         # no faster than a step: a foot far from its anchor (the motion swept it 0.64 m away on a BEAT2 input)
         # takes longer; the frames after ``land`` are not read, so this waits for nothing
         dist = float(np.linalg.norm((free[land] - self.anchor)[[0, 2]]))
         last = max(last, i + int(np.ceil(dist * self.step_frames / self.max_drift_m)) - 1)
-        to = free[land].copy()
-        if ahead.size:
-            to[1] = self._settled(free, planted, land, i + self.step_frames)
-        self.glide = (t, last + (t - i), to, bool(ahead.size))
+        self.glide = (t, last + (t - i), free[land].copy(), bool(ahead.size))
         return True
-
-    @staticmethod
-    def _settled(free: np.ndarray, planted: np.ndarray, i: int, stop: int) -> float:
-        """The height a contact starting at row ``i`` holds its ankle at: the lowest the motion has it over the
-        contact's rows up to ``stop`` (inclusive, as far as they are known). A contact begins as the foot comes
-        down, often on its toe or heel with the ankle still high: held at its first height, a foot stood 6 cm
-        up for seconds; following the motion down all through the contact (until the strokes issue) bobbed the
-        planted ankles at 0.03 m/s with every seam's offset."""
-        j = i + 1
-        while j <= min(stop, planted.shape[0] - 1) and planted[j]:
-            j += 1
-        return float(free[i:j, 1].min())
 
     def _glide(self, i: int, t: int, free: np.ndarray, target: np.ndarray, weight: np.ndarray) -> None:
         """Frame ``t`` (row ``i``) of the glide :meth:`_lift` planned."""
@@ -384,8 +373,8 @@ class _Targets:
         weight[i] = True
         if t == g1:  # over: the foot stands where it landed (and lifts again from there), or is released
             self.glide = None
-            if lands:
-                self.anchor, self.since_release = target[i].copy(), 0
+            if lands:  # a landing is a contact's start: it settles as the motion comes down
+                self.anchor, self.since_release, self.settle_until = target[i].copy(), 0, t + 1 + self.release_frames
             else:
                 self.anchor = None
 
@@ -396,8 +385,9 @@ def _ankle_targets(free: np.ndarray, planted: np.ndarray, *, max_drift_m: float 
     """Where one ankle should be (T, 3) and whether the IK applies (T,) bool, for :func:`plant_feet`.
 
     ``free`` is the ankle where the motion puts it, ``planted`` its contacts. A planted
-    ankle is held where its contact began, at one height (:meth:`_Targets._settled`; a
-    seam's offset that moves the root up or down bends the knee instead). A step goes from there to
+    ankle is held where its contact began, settling down with the motion over the
+    contact's first ``release_frames`` and at one height from then on (a seam's offset that
+    moves the root up or down bends the knee instead). A step goes from there to
     where the motion has the foot at its end, lifted on the way. A lifted foot glides
     straight from its anchor to where it comes down (:meth:`_Targets._lift`). The
     defaults are the 15 fps values; :func:`plant_feet` derives them from the frame rate
