@@ -246,12 +246,18 @@ def test_the_best_generator_keeps_the_guards_when_one_does(runs, best, beats):
     assert bool(v["worse"]) is not beats
 
 
-def test_resume_keeps_the_validation_log_and_the_best(tmp_path):
-    cfg = TrainConfig(**_CFG)
-    tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.8, 0.9]))
-    for _ in range(2):
+def _validated(cfg, scores) -> Trainer:
+    """A tiny trainer after one step and one validation per scripted score."""
+    tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), scores))
+    for _ in scores:
         tr.step()
         tr.validate()
+    return tr
+
+
+def test_resume_keeps_the_validation_log_and_the_best(tmp_path):
+    cfg = TrainConfig(**_CFG)
+    tr = _validated(cfg, [0.8, 0.9])
     tr.save(tmp_path / "r.pt")
     again = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.5]))
     again.restore(read_checkpoint(tmp_path / "r.pt", training=True))
@@ -588,10 +594,7 @@ def test_resuming_a_checkpoint_from_before_the_guards_measures_its_best_again(tm
     """Resuming measures the best generator again on the validation windows, so the verdict saved
     next is a whole one; it draws nothing from the RNGs a resumed run continues with."""
     cfg = TrainConfig(**_CFG)
-    tr = Trainer(_tiny(), cfg, "id", _FEATURES, validator=_Scripted(_tiny(), [0.5, 0.7]))
-    for _ in range(2):
-        tr.step()
-        tr.validate()
+    tr = _validated(cfg, [0.5, 0.7])
     tr.save(tmp_path / "fresh.pt")
     tr.save(tmp_path / "old.pt")
     _before_the_guards(tmp_path / "old.pt")
