@@ -22,6 +22,7 @@
 #include <vector>
 
 #include "fk.h"
+#include "ik.h"
 #include "kernels.h"
 #include "preselect.h"
 #include "search.h"
@@ -594,6 +595,47 @@ PYBIND11_MODULE(_core, m) {
         py::arg("mats").noconvert(), py::arg("root").noconvert(), py::arg("parents").noconvert(),
         py::arg("offsets").noconvert(), py::arg("want_worlds"),
         "Joint positions (F, J, 3) and world matrices (F, J, 3, 3) or None (use gesturedb.motion.Motion).");
+
+    m.def(
+        "two_bone_ik",
+        [](const F64& rotations, const F64& global_rot, const F64& positions, const F64& target, int64_t hip,
+           int64_t knee, int64_t ankle) {
+            // (n, J, 4), (n, J, 4), (n, J, 3), (n, 3): checked here too, a wrong shape or joint would read
+            // out of bounds
+            require_ndim(rotations, 3, "rotations");
+            const int64_t n = rotations.shape(0), J = rotations.shape(1);
+            if (rotations.shape(2) != 4)
+                throw std::invalid_argument("rotations: expected (n, J, 4); got " + shape_str(rotations));
+            const std::string nj = "(" + std::to_string(n) + ", " + std::to_string(J);
+            if (global_rot.ndim() != 3 || global_rot.shape(0) != n || global_rot.shape(1) != J ||
+                global_rot.shape(2) != 4)
+                throw std::invalid_argument("global_rot: expected " + nj + ", 4); got " +
+                                            shape_str(global_rot));
+            if (positions.ndim() != 3 || positions.shape(0) != n || positions.shape(1) != J ||
+                positions.shape(2) != 3)
+                throw std::invalid_argument("positions: expected " + nj + ", 3); got " +
+                                            shape_str(positions));
+            if (target.ndim() != 2 || target.shape(0) != n || target.shape(1) != 3)
+                throw std::invalid_argument("target: expected (" + std::to_string(n) + ", 3); got " +
+                                            shape_str(target));
+            for (const auto& [name, j] : {std::pair{"hip", hip}, {"knee", knee}, {"ankle", ankle}})
+                if (j < 0 || j >= J)
+                    throw std::invalid_argument(std::string(name) + ": expected a joint in [0, " +
+                                                std::to_string(J) + "); got " + std::to_string(j));
+            // the result is a copy with the three joints changed (the caller's rotations stay)
+            py::array_t<double> out({n, J, int64_t(4)});
+            double* po = out.mutable_data();
+            std::memcpy(po, rotations.data(), sizeof(double) * size_t(n) * size_t(J) * 4);
+            {
+                py::gil_scoped_release release;
+                two_bone_ik(po, global_rot.data(), positions.data(), target.data(), n, J, hip, knee, ankle);
+            }
+            return out;
+        },
+        py::arg("rotations").noconvert(), py::arg("global_rot").noconvert(), py::arg("positions").noconvert(),
+        py::arg("target").noconvert(), py::arg("hip"), py::arg("knee"), py::arg("ankle"),
+        "Local rotations (n, J, 4) with hip, knee and ankle turned so the ankle reaches target (use "
+        "gesturedb.synth.contacts.two_bone_ik, which validates).");
 
     m.def(
         "audio_distances",

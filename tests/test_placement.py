@@ -357,6 +357,64 @@ def test_leg_ik_only_touches_the_legs(scott_db):
             np.testing.assert_allclose(la, lb, atol=1e-6)
 
 
+def _ik_case(db, n=240, seed=0):
+    """Real poses of ``db`` and ankle targets around them (some out of reach, some on the hip, one leg
+    straight): the arguments of two_bone_ik for its left leg."""
+    rng = np.random.default_rng(seed)
+    frames = np.arange(100, 100 + n)
+    m = Motion(skeleton=db.skeleton, fps=db.fps, rotations=np.asarray(db.rows("local_rotations", frames), np.float64),
+               root_positions=np.asarray(db.rows("root_positions", frames), np.float64))
+    pos, grot = m.forward_kinematics()
+    hip, knee, ankle = (int(j) for j in leg_joints(db.skeleton)[0])
+    target = pos[:, ankle] + rng.normal(scale=0.1, size=(n, 3))
+    target[::7] += rng.normal(scale=1.0, size=(len(target[::7]), 3))  # beyond the leg's reach
+    target[3] = pos[3, hip]  # on the hip
+    target[5] = pos[5, ankle]  # where the ankle is
+    return m.rotations, grot, pos, dict(hip=hip, knee=knee, ankle=ankle, target=target)
+
+
+def test_leg_ik_in_cpp_equals_the_numpy_reference(scott_db):
+    """csrc/ik.cpp against contacts._two_bone_ik_numpy (float64 numpy, not the code under test): equal
+    to rounding (libm's acos and sin against numpy's), and the ankle reaches reachable targets."""
+    from gesturedb.synth.contacts import _two_bone_ik_numpy, two_bone_ik
+
+    rot, grot, pos, kw = _ik_case(scott_db)
+    got = two_bone_ik(rot, grot, pos, **kw)
+    want = _two_bone_ik_numpy(rot, grot, pos, **kw)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    changed = np.setdiff1d(np.arange(rot.shape[1]), [kw["hip"], kw["knee"], kw["ankle"]])
+    assert np.array_equal(got[:, changed], rot[:, changed])
+    # a straight leg (no bend plane) takes the hip's x axis, as numpy does
+    straight = rot.copy()
+    straight[:, kw["knee"]] = [1.0, 0.0, 0.0, 0.0]
+    m = Motion(skeleton=scott_db.skeleton, fps=scott_db.fps, rotations=straight, root_positions=np.zeros((len(rot), 3)))
+    s_pos, s_grot = m.forward_kinematics()
+    s_kw = dict(kw, target=s_pos[:, kw["ankle"]] + 0.05)
+    np.testing.assert_allclose(two_bone_ik(straight, s_grot, s_pos, **s_kw),
+                               _two_bone_ik_numpy(straight, s_grot, s_pos, **s_kw), rtol=0, atol=1e-12)
+
+
+def test_leg_ik_in_cpp_is_per_frame_and_says_what_it_expected(scott_db):
+    """Frames alone, in blocks or all at once: the same bits (the stream and the offline synthesis split
+    them differently). Wrong shapes and joints are refused with what was expected."""
+    from gesturedb.errors import ParameterError
+    from gesturedb.synth.contacts import two_bone_ik
+
+    rot, grot, pos, kw = _ik_case(scott_db, n=50)
+    whole = two_bone_ik(rot, grot, pos, **kw)
+    for cuts in ([1], [3, 8, 9], [17, 33]):
+        parts = []
+        for a, b in zip([0] + cuts, cuts + [len(rot)]):
+            parts.append(two_bone_ik(rot[a:b], grot[a:b], pos[a:b], **dict(kw, target=kw["target"][a:b])))
+        assert np.array_equal(np.concatenate(parts), whole)
+    with pytest.raises(ParameterError, match=r"target: expected \(50, 3\); got \(49, 3\)"):
+        two_bone_ik(rot, grot, pos, **dict(kw, target=kw["target"][1:]))
+    with pytest.raises(ParameterError, match=r"positions: expected \(50, \d+, 3\); got"):
+        two_bone_ik(rot, grot, pos[:, :-1], **kw)
+    with pytest.raises(ParameterError, match=r"knee: expected a joint in \[0, \d+\); got 999"):
+        two_bone_ik(rot, grot, pos, **dict(kw, knee=999))
+
+
 @pytest.mark.slow
 def test_no_heading_drift_over_five_minutes(scott_db, scott_dir):
     """The four input WAVs (and the first again) end to end: 5 minutes keep facing forward, near the origin."""

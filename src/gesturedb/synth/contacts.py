@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from gesturedb import rotations as R
+from gesturedb.errors import ParameterError
 from gesturedb.io.joints import body_keys
 from gesturedb.motion import Motion
 
@@ -148,6 +149,28 @@ def two_bone_ik(rotations: np.ndarray, global_rot: np.ndarray, positions: np.nda
         Local rotations; the ankle's local rotation is changed so that its world
         rotation stays what it was.
     """
+    # the arithmetic in C++ (csrc/ik.cpp, per frame, so blocks of any size give the same bits): this numpy
+    # version (_two_bone_ik_numpy, the reference tests/test_placement.py compares it with) ran some eighty
+    # small array operations per call, about 2.7 ms of a live step's apply in interpreter overhead
+    import gesturedb._core as _core
+
+    rot, grot, pos, tgt = (np.ascontiguousarray(x, dtype=np.float64) for x in (rotations, global_rot, positions, target))
+    n = rot.shape[0]
+    if rot.ndim != 3 or rot.shape[2] != 4:
+        raise ParameterError(f"two_bone_ik: rotations: expected (n, J, 4); got {rot.shape}")
+    J = rot.shape[1]
+    for name, x, want in (("global_rot", grot, (n, J, 4)), ("positions", pos, (n, J, 3)), ("target", tgt, (n, 3))):
+        if x.shape != want:
+            raise ParameterError(f"two_bone_ik: {name}: expected {want}; got {x.shape}")
+    for name, j in (("hip", hip), ("knee", knee), ("ankle", ankle)):
+        if not 0 <= int(j) < J:
+            raise ParameterError(f"two_bone_ik: {name}: expected a joint in [0, {J}); got {j}")
+    return _core.two_bone_ik(rot, grot, pos, tgt, int(hip), int(knee), int(ankle))
+
+
+def _two_bone_ik_numpy(rotations: np.ndarray, global_rot: np.ndarray, positions: np.ndarray, *, hip: int, knee: int,
+                       ankle: int, target: np.ndarray) -> np.ndarray:
+    """:func:`two_bone_ik` in numpy: the reference the C++ version is tested against (same arguments)."""
     a, b, c = positions[:, hip], positions[:, knee], positions[:, ankle]
     l_ab = np.linalg.norm(b - a, axis=-1)
     l_cb = np.linalg.norm(b - c, axis=-1)
