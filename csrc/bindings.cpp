@@ -597,6 +597,45 @@ PYBIND11_MODULE(_core, m) {
         "Joint positions (F, J, 3) and world matrices (F, J, 3, 3) or None (use gesturedb.motion.Motion).");
 
     m.def(
+        "forward_kinematics_quat",
+        [](const F64& quats, const F64& root, const I64& parents, const F64& offsets, bool want_rotations) {
+            // (F, J, 4), (F, 3), (J,), (J, 3): checked here too, a wrong shape would read out of bounds
+            require_ndim(quats, 3, "quats");
+            const int64_t F = quats.shape(0), J = quats.shape(1);
+            if (J < 1 || quats.shape(2) != 4)
+                throw std::invalid_argument("quats: expected (F, J >= 1, 4); got " + shape_str(quats));
+            if (root.ndim() != 2 || root.shape(0) != F || root.shape(1) != 3)
+                throw std::invalid_argument("root: expected (" + std::to_string(F) + ", 3); got " +
+                                            shape_str(root));
+            if (parents.ndim() != 1 || parents.shape(0) != J)
+                throw std::invalid_argument("parents: expected (" + std::to_string(J) + ",); got " +
+                                            shape_str(parents));
+            if (offsets.ndim() != 2 || offsets.shape(0) != J || offsets.shape(1) != 3)
+                throw std::invalid_argument("offsets: expected (" + std::to_string(J) + ", 3); got " +
+                                            shape_str(offsets));
+            const int64_t* par = parents.data();
+            for (int64_t j = 1; j < J; ++j)
+                if (par[j] < 0 || par[j] >= j)
+                    throw std::invalid_argument("parents[" + std::to_string(j) +
+                                                "]: expected 0 <= parent < " + std::to_string(j) +
+                                                " (parents first); got " + std::to_string(par[j]));
+            py::array_t<double> pos({F, J, int64_t(3)});
+            py::array_t<double> grot(want_rotations ? std::vector<int64_t>{F, J, 4}
+                                                    : std::vector<int64_t>{0});
+            double* pg = want_rotations ? grot.mutable_data() : nullptr;
+            double* pp = pos.mutable_data();
+            {
+                py::gil_scoped_release release;
+                forward_kinematics_quat(quats.data(), root.data(), par, offsets.data(), F, J, pp, pg);
+            }
+            return py::make_tuple(pos, want_rotations ? py::object(grot) : py::object(py::none()));
+        },
+        py::arg("quats").noconvert(), py::arg("root").noconvert(), py::arg("parents").noconvert(),
+        py::arg("offsets").noconvert(), py::arg("want_rotations"),
+        "Joint positions (F, J, 3) and world rotations (F, J, 4) or None from local quaternions (use "
+        "gesturedb.motion.Motion).");
+
+    m.def(
         "two_bone_ik",
         [](const F64& rotations, const F64& global_rot, const F64& positions, const F64& target, int64_t hip,
            int64_t knee, int64_t ankle) {

@@ -109,8 +109,51 @@ def test_fk_core_refuses_bad_shapes_and_parents_after_children():
     assert worlds is None and pos.shape == (2, 3, 3)
 
 
+def _fk_numpy_conversions(m):
+    """Motion.forward_kinematics as it was before the quaternions went to C++: numpy's to_matrix, the
+    matrix chain (_core.forward_kinematics) and numpy's from_matrix."""
+    from gesturedb import _core
+
+    sk = m.skeleton
+    pos, worlds = _core.forward_kinematics(np.ascontiguousarray(rt.to_matrix(m.rotations)), m.root_positions,
+                                           np.ascontiguousarray(sk.parents, dtype=np.int64),
+                                           np.ascontiguousarray(sk.offsets, dtype=np.float64), True)
+    return pos, rt.from_matrix(worlds)
+
+
+def test_fk_from_quaternions_is_numpys_conversions_to_the_bit(scott_dir):
+    """csrc/fk.cpp converts quaternions to matrices and back operation for operation as
+    rotations.to_matrix and from_matrix do: the same bits, on random trees (every branch of
+    Shepperd's method) and on real motion, and quaternions slightly off unit."""
+    skel = _random_skeleton(15)
+    m = _random_motion(skel, n_f=300)
+    off = Motion(skel, m.fps, m.rotations * (1 + 1e-13 * RNG.normal(size=m.rotations.shape[:-1] + (1,))),
+                 m.root_positions)
+    real = read_smplx(scott_dir / "2_scott_0_1_1.npz")[:400]
+    for mo in (m, off, real):
+        pos, grot = mo.forward_kinematics()
+        want_pos, want_grot = _fk_numpy_conversions(mo)
+        assert np.array_equal(pos, want_pos) and np.array_equal(grot, want_grot)
+        assert np.array_equal(mo.positions, want_pos)
+    # every branch of from_matrix was taken (the largest of the trace and the diagonal)
+    w = rt.to_matrix(m.forward_kinematics()[1]).reshape(-1, 9)
+    assert set(np.argmax(np.stack([w[:, 0] + w[:, 4] + w[:, 8], w[:, 0], w[:, 4], w[:, 8]], -1), -1)) == {0, 1, 2, 3}
+
+
+def test_fk_quat_core_refuses_bad_shapes():
+    from gesturedb import _core
+
+    q, root, offsets = np.tile([1.0, 0, 0, 0], (2, 3, 1)), np.zeros((2, 3)), np.zeros((3, 3))
+    with pytest.raises(ValueError, match=r"quats: expected \(F, J >= 1, 4\); got \(2, 3, 3\)"):
+        _core.forward_kinematics_quat(np.zeros((2, 3, 3)), root, np.array([-1, 0, 1]), offsets, False)
+    with pytest.raises(ValueError, match=r"parents\[2\]: expected 0 <= parent < 2 \(parents first\); got 2"):
+        _core.forward_kinematics_quat(q, root, np.array([-1, 0, 2]), offsets, False)
+    pos, grot = _core.forward_kinematics_quat(q, root, np.array([-1, 0, 1]), offsets, False)
+    assert grot is None and pos.shape == (2, 3, 3)
+
+
 def test_fk_on_real_smplx_motion_matches_scipy(scott_dir):
-    m = read_smplx(scott_dir / "2_scott_0_1_1.npz")[:1100]  # more than one FK block of frames
+    m = read_smplx(scott_dir / "2_scott_0_1_1.npz")[:1100]
     np.testing.assert_allclose(m.positions, _fk_scipy(m.skeleton, m.rotations, m.root_positions), atol=1e-12)
     pos, grot = m.forward_kinematics()
     ref = Rotation.from_quat(np.roll(m.rotations[:, 0], -1, -1))

@@ -25,9 +25,6 @@ __all__ = ["Motion", "Skeleton", "mirror_permutation", "resampled_length"]
 # Quaternions further than this from unit norm are rejected rather than silently
 # renormalised: they come from a bug (an unnormalised blend), not from rounding.
 _UNIT_TOL = 1e-3
-# frames per forward-kinematics block (see Motion._fk)
-_FK_BLOCK = 512
-
 
 @dataclass(eq=False)
 class Skeleton:
@@ -366,30 +363,21 @@ class Motion:
         # local on purpose, as in gesturedb.search: the compiled core is no stage of the layers
         import gesturedb._core as _core
 
-        n_f, n_j = self.n_frames, sk.n_joints
-        pos = np.empty((n_f, n_j, 3))
-        grot = np.empty((n_f, n_j, 4)) if want_rotations else None
         offsets = np.ascontiguousarray(sk.offsets, dtype=np.float64)
         parents = np.ascontiguousarray(sk.parents, dtype=np.int64)
-        # Blocks of frames keep the (block, J, 3, 3) matrices small and reused: one pass
-        # over a long clip would allocate hundreds of MB of fresh pages (3x slower here).
-        for a in range(0, n_f, _FK_BLOCK):
-            b = min(n_f, a + _FK_BLOCK)
-            mats = np.ascontiguousarray(rot.to_matrix(self.rotations[a:b]))  # local rotations (block, J, 3, 3)
-            # the chain in C++ (csrc/fk.cpp): the numpy loop over joints cost a live step 1.3 ms per
-            # 8-frame piece in call overhead; tests/test_motion.py checks it against that loop
-            blk, worlds = _core.forward_kinematics(mats, np.ascontiguousarray(self.root_positions[a:b],
-                                                                              dtype=np.float64),
-                                                   parents, offsets, want_rotations)
-            pos[a:b] = blk
-            if want_rotations:
-                grot[a:b] = rot.from_matrix(worlds)
+        # quaternions to matrices, the chain and back in C++ (csrc/fk.cpp), frame by frame: the numpy
+        # loop over joints cost a live step 1.3 ms per 8-frame piece in call overhead, and numpy's
+        # to_matrix and from_matrix about 1 ms more; the conversions are numpy's to the bit
+        # (tests/test_motion.py checks both against numpy)
+        pos, grot = _core.forward_kinematics_quat(np.ascontiguousarray(self.rotations, dtype=np.float64),
+                                                  np.ascontiguousarray(self.root_positions, dtype=np.float64),
+                                                  parents, offsets, want_rotations)
         return pos, grot
 
     def forward_kinematics(self) -> tuple[np.ndarray, np.ndarray]:
         """World positions and rotations of every joint in every frame.
 
-        Vectorised over frames; the loop runs over joints only.
+        In C++ (csrc/fk.cpp), frame by frame: any split of the frames gives the same bits.
 
         Returns
         -------
