@@ -49,6 +49,7 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
                 opt.preselect = preselect;
                 opt.allowed = query_allowed(q, allowed).at(0);
                 opt.exclude = q.exclude;
+                opt.other = q.table_other;
                 engines[tid]->preselect(q.init_pose, q.audio.data, q.audio.rows, opt, q.table_s, q.table_dp,
                                         q.table_da);
                 return;

@@ -525,7 +525,7 @@ PYBIND11_MODULE(_core, m) {
         [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len, const F32& prev,
            const F32& query, const std::string& preselect, const std::optional<U64>& allowed,
            const std::optional<Bool>& exclude, int threads, const std::optional<U16>& pose_f16,
-           const std::optional<py::tuple>& pose_proj) {
+           const std::optional<py::tuple>& pose_proj, bool other) {
             const Database db = make_db(pose, audio, seg_start, seg_len, pose_f16, pose_proj);
             check_vector(prev, db.pose.cols, "prev_pose");
             const Span2<const float> q = span2(query, "query_audio");
@@ -536,6 +536,7 @@ PYBIND11_MODULE(_core, m) {
             opt.preselect = parse_preselect(preselect);
             opt.allowed = make_allowed(allowed, db, false).at(0);
             opt.exclude = exclude_ptr(exclude, db.n_segments());
+            opt.other = other;
             const Kernels& kern = active_kernels();
             const int64_t M = db.n_segments();
             py::array_t<int64_t> s(M);
@@ -556,6 +557,7 @@ PYBIND11_MODULE(_core, m) {
         py::arg("preselect"), py::arg("allowed").noconvert().none(true),
         py::arg("exclude").noconvert().none(true), py::arg("threads") = 0,
         py::arg("pose_f16").noconvert().none(true) = py::none(), py::arg("pose_proj").none(true) = py::none(),
+        py::arg("other") = true,
         "Pre-selection table of one step (use gesturedb.tables.preselect_table, which validates).");
 
     m.def(
@@ -819,7 +821,7 @@ PYBIND11_MODULE(_core, m) {
         .def(
             "tables",
             [](PyBatchPlan& p, const F32& prevs, const F32& windows, const std::optional<U64>& allowed,
-               const std::optional<Bool>& exclude, int threads, const std::string& method) {
+               const std::optional<Bool>& exclude, int threads, const std::string& method, bool other) {
                 const Database& db = p.db;
                 const int64_t M = db.n_segments();
                 const Span2<const float> pv = span2(prevs, "prev_poses");
@@ -851,6 +853,7 @@ PYBIND11_MODULE(_core, m) {
                     batch[i].table_s = s.mutable_data() + i * M;
                     batch[i].table_dp = dp.mutable_data() + i * M;
                     batch[i].table_da = da.mutable_data() + i * M;
+                    batch[i].table_other = other;
                 }
                 if (per_query) set_query_allowed(batch, *allowed, db);
                 {
@@ -861,9 +864,9 @@ PYBIND11_MODULE(_core, m) {
             },
             py::arg("prev_poses").noconvert(), py::arg("query_windows").noconvert(),
             py::arg("allowed").noconvert().none(true), py::arg("exclude").noconvert().none(true),
-            py::arg("threads") = 0, py::arg("method") = "auto",
+            py::arg("threads") = 0, py::arg("method") = "auto", py::arg("other") = true,
             "Pre-selection tables of one step for many queries -> (starts, pose_dist, audio_dist), each (Q, "
-            "M).")
+            "M); other=False leaves the other distance 0.")
         .def_property_readonly(
             "n_setups", [](const PyBatchPlan& p) { return p.plan->n_setups(); },
             "Window lengths whose blocked set-up the plan keeps.");

@@ -77,6 +77,8 @@ struct BlockedBatch::Run {
     bool any_ex = false;
     // the segment in progress: whether any lane filters it
     bool any_live = false;
+    // whether any query wants its candidates' other distance (BatchQuery::table_other)
+    bool any_other = false;
 
     Run(const BlockedBatch& b, BatchQuery* const* block_, int64_t nq_)
         : block(block_), nq(nq_), M(b.db_.n_segments()), Dp(b.db_.pose.cols), Da(b.db_.audio.cols),
@@ -88,6 +90,7 @@ struct BlockedBatch::Run {
             S[i] = n_steps(block[i]->audio.rows, b.N_);
             block[i]->failed_step = -1;
             max_steps = std::max(max_steps, S[i]);
+            any_other = any_other || block[i]->table_other;
         }
         sel_s.resize(size_t(nq) * M);
         sel_dp.resize(size_t(nq) * M);
@@ -144,7 +147,7 @@ void BlockedBatch::run(BatchQuery* const* block, int64_t nq, const AllowedSchedu
         mark_lanes(r);
         load_panel(r);
         for (int64_t m = 0; m < r.M; ++m) {
-            if (m + 1 < r.M) prefetch_rows(m + 1);
+            if (m + 1 < r.M) prefetch_rows(m + 1, r.any_other);
             preselect_segment(r, m);
         }
         rank_lanes(r, step);
@@ -172,6 +175,7 @@ int64_t BlockedBatch::take_lanes(Run& r, int64_t step, const AllowedSchedule& al
         opt.preselect = pre_;
         opt.allowed = query_allowed(*block[i], allowed_steps).at(step);
         opt.exclude = block[i]->exclude;
+        opt.other = block[i]->table_other;
         if (block[i]->table_s != nullptr) {
             r.single->preselect(r.prev[i], block[i]->audio.row(t), n, opt, block[i]->table_s,
                                 block[i]->table_dp, block[i]->table_da);
@@ -480,6 +484,11 @@ int64_t BlockedBatch::choose_candidates(Run& r, int64_t m, const BitsetView& all
             }
             if (b < 0) continue;
             sel.s[m] = b + 1;
+            if (!r.block[qi]->table_other) {  // a table without the other distance (StepOptions::other)
+                if (pre_ == Preselect::Pose) sel.da[m] = 0.0;
+                else sel.dp[m] = 0.0f;
+                continue;
+            }
             // the other distance, for all lanes at once in other_distances
             const int64_t g = seg0 + b + 1;
             r.fin_lane[n_fin] = int32_t(l);
@@ -582,7 +591,7 @@ bool BlockedBatch::tile_has_row(const uint8_t* okp, int64_t i0, int64_t nr) {
 // mode), one per lane at scattered offsets, and with the projection the
 // kept entry poses. Fetching them while this segment is filtered turns
 // those cache misses into hits.
-void BlockedBatch::prefetch_rows(int64_t m) const {
+void BlockedBatch::prefetch_rows(int64_t m, bool other) const {
     const int64_t n_cand = db_.seg_len[m] - N_;
     if (n_cand < 1) return;
     auto fetch = [](const float* a, const float* b) {
@@ -591,9 +600,9 @@ void BlockedBatch::prefetch_rows(int64_t m) const {
     };
     const int64_t seg0 = db_.seg_start[m];
     if (pre_ == Preselect::Pose) {
-        fetch(db_.audio.row(seg0 + 1), db_.audio.row(seg0 + 1 + n_cand + N_));
+        if (other) fetch(db_.audio.row(seg0 + 1), db_.audio.row(seg0 + 1 + n_cand + N_));
         if (proj_) fetch(db_.pose.row(seg0), db_.pose.row(seg0 + n_cand));
-    } else {
+    } else if (other) {
         fetch(db_.pose.row(seg0), db_.pose.row(seg0 + n_cand));
     }
 }

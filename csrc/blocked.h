@@ -92,7 +92,7 @@ private:
     static int64_t collect_pairs(const uint64_t* __restrict keep, const uint64_t* __restrict live, int64_t nr,
                                  int64_t words, int32_t* __restrict pair_lane, int32_t* __restrict pair_r);
     static bool tile_has_row(const uint8_t* okp, int64_t i0, int64_t nr);
-    void prefetch_rows(int64_t m) const;
+    void prefetch_rows(int64_t m, bool other) const;
     int64_t max_seg_len() const;
     void exact_update_audio(int64_t m, int64_t i, const QueryStep& qs, int64_t l, std::vector<int64_t>& best,
                             std::vector<double>& best_da) const;

@@ -61,6 +61,11 @@ struct StepOptions {
     Preselect preselect = Preselect::Pose;
     BitsetView allowed;             // empty view: every frame allowed
     const bool* exclude = nullptr;  // (M,) true = segment excluded; may be null
+    // StepEngine::preselect only: false leaves the pre-selected candidates' other
+    // distance out (0 in the table). A pose pre-selection made ahead of its audio
+    // (StepBatch.speculate) is finished by audio_distances once the audio has
+    // come; its zero window's distances were a third of its cost, read for nothing.
+    bool other = true;
 };
 
 struct StepResult {
@@ -176,6 +181,7 @@ struct BatchQuery {
     int64_t* table_s = nullptr;
     float* table_dp = nullptr;
     double* table_da = nullptr;
+    bool table_other = true;  // StepOptions::other for this query's table
 };
 
 // How a batch is evaluated; every method returns exactly what rank_sum_search

@@ -136,6 +136,7 @@ struct StepEngine::Impl {
                     sel.s[m] = i < 0 ? -1 : i + 1;
                 }
             }
+            if (!opt.other) return;  // the table without its other distance (StepOptions::other)
             for (int64_t m = m0; m < std::min(m1, m0 + kScatterAhead); ++m)
                 prefetch_other(db, m, qs, opt.preselect, sel);
             for (int64_t m = m0; m < m1; ++m) {
@@ -162,9 +163,12 @@ void StepEngine::preselect(const float* prev, const float* query, int64_t n, con
     const Selection sel = impl_->preselect(prev, query, n, opt);
     const int64_t M = impl_->db.n_segments();
     std::copy(sel.s, sel.s + M, start);
+    // without the other distance (opt.other false) it is 0, as where no candidate was kept
+    const bool dp = opt.other || opt.preselect == Preselect::Pose;
+    const bool da = opt.other || opt.preselect == Preselect::Audio;
     for (int64_t m = 0; m < M; ++m) {
-        pose_dist[m] = sel.s[m] >= 0 ? sel.dp[m] : 0.0f;
-        audio_dist[m] = sel.s[m] >= 0 ? sel.da[m] : 0.0;
+        pose_dist[m] = sel.s[m] >= 0 && dp ? sel.dp[m] : 0.0f;
+        audio_dist[m] = sel.s[m] >= 0 && da ? sel.da[m] : 0.0;
     }
 }
 

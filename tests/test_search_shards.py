@@ -396,6 +396,18 @@ def test_preselect_table_batch_rows_are_the_single_tables(isa, method):
                     want = tables.preselect_table(P, A, st, ln, prevs[i], wins[i], **one)
                     for got, w in zip((s[i], dp[i], da[i]), want):
                         np.testing.assert_array_equal(got, w, err_msg=f"{isa} {method} n={n} {kw.keys()} q{i}")
+                # without the other distance (other=False, a pose pre-selection ahead of its audio): the same
+                # starts and pre-selection distances, the other distance 0, alone and batched
+                pose = kw.get("preselect", "pose") == "pose"
+                s0, dp0, da0 = tables.preselect_table_batch(P, A, st, ln, prevs, wins, method=method, other=False,
+                                                            **kw)
+                one = {k: (v[0] if k == "exclude" else v) for k, v in kw.items()}
+                alone = tables.preselect_table(P, A, st, ln, prevs[0], wins[0], other=False, **one)
+                for got in ((s0, dp0, da0), tuple(x[None] for x in alone)):
+                    rows = slice(None) if got[0].shape[0] == Q else slice(0, 1)
+                    np.testing.assert_array_equal(got[0], s[rows])
+                    np.testing.assert_array_equal(got[1 if pose else 2], (dp if pose else da)[rows])
+                    assert not got[2 if pose else 1].any(), f"{isa} {method} n={n} {kw.keys()}"
     with pytest.raises(Exception, match="query_windows"):
         tables.preselect_table_batch(P, A, st, ln, prevs, np.zeros((Q + 1, 8, A.shape[1]), np.float32))
 

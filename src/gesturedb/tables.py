@@ -46,10 +46,17 @@ METHODS = ("auto", "blocked", "per_query")
 
 
 def preselect_table(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, preselect="pose",
-                    allowed=None, exclude=None, threads=None, pose_f16=None, pose_proj=None):
+                    allowed=None, exclude=None, threads=None, pose_f16=None, pose_proj=None, other=True):
     """Spec steps 1-3 of one step: the pre-selected candidate of every segment.
 
-    Parameters are those of :func:`gesturedb.search.rank_sum_step` (without ``k``).
+    Parameters are those of :func:`gesturedb.search.rank_sum_step` (without ``k``), and
+
+    other : bool
+        False: the pre-selected candidates' other distance (the audio distance with
+        ``preselect="pose"``) is left out, 0 in the table; the starts and the pre-selection
+        distances are the same. A pose pre-selection made before its audio has come
+        (:meth:`gesturedb.synth.stepbatch.StepBatch.speculate`) is finished with
+        :func:`audio_distances`: its stand-in window's distances cost a third of the call.
 
     Returns
     -------
@@ -67,7 +74,7 @@ def preselect_table(pose, audio, seg_start, seg_len, prev_pose, query_audio, *, 
     allowed = _allowed(allowed, pose.shape[0])
     exclude = _exclude(exclude, seg_start.shape[0])
     return _core().preselect(pose, audio, seg_start, seg_len, prev, q, preselect, allowed, exclude,
-                             _threads(threads), _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose))
+                             _threads(threads), _pose_f16(pose_f16, pose), _pose_proj(pose_proj, pose), bool(other))
 
 
 class PreselectBatch:
@@ -104,7 +111,8 @@ class PreselectBatch:
         """Window lengths whose blocked set-up is kept (0 before the first blocked call)."""
         return self._plan.n_setups
 
-    def tables(self, prev_poses, query_windows, *, allowed=None, exclude=None, threads=None, method="auto"):
+    def tables(self, prev_poses, query_windows, *, allowed=None, exclude=None, threads=None, method="auto",
+               other=True):
         """One step's tables for Q queries.
 
         Parameters
@@ -123,6 +131,8 @@ class PreselectBatch:
         threads : int, optional
         method : {"auto", "blocked", "per_query"}
             Evaluation strategy (results are identical).
+        other : bool
+            False: the other distance is left out (0), as in :func:`preselect_table`.
 
         Returns
         -------
@@ -148,18 +158,18 @@ class PreselectBatch:
         exclude = _exclude(exclude, M, Q)
         if method not in METHODS:
             raise ParameterError(f"method: expected 'auto', 'blocked' or 'per_query'; got {method!r}")
-        return self._plan.tables(prev, q, allowed, exclude, _threads(threads), method)
+        return self._plan.tables(prev, q, allowed, exclude, _threads(threads), method, bool(other))
 
 
 def preselect_table_batch(pose, audio, seg_start, seg_len, prev_poses, query_windows, *, preselect="pose",
                           allowed=None, exclude=None, threads=None, method="auto", pose_f16=None,
-                          pose_proj=None):
+                          pose_proj=None, other=True):
     """One call of :meth:`PreselectBatch.tables` (nothing kept): (starts, pose_dist,
     audio_dist), each (Q, M), row i exactly :func:`preselect_table`'s for query i."""
     batch = PreselectBatch(pose, audio, seg_start, seg_len, preselect=preselect, pose_f16=pose_f16,
                            pose_proj=pose_proj)
     return batch.tables(prev_poses, query_windows, allowed=allowed, exclude=exclude, threads=threads,
-                        method=method)
+                        method=method, other=other)
 
 
 def audio_distances(pose, audio, seg_start, seg_len, starts, query_audio):

@@ -133,9 +133,10 @@ class StepBatch:
             out.append(self._ranked(sq, st, dp, da))
         return out
 
-    def _tables(self, group: list, preselect: str, windows: np.ndarray) -> list:
+    def _tables(self, group: list, preselect: str, windows: np.ndarray, *, other: bool = True) -> list:
         """Each step's pre-selection table ``(starts, pose_dist, audio_dist)``, (M,) each, under its guarded
-        bitset: one batch call for all, then the segments its recent windows touch, each step alone."""
+        bitset: one batch call for all, then the segments its recent windows touch, each step alone.
+        ``other=False``: without the other distance (0; :func:`gesturedb.tables.preselect_table`)."""
         s, db = self.searcher, self.searcher.db
         M = s.seg_start.shape[0]
         touched = [self._touched(sq.recent) for sq in group]
@@ -151,7 +152,7 @@ class StepBatch:
         else:  # one per step (every frame where a step has none); equal rows share the filter's passes
             allowed = np.stack([sq.allowed for sq in group])
         starts, pose_d, audio_d = self._preselect_batch(preselect).tables(
-            prevs, windows, allowed=allowed, exclude=exclude, threads=self.threads, method=self.method)
+            prevs, windows, allowed=allowed, exclude=exclude, threads=self.threads, method=self.method, other=other)
         self.n_calls += 1
         proj = s.pose_projection() if preselect == "pose" else None
         out = []
@@ -166,7 +167,7 @@ class StepBatch:
                 s1, dp1, da1 = tables.preselect_table(
                     db.pose_features, db.audio_features, s.seg_start, s.seg_len, sq.prev, windows[r],
                     preselect=preselect, allowed=sq.guarded, exclude=only, threads=self.threads,
-                    pose_f16=s._half, pose_proj=proj)
+                    pose_f16=s._half, pose_proj=proj, other=other)
                 st[tm], dp[tm], da[tm] = s1[tm], dp1[tm], da1[tm]
             out.append((st, dp, da))
         return out
@@ -215,10 +216,11 @@ class StepBatch:
         Da = self.searcher.db.audio_features.shape[1]
         for n, idx in groups.items():
             group = [steps[j] for j in idx]
-            # the audio distances of this call are not used: any window gives the same starts and pose distances
+            # any window gives the same starts and pose distances; its audio distances, which finish computes
+            # once the audio has come, are left out (a third of the call at paper scale)
             windows = np.zeros((len(group), n, Da), dtype=np.float32)
             try:
-                got = self._tables(group, "pose", windows)
+                got = self._tables(group, "pose", windows, other=False)
             except Exception:  # noqa: BLE001 - those steps are searched as usual, each with its own outcome
                 continue
             for j, (st, dp, _) in zip(idx, got):
