@@ -25,6 +25,7 @@
 #include "ik.h"
 #include "kernels.h"
 #include "preselect.h"
+#include "seams.h"
 #include "search.h"
 #include "threads.h"
 
@@ -636,6 +637,38 @@ PYBIND11_MODULE(_core, m) {
         py::arg("offsets").noconvert(), py::arg("want_rotations"),
         "Joint positions (F, J, 3) and world rotations (F, J, 4) or None from local quaternions (use "
         "gesturedb.motion.Motion).");
+
+    m.def(
+        "apply_quintic_rotation_offsets",
+        [](const F64& x0, const F64& v0, const F64& a0, const F64& decay, const F64& t, const F64& rot) {
+            // (J, 3) x3, (J,), (n,), (n, J, 4): checked here too, a wrong shape would read out of bounds
+            require_ndim(rot, 3, "rot");
+            const int64_t n = rot.shape(0), J = rot.shape(1);
+            if (rot.shape(2) != 4)
+                throw std::invalid_argument("rot: expected (n, J, 4); got " + shape_str(rot));
+            for (const auto& [name, a] :
+                 {std::pair<const char*, const F64*>{"x0", &x0}, {"v0", &v0}, {"a0", &a0}})
+                if (a->ndim() != 2 || a->shape(0) != J || a->shape(1) != 3)
+                    throw std::invalid_argument(std::string(name) + ": expected (" + std::to_string(J) +
+                                                ", 3); got " + shape_str(*a));
+            if (decay.ndim() != 1 || decay.shape(0) != J)
+                throw std::invalid_argument("decay: expected (" + std::to_string(J) + ",); got " +
+                                            shape_str(decay));
+            if (t.ndim() != 1 || t.shape(0) != n)
+                throw std::invalid_argument("t: expected (" + std::to_string(n) + ",); got " + shape_str(t));
+            py::array_t<double> out({n, J, int64_t(4)});
+            double* po = out.mutable_data();
+            {
+                py::gil_scoped_release release;
+                apply_quintic_rotation_offsets(x0.data(), v0.data(), a0.data(), decay.data(), t.data(), n, J,
+                                               rot.data(), po);
+            }
+            return out;
+        },
+        py::arg("x0").noconvert(), py::arg("v0").noconvert(), py::arg("a0").noconvert(),
+        py::arg("decay").noconvert(), py::arg("t").noconvert(), py::arg("rot").noconvert(),
+        "exp(quintic offsets at t) * rot, (n, J, 4) (use "
+        "gesturedb.synth.seams.apply_quintic_rotation_offsets, which validates).");
 
     m.def(
         "two_bone_ik",

@@ -415,6 +415,36 @@ def test_leg_ik_in_cpp_is_per_frame_and_says_what_it_expected(scott_db):
         two_bone_ik(rot, grot, pos, **dict(kw, knee=999))
 
 
+def test_seam_offsets_in_cpp_equal_the_numpy_composition(scott_db):
+    """csrc/seams.cpp against quintic_offsets then apply_rotation_offsets (numpy, float64): equal to
+    rounding, exactly the rotations from the decay on, the same bits in any split of the frames; one
+    decay for all joints or one per joint; shapes refused with what was expected."""
+    from gesturedb.errors import ParameterError
+    from gesturedb.synth.seams import apply_quintic_rotation_offsets, apply_rotation_offsets, quintic_offsets
+
+    rng = np.random.default_rng(3)
+    J = scott_db.skeleton.n_joints
+    q = R.normalize(rng.normal(size=(30, J, 4)))
+    x0, v0, a0 = rng.normal(scale=0.3, size=(J, 3)), rng.normal(size=(J, 3)), rng.normal(scale=5.0, size=(J, 3))
+    x0[4] = v0[4] = a0[4] = 0.0  # a joint without offset: its rotation unchanged
+    t = np.arange(30) / 15.0
+    for decay in (8 / 15, rng.uniform(0.3, 1.6, size=(J, 1)), rng.uniform(0.3, 1.6, size=J)):
+        got = apply_quintic_rotation_offsets(x0, v0, a0, decay, t, q)
+        want = apply_rotation_offsets(quintic_offsets(x0, v0, a0, np.reshape(decay, (-1, 1)) if np.ndim(decay) else
+                                                      decay, t), q)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        D = np.broadcast_to(np.reshape(decay, (-1,)) if np.ndim(decay) else decay, (J,))
+        past = t[:, None] >= D[None, :]  # (n, J): the offset is over
+        assert np.array_equal(got[past], q[past])
+        assert np.array_equal(got[:, 4], q[:, 4])
+        parts = [apply_quintic_rotation_offsets(x0, v0, a0, decay, t[a:b], q[a:b]) for a, b in ((0, 1), (1, 9), (9, 30))]
+        assert np.array_equal(np.concatenate(parts), got)
+    with pytest.raises(ParameterError, match=rf"v0: expected \({J}, 3\); got \({J - 1}, 3\)"):
+        apply_quintic_rotation_offsets(x0, v0[1:], a0, 0.5, t, q)
+    with pytest.raises(ParameterError, match=r"t: expected \(30,\) times"):
+        apply_quintic_rotation_offsets(x0, v0, a0, 0.5, t[1:], q)
+
+
 @pytest.mark.slow
 def test_no_heading_drift_over_five_minutes(scott_db, scott_dir):
     """The four input WAVs (and the first again) end to end: 5 minutes keep facing forward, near the origin."""

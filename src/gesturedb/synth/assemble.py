@@ -65,7 +65,7 @@ from gesturedb.synth.seams import (
     LEAD_FRAMES,
     SEAM_DECAY_S,
     adaptive_decays,
-    apply_rotation_offsets,
+    apply_quintic_rotation_offsets,
     check_decay_s,
     decay_frames,
     extend_constant_velocity,
@@ -564,7 +564,9 @@ class _Offset(NamedTuple):
 
     def apply(self, rot: np.ndarray, root: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rotations (n, J, 4) and root (n, 3) with the offset at times ``t`` (s after the seam) added."""
-        return (apply_rotation_offsets(quintic_offsets(*self.rot, self.decay_rot, t), rot),
+        # the rotations in C++ (seams.apply_quintic_rotation_offsets): per frame, so a stream's and the
+        # offline synthesis's frames stay the same bits
+        return (apply_quintic_rotation_offsets(*self.rot, self.decay_rot, t, rot),
                 root + quintic_offsets(*self.root, self.decay_root, t))
 
 

@@ -33,7 +33,8 @@ from gesturedb import rotations as R
 from gesturedb.errors import ParameterError
 
 __all__ = ["SEAM_DECAY_S", "LEAD_FRAMES", "quintic_offsets", "adaptive_decays", "seam_derivatives", "decay_frames",
-           "check_decay_s", "extend_constant_velocity", "rotation_offsets", "apply_rotation_offsets"]
+           "check_decay_s", "extend_constant_velocity", "rotation_offsets", "apply_rotation_offsets",
+           "apply_quintic_rotation_offsets"]
 
 #: Time (s) the offset at a seam takes to reach zero: one search step of the paper
 #: (N = 8 frames at 15 fps), the time until the k-NN's next seam. Measured on the
@@ -147,3 +148,47 @@ def rotation_offsets(old: np.ndarray, new: np.ndarray) -> np.ndarray:
 def apply_rotation_offsets(offsets: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``exp(offsets) * q`` (offsets (..., 3) rad, q (..., 4))."""
     return R.multiply(R.from_axis_angle(offsets), q)
+
+
+def apply_quintic_rotation_offsets(x0: np.ndarray, v0: np.ndarray, a0: np.ndarray, decay_s, t: np.ndarray,
+                                   q: np.ndarray) -> np.ndarray:
+    """``apply_rotation_offsets(quintic_offsets(x0, v0, a0, decay_s, t), q)``: a seam's offset on every joint.
+
+    Parameters
+    ----------
+    x0, v0, a0 : ndarray [shape=(J, 3)]
+        Each joint's rotation-vector offset (rad), its velocity (rad/s) and acceleration (rad/s^2)
+        at the seam.
+    decay_s : float > 0, or ndarray [shape=(J,) or (J, 1)], seconds
+        One decay for all joints, or one per joint.
+    t : ndarray [shape=(n,)], seconds
+        Times after the seam.
+    q : ndarray [shape=(n, J, 4)]
+        Local rotations.
+
+    Returns
+    -------
+    ndarray [shape=(n, J, 4)]
+        Equal to the numpy composition to rounding (tests/test_placement.py), and per frame: the same
+        bits whatever the frames' split into calls (a live stream's and the offline synthesis's).
+    """
+    # in C++ (csrc/seams.cpp): the numpy composition ran some thirty small array operations per call,
+    # twice a live step (about 1 ms of its apply in interpreter overhead)
+    import gesturedb._core as _core
+
+    q = np.ascontiguousarray(q, dtype=np.float64)
+    if q.ndim != 3 or q.shape[2] != 4:
+        raise ParameterError(f"q: expected (n, J, 4) quaternions; got shape {q.shape}")
+    n, J = q.shape[:2]
+    x0, v0, a0 = (np.ascontiguousarray(v, dtype=np.float64) for v in (x0, v0, a0))
+    for name, v in (("x0", x0), ("v0", v0), ("a0", a0)):
+        if v.shape != (J, 3):
+            raise ParameterError(f"{name}: expected ({J}, 3); got {v.shape}")
+    D = np.asarray(decay_s, dtype=np.float64)
+    if D.shape not in ((), (J,), (J, 1)):
+        raise ParameterError(f"decay_s: expected a number, ({J},) or ({J}, 1); got shape {D.shape}")
+    D = np.ascontiguousarray(np.broadcast_to(D.reshape(-1), (J,)) if D.ndim else np.full(J, float(D)))
+    t = np.ascontiguousarray(t, dtype=np.float64).reshape(-1)
+    if t.shape[0] != n:
+        raise ParameterError(f"t: expected ({n},) times, one per frame of q; got {t.shape}")
+    return _core.apply_quintic_rotation_offsets(x0, v0, a0, D, t, q)
