@@ -19,20 +19,24 @@ and its own reductions over joints and windows.
     to 2 m/s, the last bin holding everything faster).
 :func:`hellinger_distance`
     The distance between two such histograms.
+:func:`frechet_distance`
+    The Fréchet distance between Gaussians fitted to two samples of codes (FGD*).
 
 Definitions and references: ``docs/metrics.md``.
 """
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Sequence
 
 import numpy as np
+from scipy import linalg
 
 from gesturedb.errors import ParameterError
 
 __all__ = ["BANDS_HZ", "WELCH_SEGMENT_S", "SPEED_BIN_M_S", "SPEED_MAX_M_S", "band_key", "welch_psd",
-           "band_integrals", "speed_bins", "speed_counts", "hellinger_distance"]
+           "band_integrals", "speed_bins", "speed_counts", "hellinger_distance", "frechet_distance"]
 
 #: Frequency bands (Hz): slow movement and sway, gesture phrases, beat strokes.
 BANDS_HZ: tuple[tuple[float, float], ...] = ((0.5, 2.0), (2.0, 4.0), (4.0, 7.0))
@@ -149,3 +153,26 @@ def hellinger_distance(p, q):
             raise ParameterError(f"histogram {name}: expected finite non-negative weights with a positive sum")
     h2 = 0.5 * np.sum((np.sqrt(p / p.sum()) - np.sqrt(q / q.sum())) ** 2)
     return float(min(1.0, math.sqrt(h2)))
+
+
+def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Fréchet distance between Gaussians fitted to two samples of codes (n, L) and (m, L).
+
+    ``|mu_a - mu_b|^2 + tr(C_a + C_b - 2 (C_a C_b)^(1/2))`` with the sample covariances;
+    the tiny imaginary part ``sqrtm`` can return from rounding is dropped, and a result
+    below 0 from rounding is 0. FGD* of :mod:`gesturedb.eval.fgd` and the refiner's
+    validation (:mod:`gesturedb.refiner.validation`) both measure with it.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1] or a.shape[0] < 2 or b.shape[0] < 2:
+        raise ParameterError(f"codes: expected two arrays (n >= 2, L) with the same L, got {a.shape} and {b.shape}")
+    mu = a.mean(0) - b.mean(0)
+    ca, cb = np.atleast_2d(np.cov(a, rowvar=False)), np.atleast_2d(np.cov(b, rowvar=False))
+    # without disp= (deprecated in SciPy 1.17, gone in 1.18): the matrix only, in every version we allow.
+    # A still system has a singular covariance; SciPy warns, and the root is still right to rounding.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", linalg.LinAlgWarning)
+        root = linalg.sqrtm(ca @ cb)
+    d = float(mu @ mu + np.trace(ca) + np.trace(cb) - 2 * np.trace(np.real(root)))
+    return max(d, 0.0)

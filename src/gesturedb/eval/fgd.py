@@ -17,13 +17,11 @@ Without torch the columns are NaN (the refiner extra installs it).
 """
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
-from scipy import linalg
 
 from gesturedb.errors import ParameterError
 from gesturedb.eval.common import metric_positions
+from gesturedb.measures import frechet_distance  # one home, shared with the refiner's validation
 from gesturedb.refiner.autoencoder import WINDOW, train_motion_encoder
 
 __all__ = ["frechet_distance", "motion_windows", "SelfFGD", "STRIDE"]
@@ -31,28 +29,6 @@ __all__ = ["frechet_distance", "motion_windows", "SelfFGD", "STRIDE"]
 #: frames between window starts
 STRIDE = 4
 _CACHE: dict = {}
-
-
-def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Fréchet distance between Gaussians fitted to two samples of codes (n, L) and (m, L).
-
-    ``|mu_a - mu_b|^2 + tr(C_a + C_b - 2 (C_a C_b)^(1/2))`` with the sample covariances;
-    the tiny imaginary part ``sqrtm`` can return from rounding is dropped, and a result
-    below 0 from rounding is 0.
-    """
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1] or a.shape[0] < 2 or b.shape[0] < 2:
-        raise ParameterError(f"codes: expected two arrays (n >= 2, L) with the same L, got {a.shape} and {b.shape}")
-    mu = a.mean(0) - b.mean(0)
-    ca, cb = np.atleast_2d(np.cov(a, rowvar=False)), np.atleast_2d(np.cov(b, rowvar=False))
-    # without disp= (deprecated in SciPy 1.17, gone in 1.18): the matrix only, in every version we allow.
-    # A still system has a singular covariance; SciPy warns, and the root is still right to rounding.
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", linalg.LinAlgWarning)
-        root = linalg.sqrtm(ca @ cb)
-    d = float(mu @ mu + np.trace(ca) + np.trace(cb) - 2 * np.trace(np.real(root)))
-    return max(d, 0.0)
 
 
 def motion_windows(positions: np.ndarray, *, joints, window: int, fps: float, stride: int = STRIDE) -> np.ndarray:
