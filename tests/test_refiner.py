@@ -528,8 +528,10 @@ def _nan_weight(ck):
                                              "improvement": 0.5, "best_iteration": 1, "guards": "all"}},
           best_generator=lambda ck: ck["generator"]),
      r"validation\.verdict\.guards: expected a list of guard names, got 'all'"),
+    (dict(validation={"log": [], "trained_best": {"iteration": "3", "metrics": {}}}),
+     r"validation\.trained_best: expected None or an iteration \(int\) and its metrics"),
 ], ids=["missing", "mistyped", "joints-list", "width-30000", "unknown-setting", "width-mismatch", "audio-str",
-        "no-features", "joint-999", "nan-weight", "format", "format-tensor", "guards-str"])  # format-tensor: found by fuzz_checkpoint
+        "no-features", "joint-999", "nan-weight", "format", "format-tensor", "guards-str", "trained-best-str"])  # format-tensor: found by fuzz_checkpoint
 def test_a_damaged_checkpoint_is_one_line_naming_the_file_and_entry(change, match, tmp_path):
     """Missing or mistyped entries gave KeyError, AttributeError or TypeError; a width of 30000
     tried to allocate 10.8 GB; NaN weights were loaded. All are refused on load, before any

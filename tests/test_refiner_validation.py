@@ -16,7 +16,7 @@ import gesturedb  # noqa: E402
 from gesturedb.errors import ParameterError  # noqa: E402
 from gesturedb.refiner import data as D  # noqa: E402
 from gesturedb.refiner import validation as V  # noqa: E402
-from gesturedb.refiner.model import Generator, augment, high_band_energy  # noqa: E402
+from gesturedb.refiner.model import Generator, augment, band_powers, high_band_energy  # noqa: E402
 from gesturedb.refiner.representation import moving_joints  # noqa: E402
 from gesturedb.refiner.train import Refiner, TrainConfig, Trainer, read_checkpoint, resolve_device  # noqa: E402
 
@@ -103,7 +103,7 @@ class _Scripted:
     @staticmethod
     def _m(score):
         return {"score": score, "jerk": 1.0, "band": [1.0, 1.0, 1.0], "hellinger": 0.0, "critic_gap": 0.0, "hf": 0.0,
-                "hellinger_db": 0.0, "band_db": 0.0}  # every metric a Validator measures, the guards' included
+                "hellinger_db": 0.0, "band_db": 0.0, "fgd_db": 0.0}  # every metric a Validator measures, the guards' included
 
     def measure(self, channels, *, critic_gap=float("nan")):
         return self._m(self.scores.pop(0))
@@ -125,29 +125,38 @@ _CFG = dict(batch=3, width=8, n_critic=1, seed=3, w1=0.0)  # w1 0: every step ch
 
 @pytest.mark.parametrize("scores, best, beats", [
     ([1.2, 0.7, 0.9], 2, True),      # iteration 2 is best and 30 % better than the identity
-    ([1.1, 0.99, 1.3], 2, False),    # its best is 1 % better: under the 2 % margin
-    ([1.5, 1.4, 1.6], 2, False),     # worse than the identity all along: the best trained one is kept
+    ([1.1, 0.99, 1.3], 2, False),    # its best is 1 % better: kept, but under the 2 % margin
+    ([1.5, 1.4, 1.6], 0, False),     # worse than the identity all along: the identity is kept
 ], ids=["better", "within-margin", "worse"])
 def test_the_best_generator_by_validation_is_kept_and_applied(scores, best, beats, tmp_path):
     tr = Trainer(_tiny(), TrainConfig(**_CFG), "id", _FEATURES, validator=_Scripted(_tiny(), scores))
-    states = {}
+    states = {0: {k: v.clone() for k, v in tr.G.state_dict().items()}}  # the untrained generator: the identity
     for _ in scores:
         tr.step()
         tr.validate()
         states[tr.iteration] = {k: v.clone() for k, v in tr.G.state_dict().items()}
     v = tr.verdict()
     assert v["best_iteration"] == best and v["beats_identity"] is beats
-    assert v["improvement"] == pytest.approx(1 - min(scores))
+    assert v["improvement"] == pytest.approx(1 - min(scores) if best else 0.0)
+    assert v.get("identity_kept", False) is (best == 0)
     tr.save(tmp_path / "r.pt")
     ck = read_checkpoint(tmp_path / "r.pt", training=True)
     assert ck["validation"]["verdict"] == v and [r[0] for r in ck["validation"]["log"]] == [1, 2, 3]
+    assert ck["validation"]["trained_best"]["iteration"] == 1 + scores.index(min(scores))
     ref = Refiner.load(tmp_path / "r.pt")
     for k, t in ref.G.state_dict().items():  # the best iteration's weights, not the last
         assert torch.equal(t, states[best][k]), k
     assert not all(torch.equal(t, states[3][k]) for k, t in ref.G.state_dict().items())
     kind, message = ref.assess()
     assert kind == ("better" if beats else "worse")
-    if not beats:
+    if best == 0:  # what it applies changes nothing, and the message says so with the closest trained one
+        motion_like = torch.randn(2, 12, 16)
+        with torch.no_grad():
+            assert torch.equal(ref.G(torch.randn(2, 28, 16), motion_like), motion_like)
+        assert message == ("r.pt: no trained generator beat the unrefined motion on its validation windows (the "
+                           "closest, iteration 2: score -40.0%); the checkpoint keeps the identity: refining with "
+                           "it changes nothing").replace("r.pt", str(tmp_path / "r.pt"))
+    elif not beats:
         assert f"did not beat the unrefined motion on its validation windows (best score {min(scores):.3f} at " \
                f"iteration {best} vs 1.000 unrefined" in message
 
@@ -179,6 +188,16 @@ def test_the_database_guards_measure_against_the_training_windows_capture(scott_
     assert m["hellinger_db"] == pytest.approx(hellinger_distance(hist(val), hist(~val)), abs=2e-3)
     assert m["hellinger_db"] > 0.05  # the held-back stretch moves unlike the rest of the recording
     assert v.database["hist"].sum() == (~val).sum() * 63 * len(v.upper)  # every training window's speeds
+    # FGD* against the database: eval's windows (gesturedb.eval.fgd.motion_windows) of each validation
+    # window's capture, in the validator's encoder, against the training windows' codes
+    from gesturedb.eval.fgd import motion_windows
+    from gesturedb.measures import frechet_distance
+
+    wins = np.concatenate([motion_windows(pos[s:s + 64], joints=v.upper, window=32, fps=scott_db.fps)
+                           for s in starts[val]])
+    codes = v.encoder.encode(wins) / v.code_std
+    assert m["fgd_db"] == pytest.approx(frechet_distance(codes, v.database["codes"]), rel=1e-3)
+    assert m["fgd_db"] > 0.1 and len(v.database["codes"]) == (~val).sum() * 9  # 9 stretches of 32 in 64 frames
     monkeypatch.setattr(V, "DATABASE_WINDOWS", 2)  # a large database: a few evenly spread windows stand for it
     assert V.Validator(scott_db, data).database["hist"].sum() == 2 * 63 * len(v.upper)
 
@@ -188,9 +207,9 @@ def test_a_lower_score_that_moves_unlike_the_database_is_not_better(tmp_path):
     better, and H(speed) against the database's motion 22 % worse (held out and on the inputs it was
     worse against the database too). Its verdict is 'not better', and synth's message says on what."""
     identity = {"score": 2.277, "jerk": 2.45, "band": [1.80, 4.73, 4.71], "hellinger": 0.151, "hellinger_db": 0.0735,
-                "band_db": 0.454}
+                "band_db": 0.454, "fgd_db": 2.218}
     best = {"score": 2.147, "jerk": 2.42, "band": [1.60, 4.14, 4.30], "hellinger": 0.147, "hellinger_db": 0.0897,
-            "band_db": 0.342}
+            "band_db": 0.342, "fgd_db": 2.218}
     v = V.verdict(identity["score"], best["score"], 1650, identity=identity, best=best)
     assert v["improvement"] == pytest.approx(0.0571, abs=1e-4) and not v["beats_identity"]
     assert v["worse"] == {"hellinger_db": [0.0735, 0.0897]}
@@ -209,21 +228,25 @@ def test_a_lower_score_that_moves_unlike_the_database_is_not_better(tmp_path):
     tr.validator.identity = dict(identity, critic_gap=0.0, hf=0.0)
     tr.step()
     tr.validate()
-    assert tr.verdict()["worse"] == {"hellinger_db": [0.0735, 0.0897]}
+    v = tr.verdict()  # the identity is kept, and the verdict says why the trained generator was not
+    assert v["identity_kept"] and v["best_iteration"] == 0 and not v["beats_identity"]
+    assert v["trained"]["iteration"] == 1 and v["trained"]["worse"] == {"hellinger_db": [0.0735, 0.0897]}
     tr.save(tmp_path / "r.pt")
     kind, message = Refiner.load(tmp_path / "r.pt").assess()
     assert kind == "worse" and message.endswith(
-        "did not beat the unrefined motion on its validation windows: its score is 5.7% lower (iteration 1) but it "
-        "is worse on H(speed) vs the database's motion 0.0735 -> 0.0897 (+22%)")
+        "no trained generator beat the unrefined motion on its validation windows (the closest, iteration 1: score "
+        "+5.7%, worse on H(speed) vs the database's motion 0.0735 -> 0.0897 (+22%)); the checkpoint keeps the "
+        "identity: refining with it changes nothing")
     from gesturedb.cli.refiner import verdict_screen
 
-    assert "verdict: NOT better than the unrefined motion on validation: score 5.7% lower (iteration 1) but " \
-           "worse on H(speed) vs the database's motion" in verdict_screen(tr)
+    assert "verdict: NOT better than the unrefined motion on validation: no trained generator kept every guard " \
+           "with a lower score (the closest, iteration 1: score +5.7%, worse on H(speed) vs the database's motion " \
+           "0.0735 -> 0.0897 (+22%)); the checkpoint keeps the identity" in verdict_screen(tr)
 
 
 @pytest.mark.parametrize("runs, best, beats", [
     ([(0.7, 0.09), (0.9, 0.074), (0.8, 0.09)], 2, True),   # the lowest score that keeps the guards
-    ([(0.7, 0.09), (0.6, 0.09)], 2, False),                # none keeps them: the lowest score, not better
+    ([(0.7, 0.09), (0.6, 0.09)], 0, False),                # none keeps them: the identity is kept
     ([(0.9, 0.074), (0.5, 0.09), (0.85, 0.073)], 3, True),  # a lower score never displaces a guarded best
 ], ids=["guarded", "none-guarded", "stays-guarded"])
 def test_the_best_generator_keeps_the_guards_when_one_does(runs, best, beats):
@@ -243,7 +266,10 @@ def test_the_best_generator_keeps_the_guards_when_one_does(runs, best, beats):
         tr.validate()
     v = tr.verdict()
     assert v["best_iteration"] == best and v["beats_identity"] is beats
-    assert bool(v["worse"]) is not beats
+    assert not v["worse"]  # what is kept keeps every guard: the identity when no trained generator did
+    if best == 0:
+        assert v["trained"] == {"iteration": 2, "improvement": pytest.approx(0.4),
+                                "worse": {"hellinger_db": [0.0735, 0.09]}}
 
 
 def _validated(cfg, scores) -> Trainer:
@@ -296,9 +322,10 @@ def _before_the_guards(path) -> None:
     ck = torch.load(path, weights_only=True)
     val = ck["validation"]
     for m in [val["identity"], val["best"]["metrics"]]:
-        m.pop("hellinger_db"), m.pop("band_db")
+        m.pop("hellinger_db"), m.pop("band_db"), m.pop("fgd_db")
+    val.pop("trained_best")
     val["verdict"].pop("guards"), val["verdict"].pop("worse")
-    val["log"] = [row[:-2] for row in val["log"]]
+    val["log"] = [row[:-3] for row in val["log"]]
     torch.save(ck, path)
 
 
@@ -313,9 +340,9 @@ def test_synth_refuses_a_refiner_that_lost_to_the_identity_unless_forced(scott_d
     assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
                  str(tmp_path / "lost.pt")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"gesturedb synth: error: --refiner {tmp_path / 'lost.pt'}: did not beat the unrefined "
-                          "motion on its validation windows (best score 1.300 at iteration 1 vs 1.000 unrefined, "
-                          "-30.0%; 2% better needed); --force uses it anyway")
+    assert err.startswith(f"gesturedb synth: error: --refiner {tmp_path / 'lost.pt'}: no trained generator beat the "
+                          "unrefined motion on its validation windows (the closest, iteration 1: score -30.0%); the "
+                          "checkpoint keeps the identity: refining with it changes nothing; --force uses it anyway")
     assert not out.exists()
     assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
                  str(tmp_path / "lost.pt"), "--force"]) == 0
@@ -348,6 +375,46 @@ def test_the_high_band_energy_is_parseval_above_the_cut_off():
     assert float(e[2]) == pytest.approx(float((fast ** 2).sum()), rel=1e-5)
 
 
+def test_band_powers_split_the_mean_square_by_band():
+    """Bands that cover (0, inf) sum to the mean square of the de-meaned signal (Parseval), with an odd
+    and an even length; a sinusoid on a frequency bin lies in its own band only (numpy, not torch)."""
+    rng = np.random.default_rng(2)
+    fps = 15.0
+    edges = ((0.0, 0.5), (0.5, 2.0), (2.0, 4.0), (4.0, float("inf")))
+    for T in (63, 64):
+        x = rng.standard_normal((2, 3, T)) + 5.0
+        p = band_powers(torch.from_numpy(x), fps, edges).numpy()
+        ms = ((x - x.mean(-1, keepdims=True)) ** 2).mean(-1)
+        np.testing.assert_allclose(p.sum(-1), ms, rtol=1e-10)
+        # numpy's FFT of the same signals, band by band
+        spec = np.abs(np.fft.fft(x - x.mean(-1, keepdims=True), axis=-1)) ** 2 / T ** 2
+        f = np.abs(np.fft.fftfreq(T, 1 / fps))
+        want = np.stack([spec[..., (f > 0) & (f >= lo) & (f < hi)].sum(-1) for lo, hi in edges], -1)
+        np.testing.assert_allclose(p, want, rtol=1e-10)
+    t = np.arange(64) / fps
+    sine = np.sin(2 * np.pi * (13 * fps / 64) * t)[None, None]  # 3.05 Hz, on bin 13
+    np.testing.assert_allclose(band_powers(torch.from_numpy(sine), fps, edges).numpy()[0, 0], [0, 0, 0.5, 0],
+                               atol=1e-12)
+
+
+def test_the_band_term_keeps_each_joints_power_both_ways():
+    """0 for the identity and for a posture offset (the mean is no band); damping a joint's motion and
+    amplifying it by the same factor cost the same (two-sided), and the term is per joint: halving one
+    of two joints costs half of halving both."""
+    tr = Trainer(_tiny(T=64), TrainConfig(**_CFG), "id", _FEATURES)  # 64 frames: every band has a bin
+    knn = torch.from_numpy(_tiny(T=64).knn[:4]).double()
+    mean = knn.mean(-1, keepdim=True)
+    assert float(tr._band_change(knn, knn)) == 0.0
+    assert float(tr._band_change(knn + 0.3, knn)) == pytest.approx(0.0, abs=1e-12)
+    damped, louder = mean + 0.5 * (knn - mean), mean + 2.0 * (knn - mean)
+    # log 4 but for eps (a thousandth of the band's mean power), which shrinks the ratio a little
+    assert float(tr._band_change(damped, knn)) == pytest.approx(np.log(4), rel=5e-3)
+    assert float(tr._band_change(louder, knn)) == pytest.approx(float(tr._band_change(damped, knn)), rel=5e-3)
+    one = knn.clone()
+    one[:, :6] = damped[:, :6]  # joint 1 damped, joint 2 as it was
+    assert float(tr._band_change(one, knn)) == pytest.approx(np.log(4) / 2, rel=5e-3)
+
+
 def _output_gradient(tr, correction=None):
     """The gradient the generator step sends back from the generator's output (all its terms)."""
     seen = {}
@@ -371,7 +438,7 @@ def _output_gradient(tr, correction=None):
 def test_adding_jitter_costs_and_smoothing_does_not():
     """The jitter term alone (w1 = w2 = 0): a correction that adds energy above 3 Hz gets a gradient
     against it; one that removes some (smoothing, as a refiner should at a seam) gets none."""
-    cfg = TrainConfig(batch=3, width=8, n_critic=1, w2=0.0, w1=0.0, w_hf=1.0, seed=4)
+    cfg = TrainConfig(batch=3, width=8, n_critic=1, w2=0.0, w1=0.0, w_hf=1.0, w_band=0.0, seed=4)
     data = _tiny(W=3)
     knn = torch.from_numpy(data.fake(np.arange(3)))  # the batch is all three windows, in some order
     smooth = torch.nn.functional.avg_pool1d(knn, 3, 1, 1, count_include_pad=False) - knn
@@ -389,7 +456,8 @@ def test_adding_jitter_costs_and_smoothing_does_not():
 def test_the_l1_gradient_is_in_gradient_units():
     """w1 = 1 gives the L1 term a gradient of norm 1 per window at the output (1/sqrt(B) for the batch's
     mean), the norm the gradient penalty holds the critic's at: w1 is the ratio of the two pulls."""
-    tr = Trainer(_tiny(), TrainConfig(batch=4, width=8, n_critic=1, w1=1.0, w2=0.0, w_hf=0.0), "id", _FEATURES)
+    tr = Trainer(_tiny(), TrainConfig(batch=4, width=8, n_critic=1, w1=1.0, w2=0.0, w_hf=0.0, w_band=0.0), "id",
+                 _FEATURES)
     torch.nn.init.normal_(tr.G.out.weight, std=0.1)  # a correction that is non-zero everywhere
     g = _output_gradient(tr)
     assert float(g.norm()) == pytest.approx(1 / 4 ** 0.5, rel=1e-5)
@@ -551,7 +619,8 @@ def test_synth_refuses_a_refiner_without_a_whole_verdict_unless_forced(kind, sco
         want = (f"gesturedb synth: error: --refiner {ck}: its validation verdict (better: score +50.0% at "
                 "iteration 1) was recorded without the guards a verdict needs now, so whether it improves on the "
                 "unrefined motion is unknown: it did not check |log jerk ratio|, H(speed) vs the capture, H(speed) "
-                "vs the database's motion, arm bands vs the database's motion; `gesturedb refiner train DB.h5 -o "
+                "vs the database's motion, arm bands vs the database's motion, FGD* vs the database's motion; "
+                "`gesturedb refiner train DB.h5 -o "
                 f"{ck} --resume --iterations 1` on the database it was trained on measures it again; --force uses "
                 "it anyway")
     else:

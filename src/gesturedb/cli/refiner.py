@@ -76,10 +76,22 @@ def verdict_screen(tr) -> str:
             "database's own motion",
             f"  unrefined (identity)     {format_metrics(v.identity)}"]
     if best is not None:
-        rows.append(f"  best, iteration {best['iteration']:<8} {format_metrics(best['metrics'])}")
+        if best["iteration"] > 0:
+            rows.append(f"  best, iteration {best['iteration']:<8} {format_metrics(best['metrics'])}")
+        if tr.trained_best is not None and tr.trained_best["iteration"] != best["iteration"]:
+            t = tr.trained_best
+            rows.append(f"  best trained, it. {t['iteration']:<6} {format_metrics(t['metrics'])}  (not kept)")
     verdict = tr.verdict()
     if verdict is None:
         rows.append("verdict: no iteration validated yet")
+    elif verdict.get("identity_kept"):
+        t = verdict.get("trained") or {}
+        rows.append("verdict: NOT better than the unrefined motion on validation: no trained generator kept every "
+                    "guard with a lower score"
+                    + (f" (the closest, iteration {t['iteration']}: score {100 * t['improvement']:+.1f}%"
+                       + (f", worse on {describe_worse(t['worse'])}" if t.get("worse") else "") + ")" if t else "")
+                    + "; the checkpoint keeps the identity (refining with it changes nothing), and synth "
+                    "--refiner refuses it unless --force")
     elif verdict.get("worse"):
         rows.append(f"verdict: NOT better than the unrefined motion on validation: score {100 * verdict['improvement']:.1f}% "
                     f"lower (iteration {verdict['best_iteration']}) but worse on {describe_worse(verdict['worse'])}; "

@@ -67,6 +67,9 @@ class TrainConfig:
     #: the jitter penalty: its weight, and the cut-off (Hz) above which added energy is jitter
     w_hf: float = 1.0
     cutoff_hz: float = 3.0
+    #: the band-power term's weight: the output keeps each joint's power per band (BAND_EDGES_HZ) of
+    #: its input, two-sided (docs/refiner.md: the correction moved the database's speeds otherwise)
+    w_band: float = 1.0
     #: critic augmentation: crops of this fraction of a window, time warps of +-warp
     crop: float = 0.75
     warp: float = 0.1
@@ -84,7 +87,7 @@ class TrainConfig:
         b = self.betas
         if not (isinstance(b, (tuple, list)) and len(b) == 2 and all(_is_real(x) and 0 <= x < 1 for x in b)):
             raise ParameterError(f"betas: expected two numbers in [0, 1), got {b!r}")
-        for name in ("w1", "w2", "w3", "w_hf"):
+        for name in ("w1", "w2", "w3", "w_hf", "w_band"):
             v = getattr(self, name)
             if not (_is_real(v) and np.isfinite(v) and v >= 0):
                 raise ParameterError(f"{name}: expected a finite loss weight >= 0, got {v!r}")
@@ -294,6 +297,10 @@ def _check_validation(ck: dict, bad) -> None:
         raise bad("validation.verdict.guards", f"expected a list of guard names, got {echo(v['guards'])}")
     if v is not None and "best_generator" not in ck:
         raise bad("best_generator", "missing; the validation verdict names a best iteration, whose weights it holds")
+    t = val.get("trained_best")
+    if t is not None and not (isinstance(t, dict) and _is_int(t.get("iteration")) and isinstance(t.get("metrics"), dict)
+                              and all(_is_real(t["metrics"].get(k)) for k in ("score", "jerk"))):
+        raise bad("validation.trained_best", "expected None or an iteration (int) and its metrics (score, jerk, ...)")
 
 
 def check_compatible(ck: dict, db, path) -> None:

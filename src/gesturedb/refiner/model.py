@@ -168,3 +168,19 @@ def high_band_energy(x: torch.Tensor, fps: float, cutoff_hz: float) -> torch.Ten
     if x.shape[-1] % 2 == 0:
         w[-1] = w[-1] / 2
     return (spec.real ** 2 + spec.imag ** 2).mul(w).sum(-1) / x.shape[-1]
+
+
+def band_powers(x: torch.Tensor, fps: float, edges_hz) -> torch.Tensor:
+    """(B, C, K): power of each channel of ``x`` (B, C, T) in each band ``[lo, hi)`` of ``edges_hz``
+    (K pairs of Hz; a band from 0 leaves out the mean, bin 0): the mean square of the signal's
+    part in that band (Parseval: bands that cover (0, inf) sum to the variance over time). A band
+    with no frequency bin at this length (below 1 / T) has power 0."""
+    spec = torch.fft.rfft(x - x.mean(dim=-1, keepdim=True), dim=-1)
+    p = (spec.real ** 2 + spec.imag ** 2) / x.shape[-1] ** 2
+    f = torch.fft.rfftfreq(x.shape[-1], d=1.0 / fps).to(x.device)
+    twice = torch.full_like(f, 2.0)  # one-sided spectrum: every bin but 0 and Nyquist counts twice
+    twice[0] = 1.0
+    if x.shape[-1] % 2 == 0:
+        twice[-1] = 1.0
+    w = torch.stack([((f > 0) & (f >= lo) & (f < hi)).to(x.dtype) * twice for lo, hi in edges_hz], dim=1)  # (F, K)
+    return p @ w.to(p.dtype)

@@ -83,7 +83,7 @@ from gesturedb.refiner.data import (
     load_cache,
     make_training_data,
 )
-from gesturedb.refiner.model import Discriminator, Generator, augment, gradient_penalty, high_band_energy
+from gesturedb.refiner.model import Discriminator, Generator, augment, band_powers, gradient_penalty, high_band_energy
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
 from gesturedb.refiner.validation import (
     GUARDS,
@@ -103,6 +103,9 @@ DEVICES = ("auto", "cpu", "cuda")
 #: seconds between progress lines while the progress bar is off (stderr is not a terminal: a log file,
 #: a batch job), so a log shows the losses more often than every validation (minutes on a CPU)
 LOG_EVERY_S = 60.0
+#: the bands (Hz) whose power per joint the band-power term keeps: below the stroke bands (sway, slow
+#: drift; the mean left out), the three stroke bands of gesturedb.measures.BANDS_HZ, and the rest
+BAND_EDGES_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 4.0), (4.0, float("inf")))
 
 
 def resolve_device(device: str) -> str:
@@ -174,14 +177,18 @@ class Trainer:
         self.fps = float(self.features.get("fps", 0) or 0)
         self.cutoff_hz = jitter_cutoff_hz(self.config, self.fps)
         self.D = Discriminator(len(free), audio_channels=A, width=self.config.width).to(self.dev)
+        # the untrained generator is the identity (its last layer is zero): validation's first candidate
+        self._identity_state = {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}
         self.opt_g = torch.optim.Adam(self.G.parameters(), lr=self.config.lr, betas=tuple(self.config.betas))
         self.opt_d = torch.optim.Adam(self.D.parameters(), lr=self.config.lr, betas=tuple(self.config.betas))
         self.gen = torch.Generator().manual_seed(self.config.seed + 1)  # CPU: the same draws on any device
         self.train_idx = self.data.train_windows
         if self.train_idx.size == 0:
             raise ParameterError("training data: expected at least one training window, got none")
-        self.val_log: list = []   # [iteration, score, jerk, band..., hellinger, critic_gap, hf, hellinger_db, band_db]
-        self.best: dict | None = None  # {"iteration", "metrics", "generator" (CPU state dict)}
+        # [iteration, score, jerk, band..., hellinger, critic_gap, hf, hellinger_db, band_db, fgd_db]
+        self.val_log: list = []
+        self.best: dict | None = None  # {"iteration", "metrics", "generator" (CPU state dict)}; iteration 0: the identity
+        self.trained_best: dict | None = None  # {"iteration", "metrics"}: the best trained generator, kept or not
         self.remeasured: int | None = None  # the best's iteration, when restore() had to measure it again
 
     # -- one iteration ----------------------------------------------------------
@@ -229,6 +236,8 @@ class Trainer:
             e_out = high_band_energy(out.index_select(1, self.free), self.fps, self.cutoff_hz).sum(1)
             e_in = high_band_energy(knn.index_select(1, self.free), self.fps, self.cutoff_hz).sum(1)
             loss = loss + c.w_hf * (torch.relu(e_out - e_in) / (e_in + 1e-8)).mean()
+        if c.w_band > 0 and self.fps > 0:
+            loss = loss + c.w_band * self._band_change(out, knn)
         g_adv, = torch.autograd.grad(loss, out)
         g_l1 = torch.zeros_like(out)
         g_l1[:, self.free] = c.w1 * torch.sign(corr) / (n ** 0.5 * out.shape[0])
@@ -238,6 +247,24 @@ class Trainer:
         norm_l1 = float(g_l1.norm())
         ratio = float(g_adv.norm()) / norm_l1 if norm_l1 > 0 else float("nan")
         return float(l1), float(adv.detach()), ratio
+
+    def _band_change(self, out: torch.Tensor, knn: torch.Tensor) -> torch.Tensor:
+        """Mean over windows, free joints and :data:`BAND_EDGES_HZ` of ``|log(P_out / P_in)|``: how far the
+        output's power per joint and band (its 6 channels summed) is from its input's. Two-sided: the
+        best generator of the first recipe lowered the arms' speeds 5-7 % and raised the neck's, head's
+        and collars' 15-19 % (validation windows), which is what moved H(speed) against the database;
+        the k-NN's own speeds are close to the database's. ``eps`` (a thousandth of the window's mean
+        power in that band) keeps still joints from dominating through ratios of near-zeros."""
+        def per_joint(x):
+            p = band_powers(x.index_select(1, self.free), self.fps, BAND_EDGES_HZ)  # (B, C, K)
+            return p.reshape(p.shape[0], -1, 6, p.shape[-1]).sum(2)                # (B, J, K)
+
+        p_out, p_in = per_joint(out), per_joint(knn)
+        eps = 1e-3 * p_in.mean(dim=1, keepdim=True) + 1e-12
+        f = np.fft.rfftfreq(out.shape[-1], d=1.0 / self.fps)
+        has = [k for k, (lo, hi) in enumerate(BAND_EDGES_HZ) if ((f > 0) & (f >= lo) & (f < hi)).any()]
+        # a band without a frequency bin at this length (below 1/T) is no band: it would only dilute the mean
+        return torch.log((p_out + eps) / (p_in + eps))[..., has].abs().mean()
 
     def step(self) -> dict:
         self.G.train()
@@ -258,10 +285,20 @@ class Trainer:
             return None
         m = self._measure(self.G)
         self.val_log.append([self.iteration, m["score"], m["jerk"], *m["band"], m["hellinger"], m["critic_gap"],
-                             m["hf"], m.get("hellinger_db", float("nan")), m.get("band_db", float("nan"))])
-        if self.iteration > 0 and self._better(m):
-            self.best = {"iteration": self.iteration, "metrics": m,
-                         "generator": {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}}
+                             m["hf"], m.get("hellinger_db", float("nan")), m.get("band_db", float("nan")),
+                             m.get("fgd_db", float("nan"))])
+        if self.best is None:
+            # the identity is the first candidate (the untrained generator: its last layer is zero, it adds
+            # nothing), so a trained generator is kept only when it keeps every guard with a lower score
+            # than the unrefined input; otherwise the checkpoint applies the identity and says so
+            self.best = {"iteration": 0, "metrics": m if self.iteration == 0 else v.identity,
+                         "generator": self._identity_state}
+        if self.iteration > 0:
+            if self._better(m, self.trained_best):
+                self.trained_best = {"iteration": self.iteration, "metrics": m}
+            if self._better(m, self.best):
+                self.best = {"iteration": self.iteration, "metrics": m,
+                             "generator": {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}}
         return m
 
     def _measure(self, G: Generator) -> dict:
@@ -275,22 +312,36 @@ class Trainer:
             gap = float(self.D(a, real).mean() - self.D(a, out.index_select(1, self.free)).mean())
         return v.measure(out.cpu().numpy(), critic_gap=gap)
 
-    def _better(self, m: dict) -> bool:
-        """Whether validation metrics ``m`` make a better best than the one kept: one that keeps every
-        guard (:data:`gesturedb.refiner.validation.GUARDS`) beats one that does not, then the lower
-        score wins. So the kept generator is one the verdict can endorse whenever some iteration was."""
-        if self.best is None:
+    def _better(self, m: dict, kept: dict | None) -> bool:
+        """Whether validation metrics ``m`` make a better candidate than ``kept`` ({"metrics": ...} or None):
+        one that keeps every guard (:data:`gesturedb.refiner.validation.GUARDS`) beats one that does not,
+        then the lower score wins. The identity keeps every guard, so once it is ``kept`` only a
+        generator that keeps them all with a lower score replaces it."""
+        if kept is None:
             return True
         ident = self.validator.identity
-        keeps, kept = not worse_guards(ident, m), not worse_guards(ident, self.best["metrics"])
-        return keeps > kept or (keeps == kept and m["score"] < self.best["metrics"]["score"])
+        keeps, was = not worse_guards(ident, m), not worse_guards(ident, kept["metrics"])
+        return keeps > was or (keeps == was and m["score"] < kept["metrics"]["score"])
 
     def verdict(self) -> dict | None:
-        """The verdict so far (:func:`gesturedb.refiner.validation.verdict`), None before any validation."""
+        """The verdict so far (:func:`gesturedb.refiner.validation.verdict`), None before any validation.
+
+        When the kept generator is the identity (no trained one kept the guards with a lower score),
+        ``identity_kept`` is True and ``trained`` gives the best trained generator's iteration, score
+        gain and the guards it made worse (by the same rule), so a reader sees why none was kept."""
         if self.validator is None or self.best is None:
             return None
-        return verdict(self.validator.identity["score"], self.best["metrics"]["score"], self.best["iteration"],
-                       identity=self.validator.identity, best=self.best["metrics"])
+        ident = self.validator.identity
+        v = verdict(ident["score"], self.best["metrics"]["score"], self.best["iteration"], identity=ident,
+                    best=self.best["metrics"])
+        if self.best["iteration"] == 0:
+            v["identity_kept"] = True
+            t = self.trained_best
+            if t is not None:
+                tv = verdict(ident["score"], t["metrics"]["score"], t["iteration"], identity=ident, best=t["metrics"])
+                v["trained"] = {"iteration": tv["best_iteration"], "improvement": tv["improvement"],
+                                "worse": tv["worse"]}
+        return v
 
     # -- checkpoints ------------------------------------------------------------
     def state(self) -> dict:
@@ -327,6 +378,8 @@ class Trainer:
             "log": [[float(x) for x in row] for row in self.val_log],
             "best": None if self.best is None else {"iteration": int(self.best["iteration"]),
                                                     "metrics": _plain(self.best["metrics"])},
+            "trained_best": None if self.trained_best is None else {
+                "iteration": int(self.trained_best["iteration"]), "metrics": _plain(self.trained_best["metrics"])},
             "verdict": self.verdict(),
         }}
         if self.best is not None:
@@ -378,6 +431,16 @@ class Trainer:
                     _load_state(G, ck["best_generator"], path, "best_generator")
                     self.best["metrics"] = self._measure(G)
                     self.remeasured = self.best["iteration"]
+            t = val.get("trained_best")
+            if t is not None:
+                self.trained_best = {"iteration": int(t["iteration"]), "metrics": dict(t["metrics"])}
+            elif self.best is not None and self.best["iteration"] > 0:
+                self.trained_best = {"iteration": self.best["iteration"], "metrics": self.best["metrics"]}
+            if self.best is not None and self.best["iteration"] > 0 and not self._better(
+                    self.best["metrics"], {"metrics": self.validator.identity}):
+                # kept before the identity was a candidate, and no better than it (a guard worse, or a
+                # higher score): the identity is kept instead
+                self.best = {"iteration": 0, "metrics": self.validator.identity, "generator": self._identity_state}
         for field_, put in (("sampler_state", self.gen.set_state), ("torch_rng", torch.set_rng_state)):
             try:
                 put(ck[field_])
@@ -456,6 +519,7 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
                                            f"{RECIPE}; start afresh with --overwrite")
         if "betas" in saved:
             saved["betas"] = tuple(saved["betas"])
+        saved.setdefault("w_band", 0.0)  # a run from before the band-power term continues without it
         saved.update(iterations=config.iterations, checkpoint_every_s=config.checkpoint_every_s)
         config = TrainConfig(**saved)
     cache = out_path + ".data.h5"
@@ -661,6 +725,12 @@ class Refiner:
                                f"whether it improves on the unrefined motion is unknown: it did not check "
                                f"{', '.join(GUARDS[k] for k in missing)}; `gesturedb refiner train DB.h5 -o {name} "
                                f"--resume{again}` on the database it was trained on measures it again")
+        if v.get("identity_kept"):
+            t = v.get("trained") or {}
+            why = (f" (the closest, iteration {t['iteration']}: score {100 * t['improvement']:+.1f}%"
+                   + (f", worse on {describe_worse(t['worse'])}" if t.get("worse") else "") + ")") if t else ""
+            return "worse", (f"{name}: no trained generator beat the unrefined motion on its validation windows"
+                             f"{why}; the checkpoint keeps the identity: refining with it changes nothing")
         if v.get("worse"):
             return "worse", (f"{name}: did not beat the unrefined motion on its validation windows: its score is "
                              f"{pct:.1f}% lower (iteration {v['best_iteration']}) but it is worse on "
