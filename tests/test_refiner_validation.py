@@ -438,7 +438,7 @@ def _output_gradient(tr, correction=None):
 def test_adding_jitter_costs_and_smoothing_does_not():
     """The jitter term alone (w1 = w2 = 0): a correction that adds energy above 3 Hz gets a gradient
     against it; one that removes some (smoothing, as a refiner should at a seam) gets none."""
-    cfg = TrainConfig(batch=3, width=8, n_critic=1, w2=0.0, w1=0.0, w_hf=1.0, w_band=0.0, seed=4)
+    cfg = TrainConfig(batch=3, width=8, n_critic=1, w2=0.0, w1=0.0, w_hf=1.0, w_band=0.0, w_pose=0.0, seed=4)
     data = _tiny(W=3)
     knn = torch.from_numpy(data.fake(np.arange(3)))  # the batch is all three windows, in some order
     smooth = torch.nn.functional.avg_pool1d(knn, 3, 1, 1, count_include_pad=False) - knn
@@ -456,12 +456,26 @@ def test_adding_jitter_costs_and_smoothing_does_not():
 def test_the_l1_gradient_is_in_gradient_units():
     """w1 = 1 gives the L1 term a gradient of norm 1 per window at the output (1/sqrt(B) for the batch's
     mean), the norm the gradient penalty holds the critic's at: w1 is the ratio of the two pulls."""
-    tr = Trainer(_tiny(), TrainConfig(batch=4, width=8, n_critic=1, w1=1.0, w2=0.0, w_hf=0.0, w_band=0.0), "id",
-                 _FEATURES)
+    tr = Trainer(_tiny(), TrainConfig(batch=4, width=8, n_critic=1, w1=1.0, w2=0.0, w_hf=0.0, w_band=0.0, w_pose=0.0),
+                 "id", _FEATURES)
     torch.nn.init.normal_(tr.G.out.weight, std=0.1)  # a correction that is non-zero everywhere
     g = _output_gradient(tr)
     assert float(g.norm()) == pytest.approx(1 / 4 ** 0.5, rel=1e-5)
     assert torch.allclose(g.flatten(1).norm(dim=1), torch.full((4,), 1 / 4), rtol=1e-5)
+
+
+def test_the_posture_term_is_in_gradient_units_and_moves_only_the_mean():
+    """w_pose = 1 alone: a correction with a non-zero mean in every channel gets a gradient of norm 1
+    per window (1/sqrt(B) for the batch's mean), as the L1 term in w1's units, and the same at every
+    frame of a channel: it pulls the posture offset back, not the motion about it."""
+    tr = Trainer(_tiny(), TrainConfig(batch=4, width=8, n_critic=1, w1=0.0, w2=0.0, w_hf=0.0, w_band=0.0, w_pose=1.0),
+                 "id", _FEATURES)
+    rng = np.random.default_rng(5)
+    offset = torch.from_numpy(rng.choice([-1.0, 1.0], (4, 12, 1)) * rng.uniform(0.1, 1.0, (4, 12, 1))).float()
+    wiggle = 0.05 * torch.sin(torch.arange(16) * 2 * np.pi / 16)  # zero mean over the window
+    g = _output_gradient(tr, offset + wiggle)
+    assert float(g.norm()) == pytest.approx(1 / 4 ** 0.5, rel=1e-5)
+    assert torch.allclose(g, g[..., :1].expand_as(g))  # constant in time
 
 
 @pytest.mark.parametrize("crop, warp", [(1.0, 0.0), (0.75, 0.0), (0.75, 0.1)])

@@ -70,6 +70,10 @@ class TrainConfig:
     #: the band-power term's weight: the output keeps each joint's power per band (BAND_EDGES_HZ) of
     #: its input, two-sided (docs/refiner.md: the correction moved the database's speeds otherwise)
     w_band: float = 1.0
+    #: the posture term's weight, in gradient units as w1: the mean over a window of the correction,
+    #: a posture offset, which moved the output away from the database's poses (FGD* vs DB +78 % on
+    #: the input clips from the offset alone, docs/refiner.md) and which the band term leaves free
+    w_pose: float = 1.0
     #: critic augmentation: crops of this fraction of a window, time warps of +-warp
     crop: float = 0.75
     warp: float = 0.1
@@ -87,7 +91,7 @@ class TrainConfig:
         b = self.betas
         if not (isinstance(b, (tuple, list)) and len(b) == 2 and all(_is_real(x) and 0 <= x < 1 for x in b)):
             raise ParameterError(f"betas: expected two numbers in [0, 1), got {b!r}")
-        for name in ("w1", "w2", "w3", "w_hf", "w_band"):
+        for name in ("w1", "w2", "w3", "w_hf", "w_band", "w_pose"):
             v = getattr(self, name)
             if not (_is_real(v) and np.isfinite(v) and v >= 0):
                 raise ParameterError(f"{name}: expected a finite loss weight >= 0, got {v!r}")

@@ -238,6 +238,12 @@ class Trainer:
             loss = loss + c.w_hf * (torch.relu(e_out - e_in) / (e_in + 1e-8)).mean()
         if c.w_band > 0 and self.fps > 0:
             loss = loss + c.w_band * self._band_change(out, knn)
+        if c.w_pose > 0:
+            # |window mean of the correction|, summed over channels and scaled so that its gradient at the
+            # output has norm 1 per window when every channel's mean is non-zero (sqrt(C / T): each of the
+            # C T elements gets 1/T), the L1 term's gradient units: w_pose is its pull against the critic's
+            pose = (out - knn).index_select(1, self.free).mean(-1)
+            loss = loss + c.w_pose * (pose.abs().sum(1) / (pose.shape[1] / out.shape[-1]) ** 0.5).mean()
         g_adv, = torch.autograd.grad(loss, out)
         g_l1 = torch.zeros_like(out)
         g_l1[:, self.free] = c.w1 * torch.sign(corr) / (n ** 0.5 * out.shape[0])
@@ -519,7 +525,8 @@ def train(db, out_path, *, config: TrainConfig | None = None, resume: bool = Fal
                                            f"{RECIPE}; start afresh with --overwrite")
         if "betas" in saved:
             saved["betas"] = tuple(saved["betas"])
-        saved.setdefault("w_band", 0.0)  # a run from before the band-power term continues without it
+        for name in ("w_band", "w_pose"):  # a run from before these terms continues without them
+            saved.setdefault(name, 0.0)
         saved.update(iterations=config.iterations, checkpoint_every_s=config.checkpoint_every_s)
         config = TrainConfig(**saved)
     cache = out_path + ".data.h5"
