@@ -295,17 +295,22 @@ class Trainer:
                              m.get("fgd_db", float("nan"))])
         if self.best is None:
             # the identity is the first candidate (the untrained generator: its last layer is zero, it adds
-            # nothing), so a trained generator is kept only when it keeps every guard with a lower score
-            # than the unrefined input; otherwise the checkpoint applies the identity and says so
+            # nothing), so a trained generator is kept only when the verdict would endorse it; otherwise the
+            # checkpoint applies the identity and says so
             self.best = {"iteration": 0, "metrics": m if self.iteration == 0 else v.identity,
                          "generator": self._identity_state}
         if self.iteration > 0:
             if self._better(m, self.trained_best):
                 self.trained_best = {"iteration": self.iteration, "metrics": m}
-            if self._better(m, self.best):
+            if self._endorsed(m) and (self.best["iteration"] == 0 or m["score"] < self.best["metrics"]["score"]):
                 self.best = {"iteration": self.iteration, "metrics": m,
                              "generator": {k: t.detach().cpu().clone() for k, t in self.G.state_dict().items()}}
         return m
+
+    def _endorsed(self, m: dict) -> bool:
+        """Whether the verdict would call a generator with validation metrics ``m`` better than the identity."""
+        ident = self.validator.identity
+        return verdict(ident["score"], m["score"], 1, identity=ident, best=m)["beats_identity"]
 
     def _measure(self, G: Generator) -> dict:
         """Validation metrics of generator ``G`` on the validation windows, the critic gap by the critic of now."""
@@ -319,10 +324,10 @@ class Trainer:
         return v.measure(out.cpu().numpy(), critic_gap=gap)
 
     def _better(self, m: dict, kept: dict | None) -> bool:
-        """Whether validation metrics ``m`` make a better candidate than ``kept`` ({"metrics": ...} or None):
-        one that keeps every guard (:data:`gesturedb.refiner.validation.GUARDS`) beats one that does not,
-        then the lower score wins. The identity keeps every guard, so once it is ``kept`` only a
-        generator that keeps them all with a lower score replaces it."""
+        """Whether validation metrics ``m`` make a better trained candidate than ``kept`` ({"metrics": ...}
+        or None): one that keeps every guard (:data:`gesturedb.refiner.validation.GUARDS`) beats one that
+        does not, then the lower score wins. The closest trained generator, which the verdict reports
+        when the identity is kept."""
         if kept is None:
             return True
         ident = self.validator.identity
@@ -442,10 +447,9 @@ class Trainer:
                 self.trained_best = {"iteration": int(t["iteration"]), "metrics": dict(t["metrics"])}
             elif self.best is not None and self.best["iteration"] > 0:
                 self.trained_best = {"iteration": self.best["iteration"], "metrics": self.best["metrics"]}
-            if self.best is not None and self.best["iteration"] > 0 and not self._better(
-                    self.best["metrics"], {"metrics": self.validator.identity}):
-                # kept before the identity was a candidate, and no better than it (a guard worse, or a
-                # higher score): the identity is kept instead
+            if self.best is not None and self.best["iteration"] > 0 and not self._endorsed(self.best["metrics"]):
+                # kept before the identity was a candidate, and not better than it (a guard worse, or a
+                # score less than the margin lower): the identity is kept instead
                 self.best = {"iteration": 0, "metrics": self.validator.identity, "generator": self._identity_state}
         for field_, put in (("sampler_state", self.gen.set_state), ("torch_rng", torch.set_rng_state)):
             try:
