@@ -148,8 +148,9 @@ def test_the_best_generator_by_validation_is_kept_and_applied(scores, best, beat
         assert torch.equal(t, states[best][k]), k
     assert not all(torch.equal(t, states[3][k]) for k, t in ref.G.state_dict().items())
     kind, message = ref.assess()
-    assert kind == ("better" if beats else "worse")
+    assert kind == ("better" if beats else "worse") and ref.is_identity is (best == 0)
     if best == 0:  # what it applies changes nothing, and the message says so with the closest trained one
+        assert ref.is_identity  # refine() returns its input as it is
         motion_like = torch.randn(2, 12, 16)
         with torch.no_grad():
             assert torch.equal(ref.G(torch.randn(2, 28, 16), motion_like), motion_like)
@@ -237,7 +238,7 @@ def test_a_lower_score_that_moves_unlike_the_database_is_not_better(tmp_path):
     from gesturedb.cli.refiner import verdict_screen
 
     assert "verdict: NOT better than the unrefined motion on validation: no trained generator kept every guard " \
-           "with a lower score (the closest, iteration 1: score +5.7%, worse on H(speed) vs the database's motion " \
+           "with a score 2% lower (the closest, iteration 1: score +5.7%, worse on H(speed) vs the database's motion " \
            "0.0735 -> 0.0897 (+22%)); the checkpoint keeps the identity" in verdict_screen(tr)
 
 
@@ -344,6 +345,9 @@ def test_synth_refuses_a_refiner_that_lost_to_the_identity_unless_forced(scott_d
     assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
                  str(tmp_path / "lost.pt"), "--force"]) == 0
     assert "warning: " in capsys.readouterr().err and out.exists()
+    # it keeps the identity: forced, it changes nothing, to the bit
+    assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(tmp_path / "plain.bvh")]) == 0
+    assert out.read_bytes() == (tmp_path / "plain.bvh").read_bytes()
     out.unlink()
     assert main(["synth", str(scott_db_path), "--audio", str(wav), "-o", str(out), "--refiner",
                  str(tmp_path / "won.pt")]) == 0

@@ -87,7 +87,7 @@ def verdict_screen(tr) -> str:
     elif verdict.get("identity_kept"):
         t = verdict.get("trained") or {}
         rows.append("verdict: NOT better than the unrefined motion on validation: no trained generator kept every "
-                    "guard with a lower score"
+                    f"guard with a score {100 * verdict['margin']:.0f}% lower"
                     + (f" (the closest, iteration {t['iteration']}: score {100 * t['improvement']:+.1f}%"
                        + (f", worse on {describe_worse(t['worse'])}" if t.get("worse") else "") + ")" if t else "")
                     + "; the checkpoint keeps the identity (refining with it changes nothing), and synth "

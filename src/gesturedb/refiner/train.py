@@ -687,6 +687,8 @@ class Refiner:
         self.validation = validation
         self.iteration = iteration  # the checkpoint's last iteration: resuming up to it trains nothing
         self.threads = int(threads)
+        #: the checkpoint keeps the identity (its verdict: no trained generator beat it): refine() is a no-op
+        self.is_identity = False
         # which of the represented joints refining changes (all but the legs), found once: refine()
         # checks that a motion's skeleton is the one of ``features``
         legs = set(int(j) for j in leg_joints(features["joint_names"], features["parents"]))
@@ -706,7 +708,12 @@ class Refiner:
         which = "best_generator" if "best_generator" in ck else "generator"
         _load_state(G, ck[which], os.fspath(path), which)
         it = ck.get("iteration")
-        return cls(G, joints, ck["features"], os.fspath(path), ck.get("validation"), it if _is_int(it) else None)
+        out = cls(G, joints, ck["features"], os.fspath(path), ck.get("validation"), it if _is_int(it) else None)
+        best = (ck.get("validation") or {}).get("best") or {}
+        # the identity kept (no trained generator was better): refine() returns its input as it is, not
+        # through the 6D round trip (float32: evaluated metrics moved by up to 0.05 %)
+        out.is_identity = which == "best_generator" and best.get("iteration") == 0
+        return out
 
     @property
     def verdict(self) -> dict | None:
@@ -770,7 +777,8 @@ class Refiner:
         -------
         gesturedb.motion.Motion
             Same skeleton, fps and root; refined local rotations of the moving joints
-            above the hips (the legs keep the input's planted feet).
+            above the hips (the legs keep the input's planted feet). A copy of the input
+            when the checkpoint keeps the identity (:attr:`is_identity`).
         """
 
         T = motion.rotations.shape[0]
@@ -781,6 +789,9 @@ class Refiner:
         if list(motion.skeleton.names) != list(self.features["joint_names"]):
             raise GestureDBError(f"refiner {self.path}: motion skeleton has joints {len(motion.skeleton.names)}, "
                                  f"the refiner was trained for {len(self.features['joint_names'])}")
+        if self.is_identity:
+            return Motion(skeleton=motion.skeleton, fps=motion.fps, rotations=motion.rotations.copy(),
+                          root_positions=motion.root_positions.copy())
         before = torch.get_num_threads()
         if before != self.threads:  # setting it costs a little even when unchanged
             torch.set_num_threads(self.threads)
