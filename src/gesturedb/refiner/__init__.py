@@ -22,18 +22,7 @@ Importing this package does not import torch: its modules do, when used.
 """
 from __future__ import annotations
 
-from gesturedb.errors import GestureDBError
-
-INSTALL_HINT = "pip install 'gesturedb[refiner]' (or: pip install torch==2.13.0, the CPU build)"
-
-
-def require_torch():
-    """Import torch or raise a GestureDBError that says how to install it."""
-    try:
-        import torch
-    except ImportError as exc:
-        raise GestureDBError(f"the refiner needs PyTorch, which is not installed: {INSTALL_HINT}") from exc
-    return torch
+from gesturedb.refiner._torch import INSTALL_HINT, require_torch
 
 
 def load_refiner(path, db=None):

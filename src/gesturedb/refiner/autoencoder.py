@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gesturedb.errors import ParameterError
-from gesturedb.refiner import require_torch
+from gesturedb.refiner._torch import require_torch
 
 __all__ = ["MotionEncoder", "train_motion_encoder", "WINDOW", "LATENT"]
 

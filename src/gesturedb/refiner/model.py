@@ -27,6 +27,9 @@ from torch.nn import functional as F
 
 AUDIO_CHANNELS = 28
 POOL_FACTOR = 8  # max pooling after blocks 2, 4 and 6 of the encoder
+#: the bands (Hz) whose power per joint the band-power term keeps: below the stroke bands (sway, slow
+#: drift; the mean left out), the three stroke bands of gesturedb.measures.BANDS_HZ, and the rest
+BAND_EDGES_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 4.0), (4.0, float("inf")))
 
 
 def _block(c_in: int, c_out: int) -> nn.Sequential:
@@ -184,3 +187,25 @@ def band_powers(x: torch.Tensor, fps: float, edges_hz) -> torch.Tensor:
         twice[-1] = 1.0
     w = torch.stack([((f > 0) & (f >= lo) & (f < hi)).to(x.dtype) * twice for lo, hi in edges_hz], dim=1)  # (F, K)
     return p @ w.to(p.dtype)
+
+
+def band_change(out: torch.Tensor, inp: torch.Tensor, fps: float) -> torch.Tensor:
+    """The band-power term: mean over windows, joints and :data:`BAND_EDGES_HZ` of ``|log(P_out / P_in)|``,
+    how far the output's power per joint and band (its 6 channels summed) is from its input's.
+
+    ``out``, ``inp``: (B, 6 J, T) gesture channels, 6 per joint. Two-sided: the first recipe's best
+    generator lowered the arms' speeds 5-7 % and raised the neck's, head's and collars' 15-19 %
+    (validation windows), which moved H(speed) against the database, whose speeds the k-NN's are
+    close to. ``eps`` (a thousandth of the window's mean power in that band) keeps still joints
+    from dominating through ratios of near-zeros; a band without a frequency bin at this length
+    (below 1/T) is left out rather than counted as no change.
+    """
+    def per_joint(x):
+        p = band_powers(x, fps, BAND_EDGES_HZ)                   # (B, C, K)
+        return p.reshape(p.shape[0], -1, 6, p.shape[-1]).sum(2)  # (B, J, K)
+
+    p_out, p_in = per_joint(out), per_joint(inp)
+    eps = 1e-3 * p_in.mean(dim=1, keepdim=True) + 1e-12
+    f = torch.fft.rfftfreq(out.shape[-1], d=1.0 / fps)
+    has = [k for k, (lo, hi) in enumerate(BAND_EDGES_HZ) if bool(((f > 0) & (f >= lo) & (f < hi)).any())]
+    return torch.log((p_out + eps) / (p_in + eps))[..., has].abs().mean()

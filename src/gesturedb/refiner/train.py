@@ -83,7 +83,7 @@ from gesturedb.refiner.data import (
     load_cache,
     make_training_data,
 )
-from gesturedb.refiner.model import Discriminator, Generator, augment, band_powers, gradient_penalty, high_band_energy
+from gesturedb.refiner.model import Discriminator, Generator, augment, band_change, gradient_penalty, high_band_energy
 from gesturedb.refiner.representation import from_channels_torch, to_channels_torch
 from gesturedb.refiner.validation import (
     GUARDS,
@@ -103,9 +103,6 @@ DEVICES = ("auto", "cpu", "cuda")
 #: seconds between progress lines while the progress bar is off (stderr is not a terminal: a log file,
 #: a batch job), so a log shows the losses more often than every validation (minutes on a CPU)
 LOG_EVERY_S = 60.0
-#: the bands (Hz) whose power per joint the band-power term keeps: below the stroke bands (sway, slow
-#: drift; the mean left out), the three stroke bands of gesturedb.measures.BANDS_HZ, and the rest
-BAND_EDGES_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 4.0), (4.0, float("inf")))
 
 
 def resolve_device(device: str) -> str:
@@ -255,22 +252,8 @@ class Trainer:
         return float(l1), float(adv.detach()), ratio
 
     def _band_change(self, out: torch.Tensor, knn: torch.Tensor) -> torch.Tensor:
-        """Mean over windows, free joints and :data:`BAND_EDGES_HZ` of ``|log(P_out / P_in)|``: how far the
-        output's power per joint and band (its 6 channels summed) is from its input's. Two-sided: the
-        best generator of the first recipe lowered the arms' speeds 5-7 % and raised the neck's, head's
-        and collars' 15-19 % (validation windows), which is what moved H(speed) against the database;
-        the k-NN's own speeds are close to the database's. ``eps`` (a thousandth of the window's mean
-        power in that band) keeps still joints from dominating through ratios of near-zeros."""
-        def per_joint(x):
-            p = band_powers(x.index_select(1, self.free), self.fps, BAND_EDGES_HZ)  # (B, C, K)
-            return p.reshape(p.shape[0], -1, 6, p.shape[-1]).sum(2)                # (B, J, K)
-
-        p_out, p_in = per_joint(out), per_joint(knn)
-        eps = 1e-3 * p_in.mean(dim=1, keepdim=True) + 1e-12
-        f = np.fft.rfftfreq(out.shape[-1], d=1.0 / self.fps)
-        has = [k for k, (lo, hi) in enumerate(BAND_EDGES_HZ) if ((f > 0) & (f >= lo) & (f < hi)).any()]
-        # a band without a frequency bin at this length (below 1/T) is no band: it would only dilute the mean
-        return torch.log((p_out + eps) / (p_in + eps))[..., has].abs().mean()
+        """:func:`model.band_change` of the free channels (the band-power term)."""
+        return band_change(out.index_select(1, self.free), knn.index_select(1, self.free), self.fps)
 
     def step(self) -> dict:
         self.G.train()
