@@ -251,9 +251,10 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
     wav = scott_dir / "inputs" / "2_scott_0_3_3.wav"
     plain, refined = tmp_path / "knn.bvh", tmp_path / "refined.bvh"
     assert gdb("synth", scott_db_path, "--audio", wav, "-o", plain).returncode == 0
-    # three iterations do not beat the identity on validation: refused, then used with --force
+    # three iterations do not beat the identity on validation: refused, then used with --force, and the
+    # checkpoint keeps the identity, so forced it changes nothing
     r = gdb("synth", scott_db_path, "--audio", wav, "-o", refined, "--refiner", ck)
-    assert r.returncode == 2 and "did not beat the unrefined motion" in r.stderr and "--force" in r.stderr
+    assert r.returncode == 2 and "no trained generator beat the unrefined motion" in r.stderr and "--force" in r.stderr
     assert not refined.exists()
     r = gdb("synth", scott_db_path, "--audio", wav, "-o", refined, "--refiner", ck, "--force")
     assert r.returncode == 0, r.stderr
@@ -262,8 +263,7 @@ def test_cli_train_resume_synth_and_apply(scott_db_path, scott_dir, tmp_path):
 
     a, b = read_motion(plain), read_motion(refined)
     assert a.n_frames == b.n_frames
-    assert np.allclose(a.root_positions, b.root_positions, atol=1e-4)  # the root is the k-NN's
-    assert np.all(np.isfinite(b.positions))
+    assert refined.read_bytes() == plain.read_bytes()
     applied = tmp_path / "applied.bvh"
     r = gdb("refiner", "apply", ck, "--db", scott_db_path, "--audio", wav, "--input", plain, "-o", applied)
     assert r.returncode == 0, r.stderr
