@@ -25,11 +25,15 @@ The recipe (``recipe`` 2; docs/refiner.md gives what each part changed, measured
 - **Reals and fakes processed alike**: fakes are assembled as synthesis assembles
   them; the same assembly of a real (contiguous) window changes only the legs (foot
   IK; the upper body within 1e-15), so the critic sees no leg channel.
+- **Band power and posture kept**: ``w_band`` times :func:`model.band_change` (each
+  joint's power per band, two-sided) and ``w_pose`` times the correction's window
+  mean (in the L1 term's gradient units): the first recipe's output moved away from
+  the database by a posture offset and a narrower speed distribution.
 - **Validation** (:mod:`gesturedb.refiner.validation`): every ``val_every``
-  iterations the generator refines the held-back windows; the best generator by
-  the validation score among those that keep the verdict's guards (by the score
-  alone while none does) is kept in the checkpoint beside the last one (the last
-  resumes, the best is applied), with the verdict against the identity.
+  iterations the generator refines the held-back windows; the identity (iteration 0)
+  is kept unless a generator the verdict endorses (every guard kept, the score 2 %
+  lower) comes, then the lowest score among those; beside the last generator (the
+  last resumes, the kept one is applied), with the verdict against the identity.
 
 Checkpoints hold everything a run needs to continue bit for bit: both models,
 both optimisers, the iteration, the losses so far, the state of the batch
@@ -234,7 +238,8 @@ class Trainer:
             e_in = high_band_energy(knn.index_select(1, self.free), self.fps, self.cutoff_hz).sum(1)
             loss = loss + c.w_hf * (torch.relu(e_out - e_in) / (e_in + 1e-8)).mean()
         if c.w_band > 0 and self.fps > 0:
-            loss = loss + c.w_band * self._band_change(out, knn)
+            loss = loss + c.w_band * band_change(out.index_select(1, self.free), knn.index_select(1, self.free),
+                                                 self.fps)
         if c.w_pose > 0:
             # |window mean of the correction|, summed over channels and scaled so that its gradient at the
             # output has norm 1 per window when every channel's mean is non-zero (sqrt(C / T): each of the
@@ -250,10 +255,6 @@ class Trainer:
         norm_l1 = float(g_l1.norm())
         ratio = float(g_adv.norm()) / norm_l1 if norm_l1 > 0 else float("nan")
         return float(l1), float(adv.detach()), ratio
-
-    def _band_change(self, out: torch.Tensor, knn: torch.Tensor) -> torch.Tensor:
-        """:func:`model.band_change` of the free channels (the band-power term)."""
-        return band_change(out.index_select(1, self.free), knn.index_select(1, self.free), self.fps)
 
     def step(self) -> dict:
         self.G.train()
@@ -320,7 +321,7 @@ class Trainer:
     def verdict(self) -> dict | None:
         """The verdict so far (:func:`gesturedb.refiner.validation.verdict`), None before any validation.
 
-        When the kept generator is the identity (no trained one kept the guards with a lower score),
+        When the kept generator is the identity (no trained one the verdict would endorse),
         ``identity_kept`` is True and ``trained`` gives the best trained generator's iteration, score
         gain and the guards it made worse (by the same rule), so a reader sees why none was kept."""
         if self.validator is None or self.best is None:
