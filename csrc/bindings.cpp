@@ -262,6 +262,27 @@ py::dict step_result_dict(const StepResult& r) {
     return d;
 }
 
+// The kinematic chain both forward kinematics bindings take: root (F, 3), parents (J,) with every
+// joint after its parent, offsets (J, 3); checked here, a wrong shape or order would read out of
+// bounds. Returns the parents' data.
+const int64_t* check_chain(const F64& root, const I64& parents, const F64& offsets, int64_t F, int64_t J) {
+    if (root.ndim() != 2 || root.shape(0) != F || root.shape(1) != 3)
+        throw std::invalid_argument("root: expected (" + std::to_string(F) + ", 3); got " + shape_str(root));
+    if (parents.ndim() != 1 || parents.shape(0) != J)
+        throw std::invalid_argument("parents: expected (" + std::to_string(J) + ",); got " +
+                                    shape_str(parents));
+    if (offsets.ndim() != 2 || offsets.shape(0) != J || offsets.shape(1) != 3)
+        throw std::invalid_argument("offsets: expected (" + std::to_string(J) + ", 3); got " +
+                                    shape_str(offsets));
+    const int64_t* par = parents.data();
+    for (int64_t j = 1; j < J; ++j)
+        if (par[j] < 0 || par[j] >= j)
+            throw std::invalid_argument("parents[" + std::to_string(j) + "]: expected 0 <= parent < " +
+                                        std::to_string(j) + " (parents first); got " +
+                                        std::to_string(par[j]));
+    return par;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_core, m) {
@@ -569,21 +590,7 @@ PYBIND11_MODULE(_core, m) {
             const int64_t F = mats.shape(0), J = mats.shape(1);
             if (J < 1 || mats.shape(2) != 3 || mats.shape(3) != 3)
                 throw std::invalid_argument("mats: expected (F, J >= 1, 3, 3); got " + shape_str(mats));
-            if (root.ndim() != 2 || root.shape(0) != F || root.shape(1) != 3)
-                throw std::invalid_argument("root: expected (" + std::to_string(F) + ", 3); got " +
-                                            shape_str(root));
-            if (parents.ndim() != 1 || parents.shape(0) != J)
-                throw std::invalid_argument("parents: expected (" + std::to_string(J) + ",); got " +
-                                            shape_str(parents));
-            if (offsets.ndim() != 2 || offsets.shape(0) != J || offsets.shape(1) != 3)
-                throw std::invalid_argument("offsets: expected (" + std::to_string(J) + ", 3); got " +
-                                            shape_str(offsets));
-            const int64_t* par = parents.data();
-            for (int64_t j = 1; j < J; ++j)
-                if (par[j] < 0 || par[j] >= j)
-                    throw std::invalid_argument("parents[" + std::to_string(j) +
-                                                "]: expected 0 <= parent < " + std::to_string(j) +
-                                                " (parents first); got " + std::to_string(par[j]));
+            const int64_t* par = check_chain(root, parents, offsets, F, J);
             py::array_t<double> pos({F, J, int64_t(3)});
             py::array_t<double> worlds(want_worlds ? std::vector<int64_t>{F, J, 3, 3}
                                                    : std::vector<int64_t>{0});
@@ -607,21 +614,7 @@ PYBIND11_MODULE(_core, m) {
             const int64_t F = quats.shape(0), J = quats.shape(1);
             if (J < 1 || quats.shape(2) != 4)
                 throw std::invalid_argument("quats: expected (F, J >= 1, 4); got " + shape_str(quats));
-            if (root.ndim() != 2 || root.shape(0) != F || root.shape(1) != 3)
-                throw std::invalid_argument("root: expected (" + std::to_string(F) + ", 3); got " +
-                                            shape_str(root));
-            if (parents.ndim() != 1 || parents.shape(0) != J)
-                throw std::invalid_argument("parents: expected (" + std::to_string(J) + ",); got " +
-                                            shape_str(parents));
-            if (offsets.ndim() != 2 || offsets.shape(0) != J || offsets.shape(1) != 3)
-                throw std::invalid_argument("offsets: expected (" + std::to_string(J) + ", 3); got " +
-                                            shape_str(offsets));
-            const int64_t* par = parents.data();
-            for (int64_t j = 1; j < J; ++j)
-                if (par[j] < 0 || par[j] >= j)
-                    throw std::invalid_argument("parents[" + std::to_string(j) +
-                                                "]: expected 0 <= parent < " + std::to_string(j) +
-                                                " (parents first); got " + std::to_string(par[j]));
+            const int64_t* par = check_chain(root, parents, offsets, F, J);
             py::array_t<double> pos({F, J, int64_t(3)});
             py::array_t<double> grot(want_rotations ? std::vector<int64_t>{F, J, 4}
                                                     : std::vector<int64_t>{0});
