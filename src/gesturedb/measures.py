@@ -36,7 +36,8 @@ from scipy import linalg
 from gesturedb.errors import ParameterError
 
 __all__ = ["BANDS_HZ", "WELCH_SEGMENT_S", "SPEED_BIN_M_S", "SPEED_MAX_M_S", "band_key", "welch_psd",
-           "band_integrals", "speed_bins", "speed_counts", "hellinger_distance", "frechet_distance"]
+           "band_integrals", "speed_bins", "speed_counts", "hellinger_distance", "frechet_distance",
+           "FGD_STRIDE", "motion_windows"]
 
 #: Frequency bands (Hz): slow movement and sway, gesture phrases, beat strokes.
 BANDS_HZ: tuple[tuple[float, float], ...] = ((0.5, 2.0), (2.0, 4.0), (4.0, 7.0))
@@ -176,3 +177,24 @@ def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
         root = linalg.sqrtm(ca @ cb)
     d = float(mu @ mu + np.trace(ca) + np.trace(cb) - 2 * np.trace(np.real(root)))
     return max(d, 0.0)
+
+
+#: frames between the starts of FGD*'s windows (:func:`motion_windows`)
+FGD_STRIDE = 4
+
+
+def motion_windows(positions: np.ndarray, *, joints, window: int, fps: float, stride: int = FGD_STRIDE) -> np.ndarray:
+    """Windows (n, window, 6 len(joints)) float32 of positions (T, J, 3) in metres and their
+    velocities in m/s (backward differences, the first frame's repeated), starts 0, stride, ...;
+    (0, window, D) when T < window. What FGD* encodes (:mod:`gesturedb.eval.fgd`, and the
+    refiner's validation, which may not import eval)."""
+    pos = np.asarray(positions, dtype=np.float64)[:, np.asarray(joints)]
+    T = pos.shape[0]
+    vel = np.diff(pos, axis=0, prepend=pos[:1]) * fps
+    if T > 1:
+        vel[0] = vel[1]
+    flat = np.concatenate([pos.reshape(T, -1), vel.reshape(T, -1)], axis=1).astype(np.float32)
+    starts = np.arange(0, T - window + 1, stride)
+    if starts.size == 0:
+        return np.zeros((0, window, flat.shape[1]), dtype=np.float32)
+    return np.stack([flat[s:s + window] for s in starts])

@@ -21,30 +21,14 @@ import numpy as np
 
 from gesturedb.errors import ParameterError
 from gesturedb.eval.common import metric_positions
-from gesturedb.measures import frechet_distance  # one home, shared with the refiner's validation
+from gesturedb.measures import FGD_STRIDE, frechet_distance, motion_windows  # one home, shared with the refiner
 from gesturedb.refiner.autoencoder import WINDOW, train_motion_encoder
 
 __all__ = ["frechet_distance", "motion_windows", "SelfFGD", "STRIDE"]
 
 #: frames between window starts
-STRIDE = 4
+STRIDE = FGD_STRIDE
 _CACHE: dict = {}
-
-
-def motion_windows(positions: np.ndarray, *, joints, window: int, fps: float, stride: int = STRIDE) -> np.ndarray:
-    """Windows (n, window, 6 len(joints)) float32 of positions (T, J, 3) in metres and their
-    velocities in m/s (backward differences, the first frame's repeated), starts 0, stride, ...;
-    (0, window, D) when T < window."""
-    pos = np.asarray(positions, dtype=np.float64)[:, np.asarray(joints)]
-    T = pos.shape[0]
-    vel = np.diff(pos, axis=0, prepend=pos[:1]) * fps
-    if T > 1:
-        vel[0] = vel[1]
-    flat = np.concatenate([pos.reshape(T, -1), vel.reshape(T, -1)], axis=1).astype(np.float32)
-    starts = np.arange(0, T - window + 1, stride)
-    if starts.size == 0:
-        return np.zeros((0, window, flat.shape[1]), dtype=np.float32)
-    return np.stack([flat[s:s + window] for s in starts])
 
 
 class SelfFGD:

@@ -72,9 +72,11 @@ import numpy as np
 
 from gesturedb.io.joints import group_joints, leg_joints
 from gesturedb.measures import (
+    FGD_STRIDE,
     band_integrals,
     frechet_distance,
     hellinger_distance,
+    motion_windows,
     speed_bins,
     speed_counts,
     welch_psd,
@@ -89,8 +91,6 @@ from gesturedb.roles import STROKE_JOINT_GROUPS
 #: a refiner that changes its input by a hair is not endorsed for it
 VERDICT_MARGIN = 0.02
 METRICS = ("score", "jerk", "band", "hellinger", "critic_gap", "hf", "hellinger_db", "band_db", "fgd_db")
-#: frames between the starts of the FGD* stretches within a window (eval's gesturedb.eval.fgd.STRIDE)
-CODE_STRIDE = 4
 #: the FGD* autoencoder's training steps (gesturedb.refiner.autoencoder's default; a few seconds)
 CODE_STEPS = 600
 #: training windows whose capture stands for the database's own motion, at most (evenly spread)
@@ -111,14 +111,10 @@ def _arm_bands(vel: np.ndarray, fps: float) -> np.ndarray:
 
 def _code_windows(pos: np.ndarray, fps: float) -> np.ndarray:
     """(n, T, j, 3) positions (metres) -> (n m, CODE_WINDOW, 6 j) float32: every CODE_WINDOW-frame stretch
-    of every window (starts 0, CODE_STRIDE, ...), positions and velocities (m/s, backward differences,
-    the window's first frame repeating the second's), the windows of :func:`gesturedb.eval.fgd.motion_windows`."""
-    n, T = pos.shape[:2]
-    vel = np.diff(pos, axis=1, prepend=pos[:, :1]) * fps
-    vel[:, 0] = vel[:, 1]
-    flat = np.concatenate([pos.reshape(n, T, -1), vel.reshape(n, T, -1)], axis=2).astype(np.float32)
-    starts = np.arange(0, T - CODE_WINDOW + 1, CODE_STRIDE)
-    return np.stack([flat[:, s:s + CODE_WINDOW] for s in starts], axis=1).reshape(-1, CODE_WINDOW, flat.shape[2])
+    of every window (:func:`gesturedb.measures.motion_windows`, as eval's FGD* cuts a recording)."""
+    joints = np.arange(pos.shape[2])
+    return np.concatenate([motion_windows(p, joints=joints, window=CODE_WINDOW, fps=fps, stride=FGD_STRIDE)
+                           for p in pos])
 
 
 def _speed_hist(pos: np.ndarray, fps: float) -> np.ndarray:
@@ -172,10 +168,11 @@ class Validator:
             tpos = self._positions(data.real(train), tbase)
             self.database = self._stats(tpos)
             # FGD* against the database (module docstring): windows shorter than its stretches have none
-            self.encoder = (train_motion_encoder(_code_windows(tpos, self.fps), steps=CODE_STEPS)
-                            if T >= CODE_WINDOW and train.size >= 2 else None)
-            if self.encoder is not None:
-                raw = self.encoder.encode(_code_windows(tpos, self.fps))
+            self.encoder = None
+            if T >= CODE_WINDOW and train.size >= 2:
+                wins = _code_windows(tpos, self.fps)
+                self.encoder = train_motion_encoder(wins, steps=CODE_STEPS)
+                raw = self.encoder.encode(wins)
                 self.code_std = np.maximum(raw.std(0), 1e-9)
                 self.database["codes"] = raw / self.code_std
         else:
