@@ -187,7 +187,7 @@ def apply_quintic_rotation_offsets(x0: np.ndarray, v0: np.ndarray, a0: np.ndarra
     D = np.asarray(decay_s, dtype=np.float64)
     if D.shape not in ((), (J,), (J, 1)):
         raise ParameterError(f"decay_s: expected a number, ({J},) or ({J}, 1); got shape {D.shape}")
-    D = np.ascontiguousarray(np.broadcast_to(D.reshape(-1), (J,)) if D.ndim else np.full(J, float(D)))
+    D = np.ascontiguousarray(np.broadcast_to(D.reshape(-1), (J,)))  # one decay a joint
     t = np.ascontiguousarray(t, dtype=np.float64).reshape(-1)
     if t.shape[0] != n:
         raise ParameterError(f"t: expected ({n},) times, one per frame of q; got {t.shape}")
