@@ -38,7 +38,7 @@ def test_frame_count_matches_duration(scott_db):
 def test_arrays_have_declared_shapes_and_are_search_ready(scott_db):
     F = scott_db.n_frames
     for arr, shape in [
-        (scott_db.pose_features, (F, 120)),
+        (scott_db.pose_features, (F, 150)),  # 8 feature joints and the 2 ankles, 5 frames
         (scott_db.audio_features, (F, 14)),
         (scott_db.audio_deltas, (F, 14)),
         (scott_db.joint_positions, (F, 55, 3)),

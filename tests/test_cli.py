@@ -27,7 +27,7 @@ def test_build_info_export_synth(scott_dir, tmp_path, capsys):
     assert code == 0 and "953 frames at 15 fps" in out and "scott" in out and "chunks       15 x 64" in out
     code, out, _ = run(capsys, "info", db, "--json")
     info = json.loads(out)
-    assert info["frames"] == 953 and info["features"] == {"pose": 120, "audio": 14}
+    assert info["frames"] == 953 and info["features"] == {"pose": 150, "audio": 14}
 
     bvh = tmp_path / "stretch.bvh"
     code, out, err = run(capsys, "export", db, "--recording", "2_scott_0_1_1", "--start", 10, "--end", 12, "-o", bvh)

@@ -19,13 +19,16 @@ except ModuleNotFoundError:  # pragma: no cover
     from tests.test_features_synth import SMPLX_JOINTS, gesturing, rigid, yaw_matrix
 
 J = SMPLX_JOINTS
+#: SMPL-X's left and right ankle (gesturing() moves every joint)
+ANKLES = (7, 8)
 
 
-def _reference(pos, window, stride):
+def _reference(pos, window, stride, stance=()):
     """Frame-by-frame loop with the facing angle from atan2 (no smoothing)."""
     n = len(pos)
     lags = range(-(window - 1), window)
     out = np.zeros((n, len(lags), 8, 3))
+    ankles = np.zeros((n, len(lags), len(stance), 3))
     for f in range(n):
         a = (pos[f, J["left_hip"]] - pos[f, J["right_hip"]]) + (pos[f, J["left_shoulder"]] - pos[f, J["right_shoulder"]])
         rot = yaw_matrix(np.arctan2(-a[2], a[0]))  # the rest axis +x maps to (cos, 0, -sin)
@@ -33,7 +36,9 @@ def _reference(pos, window, stride):
             s = min(max(f + k * stride, 0), n - 1)
             for j, role in enumerate(FEATURE_ROLES):
                 out[f, i, j] = rot.T @ (pos[s, J[role]] - pos[f, J["root"]])
-    return out.reshape(n, -1)
+            for j, joint in enumerate(stance):
+                ankles[f, i, j] = rot.T @ (pos[s, joint] - pos[f, J["root"]])
+    return np.concatenate([out.reshape(n, -1), ankles.reshape(n, -1)], axis=1)
 
 
 def test_layout_dtype_and_default_size():
@@ -47,6 +52,25 @@ def test_layout_dtype_and_default_size():
     )
     assert pose_features(pos, joints=J, fps=15, window=1).shape == (40, 24)
     assert pose_feature_size(window=4) == 168
+    # the stance: the two ankles after the 8 feature joints, what a build stores for a rig with legs
+    with_stance = pose_features(pos, joints=J, fps=15, stance=ANKLES)
+    assert with_stance.shape == (40, 150) == (40, pose_feature_size(stance=True))
+    np.testing.assert_array_equal(with_stance[:, :120], feat)  # the feature joints' columns are untouched
+    for bad in ([7], [7, 8, 9], [7, len(pos[0])], [-1, 8]):
+        with pytest.raises(ParameterError, match=r"^stance: expected the two ankles' joint indices"):
+            pose_features(pos, joints=J, fps=15, stance=bad)
+
+
+def test_the_ankles_are_found_in_every_rig_with_legs_and_only_there():
+    from gesturedb.io.joints import ankle_joints
+
+    names = ["pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+             "right_ankle", "spine3", "left_foot", "right_foot"]
+    assert ankle_joints(names).tolist() == [7, 8]  # SMPL-X: "foot" are the toes there
+    bvh = ["Hips", "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase", "RightUpLeg", "RightLeg", "RightFoot", "Spine"]
+    assert ankle_joints(bvh).tolist() == [3, 7]
+    assert ankle_joints(["Hips", "Spine", "Neck", "Head", "LeftArm", "RightArm"]).size == 0  # no legs: no stance
+    assert ankle_joints(bvh[:5] + ["Spine"]).size == 0  # one leg is no stance either
 
 
 def test_default_stride_is_the_same_time_at_any_frame_rate():
@@ -69,6 +93,8 @@ def test_matches_a_frame_by_frame_loop_while_walking_and_turning(window, stride)
     pos = rigid(gesturing(n, seed=stride), angles, walk)
     got = pose_features(pos, joints=J, fps=15, window=window, stride=stride, facing_smooth_s=0)
     np.testing.assert_allclose(got, _reference(pos, window, stride), atol=2e-6)
+    got = pose_features(pos, joints=J, fps=15, window=window, stride=stride, stance=ANKLES, facing_smooth_s=0)
+    np.testing.assert_allclose(got, _reference(pos, window, stride, ANKLES), atol=2e-6)
 
 
 def test_stacked_frames_are_past_and_future_clamped_at_both_ends():

@@ -469,7 +469,7 @@ def test_real_graph_is_stored_and_consistent(scott_db_path):
         assert np.isfinite(sm["heldout_rmse"]) or K < 7
 
 
-@pytest.mark.parametrize("version", [1, 2, 3])
+@pytest.mark.parametrize("version", [1, 2, 3, 4])
 def test_old_file_is_a_clear_error_and_upgrade_brings_it_to_what_a_build_writes(scott_db_path, tmp_path, capsys,
                                                                                  version):
     from gesturedb.cli.main import main
@@ -484,19 +484,23 @@ def test_old_file_is_a_clear_error_and_upgrade_brings_it_to_what_a_build_writes(
             del h5["graph_lower"]
         if version == 1:
             del h5["graph"], h5["style_model"]
-        # what version 3 stored: the past only (frames f, f-2, f-4, f-6, 96 values)
+        # what version 3 stored: the past only (frames f, f-2, f-4, f-6, 96 values); version 4: centred, no
+        # ankles (120 values)
         del h5["frames/pose_features"]
-        h5["frames/pose_features"] = np.zeros((want["frames/pose_features"].shape[0], 96), np.float32)
-        h5.attrs["config"] = json.dumps({**want_config, "pose_window": 4, "pose_stride": 2})
+        h5["frames/pose_features"] = np.zeros((want["frames/pose_features"].shape[0], 96 if version < 4 else 120),
+                                              np.float32)
+        if version < 4:
+            h5.attrs["config"] = json.dumps({**want_config, "pose_window": 4, "pose_stride": 2})
         h5.attrs["schema_version"] = version
-    with pytest.raises(SchemaError, match=rf"old.h5: schema_version: expected 4, got {version} "
+    now = schema.SCHEMA_VERSION
+    with pytest.raises(SchemaError, match=rf"old.h5: schema_version: expected {now}, got {version} "
                                           rf"\({re.escape(schema.UPGRADABLE_VERSIONS[version])}\).*gesturedb upgrade"):
         gesturedb.open(old)
     with pytest.raises(SchemaError, match="gesturedb upgrade"):
         G.add_graph(old)  # the graph alone would leave the pose features as they were
     assert main(["upgrade", str(old)] + (["-q"] if version == 2 else [])) == 0
     out = capsys.readouterr().out
-    assert f"schema version {version} -> 4" in out and "pose features" in out
+    assert f"schema version {version} -> {now}" in out and "pose features" in out and "stance" in out
     assert ("motion graphs" in out) == (version < 3)
     with gesturedb.open(old) as db, h5py.File(old, "r") as h5:
         for k, v in want.items():

@@ -79,10 +79,11 @@ class PoseProjection:
     computes only those exactly on ``pose``. Results are identical with and
     without it; non-finite values make their segment fall back to the exact scan.
 
-    Pose features stack a frame's 8 feature joints over 4 past frames, all in
-    the current frame's body frame, so 3/4 of each row is nearly, but not
-    exactly, a copy of earlier rows: 24 principal directions keep most of it
-    (median ``r_f`` 0.09 of typical distances of 1-2 on the real database).
+    Pose features stack a frame's feature joints (and ankles) over 5 frames
+    centred on it, all in the current frame's body frame, so most of each row
+    is nearly, but not exactly, a copy of its neighbours' rows: 24 principal
+    directions keep most of it (median ``r_f`` 0.09 of typical distances of 1-2
+    on the real database with the schema-3 feature).
 
     Build it once per database (one pass over ``pose`` and a (Dp, Dp)
     eigendecomposition) and pass it as ``pose_proj=`` together with the very

@@ -50,7 +50,7 @@ from gesturedb.features.pauses import DEFAULT_VAD, VAD_METHODS, voiced_segments
 from gesturedb.io import read_audio, read_motion, read_transcript
 from gesturedb.io.audio import audio_duration
 from gesturedb.io.bvh import describe_length_unit
-from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, find_joints
+from gesturedb.io.joints import BODY_ROLES, FEATURE_ROLES, ankle_joints, find_joints
 from gesturedb.io.outputs import check_outputs
 from gesturedb.io.transcripts import Words
 
@@ -320,7 +320,7 @@ def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingS
     # (`gesturedb upgrade`, tests) gives the same bits
     positions32 = positions.astype(np.float32).astype(np.float64)
     pose = fpose.pose_features(positions32, joints=joints, fps=cfg.fps, window=cfg.pose_window,
-                               stride=cfg.pose_stride)
+                               stride=cfg.pose_stride, stance=ankle_joints(motion.skeleton.names))
     controls = fcontrols.control_features(positions32, joints=joints, fps=cfg.fps)
 
     c_start, c_len = fseg.fixed_chunks(n, length=cfg.chunk_frames)

@@ -47,13 +47,15 @@ from gesturedb.errors import ParameterError, SchemaError
 #:    (Sec. 4.1)
 #: 4: frames/pose_features stack frames centred on each frame (past and future) instead of its past
 #:    only; config pose_stride is 2/15 s in frames
+#: 5: frames/pose_features carry the ankles (the stance) after the 8 feature joints, where the rig has legs
 #: `gesturedb upgrade DB.h5` (:mod:`gesturedb.db.upgrade`) brings any of them to SCHEMA_VERSION
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 #: versions `gesturedb upgrade` brings to SCHEMA_VERSION, and what each lacks
 UPGRADABLE_VERSIONS = {
     1: "no motion graph, pose features of the past only",
     2: "one motion graph over the whole body, pose features of the past only",
     3: "pose features of the past only",
+    4: "pose features without the stance (the ankles)",
 }
 
 #: HDF5 variable-length UTF-8 strings
@@ -169,7 +171,8 @@ FIELDS: tuple[Field, ...] = (
     Field(RECORDING_MIRRORED, "bool", ("R",), "", "left/right mirrored copy of another recording"),
     # --- per-frame arrays --------------------------------------------------
     Field(POSE_FEATURES, "float32", ("F", "Dp"), "m",
-          "feature joints in the body frame of the current frame, stacked over the past window; "
+          "feature joints, then the ankles where the rig has legs, in the body frame of the current frame, "
+          "stacked over a window centred on it; "
           "attr `mean`: float64 (Dp,), its mean over frames"),
     Field(AUDIO_FEATURES, "float32", ("F", "Da"), "1",
           "13 MFCC + log mean energy per frame, standardised with audio/mean and audio/std"),

@@ -8,6 +8,9 @@ What each version lacks, and what the upgrade recomputes from what the file keep
   ``pose_window`` and ``pose_stride``. At a frame rate other than 15 fps the control
   features are recomputed too (their facing smoothing is now in seconds), with the default
   masks; saved masks keep their frames.
+* before 5: the pose features had no stance; they are recomputed with the ankles
+  (:func:`gesturedb.io.joints.ankle_joints`; a rig without legs keeps the 8 feature joints)
+  from the stored joint positions, as a build of this version computes them.
 * before 3: no lower-body graph (and, before 2, no graph at all): both motion graphs and the
   style predictor are computed as a build makes them.
 
@@ -29,13 +32,15 @@ from gesturedb.db.graph import write_graph
 from gesturedb.errors import InputFileError, SchemaError
 from gesturedb.features.body import BODY_ROLES
 from gesturedb.features.pose import POSE_WINDOW, default_pose_stride, pose_features
-from gesturedb.io.joints import find_joints
+from gesturedb.io.joints import ankle_joints, find_joints
 from gesturedb.roles import FEATURE_ROLES
 
 __all__ = ["upgrade", "file_version"]
 
 #: the first version whose pose features are centred on the frame
 CENTRED_POSE_VERSION = 4
+#: the first version whose pose features carry the ankles (the stance)
+STANCE_POSE_VERSION = 5
 
 
 def file_version(path: str | os.PathLike) -> int:
@@ -74,9 +79,10 @@ def upgrade(path: str | os.PathLike, *, progress: bool = False, scheduler=None) 
     done = []
     with optional_client(scheduler) as client:
         with storage.edit(path, upgrade=True) as h5:
-            if got < CENTRED_POSE_VERSION:
+            if got < STANCE_POSE_VERSION:
                 _recompute_pose_features(h5, os.fspath(path))
-                done.append("pose features centred on each frame")
+                done.append("pose features centred on each frame, with the stance"
+                            if got < CENTRED_POSE_VERSION else "pose features with the stance (the ankles)")
             if got < 3:
                 for grp in (*schema.GRAPHS, schema.STYLE_MODEL):
                     store.delete(h5, grp)
@@ -104,7 +110,8 @@ def _recompute_pose_features(h5, name: str) -> None:
     parts = []
     for a, n in zip(starts.tolist(), counts.tolist()):
         pos = np.asarray(positions[a:a + n], dtype=np.float32).astype(np.float64)
-        parts.append(pose_features(pos, joints=joints, fps=fps, window=POSE_WINDOW, stride=stride))
+        parts.append(pose_features(pos, joints=joints, fps=fps, window=POSE_WINDOW, stride=stride,
+                                   stance=ankle_joints(names)))
     pose = np.concatenate(parts) if parts else np.zeros((0, 0), np.float32)
     if pose.shape[0] != positions.shape[0]:
         raise SchemaError(name, f"recordings: expected them to cover the {positions.shape[0]} frames of "

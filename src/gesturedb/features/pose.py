@@ -3,7 +3,8 @@
 The pose feature of a frame describes where the hands and arms are, where they came from
 and where they are going: the 8 feature joints (wrists, elbows, index- and little-finger
 roots of both hands) in the body frame of that frame, stacked over a short window centred
-on it (frames ``f - 2s, f - s, f, f + s, f + 2s`` with the defaults, ``s`` = 2/15 s). The
+on it (frames ``f - 2s, f - s, f, f + s, f + 2s`` with the defaults, ``s`` = 2/15 s), and
+the same of the two ankles (the stance), where the rig has legs. The
 search compares the feature of a candidate window's entry frame, whose future half is the
 candidate's own first frames, with the feature of the last output frame, whose future half
 is how its source recording went on: a close match is a window that starts where the
@@ -19,6 +20,16 @@ than the database's average (0.75-0.89x its arm velocity power on the four BEAT2
 while its seams added the energy back at 4-7 Hz. With the centred window the windows it
 chooses carry about the database's own power and the seams' offsets are smaller
 (``docs/evaluation.md``, "Strokes").
+
+Why the ankles (schema 5; the paper's feature has the upper body only): nothing else keeps a
+window's stance near the output's. Each window is placed so that its root continues the
+output's, so it brings its own feet relative to its root; a planted foot that the next window
+puts a few centimetres elsewhere drifts from where the motion wants it, seam after seam, until
+it takes a step the source never took. With the ankles in the feature (the same stacked
+frames, in metres, unweighted like the rest) the search prefers windows whose feet stand and
+move as the output's do: on the held-out BEAT2 stretch the mean foot speed went from 1.50x
+the capture's to 0.78x (seed 0; 1.12x -> 0.67x over four starts), the pelvis from 1.40x to
+0.90x (``docs/evaluation.md``, "Feet").
 """
 from __future__ import annotations
 
@@ -56,9 +67,10 @@ def default_pose_stride(fps: float) -> int:
     return max(1, int(round(check_fps(fps) * POSE_STRIDE_S)))
 
 
-def pose_feature_size(*, window: int = POSE_WINDOW) -> int:
-    """Length of one pose feature vector: ``len(FEATURE_ROLES) * 3 * (2 * window - 1)``."""
-    return len(FEATURE_ROLES) * 3 * (2 * _check_window(window) - 1)
+def pose_feature_size(*, window: int = POSE_WINDOW, stance: bool = False) -> int:
+    """Length of one pose feature vector: ``(len(FEATURE_ROLES) + 2 * stance) * 3 * (2 * window - 1)``
+    (120 with the defaults; 150 with the ankles, what a build stores for a rig with legs)."""
+    return (len(FEATURE_ROLES) + 2 * bool(stance)) * 3 * (2 * _check_window(window) - 1)
 
 
 def pose_features(
@@ -68,6 +80,7 @@ def pose_features(
     fps: float,
     window: int = POSE_WINDOW,
     stride: int | None = None,
+    stance=(),
     facing_smooth_s: float = FACING_SMOOTH_S,
 ) -> np.ndarray:
     """Pose feature of every frame of one recording.
@@ -85,19 +98,24 @@ def pose_features(
         Frames stacked on each side, the current one included: ``2 * window - 1`` in all.
     stride : int >= 1 or None, keyword-only
         Frames between stacked frames; None: :func:`default_pose_stride` of ``fps``.
+    stance : sequence of int, keyword-only
+        The left and the right ankle (:func:`gesturedb.io.joints.ankle_joints`), stacked after
+        the feature joints; empty (the default): no stance columns (a rig without legs).
     facing_smooth_s : float >= 0, keyword-only
         Gaussian sigma (s) of the body frame's facing smoothing
         (:func:`gesturedb.features.body.body_frame`); 0 disables it.
 
     Returns
     -------
-    ndarray [shape=(F, 8 * 3 * (2 * window - 1))], float32, C-contiguous, metres
+    ndarray [shape=(F, (8 + len(stance)) * 3 * (2 * window - 1))], float32, C-contiguous, metres
         Row ``f`` holds, for lag ``k = -(window-1) .. window-1`` (outer, past first), joint
         ``j`` in :data:`FEATURE_ROLES` order (middle) and axis x, y, z (inner), the position
         of joint ``j`` at frame ``f + k * stride`` (clamped to the recording's first and last
         frame) expressed in the body frame of frame ``f`` (x = speaker's left, y = up from the
         root, z = forward). Column ``((k + window - 1) * 8 + j) * 3 + axis``. With the
-        defaults at 15 fps: frames f-4, f-2, f, f+2, f+4 and 120 values.
+        defaults at 15 fps: frames f-4, f-2, f, f+2, f+4 and 120 values. Then the ankles the
+        same way (lag outer, left before right, axis inner): column
+        ``120 + ((k + window - 1) * 2 + a) * 3 + axis``, 150 values in all.
 
     Notes
     -----
@@ -116,18 +134,30 @@ def pose_features(
     idx = check_joints(joints, FEATURE_ROLES + BODY_ROLES, n_joints=n_joints)
     origin, rotation = body_frame(positions, joints=idx, smooth_frames=facing_smooth_s * fps)
 
-    feat_joints = np.array([idx[r] for r in FEATURE_ROLES], dtype=np.int64)
-    pts = positions[:, feat_joints, :]  # (F, 8, 3)
+    stance = _check_stance(stance, n_joints)
     lags = np.arange(-(window - 1), window, dtype=np.int64) * int(stride)
-    out = np.empty((n_frames, lags.size * len(FEATURE_ROLES) * 3), dtype=np.float32)
+    groups = [np.array([idx[r] for r in FEATURE_ROLES], dtype=np.int64)] + ([stance] if stance.size else [])
+    widths = [lags.size * g.size * 3 for g in groups]
+    out = np.empty((n_frames, sum(widths)), dtype=np.float32)
     for a in range(0, n_frames, _BLOCK):
         b = min(a + _BLOCK, n_frames)
         f = np.arange(a, b, dtype=np.int64)
         src = np.clip(f[:, None] + lags[None, :], 0, n_frames - 1)  # (B, 2 * window - 1)
-        d = (pts[src] - origin[a:b, None, None, :]).reshape(b - a, -1, 3)  # (B, lags * 8, 3)
-        # row vector times R applies R transposed: local_c = sum_k d_k R[k, c]
-        out[a:b] = np.matmul(d, rotation[a:b]).reshape(b - a, -1)
+        col = 0
+        for g, width in zip(groups, widths):
+            d = (positions[:, g, :][src] - origin[a:b, None, None, :]).reshape(b - a, -1, 3)  # (B, lags * |g|, 3)
+            # row vector times R applies R transposed: local_c = sum_k d_k R[k, c]
+            out[a:b, col:col + width] = np.matmul(d, rotation[a:b]).reshape(b - a, -1)
+            col += width
     return out
+
+
+def _check_stance(stance, n_joints: int) -> np.ndarray:
+    arr = np.asarray(stance if stance is not None else (), dtype=np.int64).reshape(-1)
+    if arr.size not in (0, 2) or np.any((arr < 0) | (arr >= n_joints)):
+        raise ParameterError(f"stance: expected the two ankles' joint indices in [0, {n_joints}) or none; "
+                             f"got {stance!r}")
+    return arr
 
 
 def _check_window(window) -> int:

@@ -28,7 +28,8 @@ import numpy as np
 from gesturedb.errors import InputFileError, ParameterError, echo, echo_list
 from gesturedb.roles import BODY_ROLES, FEATURE_ROLES, FINGERS, HIP_ROLES, JOINT_GROUPS, ROLES
 
-__all__ = ["BODY_ROLES", "FEATURE_ROLES", "body_keys", "find_joints", "group_joints", "leg_joints", "read_joint_map"]
+__all__ = ["BODY_ROLES", "FEATURE_ROLES", "ankle_joints", "body_keys", "find_joints", "group_joints", "leg_joints",
+           "read_joint_map"]
 
 #: joint names a message lists before it counts the rest (a body with fingers has about 70)
 MESSAGE_JOINTS = 80
@@ -291,6 +292,20 @@ def body_keys(names) -> dict[int, str]:
     # about 3% of assembling a 64-frame window, which the refiner's training data
     # does for every window of the database
     return dict(_body_keys(tuple(str(n) for n in names)))
+
+
+def ankle_joints(names) -> np.ndarray:
+    """The left and the right ankle (body-part keys ``left_foot``, ``right_foot``), (2,) int64.
+
+    The joints the feet are planted by (:func:`gesturedb.synth.contacts.foot_joints`) and whose
+    stance the pose features carry (:func:`gesturedb.features.pose.pose_features`). Empty (0,)
+    when the rig lacks either: an upper-body rig has no stance.
+    """
+    keys = {k: j for j, k in body_keys(names).items()}
+    ankles = [keys.get("left_foot"), keys.get("right_foot")]
+    if None in ankles:
+        return np.zeros(0, dtype=np.int64)
+    return np.asarray(ankles, dtype=np.int64)
 
 
 @functools.lru_cache(maxsize=32)
