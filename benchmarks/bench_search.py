@@ -1,8 +1,9 @@
 """Benchmark of the rank-sum search at the paper's scale (run by hand, never by pytest).
 
-Database: 9,624 segments x 64 frames = 615,936 frames, pose features of 120
-values (schema 4: frames f-4 .. f+4; "--layout past" for the 96 values of schema 3,
-f .. f-6), audio features of 14 values, window N = 8 (the same sizes as Habibie
+Database: 9,624 segments x 64 frames = 615,936 frames, pose features of 150
+values (schema 5: 8 feature joints and the 2 ankles at frames f-4 .. f+4; "--layout
+centred" for the 120 values of schema 4, without the ankles; "--layout past" for the 96
+values of schema 3, f .. f-6), audio features of 14 values, window N = 8 (the same sizes as Habibie
 et al. 2022, Sec. 3.3), fixed seed. Pose data: by default ("--data motion")
 synthetic motion with the structure of real pose features (see motion_pose:
 smooth joints stacked over the layout's frames in a turning body frame); with
@@ -64,10 +65,11 @@ from floors import load as load_floors  # noqa: E402
 from gesturedb import _core, search  # noqa: E402
 
 M, L, DA, N = 9624, 64, 14, 8
-#: stacked frame offsets of each layout (gesturedb.features.pose: schema 4 centred, schema 3 past)
-LAYOUTS = {"centred": (-4, -2, 0, 2, 4), "past": (0, -2, -4, -6)}
-LAGS = LAYOUTS["centred"]
-DP = 24 * len(LAGS)
+#: stacked frame offsets of each layout and whether it carries the ankles (gesturedb.features.pose:
+#: schema 5 stance, schema 4 centred, schema 3 past)
+LAYOUTS = {"stance": ((-4, -2, 0, 2, 4), True), "centred": ((-4, -2, 0, 2, 4), False), "past": ((0, -2, -4, -6), False)}
+LAGS, STANCE = LAYOUTS["stance"]
+DP = (24 + 6 * STANCE) * len(LAGS)
 FPS, SECONDS = 15, 24
 
 
@@ -75,7 +77,8 @@ def motion_pose(rng, F, n_rec=150):
     """(F, DP) pose features with the structure of real ones: 8 joints x 3
     coordinates moving smoothly (6 latent Gaussian-filtered signals, about
     5 frames of correlation like the wrists at 15 fps, mapped to the 24
-    coordinates, plus 1 cm of jitter),
+    coordinates, plus 1 cm of jitter) and, with STANCE, two ankles about
+    hip-width apart that shift by about 9 cm over seconds (BEAT2's spread),
     stacked at the frames f + LAGS clamped to the recording's ends, each in
     the current frame's slowly turning body frame (as gesturedb.features.pose
     does), over n_rec recordings."""
@@ -95,11 +98,21 @@ def motion_pose(rng, F, n_rec=150):
         yaw = gaussian_filter1d(rng.standard_normal(n), 20.0) * 2.0
         c, sn = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
         f = np.arange(n)
+        if STANCE:  # drawn after the rest, so that the other layouts' data stay what they were
+            # BEAT2's ankles in the body frame: mean (+-0.14, -0.84, 0) m, sd 9 cm across and forward, 3 cm up
+            feet = (np.array([[0.136, -0.84, 0.0], [-0.136, -0.84, 0.0]])
+                    + gaussian_filter1d(rng.standard_normal((n, 2, 3)), 20.0, axis=0) * [0.75, 0.28, 0.75])
         for k, lag in enumerate(LAGS):
             p = x[np.clip(f + lag, 0, n - 1)].reshape(n, 8, 3)
             px, pz = p[..., 0], p[..., 2]
             q = np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1)
             out[a:b, 24 * k:24 * (k + 1)] = q.reshape(n, 24)
+            if STANCE:  # the ankles: a stance about hip-width apart, shifting slowly, after every lag's arms
+                p = feet[np.clip(f + lag, 0, n - 1)]
+                px, pz = p[..., 0], p[..., 2]
+                q = np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1)
+                col = 24 * len(LAGS) + 6 * k
+                out[a:b, col:col + 6] = q.reshape(n, 6)
     return out
 
 
@@ -238,15 +251,16 @@ def main(argv=None):
                     help="interleaved runs of the batch without and with the projection in (e) (median)")
     ap.add_argument("--data", choices=("motion", "random"), default="motion",
                     help="synthetic pose data: structured motion (default) or i.i.d. Gaussian")
-    ap.add_argument("--layout", choices=tuple(LAYOUTS), default="centred",
-                    help="pose feature frames: centred (schema 4, 120 values, default) or past (schema 3, 96)")
+    ap.add_argument("--layout", choices=tuple(LAYOUTS), default="stance",
+                    help="pose features: stance (schema 5, 150 values, default), centred (schema 4, 120, no ankles) "
+                         "or past (schema 3, 96)")
     args = ap.parse_args(argv)
     if args.masks:
         bench_masks(args)
         return 0
-    global LAGS, DP
-    LAGS = LAYOUTS[args.layout]
-    DP = 24 * len(LAGS)
+    global LAGS, STANCE, DP
+    LAGS, STANCE = LAYOUTS[args.layout]
+    DP = (24 + 6 * STANCE) * len(LAGS)
 
     threads = _core.default_threads()
     floors = load_floors()
