@@ -137,6 +137,7 @@ def pose_features(
     stance = _check_stance(stance, n_joints)
     lags = np.arange(-(window - 1), window, dtype=np.int64) * int(stride)
     groups = [np.array([idx[r] for r in FEATURE_ROLES], dtype=np.int64)] + ([stance] if stance.size else [])
+    pts = [positions[:, g, :] for g in groups]  # (F, |g|, 3) each: the feature joints, then the ankles
     widths = [lags.size * g.size * 3 for g in groups]
     out = np.empty((n_frames, sum(widths)), dtype=np.float32)
     for a in range(0, n_frames, _BLOCK):
@@ -144,8 +145,8 @@ def pose_features(
         f = np.arange(a, b, dtype=np.int64)
         src = np.clip(f[:, None] + lags[None, :], 0, n_frames - 1)  # (B, 2 * window - 1)
         col = 0
-        for g, width in zip(groups, widths):
-            d = (positions[:, g, :][src] - origin[a:b, None, None, :]).reshape(b - a, -1, 3)  # (B, lags * |g|, 3)
+        for p, width in zip(pts, widths):
+            d = (p[src] - origin[a:b, None, None, :]).reshape(b - a, -1, 3)  # (B, lags * |g|, 3)
             # row vector times R applies R transposed: local_c = sum_k d_k R[k, c]
             out[a:b, col:col + width] = np.matmul(d, rotation[a:b]).reshape(b - a, -1)
             col += width
