@@ -43,8 +43,7 @@ from gesturedb.db import store
 from gesturedb.errors import ParameterError, SchemaError
 
 #: 2: adds graph/ and style_model/ (GestureMaster motion graph)
-#: 3: graph/ is the upper-body graph (it was over the whole body) and graph_lower/ the lower-body one
-#:    (Sec. 4.1)
+#: 3: graph/ is the upper-body graph (it was over the whole body), graph_lower/ the lower-body one (Sec. 4.1)
 #: 4: frames/pose_features stack frames centred on each frame (past and future) instead of its past
 #:    only; config pose_stride is 2/15 s in frames
 #: 5: frames/pose_features carry the ankles (the stance) after the 8 feature joints, where the rig has legs
@@ -172,8 +171,7 @@ FIELDS: tuple[Field, ...] = (
     # --- per-frame arrays --------------------------------------------------
     Field(POSE_FEATURES, "float32", ("F", "Dp"), "m",
           "feature joints, then the ankles where the rig has legs, in the body frame of the current frame, "
-          "stacked over a window centred on it; "
-          "attr `mean`: float64 (Dp,), its mean over frames"),
+          "stacked over a window centred on it; attr `mean`: float64 (Dp,), its mean over frames"),
     Field(AUDIO_FEATURES, "float32", ("F", "Da"), "1",
           "13 MFCC + log mean energy per frame, standardised with audio/mean and audio/std"),
     Field(AUDIO_DELTAS, "float32", ("F", "Da"), "1/frame",
