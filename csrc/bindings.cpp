@@ -117,11 +117,24 @@ Preselect parse_preselect(const std::string& s) {
     throw std::invalid_argument("preselect: expected 'pose' or 'audio'; got '" + s + "'");
 }
 
-void check_vector(const F32& v, int64_t len, const char* name) {
+template <typename Array>
+void check_vector(const Array& v, int64_t len, const char* name) {
     require_ndim(v, 1, name);
     if (v.shape(0) != len)
         throw std::invalid_argument(std::string(name) + ": expected " + std::to_string(len) +
                                     " values; got " + std::to_string(v.shape(0)));
+}
+
+// Candidate starts of a table, starts[m] for segment m: a window of n frames
+// must lie inside its segment, after its entry frame (spec step 1), or -1.
+void check_starts(const Database& db, const int64_t* starts, int64_t n) {
+    for (int64_t m = 0; m < db.n_segments(); ++m) {
+        if (starts[m] != -1 && (starts[m] < 1 || starts[m] > db.seg_len[m] - n))
+            throw std::invalid_argument("starts[" + std::to_string(m) + "]: expected -1 or 1 <= s <= " +
+                                        std::to_string(db.seg_len[m] - n) + " (segment of " +
+                                        std::to_string(db.seg_len[m]) + " frames, window of " +
+                                        std::to_string(n) + "); got " + std::to_string(starts[m]));
+    }
 }
 
 const bool* exclude_ptr(const std::optional<Bool>& exclude, int64_t M) {
@@ -710,24 +723,13 @@ PYBIND11_MODULE(_core, m) {
            const F32& query) {
             const Database db = make_db(pose, audio, seg_start, seg_len);
             const int64_t M = db.n_segments();
-            require_ndim(starts, 1, "starts");
-            if (starts.shape(0) != M)
-                throw std::invalid_argument("starts: expected (" + std::to_string(M) + ",); got " +
-                                            shape_str(starts));
+            check_vector(starts, M, "starts");
             const Span2<const float> q = span2(query, "query_audio");
             if (q.cols != db.audio.cols || q.rows < 1)
                 throw std::invalid_argument("query_audio: expected (n >= 1, " +
                                             std::to_string(db.audio.cols) + "); got " + shape_str(query));
             const int64_t* ps = starts.data();
-            for (int64_t m = 0; m < M; ++m) {
-                // a window must lie inside its segment, after its entry frame (spec step 1)
-                if (ps[m] != -1 && (ps[m] < 1 || ps[m] > db.seg_len[m] - q.rows))
-                    throw std::invalid_argument(
-                        "starts[" + std::to_string(m) +
-                        "]: expected -1 or 1 <= s <= " + std::to_string(db.seg_len[m] - q.rows) +
-                        " (segment of " + std::to_string(db.seg_len[m]) + " frames, window of " +
-                        std::to_string(q.rows) + "); got " + std::to_string(ps[m]));
-            }
+            check_starts(db, ps, q.rows);
             py::array_t<double> da(M);
             double* pda = da.mutable_data();
             {
@@ -739,6 +741,52 @@ PYBIND11_MODULE(_core, m) {
         py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
         py::arg("seg_len").noconvert(), py::arg("starts").noconvert(), py::arg("query").noconvert(),
         "Audio distance of each segment's given start (use gesturedb.tables.audio_distances, which "
+        "validates).");
+
+    m.def(
+        "gather_windows",
+        [](const F32& pose, const F32& audio, const I64& seg_start, const I64& seg_len, const I64& starts,
+           int64_t n) {
+            const Database db = make_db(pose, audio, seg_start, seg_len);
+            const int64_t M = db.n_segments();
+            check_vector(starts, M, "starts");
+            if (n < 1) throw std::invalid_argument("n: expected >= 1; got " + std::to_string(n));
+            check_starts(db, starts.data(), n);
+            py::array_t<float> out({M, n, db.audio.cols});
+            float* po = out.mutable_data();
+            {
+                py::gil_scoped_release release;
+                gather_windows(db, starts.data(), n, po);
+            }
+            return out;
+        },
+        py::arg("pose").noconvert(), py::arg("audio").noconvert(), py::arg("seg_start").noconvert(),
+        py::arg("seg_len").noconvert(), py::arg("starts").noconvert(), py::arg("n"),
+        "Each segment's candidate window (M, n, Da), zeros where starts is -1 (use "
+        "gesturedb.tables.gather_windows, which validates).");
+
+    m.def(
+        "window_distances",
+        [](const F32& windows, const I64& starts, const F32& query) {
+            require_ndim(windows, 3, "windows");
+            const int64_t M = windows.shape(0);
+            check_vector(starts, M, "starts");
+            const Span2<const float> q = span2(query, "query_audio");
+            if (q.rows != windows.shape(1) || q.cols != windows.shape(2))
+                throw std::invalid_argument("query_audio: expected (" + std::to_string(windows.shape(1)) +
+                                            ", " + std::to_string(windows.shape(2)) +
+                                            ") as the windows; got " + shape_str(query));
+            py::array_t<double> da(M);
+            double* pda = da.mutable_data();
+            {
+                py::gil_scoped_release release;
+                window_distances(active_kernels(), windows.data(), starts.data(), M, q.rows * q.cols, q.data,
+                                 pda);
+            }
+            return da;
+        },
+        py::arg("windows").noconvert(), py::arg("starts").noconvert(), py::arg("query").noconvert(),
+        "audio_distances over windows from gather_windows (use gesturedb.tables.window_distances, which "
         "validates).");
 
     m.def(

@@ -85,6 +85,39 @@ void audio_distances(const Kernels& kern, const Database& db, const int64_t* sta
     }
 }
 
+void gather_windows(const Database& db, const int64_t* starts, int64_t n, float* out) {
+    const int64_t M = db.n_segments(), len = n * db.audio.cols;
+    const int64_t bytes = len * int64_t(sizeof(float));
+    // the windows are scattered over the database: fetch a few segments ahead
+    constexpr int64_t kAhead = 32;
+    auto fetch = [&](int64_t m) {
+        if (starts[m] >= 0) prefetch_bytes(db.audio.row(db.seg_start[m] + starts[m]), bytes);
+    };
+    for (int64_t m = 0; m < std::min(M, kAhead); ++m) fetch(m);
+    for (int64_t m = 0; m < M; ++m) {
+        if (m + kAhead < M) fetch(m + kAhead);
+        float* row = out + m * len;
+        if (starts[m] < 0) std::memset(row, 0, size_t(bytes));
+        else std::memcpy(row, db.audio.row(db.seg_start[m] + starts[m]), size_t(bytes));
+    }
+}
+
+void window_distances(const Kernels& kern, const float* windows, const int64_t* starts, int64_t M,
+                      int64_t len, const float* q, double* out) {
+    // rows in chunks that keep the dot products on the stack; cosdots_f32 runs
+    // over consecutive rows with stride len, as over a segment's windows
+    constexpr int64_t kRows = 256;
+    float qa[kRows], aa[kRows], qq[kRows];
+    std::fill(qq, qq + kRows, query_norm2(kern, q, len));
+    for (int64_t m0 = 0; m0 < M; m0 += kRows) {
+        const int64_t r = std::min(kRows, M - m0);
+        kern.cosdots_f32(windows + m0 * len, r, len, len, q, qa, aa);
+        cosine_distances(qa, qq, aa, out + m0, r);
+        for (int64_t i = 0; i < r; ++i)
+            if (starts[m0 + i] < 0) out[m0 + i] = 0.0;
+    }
+}
+
 int64_t argmin_kept(const Kernels& kern, const Database& db, int64_t m, const QueryStep& qs,
                     const int32_t* first, const int32_t* last, Selection& sel) {
     const int64_t seg0 = db.seg_start[m];

@@ -77,6 +77,19 @@ inline void complete_other(const Kernels& kern, const Database& db, int64_t m, c
 void audio_distances(const Kernels& kern, const Database& db, const int64_t* starts, const float* q,
                      int64_t n, double* out);
 
+// The windows audio_distances reads, copied out of the database: out (M, n * Da),
+// row m the n * Da floats of segment m's candidate starts[m] (zeros where it is
+// -1). A stream pre-selected by pose ahead of its speech gathers them then, off
+// the latency path, so that its finish reads one contiguous block instead of
+// M windows scattered over the whole audio matrix (a TLB and cache miss each).
+void gather_windows(const Database& db, const int64_t* starts, int64_t n, float* out);
+
+// audio_distances over gathered windows (M, len), len = n * Da, for one query
+// window q (len,): the same values bit for bit (the kernels' values depend on a
+// window's values only, never on where it lies), 0 where starts[m] is -1.
+void window_distances(const Kernels& kern, const float* windows, const int64_t* starts, int64_t M,
+                      int64_t len, const float* q, double* out);
+
 // The rows complete_other will read for segment m: fetched ahead because the
 // pre-selected candidates are scattered and each would otherwise be a cache miss.
 inline void prefetch_other(const Database& db, int64_t m, const QueryStep& qs, Preselect pre,

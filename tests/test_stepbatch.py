@@ -243,6 +243,9 @@ def test_audio_distances_are_the_tables_own(scott_db, scott_dir):
                                                     q[5:5 + n], allowed=None)
                 got = tables.audio_distances(P, A, searcher.seg_start, searcher.seg_len, st, q[5:5 + n])
                 assert np.array_equal(got, da), (isa, n)
+                # the same from the windows gathered ahead of the audio (what StepBatch.finish reads)
+                gathered = tables.gather_windows(P, A, searcher.seg_start, searcher.seg_len, st, n)
+                assert np.array_equal(tables.window_distances(gathered, st, q[5:5 + n]), da), (isa, n)
                 # the spec in float64 (independent of the kernel)
                 m = np.flatnonzero(st >= 0)
                 g = searcher.seg_start[m] + st[m]
@@ -255,7 +258,34 @@ def test_audio_distances_are_the_tables_own(scott_db, scott_dir):
         search.set_simd(was)
     with pytest.raises(ParameterError, match="starts"):
         tables.audio_distances(P, A, searcher.seg_start, searcher.seg_len, st.astype(np.int32), q[:8])
+    with pytest.raises(ParameterError, match=r"query_audio: expected 8 frames as the windows; got 3"):
+        tables.window_distances(gathered, st, q[:3])
+    with pytest.raises(ParameterError, match=r"windows: expected float32 C-contiguous \(M, n, Da\); got float64"):
+        tables.window_distances(gathered.astype(np.float64), st, q[:8])
+    with pytest.raises(ParameterError, match=r"starts: expected int64 \(3,\)"):
+        tables.window_distances(gathered[:3], st, q[:8])
     bad = st.copy()
     bad[np.flatnonzero(st >= 0)[0]] = 0  # s = 0 would read the entry frame's window
     with pytest.raises(ValueError, match=r"expected -1 or 1 <= s"):
         tables.audio_distances(P, A, searcher.seg_start, searcher.seg_len, bad, q[:8])
+    with pytest.raises(ValueError, match=r"expected -1 or 1 <= s"):
+        tables.gather_windows(P, A, searcher.seg_start, searcher.seg_len, bad, 8)
+
+
+def test_gathered_windows_are_the_databases(scott_db):
+    """tables.gather_windows copies each candidate's window of the audio matrix (zeros for none), for any
+    window length, so finishing from it reads the values the scattered path reads."""
+    from gesturedb import tables
+
+    searcher = Searcher(scott_db)
+    A = scott_db.audio_features
+    rng = np.random.default_rng(3)
+    for n in (1, 7, 8):
+        hi = searcher.seg_len - n
+        st = np.where(hi >= 1, rng.integers(1, np.maximum(hi, 1) + 1), -1).astype(np.int64)
+        st[::5] = -1
+        win = tables.gather_windows(scott_db.pose_features, A, searcher.seg_start, searcher.seg_len, st, n)
+        assert win.shape == (st.shape[0], n, A.shape[1]) and win.dtype == np.float32
+        for m in range(st.shape[0]):
+            g = searcher.seg_start[m] + st[m]
+            assert np.array_equal(win[m], A[g:g + n] if st[m] >= 0 else np.zeros((n, A.shape[1]))), (n, m)

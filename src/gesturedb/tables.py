@@ -12,7 +12,9 @@ global segment order, are exactly the ranks of one database holding them all
   shard keeps on its worker).
 - :func:`preselect_table_batch`: one such call without keeping anything.
 - :func:`audio_distances`: the audio distances of a table's pre-selected candidates for a
-  query window (a table pre-selected by pose before the step's audio came, finished).
+  query window (a table pre-selected by pose before the step's audio came, finished);
+  :func:`gather_windows` copies those candidates' windows out ahead of the audio and
+  :func:`window_distances` gives the same distances from that contiguous copy.
 - :func:`rank_table`: the kernel's ranker over a table.
 - :func:`top_lists`: the first rows of tables by each distance, as the ranker
   orders them (what a shard sends instead of its table).
@@ -39,8 +41,8 @@ from gesturedb.search import (
     _threads,
 )
 
-__all__ = ["preselect_table", "PreselectBatch", "preselect_table_batch", "audio_distances", "rank_table",
-           "top_lists"]
+__all__ = ["preselect_table", "PreselectBatch", "preselect_table_batch", "audio_distances", "gather_windows",
+           "window_distances", "rank_table", "top_lists"]
 
 METHODS = ("auto", "blocked", "per_query")
 
@@ -197,10 +199,69 @@ def audio_distances(pose, audio, seg_start, seg_len, starts, query_audio):
     """
     seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
     q = _query(query_audio, audio.shape[1], "query_audio")
+    s = _starts(starts, seg_start.shape)
+    return _core().audio_distances(pose, audio, seg_start, seg_len, s, q)
+
+
+def gather_windows(pose, audio, seg_start, seg_len, starts, n):
+    """Each segment's candidate audio window, copied into one contiguous block.
+
+    A step pre-selected by pose before its audio came gathers its candidates' windows then
+    (they lie scattered over the whole audio matrix, a cache and TLB miss each), so that
+    finishing it once the audio has come (:func:`window_distances`) reads one block.
+
+    Parameters
+    ----------
+    pose, audio, seg_start, seg_len
+        The database, as in :func:`gesturedb.search.rank_sum_step`.
+    starts : ndarray [shape=(M,)], int64
+        Each segment's candidate ``s`` (``1 <= s <= seg_len - n``), -1 for none.
+    n : int >= 1
+        Window length, frames.
+
+    Returns
+    -------
+    windows : ndarray [shape=(M, n, Da)], float32
+        Row ``m``: audio frames ``seg_start[m] + starts[m]`` onwards; zeros where ``starts`` is -1.
+    """
+    seg_start, seg_len = _check_database(pose, audio, seg_start, seg_len)
+    n = _positive_int(n, "n")
+    s = _starts(starts, seg_start.shape)
+    return _core().gather_windows(pose, audio, seg_start, seg_len, s, n)
+
+
+def window_distances(windows, starts, query_audio):
+    """:func:`audio_distances` over windows gathered by :func:`gather_windows`, bit for bit.
+
+    Parameters
+    ----------
+    windows : ndarray [shape=(M, n, Da)], float32
+        As :func:`gather_windows` returns them.
+    starts : ndarray [shape=(M,)], int64
+        The starts they were gathered for (-1: none).
+    query_audio : ndarray [shape=(n, Da)], float32
+        The step's audio window.
+
+    Returns
+    -------
+    audio_dist : ndarray [shape=(M,)], float64
+        As :func:`audio_distances`: 0 where ``starts`` is -1.
+    """
+    w = np.asarray(windows)
+    if w.dtype != np.float32 or w.ndim != 3 or not w.flags.c_contiguous:
+        raise ParameterError(f"windows: expected float32 C-contiguous (M, n, Da); got {w.dtype} {w.shape}")
+    s = _starts(starts, w.shape[:1])
+    q = _query(query_audio, w.shape[2], "query_audio")
+    if q.shape[0] != w.shape[1]:
+        raise ParameterError(f"query_audio: expected {w.shape[1]} frames as the windows; got {q.shape[0]}")
+    return _core().window_distances(w, s, q)
+
+
+def _starts(starts, shape) -> np.ndarray:
     s = np.asarray(starts)
-    if s.dtype != np.int64 or s.shape != seg_start.shape:
-        raise ParameterError(f"starts: expected int64 {seg_start.shape}; got {s.dtype} {s.shape}")
-    return _core().audio_distances(pose, audio, seg_start, seg_len, np.ascontiguousarray(s), q)
+    if s.dtype != np.int64 or s.shape != tuple(shape):
+        raise ParameterError(f"starts: expected int64 {tuple(shape)}; got {s.dtype} {s.shape}")
+    return np.ascontiguousarray(s)
 
 
 def rank_table(starts, pose_dist, audio_dist, *, k=1):
