@@ -209,7 +209,10 @@ def test_steps_preselected_ahead_of_their_speech_are_the_usual_ones(scott_db, sc
     def applied(s):
         # the coming step, pre-selected now (a server batches those of many streams in one call)
         up = s.upcoming_step()
-        ahead[s] = (up, batch.speculate([up])[0])
+        handed = []  # what speculate hands over as each table is complete (a server's sessions get it so)
+        table = batch.speculate([up], ready=lambda j, t: handed.append((j, t)))[0]
+        assert [(j, t is table) for j, t in handed] == ([] if table is None else [(0, True)])
+        ahead[s] = (up, table)
 
     speech = [_speech(scott_dir, j, 16.0) for j in range(len(opts))]
     for o, (x, sr) in zip(opts, speech):

@@ -15,11 +15,12 @@ previous pose, the bitsets and the length. A session hands its stream's coming s
 :meth:`StepScheduler.ahead` right after applying a step; a second worker thread pre-selects the
 coming steps of all streams in one call of the blocked kernel (:meth:`StepBatch.speculate`) while
 their speech arrives (a step's 0.53 s), waiting up to ``AHEAD_GATHER_S`` for ``BLOCK_MIN`` of them
-(at once when a waiting step's speech has come). When the step's speech has come,
+(at once when a waiting step's speech has come), and gathers each step's candidate audio windows into
+one block, handing each step over as soon as its block is there. When the step's speech has come,
 :meth:`StepScheduler.search` checks that its inputs are still those (a control or words in between
 make them stale) and finishes it in the session's own thread: the audio distances of the
-pre-selected candidates and the ranks (:meth:`StepBatch.finish`, 2-6 ms at paper scale instead of
-a pass over the database). The result is bit for bit the one of the usual search; a stale or
+pre-selected candidates from their gathered windows and the ranks (:meth:`StepBatch.finish`, about
+1 ms at paper scale instead of a pass over the database). The result is bit for bit the one of the usual search; a stale or
 missing pre-selection takes the usual way.
 """
 from __future__ import annotations
@@ -167,18 +168,18 @@ class StepScheduler:
                     e.state = _RUNNING
             t = time.perf_counter()
             try:
-                got = self.batch.speculate([e.sq for e in todo])
+                # each step's table goes to its session as soon as its windows are gathered, not after
+                # the whole call's: the oldest steps' speech may already be there
+                got = self.batch.speculate([e.sq for e in todo],
+                                           ready=lambda j, table, todo=todo: _done(todo[j], table))
             except Exception:  # a bug: those steps are searched as usual
                 log.exception("pre-selection ahead of the speech failed")
                 got = [None] * len(todo)
             self.ahead_busy_s += time.perf_counter() - t
             self.n_ahead_calls += 1
             for e, table in zip(todo, got):
-                e.table, e.state = table, _DONE
-                try:
-                    e.loop.call_soon_threadsafe(_resolve, e.fut, None)
-                except RuntimeError:
-                    pass  # that session's event loop is closed
+                if e.state != _DONE:
+                    _done(e, table)
 
     # -- the steps whose speech has come -----------------------------------------------------
     async def search(self, sq):
@@ -239,7 +240,16 @@ class _Ahead:
         self.t = time.monotonic()  # when it was queued
         self.fut = loop.create_future()  # resolved when the worker is done with it
         self.state = _QUEUED
-        self.table = None  # (starts, pose_dist) once done; None when it cannot be finished so
+        self.table = None  # (starts, pose_dist, windows) once done; None when it cannot be finished so
+
+
+def _done(e: _Ahead, table) -> None:
+    """Hand pre-selected step ``e`` its table (None: it is searched as usual) and wake its session."""
+    e.table, e.state = table, _DONE
+    try:
+        e.loop.call_soon_threadsafe(_resolve, e.fut, None)
+    except RuntimeError:
+        pass  # that session's event loop is closed
 
 
 def _resolve(fut: asyncio.Future, r) -> None:

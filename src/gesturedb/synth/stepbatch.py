@@ -32,7 +32,7 @@ and a batch call that fails for any reason take the stream's own search
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -192,28 +192,33 @@ class StepBatch:
         return res, False
 
     # -- pose pre-selection ahead of the audio ------------------------------------------
-    def speculate(self, steps: Sequence) -> list:
+    def speculate(self, steps: Sequence, *, ready: Callable[[int, tuple], None] | None = None) -> list:
         """Pre-select the coming steps of streams before their audio has come.
 
         With pre-selection ``"pose"`` a step's table, but for its audio distances, depends on its
         previous pose, its bitsets and its length only (spec steps 1-3): all known once the step
         before it is applied. ``steps`` are such steps (:meth:`gesturedb.synth.matching.Stream.upcoming_step`,
-        ``query`` empty); all are pre-selected in one call of the blocked kernel.
+        ``query`` empty); all are pre-selected in one call of the blocked kernel. ``ready(j, table)``, when
+        given, is called (from this thread) with each step's table as soon as it is complete, in the order
+        of ``steps`` within a window length: a server hands it over at once, since that step's speech may
+        have come while the others' windows are gathered.
 
         Returns
         -------
         list
-            Per step: ``(starts, pose_dist)``, (M,) int64 and float32, the table that :meth:`finish`
-            completes once the step's audio is there; or None where the step cannot be finished so (its
-            stream searches another way, its guard leaves no candidate, or the call failed): that step is
-            searched as usual.
+            Per step: ``(starts, pose_dist, windows)``, (M,) int64, (M,) float32 and (M, n, Da) float32
+            (each candidate's audio window, :func:`gesturedb.tables.gather_windows`: about 4 MB at paper
+            scale), the table that :meth:`finish` completes once the step's audio is there; or None where
+            the step cannot be finished so (its stream searches another way, its guard leaves no
+            candidate, or the call failed): that step is searched as usual.
         """
         out: list = [None] * len(steps)
         groups: dict[int, list[int]] = {}
         for j, sq in enumerate(steps):
             if self._batchable(sq) and sq.stream.options.preselect == "pose":
                 groups.setdefault(sq.n, []).append(j)
-        Da = self.searcher.db.audio_features.shape[1]
+        s, db = self.searcher, self.searcher.db
+        Da = db.audio_features.shape[1]
         for n, idx in groups.items():
             group = [steps[j] for j in idx]
             # any window gives the same starts and pose distances; its audio distances, which finish computes
@@ -224,18 +229,26 @@ class StepBatch:
             except Exception:  # noqa: BLE001 - those steps are searched as usual, each with its own outcome
                 continue
             for j, (st, dp, _) in zip(idx, got):
-                if (st >= 0).any():  # else the guard is relaxed: the usual search handles it
-                    out[j] = (st, dp)
+                if not (st >= 0).any():  # the guard is relaxed: the usual search handles it
+                    continue
+                try:
+                    # the candidates' windows lie scattered over the audio matrix (4 MB of 35 at paper
+                    # scale): read them now, off the path, so that finish reads one contiguous block
+                    win = tables.gather_windows(db.pose_features, db.audio_features, s.seg_start, s.seg_len,
+                                                st, n)
+                except Exception:  # noqa: BLE001 - that step is searched as usual
+                    continue
+                out[j] = (st, dp, win)
+                if ready is not None:
+                    ready(j, out[j])
         return out
 
     def finish(self, sq, table) -> tuple:
         """``(res, relaxed)`` of step ``sq`` (its audio now there) from its speculative ``table`` (one of
         :meth:`speculate`'s, for a step with the same inputs but the audio): the audio distances of the
         pre-selected candidates and the ranks, bit for bit what :meth:`search` gives."""
-        st, dp = table
-        db = self.searcher.db
-        da = tables.audio_distances(db.pose_features, db.audio_features, self.searcher.seg_start,
-                                    self.searcher.seg_len, st, np.ascontiguousarray(sq.query, dtype=np.float32))
+        st, dp, win = table
+        da = tables.window_distances(win, st, np.ascontiguousarray(sq.query, dtype=np.float32))
         return self._ranked(sq, st, dp, da)
 
     def _touched(self, recent: list) -> np.ndarray:
