@@ -17,11 +17,13 @@ coming steps of all streams in one call of the blocked kernel (:meth:`StepBatch.
 their speech arrives (a step's 0.53 s), waiting up to ``AHEAD_GATHER_S`` for ``BLOCK_MIN`` of them
 (at once when a waiting step's speech has come), and gathers each step's candidate audio windows into
 one block, handing each step over as soon as its block is there. When the step's speech has come,
-:meth:`StepScheduler.search` checks that its inputs are still those (a control or words in between
-make them stale) and finishes it in the session's own thread: the audio distances of the
-pre-selected candidates from their gathered windows and the ranks (:meth:`StepBatch.finish`, about
-1 ms at paper scale instead of a pass over the database). The result is bit for bit the one of the usual search; a stale or
-missing pre-selection takes the usual way.
+the session's worker thread, right after feeding the speech, checks that the step's inputs are still
+those (a control or words in between make them stale) and finishes it there
+(:meth:`StepScheduler.finish_ready`): the audio distances of the pre-selected candidates from their
+gathered windows and the ranks (:meth:`StepBatch.finish`, about 1 ms at paper scale instead of a pass
+over the database), then applies it, with no hop to another thread between. A step whose
+pre-selection is still under way waits for it in :meth:`StepScheduler.search`. The result is bit for
+bit the one of the usual search; a stale or missing pre-selection takes the usual way.
 """
 from __future__ import annotations
 
@@ -182,6 +184,28 @@ class StepScheduler:
                     _done(e, table)
 
     # -- the steps whose speech has come -----------------------------------------------------
+    def finish_ready(self, sq):
+        """``(res, relaxed)`` of step ``sq`` finished from its pre-selection when that is done and still fits,
+        computed in the calling thread (a session's worker thread, between its feed and its apply: no hop to
+        another thread); else None, and :meth:`search` takes the step (waiting for a pre-selection under way,
+        or searching it with the other waiting steps)."""
+        if not self.ahead_enabled:
+            return None
+        with self._cond:
+            entry = self._ahead.get(sq.stream)
+            if entry is None or entry.state != _DONE:
+                return None
+            del self._ahead[sq.stream]
+        if entry.table is None:
+            return None
+        if not entry.sq.same_but_audio(sq):
+            self.n_ahead_stale += 1
+            return None
+        got = self.batch.finish(sq, entry.table)
+        if got is not None:
+            self.n_ahead_used += 1
+        return got
+
     async def search(self, sq):
         """``(res, relaxed)`` of step ``sq`` (as its stream's ``search_step`` returns them): finished from its
         pre-selection when :meth:`ahead` made one that still fits, else searched with the other steps

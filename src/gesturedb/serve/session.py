@@ -213,15 +213,17 @@ class StreamSession:
         if self.n_samples < self.stream.samples_before_step():
             return None  # no step can be ready yet: fed later in one piece (the same features, fewer calls)
         unfed, self._unfed = self._unfed, []
-        sq, chunk = await self._synth(_feed, self.stream, unfed)
-        while sq is not None:
+        # the feed and every step whose pre-selection is there (finished and applied) in one call in a worker
+        # thread: on a loaded machine each hop to a worker thread and back waits longer than that work takes
+        sq, chunk, up = await self._synth(_advance, self.stream, sched, unfed, None)
+        while sq is not None:  # a step without its pre-selection (under way, stale, none): the scheduler's
             try:
                 res, relaxed = await sched.search(sq)
             except GestureDBError as exc:
                 raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
-            sq, chunk, up = await self._synth(_complete, self.stream, sq, res, relaxed, sched.ahead_enabled)
-            if up is not None:  # the coming step, pre-selected while its speech arrives
-                sched.ahead(up)
+            sq, chunk, up = await self._synth(_advance, self.stream, sched, None, (sq, res, relaxed))
+        if up is not None:  # the coming step, pre-selected while its speech arrives
+            sched.ahead(up)
         return chunk
 
     async def _ahead(self) -> None:
@@ -326,22 +328,25 @@ class StreamSession:
             pass  # the client is gone already
 
 
-def _feed(stream, pieces: list[np.ndarray]):
-    """Feed held audio; ``(next step or None, chunk or None)`` (the chunk once no step is ready)."""
-    stream.feed(pieces[0] if len(pieces) == 1 else np.concatenate(pieces))
-    sq = stream.next_step()
-    return sq, (stream.take_chunk() if sq is None else None)
-
-
-def _complete(stream, sq, res, relaxed: bool, ahead: bool):
-    """Apply a step's result; ``(next step or None, chunk or None, coming step or None)``: the next step
-    and chunk as :func:`_feed`, and with ``ahead``, once no step is ready, the coming one prepared without
-    its speech (:meth:`~gesturedb.synth.matching.Stream.upcoming_step`)."""
-    stream.complete_step(sq, res, relaxed)
-    sq = stream.next_step()
-    if sq is not None:
-        return sq, None, None
-    return None, stream.take_chunk(), (stream.upcoming_step() if ahead else None)
+def _advance(stream, sched, pieces: list[np.ndarray] | None, done: tuple | None):
+    """Feed held audio (``pieces``) or apply a searched step (``done``: ``(sq, res, relaxed)``), then finish
+    and apply each ready step whose pre-selection is there (:meth:`StepScheduler.finish_ready`), all in the
+    calling thread. Returns ``(step or None, chunk or None, coming step or None)``: the next ready step that
+    needs the scheduler's :meth:`~StepScheduler.search`, or else the chunk of frames made final and, once a
+    step was applied and the scheduler pre-selects, the coming step prepared without its speech
+    (:meth:`~gesturedb.synth.matching.Stream.upcoming_step`)."""
+    if pieces is not None:
+        stream.feed(pieces[0] if len(pieces) == 1 else np.concatenate(pieces))
+    applied = done is not None
+    if applied:
+        stream.complete_step(*done)
+    while (sq := stream.next_step()) is not None:
+        got = sched.finish_ready(sq)
+        if got is None:
+            return sq, None, None
+        stream.complete_step(sq, *got)
+        applied = True
+    return None, stream.take_chunk(), (stream.upcoming_step() if applied and sched.ahead_enabled else None)
 
 
 def check_words(words) -> list[tuple[float, float, str]]:
