@@ -135,3 +135,59 @@ def test_no_batch_serves_each_stream_alone(db, scott_dir):
         _client(srv.ws, x, None, out, 0)
     root, rot, steps = _alone(db, x, None)
     assert np.array_equal(out[0][1], rot) and out[0][2] == steps
+
+
+def test_finish_ready_takes_only_a_done_and_fitting_preselection(db, scott_dir, monkeypatch):
+    """StepScheduler.finish_ready (a session's worker thread, between feed and apply) finishes a step from a
+    pre-selection that is done and still fits, bit for bit the step's own search; one under way is left to
+    search() (which waits for it), a stale one is counted and searched as usual."""
+    import asyncio
+
+    from gesturedb.serve import batcher
+    from gesturedb.serve.batcher import StepScheduler
+    from gesturedb.synth import Searcher
+
+    # a lone coming step waits this long for others before its pre-selection starts: "under way" below
+    monkeypatch.setattr(batcher, "AHEAD_GATHER_S", 5.0)
+
+    x = _speech(scott_dir, 0, 6.0)
+    searcher = Searcher(db)
+    sched = StepScheduler(searcher)
+    s = searcher.stream(SearchOptions(), sample_rate=SR)
+
+    def ready_step(fed):
+        # feed until the next step is ready; (step, samples fed)
+        while (sq := s.next_step()) is None:
+            s.feed(x[fed:fed + CHUNK])
+            fed += CHUNK
+        return sq, fed
+
+    async def run():
+        sq, fed = ready_step(0)
+        s.complete_step(sq, *s.search_step(sq))
+        sched.ahead(s.upcoming_step())
+        entry = sched._ahead[s]
+        sq, fed = ready_step(fed)
+        # under way (waiting for other steps): not taken, left for search()
+        assert sched.finish_ready(sq) is None and sched._ahead[s] is entry
+        with sched._cond:  # as search() does when a step's speech has come: start without waiting
+            sched._ahead_now = True
+            sched._ahead_cond.notify()
+        await entry.fut
+        got = sched.finish_ready(sq)
+        alone = s.search_step(sq)
+        assert got is not None and int(got[0].frames[0]) == int(alone[0].frames[0]) and got[1] == alone[1]
+        assert sched.n_ahead_used == 1 and s not in sched._ahead
+        s.complete_step(sq, *got)
+        # a control set after the pre-selection: stale, counted, and the step is searched as usual
+        sched.ahead(s.upcoming_step())
+        with sched._cond:
+            sched._ahead_now = True
+            sched._ahead_cond.notify()
+        await sched._ahead[s].fut
+        s.set_control("left_wrist_high")
+        sq, fed = ready_step(fed)
+        assert sched.finish_ready(sq) is None
+        assert sched.n_ahead_stale == 1 and sched.n_ahead_used == 1 and s not in sched._ahead
+
+    asyncio.run(run())
