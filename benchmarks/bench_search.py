@@ -73,6 +73,12 @@ DP = (24 + 6 * STANCE) * len(LAGS)
 FPS, SECONDS = 15, 24
 
 
+def _turned(p, c, sn):
+    """(n, joints, 3) positions into each frame's body frame (cosine c, sine sn of its yaw, (n, 1)), (n, joints * 3)."""
+    px, pz = p[..., 0], p[..., 2]
+    return np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1).reshape(len(p), -1)
+
+
 def motion_pose(rng, F, n_rec=150):
     """(F, DP) pose features with the structure of real ones: 8 joints x 3
     coordinates moving smoothly (6 latent Gaussian-filtered signals, about
@@ -103,16 +109,11 @@ def motion_pose(rng, F, n_rec=150):
             feet = (np.array([[0.136, -0.84, 0.0], [-0.136, -0.84, 0.0]])
                     + gaussian_filter1d(rng.standard_normal((n, 2, 3)), 20.0, axis=0) * [0.75, 0.28, 0.75])
         for k, lag in enumerate(LAGS):
-            p = x[np.clip(f + lag, 0, n - 1)].reshape(n, 8, 3)
-            px, pz = p[..., 0], p[..., 2]
-            q = np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1)
-            out[a:b, 24 * k:24 * (k + 1)] = q.reshape(n, 24)
+            src = np.clip(f + lag, 0, n - 1)
+            out[a:b, 24 * k:24 * (k + 1)] = _turned(x[src].reshape(n, 8, 3), c, sn)
             if STANCE:  # the ankles: a stance about hip-width apart, shifting slowly, after every lag's arms
-                p = feet[np.clip(f + lag, 0, n - 1)]
-                px, pz = p[..., 0], p[..., 2]
-                q = np.stack([c * px + sn * pz, p[..., 1], -sn * px + c * pz], axis=-1)
                 col = 24 * len(LAGS) + 6 * k
-                out[a:b, col:col + 6] = q.reshape(n, 6)
+                out[a:b, col:col + 6] = _turned(feet[src], c, sn)
     return out
 
 

@@ -107,11 +107,12 @@ def _recompute_pose_features(h5, name: str) -> None:
     counts = schema.read(h5, schema.RECORDING_N_FRAMES)
     positions = store.array(h5, schema.JOINT_POSITIONS)
     stride = default_pose_stride(fps)
+    ankles = ankle_joints(names)
     parts = []
     for a, n in zip(starts.tolist(), counts.tolist()):
         pos = np.asarray(positions[a:a + n], dtype=np.float32).astype(np.float64)
         parts.append(pose_features(pos, joints=joints, fps=fps, window=POSE_WINDOW, stride=stride,
-                                   stance=ankle_joints(names)))
+                                   stance=ankles))
     pose = np.concatenate(parts) if parts else np.zeros((0, 0), np.float32)
     if pose.shape[0] != positions.shape[0]:
         raise SchemaError(name, f"recordings: expected them to cover the {positions.shape[0]} frames of "

@@ -13,7 +13,7 @@ import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.errors import ParameterError
-from gesturedb.io.joints import body_keys
+from gesturedb.io.joints import ankle_joints, body_keys
 from gesturedb.motion import Motion
 
 __all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "MAX_FILL_GAP_S", "FootPlanter", "fill_non_steps", "foot_contacts",
@@ -51,18 +51,16 @@ STEP_HEIGHT_LEG_FRACTION = 0.055
 def foot_joints(skeleton) -> np.ndarray:
     """Ankle and toe joints of each side, ``[[left_ankle, left_toe], [right_ankle, right_toe]]`` (2, 2) int64.
 
-    Found by body part (:func:`gesturedb.io.joints.body_keys`); a side without a toe
-    uses its ankle twice. Empty (0, 2) when the skeleton has no feet.
+    The ankles are :func:`gesturedb.io.joints.ankle_joints`' (those whose stance the pose
+    features carry), the toes found by body part (:func:`gesturedb.io.joints.body_keys`); a side
+    without a toe uses its ankle twice. Empty (0, 2) when the skeleton has no feet.
     """
-
+    ankles = ankle_joints(skeleton.names)
+    if ankles.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
     keys = {k: j for j, k in body_keys(skeleton.names).items()}
-    out = []
-    for side in ("left", "right"):
-        ankle = keys.get(f"{side}_foot")
-        if ankle is None:
-            return np.zeros((0, 2), dtype=np.int64)
-        out.append([ankle, keys.get(f"{side}_toe", ankle)])
-    return np.asarray(out, dtype=np.int64)
+    toes = [keys.get(f"{side}_toe", int(a)) for side, a in zip(("left", "right"), ankles)]
+    return np.stack([ankles, np.asarray(toes, dtype=np.int64)], axis=1)
 
 
 def foot_contacts(positions: np.ndarray, *, fps: float, feet: np.ndarray, floor_y: float | None = None,
