@@ -49,6 +49,7 @@ def run(args) -> int:
 
         from gesturedb.serve import workers as W
         from gesturedb.serve.app import create_app
+        from gesturedb.serve.websocket import uvicorn_options
     except ImportError as exc:
         raise ParameterError(f"serve needs the 'serve' extra: pip install 'gesturedb[serve]' ({exc})") from None
     n_workers = W.resolve_workers(args.workers)
@@ -62,6 +63,5 @@ def run(args) -> int:
         print(f"gesturedb serve: {db.path} ({db.n_frames} frames at {db.fps:g} fps); studio at "
               f"http://{shown}:{args.port}/ , stream at ws://{shown}:{args.port}/stream (ready in {warm_s:.2f} s"
               + (f"; {n_workers} worker processes" if n_workers > 1 else "") + "; Ctrl-C stops)", flush=True)
-        W.serve(app, args.host, args.port, n_workers, ws_max_size=limits.ws_max_size,
-                ws_ping_interval=20.0, ws_ping_timeout=20.0, log_level="warning")
+        W.serve(app, args.host, args.port, n_workers, log_level="warning", **uvicorn_options(limits))
     return 0

@@ -5,6 +5,7 @@
 ``session``        one WebSocket stream: audio and controls in, frames out
 ``protocol``       the wire format (binary frames layout, audio formats, close codes)
 ``limits``         :class:`Limits`: message size, upload length, idle time, streams
+``websocket``      uvicorn's WebSocket settings; a refused message's close that lingers
 ``client``         :class:`~gesturedb.serve.client.LiveClient`: a small client for engines
 ``vendor``         three.js from Debian's libjs-three, found at run time
 ``studio/``        the browser studio's page, script and audio worklet
