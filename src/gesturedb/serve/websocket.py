@@ -1,4 +1,4 @@
-"""The WebSocket layer under the app: uvicorn's, with a lingering close.
+"""The WebSocket layer under the app: uvicorn's, with a lingering close and without permessage-deflate.
 
 A message over ``Limits.ws_max_size`` is refused from its frame header, before it is
 read (the server's memory stays put), and the connection fails with close code 1009.
@@ -10,6 +10,11 @@ without compression: 5 saw no close code; with the server declining compression
 as well, 10 of 20. So here the server sends the close frame and its end of the
 stream, then keeps reading and dropping what the peer still sends until the peer
 closes, for at most :data:`LINGER_S`, and only then closes the socket.
+
+permessage-deflate is declined: every 40 ms audio message and every frames message
+was compressed and decompressed on both ends (about a sixth of the event loop's
+time at 16 clients), for PCM that barely compresses, on the loopback or a LAN
+where bytes are cheap (docs/live.md, "Compression"; benchmarks/RESULTS.md).
 """
 from __future__ import annotations
 
@@ -70,6 +75,7 @@ def uvicorn_options(limits: Limits) -> dict:
     return {
         "ws": "auto" if WebSocketsSansIOProtocol is None else LingeringWebSocketProtocol,
         "ws_max_size": limits.ws_max_size,
+        "ws_per_message_deflate": False,
         "ws_ping_interval": PING_S,
         "ws_ping_timeout": PING_S,
     }
