@@ -12,8 +12,8 @@ which audio message completed the steps in it; the latency of a step is the time
 from sending that audio message to receiving the frames, so it counts the
 server's queueing, the search, the assembly and both ways over the loopback. A
 step is late when its latency is over --budget-ms. Prints, per count of clients, the
-steps measured, p50 / p99 / max step latency and the late steps, and the largest
-count with no late step.
+steps measured, p50 / p99 / max step latency, the late steps and the server process's CPU
+time (all its threads) and the clients' per step measured, and the largest count with no late step.
 
 Start-up (--startup): the time from `gesturedb.open(DB)` to the first search step, the
 first frame and the second step (the first seam, which needs the database's typical
@@ -336,12 +336,12 @@ def main(argv=None) -> int:
                                           src=args.baseline_src if "base" in mode else None), port)
             print(f"[{mode}] server up in {time.perf_counter() - t:.1f} s (warm-up included)")
         print(f"{'server':>6} {'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6} "
-              f"{'batch':>6} {'search ms/step':>15} {'load':>5} {'ahead used ms/call':>14}")
+              f"{'batch':>6} {'search ms/step':>15} {'load':>5} {'ahead used ms/call':>14} {'cpu ms/step':>10} {'clients cpu':>10}")
         best = {mode: 0 for mode in modes}
         live = list(modes)
         for n in counts:
             for mode in list(live):
-                ok, p50 = measure(args, x, n, mode, servers[mode][1])
+                ok, p50 = measure(args, x, n, mode, servers[mode][1], servers[mode][0].pid)
                 if ok:
                     best[mode] = n
                 if not p50 <= args.give_up_ms:
@@ -359,12 +359,30 @@ def health(port: int) -> dict:
     return json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=10).read())
 
 
-def measure(args, x: np.ndarray, n: int, mode: str, port: int) -> tuple[bool, float]:
-    """n clients at once on the server at ``port``; prints a row; (no late step, p50 in ms)."""
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user and system) the process ``pid`` has used so far (Linux: /proc)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+
+
+def clients_cpu_s() -> float:
+    """CPU seconds used by this process and its finished children: the clients (threads here or the processes
+    of run_procs, waited for when it returns; the servers are children too, but still running)."""
+    import resource
+
+    return sum(r.ru_utime + r.ru_stime for r in map(resource.getrusage, (resource.RUSAGE_SELF,
+                                                                         resource.RUSAGE_CHILDREN)))
+
+
+def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tuple[bool, float]:
+    """n clients at once on the server at ``port`` (process ``pid``); prints a row; (no late step, p50 in ms)."""
     # a server of several processes answers /health from one of them: its batch counts are not the server's
     stats = not mode.startswith("workers")
     before = health(port).get("batch") if stats else None
+    cpu0, ccpu0 = cpu_s(pid), clients_cpu_s()
     lat, errors = run_procs(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms, args.client_procs)
+    cpu, ccpu = cpu_s(pid) - cpu0, clients_cpu_s() - ccpu0
     after = health(port).get("batch") if stats else None
     ms = np.array(lat) * 1000
     late = int((ms > args.budget_ms).sum())
@@ -379,8 +397,11 @@ def measure(args, x: np.ndarray, n: int, mode: str, port: int) -> tuple[bool, fl
         used, calls = a["used"] - b["used"], a["calls"] - b["calls"]
         if calls:  # steps finished from their pre-selection, and the pre-selecting thread's ms per call
             ahead = f"{used}/{used + after['steps'] - before['steps']} {(a['busy_s'] - b['busy_s']) * 1000 / calls:.0f}"
+    # the server's CPU per step, all its threads (one process: the workers' children are not in it)
+    cpu_step = f"{cpu * 1000 / ms.size:.1f}" if stats and ms.size else "-"
+    clients_step = f"{ccpu * 1000 / ms.size:.1f}" if ms.size else "-"
     print(f"{mode:>6} {n:>8} {ms.size:>7} {p50:>8.1f} {p99:>8.1f} {mx:>8.1f} {late:>6} {batch:>6} {search:>15} "
-          f"{os.getloadavg()[0]:>5.1f} {ahead:>14}"
+          f"{os.getloadavg()[0]:>5.1f} {ahead:>14} {cpu_step:>10} {clients_step:>10}"
           + (f"  ({len(errors)} clients failed: {errors[0]})" if errors else ""), flush=True)
     return late == 0 and not errors and ms.size > 0, float(p50)
 
