@@ -40,7 +40,9 @@ if WebSocketsSansIOProtocol is not None:
 
         Overrides two hooks of uvicorn 0.54's class: ``handle_parser_exception`` (websockets has
         failed the connection and queued its close frame: uvicorn writes it and closes the socket
-        there) and ``data_received`` (what comes after that is dropped unparsed).
+        there) and ``data_received`` (what comes after that is dropped unparsed). Both, and the
+        attributes used here, are as they were in 0.35, which brought the class; an uvicorn
+        without it gets its default protocol (:func:`uvicorn_options`), which closes at once.
         """
 
         _lingering = False
