@@ -142,12 +142,24 @@ class StepScheduler:
                 self._ahead_cond.notify()
         if entry.state != _DONE:
             await entry.fut
+        return self._fitting_table(entry, sq)
+
+    def _fitting_table(self, entry, sq):
+        """The done pre-selection ``entry``'s table when it fits step ``sq`` (its inputs but the audio are the
+        same); else None (a stale one counted), and the step is searched as usual."""
         if entry.table is None:
             return None
         if not entry.sq.same_but_audio(sq):
             self.n_ahead_stale += 1
             return None
         return entry.table
+
+    def _finish(self, sq, table):
+        """:meth:`StepBatch.finish` of step ``sq`` from its pre-selected ``table``, counted when it could."""
+        got = self.batch.finish(sq, table)
+        if got is not None:
+            self.n_ahead_used += 1
+        return got
 
     def _run_ahead(self) -> None:
         while True:
@@ -196,15 +208,8 @@ class StepScheduler:
             if entry is None or entry.state != _DONE:
                 return None
             del self._ahead[sq.stream]
-        if entry.table is None:
-            return None
-        if not entry.sq.same_but_audio(sq):
-            self.n_ahead_stale += 1
-            return None
-        got = self.batch.finish(sq, entry.table)
-        if got is not None:
-            self.n_ahead_used += 1
-        return got
+        table = self._fitting_table(entry, sq)
+        return None if table is None else self._finish(sq, table)
 
     async def search(self, sq):
         """``(res, relaxed)`` of step ``sq`` (as its stream's ``search_step`` returns them): finished from its
@@ -212,9 +217,8 @@ class StepScheduler:
         waiting; raises the step's own GestureDBError when it has no candidate."""
         table = await self._take_ahead(sq) if self.ahead_enabled else None
         if table is not None:
-            got = await run_in_threadpool(self.batch.finish, sq, table)
+            got = await run_in_threadpool(self._finish, sq, table)
             if got is not None:
-                self.n_ahead_used += 1
                 return got
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
