@@ -5,7 +5,14 @@ import numpy as np
 import pytest
 
 from gesturedb.errors import ParameterError
-from gesturedb.features.rhythm import audio_rhythm, hamming, hand_speed, motion_rhythm, speed_minima
+from gesturedb.features.rhythm import (
+    audio_rhythm,
+    hamming,
+    hamming_beyond_chance,
+    hand_speed,
+    motion_rhythm,
+    speed_minima,
+)
 from gesturedb.features.segments import fixed_chunks
 
 try:
@@ -142,6 +149,49 @@ def test_hamming_counts_differing_bits():
         for j in range(30):
             assert d[i, j] == bin(int(a[i]) ^ int(b[j])).count("1")
 
+
+
+def _random_signatures(rng, n_bits: int, size: int, bits: int = 32) -> np.ndarray:
+    """``size`` signatures of exactly ``n_bits`` set bits out of ``bits``, placed at random."""
+    out = np.zeros(size, dtype=np.uint32)
+    for i in range(size):
+        for b in rng.choice(bits, size=n_bits, replace=False):
+            out[i] |= np.uint32(1) << np.uint32(b)
+    return out
+
+
+def test_hamming_beyond_chance_does_not_reward_sparse_signatures():
+    """Against a sparse speech signature (8 of 32 bits) the plain Hamming distance of a clip whose bits fall at
+    random grows with its number of bits, so the emptier (calmer) clip wins; beyond chance, clips of any
+    number of random bits score the same on average, and only agreement beyond chance scores lower."""
+    rng = np.random.default_rng(7)
+    a = _random_signatures(rng, 8, 1)[0]
+    plain, beyond = {}, {}
+    for nb in (0, 4, 8, 16, 24):
+        b = _random_signatures(rng, nb, 4000)
+        plain[nb], beyond[nb] = hamming(a, b).mean(), hamming_beyond_chance(a, b).mean()
+    assert plain[0] < plain[4] < plain[8] < plain[16] < plain[24]  # the bias: 8, 11, 14, 20, 26
+    expected = 2 * 8 * (1 - 8 / 32)  # E[H] between two random signatures of 8 bits
+    for nb, v in beyond.items():
+        assert abs(v - expected) < 0.15, (nb, beyond)
+    # a clip that shares the speech's bits beats every random one, whatever its number of bits
+    assert hamming_beyond_chance(a, a) == 0 and hamming_beyond_chance(a, a | np.uint32(0xFF00FF00)) < expected - 1
+
+
+def test_hamming_beyond_chance_is_hamming_for_equal_bit_counts():
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 8, 31, 32):
+        a, b = _random_signatures(rng, n, 200), _random_signatures(rng, n, 200)
+        np.testing.assert_array_equal(hamming_beyond_chance(a, b), hamming(a, b).astype(np.float64))
+    a = rng.integers(0, 2**32, size=50, dtype=np.uint64).astype(np.uint32)
+    b = rng.integers(0, 2**32, size=60, dtype=np.uint64).astype(np.uint32)
+    d = hamming_beyond_chance(a[:, None], b[None, :])
+    assert d.shape == (50, 60) and d.dtype == np.float64 and (d >= 0).all()
+    assert (d[np.equal.outer(a, b)] == 0).all()
+    # the chance depends on the bins: every bin set is what any clip matches by chance when there are 8
+    assert hamming_beyond_chance(0xFF, 0x0F, bits=8) == 0 and hamming_beyond_chance(0xFF, 0x0F) == 6.0
+    with pytest.raises(ParameterError, match=r"bits: expected an int in \[1, 32\]; got 0"):
+        hamming_beyond_chance(1, 1, bits=0)
 
 def test_real_motion_has_a_plausible_rhythm(scott_dir):
     from gesturedb.io.smplx import read_smplx

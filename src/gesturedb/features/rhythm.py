@@ -37,6 +37,7 @@ __all__ = [
     "speed_minima",
     "motion_rhythm",
     "hamming",
+    "hamming_beyond_chance",
 ]
 
 #: Default prominence (m/s) a speed minimum needs to count as a beat: the speed
@@ -305,6 +306,37 @@ def hamming(a, b) -> np.ndarray:
     x = np.bitwise_xor(_as_signatures("a", a), _as_signatures("b", b))
     return _popcount32(x)
 
+
+
+def hamming_beyond_chance(a, b, *, bits: int = 32) -> np.ndarray:
+    """Hamming distance between rhythm signatures with the part their numbers of set bits explain taken out.
+
+    ``H(a, b) - E[H | n_a, n_b] + E[H | n_a, n_a]``, where ``E[H | n_a, n_b] = n_a + n_b - 2 n_a n_b / bits``
+    is the Hamming distance expected between signatures of ``n_a`` and ``n_b`` set bits placed at random.
+    Why: the plain Hamming distance of a sparse speech signature (a 3 s clip sets about 8 of 32 bins)
+    grows with every set bit of the other signature that misses, so among candidates that agree with the
+    speech no better than chance it prefers those with the fewest bits: motion with few speed minima,
+    the calm clips (on a 1.25x faster BEAT2 speaker the motion graph chose clips of 5.7 bits where the
+    clips of fitting length had 8.6). This measure rewards only agreement beyond chance. It is the
+    Hamming distance whenever ``n_b = n_a``, 0 iff ``a == b``, and never negative.
+
+    Parameters
+    ----------
+    a, b : int or array of uint32
+        Signatures of ``bits`` bins, broadcast against each other; ``a`` is the reference (the speech).
+    bits : int in [1, 32], keyword-only
+        Bins per signature.
+
+    Returns
+    -------
+    ndarray of the broadcast shape, float64
+    """
+    bits = _check_bits(bits)
+    a, b = _as_signatures("a", a), _as_signatures("b", b)
+    na, nb = _popcount32(a).astype(np.float64), _popcount32(b).astype(np.float64)
+    h = _popcount32(np.bitwise_xor(a, b)).astype(np.float64)
+    # H - (na + nb - 2 na nb / bits) + (2 na - 2 na^2 / bits), grouped so that b = a gives 0 exactly
+    return np.maximum(h + (na - nb) * (1.0 - 2.0 * na / bits), 0.0)
 
 def _popcount32(x: np.ndarray) -> np.ndarray:
     if hasattr(np, "bitwise_count"):  # numpy >= 2.0

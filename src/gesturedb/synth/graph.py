@@ -12,13 +12,16 @@ predictor are built with the database (:mod:`gesturedb.db.graph`). For new speec
    so every clip has a node that can be fitted to it.
 2. **Signatures.** Rhythm: word onsets over 32 bins (Sec. 3.2). Style: predicted from the
    clip's audio by the ridge model stored with the graph.
-3. **Data term** ``C_d = l5 * |style_in - style_d| + l6 * Hamming(rhythm_in, rhythm_motion_d)
+3. **Data term** ``C_d = l5 * |style_in - style_d| + l6 * H(rhythm_in, rhythm_motion_d)
    + l_dur * |log(len_d / len_i)|`` (+1000 if the clip cannot be fitted even with its
    continuation in its recording: never impossible, always avoided). ``+inf`` where a
    control mask or keyword excludes the node (rules: for a control, node ``d`` is allowed for
    clip ``i`` when at least half of ``d``'s frames are in the mask active at ``i``'s middle
    frame; a clip that speaks a keyword of a keyword sub-database takes a node that overlaps
    one of the speaker's own occurrences of it, see ``GraphSynthesizer._apply_masks``).
+   ``H`` is the paper's Hamming distance with what the signatures' numbers of bits explain taken out
+   (:func:`gesturedb.features.rhythm.hamming_beyond_chance`; ``rhythm="hamming"``: the paper's): the
+   plain distance of a sparse speech signature prefers motion with few speed minima, calm clips.
 4. **Search.** :func:`viterbi` minimises ``l3 * sum C_d + l4 * sum T`` exactly
    (``../shared/spec/graph.md``) over the upper-body graph. Defaults from Sec. 5: l3 = 1,
    l4 = 3, l5 = 1, l6 = 0.1. The graph has no self-edges, so the same clip is never played
@@ -66,7 +69,7 @@ from gesturedb.db.graph import body_parts, clip_audio_inputs, predict_style, sug
 from gesturedb.errors import InputFileError, ParameterError, SchemaError
 from gesturedb.features.body import BODY_ROLES
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
-from gesturedb.features.rhythm import audio_rhythm, hamming, hand_speed, speed_minima
+from gesturedb.features.rhythm import audio_rhythm, hamming, hamming_beyond_chance, hand_speed, speed_minima
 from gesturedb.features.segments import word_gap_clips
 from gesturedb.io.joints import find_joints
 from gesturedb.io.transcripts import Words
@@ -279,6 +282,10 @@ class GraphOptions(SynthOptions):
         lambda_3, lambda_4, lambda_5, lambda_6 (Sec. 5: 1, 3, 1, 0.1).
     l_dur : float
         Weight of the duration term ``|log(len_d / len_i)|``.
+    rhythm : "chance" or "hamming"
+        The rhythm term: the Hamming distance beyond chance
+        (:func:`gesturedb.features.rhythm.hamming_beyond_chance`, the default) or the paper's plain
+        Hamming distance, which prefers calm clips (module doc, step 3; ``docs/evaluation.md``).
 
     ``control``, ``keywords``, ``exclude`` and ``speaker`` restrict nodes by the rules in the
     module doc; ``smooth`` is GestureMaster's Savitzky-Golay filter per joint group.
@@ -291,6 +298,11 @@ class GraphOptions(SynthOptions):
     l5: float = 1.0
     l6: float = 0.1
     l_dur: float = 0.5
+    rhythm: str = "chance"
+
+
+#: The rhythm terms of :class:`GraphOptions` and the function of each.
+RHYTHM_TERMS = {"chance": hamming_beyond_chance, "hamming": hamming}
 
 
 class GraphSynthesizer:
@@ -385,15 +397,16 @@ class GraphSynthesizer:
         n_words = np.histogram(ws * fps, bins=b)[0] if ws.size else np.zeros(len(b) - 1, dtype=np.int64)
         return b, ws, n_words
 
-    def data_terms(self, query, bounds, onsets_s, n_words, *, l5=1.0, l6=0.1, l_dur=0.5):
-        """Components of ``C_d`` (n, K) each: style L2, rhythm Hamming, duration; plus rates and fit flags."""
+    def data_terms(self, query, bounds, onsets_s, n_words, *, l5=1.0, l6=0.1, l_dur=0.5, rhythm="chance"):
+        """Components of ``C_d`` (n, K) each: style L2, rhythm (``rhythm``: a key of :data:`RHYTHM_TERMS`),
+        duration; plus rates and fit flags."""
 
         fps = self.db.fps
         starts, lens = bounds[:-1], np.diff(bounds)
         style_in = predict_style(self.style_model, clip_audio_inputs(query, starts, lens, n_words))
         rhythm_in = np.atleast_1d(audio_rhythm(onsets_s, start_s=starts / fps, end_s=bounds[1:] / fps))
         g_z = np.linalg.norm(style_in[:, None, :] - self.style[None, :, :], axis=-1)
-        g_r = hamming(rhythm_in[:, None], self.rhythm_motion[None, :]).astype(np.float64)
+        g_r = RHYTHM_TERMS[rhythm](rhythm_in[:, None], self.rhythm_motion[None, :]).astype(np.float64)
         ratio = self.length[None, :] / lens[:, None].astype(np.float64)
         speed = np.clip(ratio, 1 / MAX_SPEED, MAX_SPEED)
         need = np.ceil((lens[:, None] - 1) * speed).astype(np.int64) + 1
@@ -415,7 +428,7 @@ class GraphSynthesizer:
         transcript : path, Words or None
             Word timings; without them pauses come from :func:`voiced_segments`.
         options : GraphOptions, optional
-            ``gap_s``, ``vad``, ``w_data``, ``w_trans``, ``l5``, ``l6``, ``l_dur`` and the
+            ``gap_s``, ``vad``, ``w_data``, ``w_trans``, ``l5``, ``l6``, ``l_dur``, ``rhythm`` and the
             options every method shares (``seam_decay_s``, ``smooth``, ``control``,
             ``keywords``, ``exclude``, ``speaker``); see :class:`GraphOptions`.
         **changes
@@ -430,6 +443,8 @@ class GraphSynthesizer:
             ``control``, ``keyword``.
         """
         opts = GraphOptions.of(options, **changes)
+        if opts.rhythm not in RHYTHM_TERMS:
+            raise ParameterError(f"rhythm: expected one of {', '.join(RHYTHM_TERMS)}; got {opts.rhythm!r}")
         gap_s, vad, w_data, w_trans = opts.gap_s, opts.vad, opts.w_data, opts.w_trans
         l5, l6, l_dur, smooth = opts.l5, opts.l6, opts.l_dur, opts.smooth
         control, keywords = opts.control, opts.keywords
@@ -441,7 +456,7 @@ class GraphSynthesizer:
         query = inputs.query_features(db, samples, sr)
         T = query.shape[0]
         bounds, onsets, n_words = self.input_clips(samples, sr, T, transcript=transcript, gap_s=gap_s, vad=vad)
-        unary, terms = self.data_terms(query, bounds, onsets, n_words, l5=l5, l6=l6, l_dur=l_dur)
+        unary, terms = self.data_terms(query, bounds, onsets, n_words, l5=l5, l6=l6, l_dur=l_dur, rhythm=opts.rhythm)
         excl = inputs.excluded(db, self.recording, opts.exclude, opts.speaker)  # bool per node
         labels, kw_ok = self._apply_masks(unary, bounds, T, control=control, transcript=transcript,
                                           keywords=keywords, exclude=excl)
@@ -461,7 +476,7 @@ class GraphSynthesizer:
         motion, source, steps, cuts = self._assemble(path, path_low, bounds, terms, unary, unary_low, labels,
                                                seam_decay_s=seam_decay_s, smooth=smooth)
         options = dict(method="graph", gap_s=self.last_gap_s, w_data=w_data, w_trans=w_trans, l5=l5, l6=l6, l_dur=l_dur,
-                       seam_decay_s=seam_decay_s, smooth=smooth, total_cost=total, total_cost_lower=total_low,
+                       rhythm=opts.rhythm, seam_decay_s=seam_decay_s, smooth=smooth, total_cost=total, total_cost_lower=total_low,
                        control=control if isinstance(control, (str, type(None))) else str(control),
                        keywords=keywords if isinstance(keywords, bool) else list(keywords),
                        transcript=transcript is not None, vad=None if transcript is not None else vad,
