@@ -109,8 +109,19 @@ item []:
         read_textgrid(path, tier="BEATS")
     bad = tmp_path / "bad.TextGrid"
     bad.write_text("this is not a textgrid\n")
-    with pytest.raises(InputFileError, match="cannot parse as a Praat TextGrid"):
+    with pytest.raises(InputFileError, match=r"bad.TextGrid: line 1: expected the Praat header 'File type = "
+                                             r"\"ooTextFile\"' \(a TextGrid saved as text\); got 'this is not"):
         read_textgrid(bad)
+    bad.write_text("")
+    with pytest.raises(InputFileError, match="bad.TextGrid: empty file; expected a Praat TextGrid"):
+        read_textgrid(bad)
+    # Praat saves non-ASCII text as UTF-16 with a byte-order mark: read, and its errors named by line too
+    u16 = tmp_path / "u16.TextGrid"
+    u16.write_text(tg.replace("Hello,", "Héllo,"), encoding="utf-16")
+    assert read_transcript(u16).text == ["héllo", "world"]
+    u16.write_text(tg.replace("xmax = 3", "xmax = soon", 1), encoding="utf-16")
+    with pytest.raises(InputFileError, match=r"u16.TextGrid: line \d+: xmax: expected a number of seconds, got 'soon'"):
+        read_textgrid(u16)
 
 
 def test_json_layouts(tmp_path):

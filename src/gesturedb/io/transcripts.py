@@ -207,7 +207,7 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
         tg = textgrid.openTextgrid(os.fspath(path), includeEmptyIntervals=False, reportingMode="silence")
     except (praat_errors.PraatioException, ValueError, IndexError, KeyError, UnicodeError, AttributeError,
             TypeError) as exc:
-        bad = _textgrid_time_problem(path)
+        bad = _textgrid_problem(path)
         if bad:  # praatio says "Expected field in Textgrid missing" for a negative time: name the line instead
             raise InputFileError(path, bad) from None
         # praatio's messages span lines: keep one
@@ -230,17 +230,28 @@ def read_textgrid(path, *, tier: str = "words") -> Words:
 _TEXTGRID_TIME = re.compile(r"\s*(xmin|xmax|number)\s*=\s*(\S+)\s*$")
 
 
-def _textgrid_time_problem(path) -> str | None:
-    """The first negative, non-finite or reversed time of a (long-format) TextGrid, naming its line.
+def _textgrid_problem(path) -> str | None:
+    """A missing Praat header, or the first negative, non-finite or reversed time of a (long-format)
+    TextGrid, naming its line.
 
     Only called once praatio has refused the file, to say where and why in the words of
-    the other readers.
+    the other readers (praatio's own message for a file that is not a TextGrid at all is an
+    IndexError).
     """
     try:
-        with open(path, "r", encoding="utf-8-sig", errors="replace") as f:
-            lines = f.read().splitlines()
+        with open(path, "rb") as f:
+            raw = f.read()
     except OSError:
         return None
+    # Praat writes UTF-16 with a byte-order mark where the text is not ASCII
+    utf16 = raw.startswith((b"\xff\xfe", b"\xfe\xff"))
+    lines = raw.decode("utf-16" if utf16 else "utf-8-sig", errors="replace").splitlines()
+    first = next(((k, ln.strip()) for k, ln in enumerate(lines, start=1) if ln.strip()), None)
+    if first is None:
+        return "empty file; expected a Praat TextGrid"
+    if not first[1].replace(" ", "").startswith(("Filetype=", "Filetype\t")) or "ooTextFile" not in first[1]:
+        return (f"line {first[0]}: expected the Praat header 'File type = \"ooTextFile\"' "
+                f"(a TextGrid saved as text); got {first[1][:60]!r}")
     xmin = None
     for k, line in enumerate(lines, start=1):
         m = _TEXTGRID_TIME.match(line)
