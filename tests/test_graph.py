@@ -569,6 +569,7 @@ def test_cli_graph_synth_and_missing_graph(mirrored_db, scott_dir, tmp_path, cap
     prov = json.loads((tmp_path / "g.provenance.json").read_text())
     assert prov["options"]["method"] == "graph" and prov["steps"][0]["node"] >= 0
     assert prov["options"]["vad"] == "silero" and prov["options"]["transcript"] is False
+    assert prov["options"]["rhythm"] == "chance"
     pos = np.load(tmp_path / "g.npz")["positions"]
     assert pos.shape[0] == prov["n_frames"] and np.isfinite(pos).all()
     # the input clips follow the detector asked for: the energy detector cuts where it hears pauses
@@ -576,9 +577,9 @@ def test_cli_graph_synth_and_missing_graph(mirrored_db, scott_dir, tmp_path, cap
     from gesturedb.io.audio import read_audio
 
     assert main(["synth", str(mirrored_db), "--method", "graph", "--audio", str(wav), "-o", str(tmp_path / "e.bvh"),
-                 "--vad", "energy", "--gap", "0.4"]) == 0
+                 "--vad", "energy", "--gap", "0.4", "--rhythm", "hamming"]) == 0
     pe = json.loads((tmp_path / "e.provenance.json").read_text())
-    assert pe["options"]["vad"] == "energy"
+    assert pe["options"]["vad"] == "energy" and pe["options"]["rhythm"] == "hamming"
     x, sr = read_audio(wav, sr=16000)
     s, e = voiced_segments(x, sr, method="energy")
     gap = s[1:] - e[:-1] > 0.4
@@ -590,6 +591,8 @@ def test_cli_graph_synth_and_missing_graph(mirrored_db, scott_dir, tmp_path, cap
         main(["synth", str(mirrored_db), "--method", "graph", "--audio", str(wav), "-o", str(tmp_path / "b.bvh"),
               "--vad", "webrtc"])
     assert ex.value.code == 2 and "--vad: invalid choice: 'webrtc'" in capsys.readouterr().err
+    assert main(["synth", str(mirrored_db), "--audio", str(wav), "-o", str(tmp_path / "k.bvh"), "--rhythm", "hamming"]) == 2
+    assert "--rhythm works with --method graph only" in capsys.readouterr().err
     nog = tmp_path / "nog.h5"
     assert main(["build", str(scott_dir), "-o", str(nog), "--no-graph", "-q"]) == 0
     capsys.readouterr()

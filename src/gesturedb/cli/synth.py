@@ -40,6 +40,9 @@ def add_parser(sub) -> None:
     p.add_argument("--vad", choices=VAD_METHODS, default=DEFAULT_VAD,
                    help="--method graph without --transcript: how pauses are found in the speech "
                    "(default: %(default)s; see gesturedb.features.pauses)")
+    p.add_argument("--rhythm", choices=("chance", "hamming"), default=None,
+                   help="--method graph: the rhythm term, agreement beyond chance or the paper's plain Hamming "
+                   "distance, which prefers calm clips (default: chance; docs/motion-graph.md)")
     p.add_argument("--k", type=int_range(1, 10**6), default=1, help="take the k-th best candidate (default: 1)")
     p.add_argument("--preselect", choices=("pose", "audio"), default="pose")
     add_init_argument(p)
@@ -134,7 +137,7 @@ def run(args) -> int:
 
 
 #: The option flags that a method without the option refuses (their default, None, means "not given").
-_METHOD_FLAGS = {"step": "--step", "repeat_guard_s": "--repeat-guard", "gap_s": "--gap"}
+_METHOD_FLAGS = {"step": "--step", "repeat_guard_s": "--repeat-guard", "gap_s": "--gap", "rhythm": "--rhythm"}
 
 
 def method_options(method, args, *, keywords):
@@ -143,7 +146,7 @@ def method_options(method, args, *, keywords):
     given = dict(seam_decay_s=args.seam_decay_s, smooth=args.smooth, control=args.control, keywords=keywords,
                  exclude=args.exclude.split(",") if args.exclude else None, speaker=args.speaker,
                  k=args.k, preselect=args.preselect, init=args.init, seed=args.seed, step=args.step,
-                 repeat_guard_s=args.repeat_guard_s, gap_s=args.gap_s, vad=args.vad)
+                 repeat_guard_s=args.repeat_guard_s, gap_s=args.gap_s, vad=args.vad, rhythm=args.rhythm)
 
     def unusable(m) -> list[str]:
         """The flags given that method ``m`` has no use for."""
