@@ -472,17 +472,17 @@ PYBIND11_MODULE(_core, m) {
             check_vector(rres, n, "rres");
             if (xs.cols != J || par.rows != 6 || par.cols != nl || nl < 1)
                 throw std::invalid_argument("x: expected (lanes, J) and lanes (6, lanes)");
-            const int64_t qp = (nl + kQueryPanel - 1) / kQueryPanel * kQueryPanel;
-            // panels of 64 lanes as the batch packs them; padding lanes: zero x, aup = alo = 1
+            const int64_t qp = padded_lanes(nl), W = panel_width(qp);
+            // panels of W lanes as the batch packs them; padding lanes: zero x, aup = alo = 1
             std::vector<float> xt(size_t(J) * qp, 0.0f), p(size_t(6) * qp, 0.0f);
             for (int64_t l = 0; l < qp; ++l) p[1 * qp + l] = p[4 * qp + l] = 1.0f;
             for (int64_t l = 0; l < nl; ++l) {
-                for (int64_t j = 0; j < J; ++j) xt[(l / 64) * 64 * J + j * 64 + l % 64] = xs(l, j);
+                for (int64_t j = 0; j < J; ++j) xt[(l / W) * W * J + j * W + l % W] = xs(l, j);
                 for (int64_t c = 0; c < 6; ++c) p[c * qp + l] = par(c, l);
             }
             const ProjLanes L{&p[0], &p[qp], &p[2 * qp], &p[3 * qp], &p[4 * qp], &p[5 * qp]};
             py::array_t<float> dh({n, qp}), umin(qp);
-            py::array_t<uint64_t> keep({n, qp / 64});
+            py::array_t<uint64_t> keep({n, lane_words(qp)});
             float *pd = dh.mutable_data(), *pu = umin.mutable_data();
             uint64_t* pk = keep.mutable_data();
             {
@@ -496,7 +496,9 @@ PYBIND11_MODULE(_core, m) {
         py::arg("z").noconvert(), py::arg("nrow").noconvert(), py::arg("rres").noconvert(),
         py::arg("x").noconvert(), py::arg("lanes").noconvert(), py::arg("isa"),
         "The batch's projection filter over rows z against lanes x; lanes = (nq, aup, bup, cup, alo, clo). "
-        "Returns (dh (n, qp), umin (qp,), keep bits (n, qp / 64)).");
+        "Returns (dh (n, qp), umin (qp,), keep bits (n, ceil(qp / 64))); qp: the lanes padded to 8, 16, 32 "
+        "or a "
+        "multiple of 64.");
 
     m.def(
         "cosdots_f32",

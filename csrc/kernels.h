@@ -80,14 +80,31 @@ using L2sqBlocksF16Fn = float (*)(const uint16_t* blocks, int64_t f0, int64_t f1
 // be the minimum is then recomputed with l2sq_rows_f32 / cosdots_f32 above. So
 // the batch returns bit-identical results to one query at a time.
 
-// Panel width: the number of queries in a block is padded to a multiple of this.
+// Lanes: the queries of a block are padded to qp lanes, 8, 16 or 32 (one
+// narrow panel) or a multiple of kQueryPanel (panels of 64). The blocked dot
+// product's cost is per padded lane, so a call with a few queries takes a
+// narrow panel instead of paying for 64 (it did: ~110 ms a call at 617k frames
+// whatever the lanes, against ~12 ms for one query's own pass).
 constexpr int64_t kQueryPanel = 64;
+constexpr int64_t kMinPanel = 8;  // one AVX2 vector
+inline int64_t padded_lanes(int64_t n) {
+    if (n <= kQueryPanel / 2) {
+        int64_t w = kMinPanel;
+        while (w < n) w *= 2;
+        return w;
+    }
+    return (n + kQueryPanel - 1) / kQueryPanel * kQueryPanel;
+}
+// Lanes per panel, and 64-bit words of a bit per lane, for qp padded lanes.
+inline int64_t panel_width(int64_t qp) { return qp < kQueryPanel ? qp : kQueryPanel; }
+inline int64_t lane_words(int64_t qp) { return (qp + 63) / 64; }
 
 // out[r * qp + j] = sum_p base[r * stride + p] * x[j][p]
 //   r < n_rows (rows may overlap: stride < len for audio windows), j < qp,
-//   qp a multiple of kQueryPanel. The queries x are packed in panels of 64:
-//   x[j][p] = xt[(j / 64) * len * 64 + p * 64 + j % 64], so one panel is a
-//   contiguous (len, 64) block that stays in L1 while the rows stream past
+//   qp a padded lane count (padded_lanes). The queries x are packed in panels
+//   of W = panel_width(qp) lanes:
+//   x[j][p] = xt[(j / W) * len * W + p * W + j % W], so one panel is a
+//   contiguous (len, W) block that stays in L1 while the rows stream past
 //   (a (len, qp) layout would map every row of the panel to the same few L1
 //   sets once qp * 4 bytes is a multiple of 1 KiB).
 using DotsBlockFn = void (*)(const float* base, int64_t n_rows, int64_t stride, int64_t len, const float* xt,
@@ -101,7 +118,7 @@ using DotsBlockFn = void (*)(const float* base, int64_t n_rows, int64_t stride, 
 //                      (rrow = 1/|window| or 0, rq = 1/|q| or 0: zero norms give d = 1)
 // minhi[j] (in/out, start at +inf) becomes min(minhi[j], d + b) over the rows,
 // or NaN for good once any d + b is not finite (the caller then falls back to
-// the exact scan). keep (n_rows, qp / 64) uint64 words, overwritten: bit (r, j)
+// the exact scan). keep (n_rows, lane_words(qp)) uint64 words, overwritten: bit (r, j)
 // is set iff d - b <= minhi[j] after this block.
 using FilterFn = void (*)(const float* c, int64_t n_rows, int64_t qp, const float* nrow, const float* rrow,
                           const uint8_t* ok, const float* nq, const float* rq, float eps, float* minhi,
@@ -143,7 +160,7 @@ struct ProjLanes {
 // (no NaN handling here; the bound covers the rounding of any order).
 using ProjFilterFn = void (*)(const float* z, int64_t n_rows, int64_t J, const float* nrow, const float* rres,
                               const float* xt, int64_t qp, const ProjLanes& lanes, float* dh, float* umin);
-// Then keep (n_rows, qp / 64) words, overwritten: bit (r, j) set iff
+// Then keep (n_rows, lane_words(qp)) words, overwritten: bit (r, j) set iff
 //   alo[j] dh[r * qp + j] - clo[j] <= umin[j].
 using ProjKeepFn = void (*)(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& lanes,
                             const float* umin, uint64_t* keep);

@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 
 #define GDB_AVX2 __attribute__((target("avx2,fma")))
 
@@ -151,33 +152,71 @@ GDB_AVX2 void cosdots_f32_avx2(const float* base, int64_t n_win, int64_t stride,
 
 namespace {
 
-// NR rows x 16 queries: 2 * NR accumulators (12 for NR = 6) plus two query
-// vectors and one broadcast fit the 16 YMM registers.
-// The dot products of NR rows (row i at base + i * stride, len values) with 16
-// panel lanes, left in acc; shared by the plain tile and the projection filter's.
-template <int NR>
+// NR rows x 8 V queries (V = 2, or 1 for a panel of 8): V * NR accumulators
+// (12 for NR = kTileRowsAvx2<V>) plus the query vectors and one broadcast fit
+// the 16 YMM registers. The dot products of NR rows (row i at base + i * stride, len
+// values) with 8 V lanes of a panel W lanes wide, left in acc; shared by the
+// plain tile and the projection filter's.
+template <int NR, int V>
 GDB_AVX2 inline void tile_acc_avx2(const float* base, int64_t stride, int64_t len, const float* panel,
-                                   __m256 (&acc)[NR][2]) {
-    for (int i = 0; i < NR; ++i) acc[i][0] = acc[i][1] = _mm256_setzero_ps();
+                                   int64_t W, __m256 (&acc)[NR][V]) {
+    for (int i = 0; i < NR; ++i)
+        for (int k = 0; k < V; ++k) acc[i][k] = _mm256_setzero_ps();
     for (int64_t p = 0; p < len; ++p) {
-        const float* x = panel + p * 64;
-        const __m256 x0 = _mm256_loadu_ps(x), x1 = _mm256_loadu_ps(x + 8);
+        const float* x = panel + p * W;
+        __m256 xv[V];
+        for (int k = 0; k < V; ++k) xv[k] = _mm256_loadu_ps(x + 8 * k);
         for (int i = 0; i < NR; ++i) {
             const __m256 b = _mm256_broadcast_ss(base + i * stride + p);
-            acc[i][0] = _mm256_fmadd_ps(b, x0, acc[i][0]);
-            acc[i][1] = _mm256_fmadd_ps(b, x1, acc[i][1]);
+            for (int k = 0; k < V; ++k) acc[i][k] = _mm256_fmadd_ps(b, xv[k], acc[i][k]);
         }
     }
 }
 
-template <int NR>
+template <int NR, int V>
 GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t len, const float* panel,
-                                    int64_t qp, float* out) {
-    __m256 acc[NR][2];
-    tile_acc_avx2<NR>(base, stride, len, panel, acc);
-    for (int i = 0; i < NR; ++i) {
-        _mm256_storeu_ps(out + i * qp, acc[i][0]);
-        _mm256_storeu_ps(out + i * qp + 8, acc[i][1]);
+                                    int64_t W, int64_t qp, float* out) {
+    __m256 acc[NR][V];
+    tile_acc_avx2<NR, V>(base, stride, len, panel, W, acc);
+    for (int i = 0; i < NR; ++i)
+        for (int k = 0; k < V; ++k) _mm256_storeu_ps(out + i * qp + 8 * k, acc[i][k]);
+}
+
+// The last tile of a row range, K rows or fewer: tile(r, nr) with nr = left.
+template <int K, class Tile>
+GDB_AVX2 inline void tail_tile_avx2(int64_t r, int64_t left, Tile& tile) {
+    if constexpr (K >= 1) {
+        if (left == K) tile(r, std::integral_constant<int, K>());
+        else tail_tile_avx2<K - 1>(r, left, tile);
+    }
+}
+
+// Rows [0, n_rows) in tiles of NR and one of the rest: tile(r, nr) with nr
+// as a std::integral_constant, so each tile height is its own unrolled loop.
+template <int NR, class Tile>
+GDB_AVX2 inline void row_tiles_avx2(int64_t n_rows, Tile&& tile) {
+    int64_t r = 0;
+    for (; r + NR <= n_rows; r += NR) tile(r, std::integral_constant<int, NR>());
+    tail_tile_avx2<NR - 1>(r, n_rows - r, tile);
+}
+
+// Rows per tile for 8 V lanes: 12 accumulators either way, so that enough
+// independent FMA chains hide the FMA latency (a panel of 8 with 6 rows
+// waited on it).
+template <int V>
+constexpr int kTileRowsAvx2 = 12 / V;
+
+template <int V>
+GDB_AVX2 inline void dots_block_avx2(const float* base, int64_t n_rows, int64_t stride, int64_t len,
+                                     const float* xt, int64_t qp, float* out) {
+    const int64_t W = panel_width(qp);
+    for (int64_t j0 = 0; j0 < qp; j0 += 8 * V) {
+        // 8 V lanes of the panel that holds query j0
+        const float* panel = xt + (j0 / W) * W * len + (j0 % W);
+        row_tiles_avx2<kTileRowsAvx2<V>>(n_rows, [&](int64_t r, auto nr) GDB_AVX2 {
+            dots_tile_avx2<decltype(nr)::value, V>(base + r * stride, stride, len, panel, W, qp,
+                                                   out + r * qp + j0);
+        });
     }
 }
 
@@ -185,24 +224,8 @@ GDB_AVX2 inline void dots_tile_avx2(const float* base, int64_t stride, int64_t l
 
 GDB_AVX2 void dots_block_f32_avx2(const float* base, int64_t n_rows, int64_t stride, int64_t len,
                                   const float* xt, int64_t qp, float* out) {
-    constexpr int NR = 6;
-    for (int64_t j0 = 0; j0 < qp; j0 += 16) {
-        // 16 lanes of the 64-lane panel that holds query j0
-        const float* panel = xt + (j0 / 64) * 64 * len + (j0 % 64);
-        int64_t r = 0;
-        for (; r + NR <= n_rows; r += NR)
-            dots_tile_avx2<NR>(base + r * stride, stride, len, panel, qp, out + r * qp + j0);
-        const float* b = base + r * stride;
-        float* o = out + r * qp + j0;
-        switch (n_rows - r) {
-            case 5: dots_tile_avx2<5>(b, stride, len, panel, qp, o); break;
-            case 4: dots_tile_avx2<4>(b, stride, len, panel, qp, o); break;
-            case 3: dots_tile_avx2<3>(b, stride, len, panel, qp, o); break;
-            case 2: dots_tile_avx2<2>(b, stride, len, panel, qp, o); break;
-            case 1: dots_tile_avx2<1>(b, stride, len, panel, qp, o); break;
-            default: break;
-        }
-    }
+    if (qp >= 16) dots_block_avx2<2>(base, n_rows, stride, len, xt, qp, out);
+    else dots_block_avx2<1>(base, n_rows, stride, len, xt, qp, out);
 }
 
 namespace {
@@ -225,7 +248,7 @@ GDB_AVX2 inline void filter_avx2(int64_t n_rows, int64_t qp, const uint8_t* ok, 
             _mm256_storeu_ps(minhi + j, _mm256_blendv_ps(_mm256_min_ps(hi, mh), nan, bad));
         }
     }
-    const int64_t words = qp / 64;
+    const int64_t words = lane_words(qp);
     std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
     for (int64_t r = 0; r < n_rows; ++r) {
         if (ok != nullptr && !ok[r]) continue;
@@ -384,15 +407,15 @@ GDB_AVX2 void cosdots_pairs_f32_avx2(const float* const* wins, const float* cons
 
 namespace {
 
-// NR rows x 16 lanes, as dots_tile_avx2, with the bound formed in registers.
-template <int NR>
+// NR rows x 8 V lanes, as dots_tile_avx2, with the bound formed in registers.
+template <int NR, int V>
 GDB_AVX2 inline void proj_tile_avx2(const float* z, int64_t J, const float* nrow, const float* rres,
-                                    const float* panel, int64_t qp, int64_t j0, const ProjLanes& L, float* dh,
-                                    float* umin) {
-    __m256 acc[NR][2];
-    tile_acc_avx2<NR>(z, J, J, panel, acc);
+                                    const float* panel, int64_t W, int64_t qp, int64_t j0, const ProjLanes& L,
+                                    float* dh, float* umin) {
+    __m256 acc[NR][V];
+    tile_acc_avx2<NR, V>(z, J, J, panel, W, acc);
     const __m256 two = _mm256_set1_ps(2.0f);
-    for (int k = 0; k < 2; ++k) {
+    for (int k = 0; k < V; ++k) {
         const int64_t j = j0 + 8 * k;
         const __m256 nq = _mm256_loadu_ps(L.nq + j), aup = _mm256_loadu_ps(L.aup + j);
         const __m256 bup = _mm256_loadu_ps(L.bup + j), cup = _mm256_loadu_ps(L.cup + j);
@@ -407,37 +430,38 @@ GDB_AVX2 inline void proj_tile_avx2(const float* z, int64_t J, const float* nrow
     }
 }
 
+template <int V>
+GDB_AVX2 inline void projfilter_avx2(const float* z, int64_t n_rows, int64_t J, const float* nrow,
+                                     const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
+                                     float* dh, float* umin) {
+    const int64_t W = panel_width(qp);
+    for (int64_t j0 = 0; j0 < qp; j0 += 8 * V) {
+        const float* panel = xt + (j0 / W) * W * J + (j0 % W);
+        row_tiles_avx2<kTileRowsAvx2<V>>(n_rows, [&](int64_t r, auto nr) GDB_AVX2 {
+            proj_tile_avx2<decltype(nr)::value, V>(z + r * J, J, nrow + r, rres + r, panel, W, qp, j0, L,
+                                                   dh + r * qp, umin);
+        });
+    }
+}
+
 }  // namespace
 
 GDB_AVX2 void projfilter_f32_avx2(const float* z, int64_t n_rows, int64_t J, const float* nrow,
                                   const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
                                   float* dh, float* umin) {
-    constexpr int NR = 6;
-    for (int64_t j0 = 0; j0 < qp; j0 += 16) {
-        const float* panel = xt + (j0 / 64) * 64 * J + (j0 % 64);
-        int64_t r = 0;
-        for (; r + NR <= n_rows; r += NR)
-            proj_tile_avx2<NR>(z + r * J, J, nrow + r, rres + r, panel, qp, j0, L, dh + r * qp, umin);
-        const float* zr = z + r * J;
-        float* o = dh + r * qp;
-        switch (n_rows - r) {
-            case 5: proj_tile_avx2<5>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 4: proj_tile_avx2<4>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 3: proj_tile_avx2<3>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 2: proj_tile_avx2<2>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 1: proj_tile_avx2<1>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            default: break;
-        }
-    }
+    if (qp >= 16) projfilter_avx2<2>(z, n_rows, J, nrow, rres, xt, qp, L, dh, umin);
+    else projfilter_avx2<1>(z, n_rows, J, nrow, rres, xt, qp, L, dh, umin);
 }
 
 GDB_AVX2 void projkeep_f32_avx2(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L,
                                 const float* umin, uint64_t* keep) {
-    const int64_t words = qp / 64;
+    const int64_t words = lane_words(qp);
     for (int64_t w = 0; w < words; ++w) {
+        // vectors of 8 lanes in this word: 8, or fewer in a narrow panel
+        const int64_t nv = std::min<int64_t>(8, (qp - 64 * w) / 8);
         for (int64_t r = 0; r < n_rows; ++r) {
             uint64_t bits = 0;
-            for (int k = 0; k < 8; ++k) {
+            for (int64_t k = 0; k < nv; ++k) {
                 const int64_t j = 64 * w + 8 * k;
                 const __m256 lb = _mm256_fmsub_ps(
                     _mm256_loadu_ps(L.alo + j), _mm256_loadu_ps(dh + r * qp + j), _mm256_loadu_ps(L.clo + j));

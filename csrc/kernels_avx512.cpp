@@ -18,6 +18,7 @@
 #include <algorithm>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 
 #define GDB_AVX512 __attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,fma")))
 
@@ -151,60 +152,77 @@ GDB_AVX512 void cosdots_f32_avx512(const float* base, int64_t n_win, int64_t str
 
 namespace {
 
-// NR rows x 64 queries: 4 * NR accumulators stay in registers (24 of the 32 for
-// NR = 6) and every broadcast row value feeds 4 FMAs, so the loop is bound by
-// the FMA ports, not by loads.
-// The dot products of NR rows (row i at base + i * stride, len values) with 64
-// panel lanes, left in acc; shared by the plain tile and the projection filter's.
-template <int NR>
+// NR rows x 16 V queries (V = 4, or 2 / 1 for a panel of 32 / 16): 4 * NR
+// accumulators stay in registers (24 of the 32 for NR = 6) and every broadcast
+// row value feeds V FMAs, so the loop is bound by the FMA ports, not by loads.
+// The dot products of NR rows (row i at base + i * stride, len values) with
+// 16 V lanes of a panel W lanes wide, left in acc; shared by the plain tile and
+// the projection filter's.
+template <int NR, int V>
 GDB_AVX512 inline void tile_acc_avx512(const float* base, int64_t stride, int64_t len, const float* panel,
-                                       __m512 (&acc)[NR][4]) {
+                                       int64_t W, __m512 (&acc)[NR][V]) {
     for (int i = 0; i < NR; ++i)
-        for (int k = 0; k < 4; ++k) acc[i][k] = _mm512_setzero_ps();
+        for (int k = 0; k < V; ++k) acc[i][k] = _mm512_setzero_ps();
     for (int64_t p = 0; p < len; ++p) {
-        const float* x = panel + p * 64;
-        const __m512 x0 = _mm512_loadu_ps(x), x1 = _mm512_loadu_ps(x + 16);
-        const __m512 x2 = _mm512_loadu_ps(x + 32), x3 = _mm512_loadu_ps(x + 48);
+        const float* x = panel + p * W;
+        __m512 xv[V];
+        for (int k = 0; k < V; ++k) xv[k] = _mm512_loadu_ps(x + 16 * k);
         for (int i = 0; i < NR; ++i) {
             const __m512 b = _mm512_set1_ps(base[i * stride + p]);
-            acc[i][0] = _mm512_fmadd_ps(b, x0, acc[i][0]);
-            acc[i][1] = _mm512_fmadd_ps(b, x1, acc[i][1]);
-            acc[i][2] = _mm512_fmadd_ps(b, x2, acc[i][2]);
-            acc[i][3] = _mm512_fmadd_ps(b, x3, acc[i][3]);
+            for (int k = 0; k < V; ++k) acc[i][k] = _mm512_fmadd_ps(b, xv[k], acc[i][k]);
         }
     }
 }
 
-template <int NR>
+template <int NR, int V>
 GDB_AVX512 inline void dots_tile_avx512(const float* base, int64_t stride, int64_t len, const float* panel,
-                                        int64_t qp, float* out) {
-    __m512 acc[NR][4];
-    tile_acc_avx512<NR>(base, stride, len, panel, acc);
+                                        int64_t W, int64_t qp, float* out) {
+    __m512 acc[NR][V];
+    tile_acc_avx512<NR, V>(base, stride, len, panel, W, acc);
     for (int i = 0; i < NR; ++i)
-        for (int k = 0; k < 4; ++k) _mm512_storeu_ps(out + i * qp + 16 * k, acc[i][k]);
+        for (int k = 0; k < V; ++k) _mm512_storeu_ps(out + i * qp + 16 * k, acc[i][k]);
+}
+
+// Rows [0, n_rows) in tiles of 6 and one of the rest: tile(r, nr) with nr
+// as a std::integral_constant, so each tile height is its own unrolled loop.
+template <class Tile>
+GDB_AVX512 inline void row_tiles_avx512(int64_t n_rows, Tile&& tile) {
+    constexpr int NR = 6;
+    int64_t r = 0;
+    for (; r + NR <= n_rows; r += NR) tile(r, std::integral_constant<int, NR>());
+    switch (n_rows - r) {
+        case 5: tile(r, std::integral_constant<int, 5>()); break;
+        case 4: tile(r, std::integral_constant<int, 4>()); break;
+        case 3: tile(r, std::integral_constant<int, 3>()); break;
+        case 2: tile(r, std::integral_constant<int, 2>()); break;
+        case 1: tile(r, std::integral_constant<int, 1>()); break;
+        default: break;
+    }
+}
+
+template <int V>
+GDB_AVX512 inline void dots_block_avx512(const float* base, int64_t n_rows, int64_t stride, int64_t len,
+                                         const float* xt, int64_t qp, float* out) {
+    const int64_t W = panel_width(qp);
+    for (int64_t j0 = 0; j0 < qp; j0 += 16 * V) {
+        const float* panel = xt + (j0 / W) * W * len + (j0 % W);
+        row_tiles_avx512(n_rows, [&](int64_t r, auto nr) GDB_AVX512 {
+            dots_tile_avx512<decltype(nr)::value, V>(base + r * stride, stride, len, panel, W, qp,
+                                                     out + r * qp + j0);
+        });
+    }
 }
 
 }  // namespace
 
+// A panel of 8 lanes is narrower than one vector: the AVX2 kernels take it
+// (every AVX-512 CPU has AVX2, and these are filters: any order is fine).
 GDB_AVX512 void dots_block_f32_avx512(const float* base, int64_t n_rows, int64_t stride, int64_t len,
                                       const float* xt, int64_t qp, float* out) {
-    constexpr int NR = 6;
-    for (int64_t j0 = 0; j0 < qp; j0 += 64) {
-        const float* panel = xt + j0 * len;
-        int64_t r = 0;
-        for (; r + NR <= n_rows; r += NR)
-            dots_tile_avx512<NR>(base + r * stride, stride, len, panel, qp, out + r * qp + j0);
-        const float* b = base + r * stride;
-        float* o = out + r * qp + j0;
-        switch (n_rows - r) {
-            case 5: dots_tile_avx512<5>(b, stride, len, panel, qp, o); break;
-            case 4: dots_tile_avx512<4>(b, stride, len, panel, qp, o); break;
-            case 3: dots_tile_avx512<3>(b, stride, len, panel, qp, o); break;
-            case 2: dots_tile_avx512<2>(b, stride, len, panel, qp, o); break;
-            case 1: dots_tile_avx512<1>(b, stride, len, panel, qp, o); break;
-            default: break;
-        }
-    }
+    if (qp >= 64) dots_block_avx512<4>(base, n_rows, stride, len, xt, qp, out);
+    else if (qp == 32) dots_block_avx512<2>(base, n_rows, stride, len, xt, qp, out);
+    else if (qp == 16) dots_block_avx512<1>(base, n_rows, stride, len, xt, qp, out);
+    else dots_block_f32_avx2(base, n_rows, stride, len, xt, qp, out);
 }
 
 namespace {
@@ -228,7 +246,7 @@ GDB_AVX512 inline void filter_avx512(int64_t n_rows, int64_t qp, const uint8_t* 
             _mm512_storeu_ps(minhi + j, _mm512_mask_blend_ps(bad, _mm512_min_ps(hi, mh), nan));
         }
     }
-    const int64_t words = qp / 64;
+    const int64_t words = lane_words(qp);
     std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
     for (int64_t r = 0; r < n_rows; ++r) {
         if (ok != nullptr && !ok[r]) continue;
@@ -247,6 +265,7 @@ GDB_AVX512 inline void filter_avx512(int64_t n_rows, int64_t qp, const uint8_t* 
 GDB_AVX512 void l2filter_f32_avx512(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
                                     const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
                                     float eps, float* minhi, uint64_t* keep) {
+    if (qp < 16) return l2filter_f32_avx2(c, n_rows, qp, nrow, rrow, ok, nq, rq, eps, minhi, keep);
     const __m512 two = _mm512_set1_ps(2.0f), e = _mm512_set1_ps(eps);
     filter_avx512(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m512& d, __m512& b) GDB_AVX512 {
         const __m512 cc = _mm512_loadu_ps(c + r * qp + j);
@@ -256,9 +275,10 @@ GDB_AVX512 void l2filter_f32_avx512(const float* c, int64_t n_rows, int64_t qp, 
     });
 }
 
-GDB_AVX512 void cosfilter_f32_avx512(const float* c, int64_t n_rows, int64_t qp, const float*,
-                                     const float* rrow, const uint8_t* ok, const float*, const float* rq,
+GDB_AVX512 void cosfilter_f32_avx512(const float* c, int64_t n_rows, int64_t qp, const float* nrow,
+                                     const float* rrow, const uint8_t* ok, const float* nq, const float* rq,
                                      float eps, float* minhi, uint64_t* keep) {
+    if (qp < 16) return cosfilter_f32_avx2(c, n_rows, qp, nrow, rrow, ok, nq, rq, eps, minhi, keep);
     const __m512 one = _mm512_set1_ps(1.0f), e = _mm512_set1_ps(eps);
     filter_avx512(n_rows, qp, ok, minhi, keep, [&](int64_t r, int64_t j, __m512& d, __m512& b) GDB_AVX512 {
         const __m512 cc = _mm512_loadu_ps(c + r * qp + j);
@@ -439,14 +459,14 @@ namespace {
 // NR rows x 64 lanes of the projection filter: the dot products stay in
 // registers (4 NR accumulators) and the bound is formed there, so only dh is
 // written; umin lives in memory (4 vectors per tile).
-template <int NR>
+template <int NR, int V>
 GDB_AVX512 inline void proj_tile_avx512(const float* z, int64_t J, const float* nrow, const float* rres,
-                                        const float* panel, int64_t qp, int64_t j0, const ProjLanes& L,
-                                        float* dh, float* umin) {
-    __m512 acc[NR][4];
-    tile_acc_avx512<NR>(z, J, J, panel, acc);
+                                        const float* panel, int64_t W, int64_t qp, int64_t j0,
+                                        const ProjLanes& L, float* dh, float* umin) {
+    __m512 acc[NR][V];
+    tile_acc_avx512<NR, V>(z, J, J, panel, W, acc);
     const __m512 two = _mm512_set1_ps(2.0f);
-    for (int k = 0; k < 4; ++k) {
+    for (int k = 0; k < V; ++k) {
         const int64_t j = j0 + 16 * k;
         const __m512 nq = _mm512_loadu_ps(L.nq + j), aup = _mm512_loadu_ps(L.aup + j);
         const __m512 bup = _mm512_loadu_ps(L.bup + j), cup = _mm512_loadu_ps(L.cup + j);
@@ -461,36 +481,40 @@ GDB_AVX512 inline void proj_tile_avx512(const float* z, int64_t J, const float* 
     }
 }
 
+template <int V>
+GDB_AVX512 inline void projfilter_avx512(const float* z, int64_t n_rows, int64_t J, const float* nrow,
+                                         const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
+                                         float* dh, float* umin) {
+    const int64_t W = panel_width(qp);
+    for (int64_t j0 = 0; j0 < qp; j0 += 16 * V) {
+        const float* panel = xt + (j0 / W) * W * J + (j0 % W);
+        row_tiles_avx512(n_rows, [&](int64_t r, auto nr) GDB_AVX512 {
+            proj_tile_avx512<decltype(nr)::value, V>(z + r * J, J, nrow + r, rres + r, panel, W, qp, j0, L,
+                                                     dh + r * qp, umin);
+        });
+    }
+}
+
 }  // namespace
 
 GDB_AVX512 void projfilter_f32_avx512(const float* z, int64_t n_rows, int64_t J, const float* nrow,
                                       const float* rres, const float* xt, int64_t qp, const ProjLanes& L,
                                       float* dh, float* umin) {
-    constexpr int NR = 6;
-    for (int64_t j0 = 0; j0 < qp; j0 += 64) {
-        const float* panel = xt + j0 * J;
-        int64_t r = 0;
-        for (; r + NR <= n_rows; r += NR)
-            proj_tile_avx512<NR>(z + r * J, J, nrow + r, rres + r, panel, qp, j0, L, dh + r * qp, umin);
-        const float* zr = z + r * J;
-        float* o = dh + r * qp;
-        switch (n_rows - r) {
-            case 5: proj_tile_avx512<5>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 4: proj_tile_avx512<4>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 3: proj_tile_avx512<3>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 2: proj_tile_avx512<2>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            case 1: proj_tile_avx512<1>(zr, J, nrow + r, rres + r, panel, qp, j0, L, o, umin); break;
-            default: break;
-        }
-    }
+    if (qp >= 64) projfilter_avx512<4>(z, n_rows, J, nrow, rres, xt, qp, L, dh, umin);
+    else if (qp == 32) projfilter_avx512<2>(z, n_rows, J, nrow, rres, xt, qp, L, dh, umin);
+    else if (qp == 16) projfilter_avx512<1>(z, n_rows, J, nrow, rres, xt, qp, L, dh, umin);
+    else projfilter_f32_avx2(z, n_rows, J, nrow, rres, xt, qp, L, dh, umin);
 }
 
 GDB_AVX512 void projkeep_f32_avx512(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L,
                                     const float* umin, uint64_t* keep) {
-    const int64_t words = qp / 64;
+    if (qp < 16) return projkeep_f32_avx2(dh, n_rows, qp, L, umin, keep);
+    const int64_t words = lane_words(qp);
     for (int64_t w = 0; w < words; ++w) {
+        // vectors of 16 lanes in this word: 4, or fewer in a narrow panel
+        const int nv = int(std::min<int64_t>(4, (qp - 64 * w) / 16));
         __m512 alo[4], clo[4], mn[4];
-        for (int k = 0; k < 4; ++k) {
+        for (int k = 0; k < nv; ++k) {
             const int64_t j = 64 * w + 16 * k;
             alo[k] = _mm512_loadu_ps(L.alo + j);
             clo[k] = _mm512_loadu_ps(L.clo + j);
@@ -498,7 +522,7 @@ GDB_AVX512 void projkeep_f32_avx512(const float* dh, int64_t n_rows, int64_t qp,
         }
         for (int64_t r = 0; r < n_rows; ++r) {
             uint64_t bits = 0;
-            for (int k = 0; k < 4; ++k) {
+            for (int k = 0; k < nv; ++k) {
                 const __m512 lb =
                     _mm512_fmsub_ps(alo[k], _mm512_loadu_ps(dh + r * qp + 64 * w + 16 * k), clo[k]);
                 bits |= uint64_t(_mm512_cmp_ps_mask(lb, mn[k], _CMP_LE_OQ)) << (16 * k);

@@ -79,13 +79,14 @@ void cosdots_f32_scalar(const float* base, int64_t n_win, int64_t stride, int64_
 
 void dots_block_f32_scalar(const float* base, int64_t n_rows, int64_t stride, int64_t len, const float* xt,
                            int64_t qp, float* out) {
+    const int64_t W = panel_width(qp);
     for (int64_t r = 0; r < n_rows; ++r) {
         const float* row = base + r * stride;
         float* o = out + r * qp;
         for (int64_t j = 0; j < qp; ++j) o[j] = 0.0f;
         for (int64_t p = 0; p < len; ++p) {
             const float b = row[p];
-            for (int64_t j = 0; j < qp; ++j) o[j] += b * xt[(j / 64) * len * 64 + p * 64 + j % 64];
+            for (int64_t j = 0; j < qp; ++j) o[j] += b * xt[(j / W) * len * W + p * W + j % W];
         }
     }
 }
@@ -110,7 +111,7 @@ void filter_scalar(int64_t n_rows, int64_t qp, const uint8_t* ok, float* minhi, 
             }
         }
     }
-    const int64_t words = qp / 64;
+    const int64_t words = lane_words(qp);
     std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
     for (int64_t r = 0; r < n_rows; ++r) {
         if (ok != nullptr && !ok[r]) continue;
@@ -226,12 +227,13 @@ void cosdots_pairs_f32_scalar(const float* const* wins, const float* const* qs, 
 
 void projfilter_f32_scalar(const float* z, int64_t n_rows, int64_t J, const float* nrow, const float* rres,
                            const float* xt, int64_t qp, const ProjLanes& L, float* dh, float* umin) {
+    const int64_t W = panel_width(qp);
     for (int64_t r = 0; r < n_rows; ++r) {
         const float* row = z + r * J;
         for (int64_t j = 0; j < qp; ++j) {
-            const float* x = xt + (j / 64) * J * 64 + j % 64;
+            const float* x = xt + (j / W) * J * W + j % W;
             double dot = 0.0;
-            for (int64_t p = 0; p < J; ++p) dot += double(row[p]) * double(x[p * 64]);
+            for (int64_t p = 0; p < J; ++p) dot += double(row[p]) * double(x[p * W]);
             const float d = (nrow[r] + L.nq[j]) - 2.0f * float(dot);
             dh[r * qp + j] = d;
             const float ub = L.aup[j] * d + (L.bup[j] * rres[r] + L.cup[j]);
@@ -242,7 +244,7 @@ void projfilter_f32_scalar(const float* z, int64_t n_rows, int64_t J, const floa
 
 void projkeep_f32_scalar(const float* dh, int64_t n_rows, int64_t qp, const ProjLanes& L, const float* umin,
                          uint64_t* keep) {
-    const int64_t words = qp / 64;
+    const int64_t words = lane_words(qp);
     std::memset(keep, 0, sizeof(uint64_t) * size_t(n_rows * words));
     for (int64_t r = 0; r < n_rows; ++r)
         for (int64_t j = 0; j < qp; ++j)

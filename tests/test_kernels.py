@@ -410,3 +410,32 @@ def test_projfilter_simd_vs_scalar(isa, J, n_rows):
     lb = lanes[4] * got[0][:, :130] - lanes[5]
     near = np.abs(lb - got[1][:130]) <= 1e-5 * np.abs(got[1][:130])
     np.testing.assert_array_equal(kept[~near], (lb <= got[1][:130])[~near])
+
+
+@pytest.mark.parametrize("isa", ISAS)
+@pytest.mark.parametrize("n_lanes", [1, 7, 8, 9, 15, 16, 17, 31, 33, 63, 64, 65])
+def test_projfilter_every_panel_width(isa, n_lanes):
+    """A panel as narrow as the lanes need (8, 16, 32, then panels of 64): each ISA's distances
+    stay within the bound of the float64 ones, its bound and keep bits follow the same rule."""
+    rng = np.random.default_rng(900 + n_lanes)
+    J, n_rows = 24, 13
+    z, nrow, rres, x, lanes = _proj_case(rng, n_rows, J, n_lanes)
+    dh, umin, keep = _core.projfilter_f32(z, nrow, rres, x, lanes, isa)
+    qp = {1: 8, 7: 8, 8: 8, 9: 16, 15: 16, 16: 16, 17: 32, 31: 32, 33: 64, 63: 64, 64: 64, 65: 128}[n_lanes]
+    assert dh.shape == (n_rows, qp) and umin.shape == (qp,) and keep.shape == (n_rows, (qp + 63) // 64)
+    d64 = ((z.astype(np.float64)[:, None, :] - x.astype(np.float64)[None]) ** 2).sum(-1)
+    ok = np.isfinite(nrow)
+    scale = (np.linalg.norm(z, axis=1)[:, None] + np.linalg.norm(x, axis=1)[None]) ** 2
+    np.testing.assert_array_less(np.abs(dh[ok, :n_lanes] - d64[ok]), 4 * (J + 8) * 2.0 ** -24 * scale[ok] + 1e-30)
+    assert np.all(np.isinf(dh[~ok, :n_lanes]))
+    ub = lanes[1] * d64 + (lanes[2] * rres[:, None] + lanes[3])
+    atol = 1.01 * 4 * (J + 8) * 2.0 ** -24 * scale[ok].max(0)
+    np.testing.assert_array_less(np.abs(umin[:n_lanes] - ub[ok].min(0)), atol + 1e-6 * np.abs(ub[ok].min(0)))
+    bits = (keep[:, :, None] >> np.arange(64, dtype=np.uint64)) & np.uint64(1)
+    kept = bits.reshape(n_rows, -1)[:, :n_lanes].astype(bool)
+    lb = lanes[4] * dh[:, :n_lanes] - lanes[5]
+    near = np.abs(lb - umin[:n_lanes]) <= 1e-5 * np.abs(umin[:n_lanes])
+    np.testing.assert_array_equal(kept[~near], (lb <= umin[:n_lanes])[~near])
+    assert not kept[~ok].any()
+    # padding lanes (zero x, aup = alo = 1) never set a bit beyond the panel's lanes
+    assert not bits.reshape(n_rows, -1)[:, qp:].any()
