@@ -7,6 +7,7 @@
 #include "blocked.h"
 #include "allowed.h"
 #include "order.h"
+#include "prefetch.h"
 #include "preselect.h"
 #include "rank.h"
 #include "search_loop.h"
@@ -23,8 +24,12 @@ struct BlockedBatch::Run {
     BatchQuery* const* block;
     int64_t nq;
     int64_t M, Dp, Da, J;
-    int64_t qp;                      // lanes padded to whole panels
-    int64_t words;                   // 64-bit words of a bit per lane
+    // the step's lanes padded to a panel width (padded_lanes: 8, 16, 32 or
+    // whole panels of 64) and 64-bit words of a bit per lane; the buffers are
+    // sized for the block's queries, the widths set per step (set_width) so that
+    // a step with few lanes filters with a narrow panel
+    int64_t qp_max, words_max;
+    int64_t qp = 0, words = 0;
     int64_t len = 0;                 // values per panel column: J, Dp or N * Da
     std::vector<const float*> prev;  // each query's previous pose
     std::vector<int64_t> S;          // each query's steps
@@ -82,8 +87,7 @@ struct BlockedBatch::Run {
 
     Run(const BlockedBatch& b, BatchQuery* const* block_, int64_t nq_)
         : block(block_), nq(nq_), M(b.db_.n_segments()), Dp(b.db_.pose.cols), Da(b.db_.audio.cols),
-          J(b.db_.proj_dim), qp((nq + kQueryPanel - 1) / kQueryPanel * kQueryPanel), words(qp / 64), prev(nq),
-          S(nq) {
+          J(b.db_.proj_dim), qp_max(padded_lanes(nq)), words_max(lane_words(qp_max)), prev(nq), S(nq) {
         len = b.proj_ ? J : b.pre_ == Preselect::Pose ? Dp : b.N_ * Da;
         for (int64_t i = 0; i < nq; ++i) {
             prev[i] = block[i]->init_pose;
@@ -95,43 +99,51 @@ struct BlockedBatch::Run {
         sel_s.resize(size_t(nq) * M);
         sel_dp.resize(size_t(nq) * M);
         sel_da.resize(size_t(nq) * M);
-        xt.resize(size_t(len) * qp);
-        nx.resize(qp);
-        rx.resize(qp);
-        minhi.resize(qp);
-        c.resize(size_t(kRowTile) * qp);
-        keep.resize(size_t(kRowTile) * words);
+        xt.resize(size_t(len) * qp_max);
+        nx.resize(qp_max);
+        rx.resize(qp_max);
+        minhi.resize(qp_max);
+        c.resize(size_t(kRowTile) * qp_max);
+        keep.resize(size_t(kRowTile) * words_max);
         ok.resize(std::max<int64_t>(1, b.max_seg_len()));
         scratch_a.resize(ok.size());
         scratch_b.resize(ok.size());
-        best.resize(qp);
-        best_dp.resize(qp);
-        best_da.resize(qp);
-        valid.resize(words);
-        ex_bits.resize(size_t(M) * words);
-        inc.resize(words);
-        group.resize(words);
-        lane_step.resize(qp);
-        live.resize(words);
-        lane_ok.resize(words);
-        lane_par.resize(size_t(6) * qp);
+        best.resize(qp_max);
+        best_dp.resize(qp_max);
+        best_da.resize(qp_max);
+        valid.resize(words_max);
+        ex_bits.resize(size_t(M) * words_max);
+        inc.resize(words_max);
+        group.resize(words_max);
+        lane_step.resize(qp_max);
+        live.resize(words_max);
+        lane_ok.resize(words_max);
+        lane_par.resize(size_t(6) * qp_max);
         nrow_tile.resize(kRowTile);
+        pair_row.resize(size_t(kRowTile) * qp_max);
+        pair_vec.resize(size_t(kRowTile) * qp_max);
+        pair_lane.resize(size_t(kRowTile) * qp_max);
+        pair_r.resize(size_t(kRowTile) * qp_max);
+        pair_d.resize(size_t(kRowTile) * qp_max);
+        fin_a.resize(qp_max);
+        fin_b.resize(qp_max);
+        fin_lane.resize(qp_max);
+        fin_g.resize(qp_max);
+        fin_qa.resize(qp_max);
+        fin_qq.resize(qp_max);
+        fin_aa.resize(qp_max);
+        fin_da.resize(qp_max);
+    }
+
+    // The step's widths for nl lanes; pl then points at the lanes' constants
+    // laid out for them.
+    void set_width(int64_t nl) {
+        qp = padded_lanes(nl);
+        words = lane_words(qp);
         pl = ProjLanes{&lane_par[0],      &lane_par[qp],     &lane_par[2 * qp],
                        &lane_par[3 * qp], &lane_par[4 * qp], &lane_par[5 * qp]};
-        pair_row.resize(size_t(kRowTile) * qp);
-        pair_vec.resize(size_t(kRowTile) * qp);
-        pair_lane.resize(size_t(kRowTile) * qp);
-        pair_r.resize(size_t(kRowTile) * qp);
-        pair_d.resize(size_t(kRowTile) * qp);
-        fin_a.resize(qp);
-        fin_b.resize(qp);
-        fin_lane.resize(qp);
-        fin_g.resize(qp);
-        fin_qa.resize(qp);
-        fin_qq.resize(qp);
-        fin_aa.resize(qp);
-        fin_da.resize(qp);
     }
+
     Run(const Run&) = delete;  // pl points into lane_par
     Run& operator=(const Run&) = delete;
 
@@ -143,11 +155,12 @@ void BlockedBatch::run(BatchQuery* const* block, int64_t nq, const AllowedSchedu
     for (int64_t step = 0; step < r.max_steps; ++step) {
         r.t = step * N_;
         if (take_lanes(r, step, allowed_steps) == 0) continue;
+        r.set_width(r.nl);
         lane_views(r, allowed_steps.at(step));
         mark_lanes(r);
         load_panel(r);
         for (int64_t m = 0; m < r.M; ++m) {
-            if (m + 1 < r.M) prefetch_rows(m + 1, r.any_other);
+            if (m + 1 < r.M) prefetch_rows(m + 1, r.any_other, r.nl);
             preselect_segment(r, m);
         }
         rank_lanes(r, step);
@@ -233,10 +246,11 @@ void BlockedBatch::mark_lanes(Run& r) const {
 // lanes' norms or projection bounds, and their empty pre-selection tables.
 void BlockedBatch::load_panel(Run& r) const {
     const int64_t nl = r.nl, len = r.len, qp = r.qp, Da = r.Da, Dp = r.Dp, J = r.J, M = r.M;
-    std::fill(r.xt.begin(), r.xt.end(), 0.0f);
-    std::fill(r.nx.begin(), r.nx.end(), 0.0f);
-    std::fill(r.rx.begin(), r.rx.end(), 0.0f);
-    std::fill(r.lane_ok.begin(), r.lane_ok.end(), uint64_t(0));
+    const int64_t W = panel_width(qp);
+    std::fill(r.xt.begin(), r.xt.begin() + len * qp, 0.0f);
+    std::fill(r.nx.begin(), r.nx.begin() + qp, 0.0f);
+    std::fill(r.rx.begin(), r.rx.begin() + qp, 0.0f);
+    std::fill(r.lane_ok.begin(), r.lane_ok.begin() + r.words, uint64_t(0));
     if (proj_) lane_defaults(r.lane_par, qp);
     for (int64_t l = 0; l < nl; ++l) {
         const BatchQuery* bq = r.block[r.lanes[l]];
@@ -245,16 +259,16 @@ void BlockedBatch::load_panel(Run& r) const {
         ls.q = bq->audio.row(r.t);
         ls.n = N_;
         ls.qq = query_norm2(kern_, ls.q, N_ * Da);
-        float* panel = &r.xt[(l / 64) * 64 * len + (l % 64)];
+        float* panel = &r.xt[(l / W) * W * len + (l % W)];
         bool filtered = true;
         if (proj_) {
             const ProjQuery pq = proj_query(db_, ls.prev);
             filtered = lane_bounds(pq, r.lane_par, qp, l);
             if (filtered)
-                for (int64_t p = 0; p < J; ++p) panel[p * 64] = pq.zx[p];
+                for (int64_t p = 0; p < J; ++p) panel[p * W] = pq.zx[p];
         } else {
             const float* col = pre_ == Preselect::Pose ? ls.prev : ls.q;
-            for (int64_t p = 0; p < len; ++p) panel[p * 64] = col[p];
+            for (int64_t p = 0; p < len; ++p) panel[p * W] = col[p];
             if (pre_ == Preselect::Pose) {
                 double s = 0.0;
                 for (int64_t p = 0; p < Dp; ++p) s += double(col[p]) * col[p];
@@ -334,10 +348,10 @@ void BlockedBatch::segment_group(Run& r, int64_t m, const BitsetView& allowed, c
 
 // Whether the lanes in the segment (r.inc) scanning only the allowed
 // candidates okp exactly cost less than the blocked filter over all of them:
-// the filter reads every candidate row for a whole panel of lanes (r.len
-// values a lane), the exact scan only the allowed rows for each lane (Dp pose
-// values or an N-frame audio window). A control that keeps a few percent of
-// the frames, or a group of a few lanes, is cheaper exactly.
+// the filter reads every candidate row for each of the step's padded lanes
+// (r.qp, r.len values a lane), the exact scan only the allowed rows for each
+// lane (Dp pose values or an N-frame audio window). A control that keeps a
+// few percent of the frames, or a group of a few lanes, is cheaper exactly.
 bool BlockedBatch::sparse_enough(const Run& r, const uint8_t* okp, int64_t n_cand) const {
     int64_t n_ok = 0, lanes = 0;
     for (int64_t i = 0; i < n_cand; ++i) n_ok += okp[i];
@@ -436,6 +450,16 @@ void BlockedBatch::recompute_kept(Run& r, int64_t m, int64_t i0, int64_t nr) con
         for (int64_t p = 0; p < n_pairs; ++p) {
             r.pair_row[p] = rows + r.pair_r[p] * stride;
             r.pair_vec[p] = r.lane_step[r.pair_lane[p]].prev;
+        }
+        if (proj_ && r.nl < kPrefetchLanes) {
+            // the kept rows at once, so that their misses overlap (prefetch_rows
+            // fetched them only for a panel of lanes or more)
+            int32_t last = -1;
+            for (int64_t p = 0; p < n_pairs; ++p)
+                if (r.pair_r[p] != last) {
+                    last = r.pair_r[p];
+                    prefetch_bytes(r.pair_row[p], stride * int64_t(sizeof(float)));
+                }
         }
         kern_.l2sq_pairs_f32(r.pair_row.data(), r.pair_vec.data(), n_pairs, r.Dp, r.pair_d.data());
         for (int64_t p = 0; p < n_pairs; ++p) {
@@ -590,8 +614,11 @@ bool BlockedBatch::tile_has_row(const uint8_t* okp, int64_t i0, int64_t nr) {
 // winners' other distance (audio windows in pose mode, entry poses in audio
 // mode), one per lane at scattered offsets, and with the projection the
 // kept entry poses. Fetching them while this segment is filtered turns
-// those cache misses into hits.
-void BlockedBatch::prefetch_rows(int64_t m, bool other) const {
+// those cache misses into hits. The entry poses only for kPrefetchLanes
+// lanes or more: a lane keeps ~4 of a segment's ~56 candidates, so a few
+// lanes read a few of its rows, and fetching every one of them (the whole
+// pose matrix, 370 MB at 617k frames, each call) was ~20 ms of a 1-lane call.
+void BlockedBatch::prefetch_rows(int64_t m, bool other, int64_t nl) const {
     const int64_t n_cand = db_.seg_len[m] - N_;
     if (n_cand < 1) return;
     auto fetch = [](const float* a, const float* b) {
@@ -601,7 +628,7 @@ void BlockedBatch::prefetch_rows(int64_t m, bool other) const {
     const int64_t seg0 = db_.seg_start[m];
     if (pre_ == Preselect::Pose) {
         if (other) fetch(db_.audio.row(seg0 + 1), db_.audio.row(seg0 + 1 + n_cand + N_));
-        if (proj_) fetch(db_.pose.row(seg0), db_.pose.row(seg0 + n_cand));
+        if (proj_ && nl >= kPrefetchLanes) fetch(db_.pose.row(seg0), db_.pose.row(seg0 + n_cand));
     } else if (other) {
         fetch(db_.pose.row(seg0), db_.pose.row(seg0 + n_cand));
     }

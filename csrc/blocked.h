@@ -17,7 +17,8 @@
 namespace gesturedb {
 
 // Blocked batch: a block of queries advances step by step together. At each
-// step the queries whose window is full (n = N) form the lanes of a panel; per
+// step the queries whose window is full (n = N) form the lanes of a panel (8,
+// 16, 32 or whole panels of 64 lanes, as the step's lanes need); per
 // segment one blocked dot product gives every lane's approximate distance to
 // every candidate, the bound filter keeps the candidates that could still be
 // the lane's minimum, and those are recomputed with the exact kernels in
@@ -32,6 +33,9 @@ namespace gesturedb {
 class BlockedBatch {
 public:
     static constexpr int64_t kRowTile = 128;  // candidates per dot-product call
+    // From this many lanes a step prefetches every entry pose of the next
+    // segment (prefetch_rows), below it only the rows its filter kept
+    static constexpr int64_t kPrefetchLanes = kQueryPanel;
     // Projection filter: rows or lanes with |z|^2 above this take the exact scan,
     // so that no value of the blocked bound can overflow (see lane_bounds).
     static constexpr double kProjBig = 1e30;
@@ -92,7 +96,7 @@ private:
     static int64_t collect_pairs(const uint64_t* __restrict keep, const uint64_t* __restrict live, int64_t nr,
                                  int64_t words, int32_t* __restrict pair_lane, int32_t* __restrict pair_r);
     static bool tile_has_row(const uint8_t* okp, int64_t i0, int64_t nr);
-    void prefetch_rows(int64_t m, bool other) const;
+    void prefetch_rows(int64_t m, bool other, int64_t nl) const;
     int64_t max_seg_len() const;
     void exact_update_audio(int64_t m, int64_t i, const QueryStep& qs, int64_t l, std::vector<int64_t>& best,
                             std::vector<double>& best_da) const;

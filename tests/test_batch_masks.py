@@ -169,3 +169,58 @@ def test_whole_search_bitsets_are_validated_and_failures_named():
     none = np.stack([every, np.zeros(W, np.uint64), every])
     with pytest.raises(SearchError, match="query 1"):
         search.rank_sum_search_batch(P, A, st, ln, queries, P[:Q], query_allowed=none)
+
+
+@pytest.mark.parametrize("Q", [1, 7, 8, 9, 16, 17, 33, 63, 64, 65])
+def test_every_panel_width_gives_each_querys_table_alone(Q):
+    """The blocked filter's panel is as wide as the call's queries need (8, 16, 32 or panels of 64
+    lanes): each width, with its padding lanes, with a bitset per query or one for all and with
+    exclusions, pose (plain and projection, float32 and binary16) and audio pre-selection, gives
+    every row as the query's table alone, on every ISA."""
+    rng = np.random.default_rng(73 + Q)
+    P, A, st, ln = stacked_recordings(rng, n_rec=14)
+    F, M = P.shape[0], st.shape[0]
+    _, allowed = _per_query(rng, _masks(rng, st, ln, F), Q)
+    prevs = P[rng.integers(0, F, Q)]
+    wins = rng.standard_normal((Q, 4, A.shape[1])).astype(np.float32)
+    exclude = rng.random((Q, M)) < 0.2
+    variants = [dict(), dict(allowed=allowed[0]), dict(preselect="audio", allowed=allowed),
+                dict(pose_proj=search.PoseProjection(P), allowed=allowed, exclude=exclude),
+                dict(pose_proj=search.PoseProjection(P, half=True), exclude=exclude)]
+    for isa in ISAS:
+        with search.simd(isa):
+            for v, kw in enumerate(variants):
+                got = tables.preselect_table_batch(P, A, st, ln, prevs, wins, method="blocked", **kw)
+                for i in range(Q):
+                    one = dict(kw)
+                    if isinstance(one.get("allowed"), np.ndarray) and one["allowed"].ndim == 2:
+                        one["allowed"] = allowed[i]
+                    if "exclude" in one:
+                        one["exclude"] = exclude[i]
+                    want = tables.preselect_table(P, A, st, ln, prevs[i], wins[i], **one)
+                    for g, w in zip(got, want):
+                        np.testing.assert_array_equal(g[i], w, err_msg=f"{isa} Q={Q} v{v} q{i}")
+
+
+def test_whole_searches_narrow_their_panel_as_queries_end():
+    """A whole blocked search whose queries end at different steps: its panel narrows step by
+    step (65 lanes, then 40, 20, 9, 3, 1: every width) and each query is still its search alone."""
+    rng = np.random.default_rng(79)
+    P, A, st, ln = stacked_recordings(rng, n_rec=14)
+    F, M = P.shape[0], st.shape[0]
+    lengths = [24] * 1 + [20] * 8 + [16] * 11 + [12] * 20 + [8] * 25 + [4] * 1
+    Q = len(lengths)
+    queries = [rng.standard_normal((n, A.shape[1])).astype(np.float32) for n in lengths]
+    init = P[rng.integers(0, F, Q)]
+    exclude = rng.random((Q, M)) < 0.2
+    proj = search.PoseProjection(P)
+    for isa in ISAS:
+        with search.simd(isa):
+            for kw in (dict(), dict(pose_proj=proj, exclude=exclude), dict(preselect="audio")):
+                got = search.rank_sum_search_batch(P, A, st, ln, queries, init, step=4, method="blocked", **kw)
+                for i in range(Q):
+                    one = dict(kw)
+                    if "exclude" in one:
+                        one["exclude"] = exclude[i]
+                    want = search.rank_sum_search(P, A, st, ln, queries[i], init[i], step=4, **one)
+                    assert_same_search(got[i], want, f"{isa} {sorted(kw)} query {i}")
