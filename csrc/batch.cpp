@@ -20,12 +20,14 @@
 namespace gesturedb {
 namespace {
 
-BatchMethod resolve_method(const Kernels& kernels, int64_t Q, BatchMethod method) {
+BatchMethod resolve_method(const Kernels& kernels, int64_t Q, int threads, BatchMethod method) {
     if (method != BatchMethod::Auto) return method;
-    // the blocked filter pays off once a panel holds enough queries to share
-    // each candidate row; the scalar table has no fast block kernel
+    // the blocked filter pays off once a block (run_batch: one per thread)
+    // holds enough queries to share each candidate row; the scalar table has
+    // no fast block kernel
     const bool scalar = std::strcmp(kernels.isa, "scalar") == 0;
-    return (!scalar && Q >= 16) ? BatchMethod::Blocked : BatchMethod::PerQuery;
+    const int64_t per_block = (Q + threads - 1) / std::max(threads, 1);
+    return (!scalar && per_block >= kBlockedMinQueries) ? BatchMethod::Blocked : BatchMethod::PerQuery;
 }
 
 // blocked: the set-up for this window when method resolves to Blocked (null:
@@ -36,7 +38,7 @@ void run_batch(const Kernels& kernels, const Database& db, std::vector<BatchQuer
     if (threads <= 0) threads = default_threads();
     const int64_t Q = int64_t(queries.size());
     if (Q == 0) return;
-    method = resolve_method(kernels, Q, method);
+    method = resolve_method(kernels, Q, threads, method);
     if (method == BatchMethod::PerQuery) {
         threads = int(std::min<int64_t>(threads, Q));
         // one engine per worker, each single-threaded: parallel over queries only
@@ -149,7 +151,7 @@ void BatchPlan::preselect(std::vector<BatchQuery>& queries, const AllowedSchedul
     if (queries.empty()) return;
     const int64_t n = check_table_queries(impl_->db, queries, allowed);
     if (threads <= 0) threads = default_threads();
-    method = resolve_method(impl_->kern, int64_t(queries.size()), method);
+    method = resolve_method(impl_->kern, int64_t(queries.size()), threads, method);
     std::shared_ptr<const BlockedBatch> b;
     if (method == BatchMethod::Blocked) b = impl_->get(n, threads);
     run_batch(impl_->kern, impl_->db, queries, n, impl_->pre, allowed, threads, method, b.get());

@@ -318,6 +318,7 @@ PYBIND11_MODULE(_core, m) {
     m.def(
         "set_simd", [](const std::string& isa) { set_simd(isa.c_str()); }, py::arg("isa"),
         "Switch the instruction set for subsequent searches ('scalar', 'avx2', 'avx512').");
+    m.attr("blocked_min_queries") = kBlockedMinQueries;
     m.def("default_threads", &default_threads,
           "Threads used when a call passes threads <= 0: the CPUs in this process's affinity mask, "
           "bounded by the cgroup CPU quota, at least 1.");

@@ -184,10 +184,18 @@ struct BatchQuery {
     bool table_other = true;  // StepOptions::other for this query's table
 };
 
+// Auto takes the blocked path from this many queries per thread (a block per
+// thread): at 617k frames a block of 1 query cost 1.8-2 single-query passes
+// (its filter reads float32 rows, and fetches the rows it keeps as it finds
+// them), of 2 as much as 2 passes, of 3 0.85-0.9 of 3 passes, of 4 0.7-0.8
+// of 4 (benchmarks/RESULTS.md, "Narrow panels").
+constexpr int64_t kBlockedMinQueries = 3;
+
 // How a batch is evaluated; every method returns exactly what rank_sum_search
 // returns for each query alone.
 enum class BatchMethod {
-    Auto,      // Blocked when the ISA has block kernels and there are >= 16 queries
+    Auto,      // Blocked when the ISA has block kernels and each thread's block
+               // would hold >= kBlockedMinQueries queries
     Blocked,   // blocks of queries share each candidate row (blocked dot product
                // as a bounded filter, exact recomputation of what it keeps)
     PerQuery,  // each query runs the single-query path

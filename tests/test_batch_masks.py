@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gesturedb import search, tables
+from gesturedb import _core, search, tables
 from gesturedb.errors import ParameterError, SearchError
 from test_search import assert_same_search, exact_db, oracle_step, pack_bits
 from test_search_proj import stacked_recordings
@@ -224,3 +224,9 @@ def test_whole_searches_narrow_their_panel_as_queries_end():
                         one["exclude"] = exclude[i]
                     want = search.rank_sum_search(P, A, st, ln, queries[i], init[i], step=4, **one)
                     assert_same_search(got[i], want, f"{isa} {sorted(kw)} query {i}")
+
+
+def test_auto_takes_the_blocked_path_from_three_queries_a_thread():
+    """The threshold of method="auto" counts queries per thread (a block per thread)."""
+    assert [search.blocked_min_queries(t) for t in (1, 2, 4)] == [3, 5, 9]
+    assert search.blocked_min_queries() == search.blocked_min_queries(_core.default_threads())

@@ -49,6 +49,7 @@ __all__ = [
     "rank_sum_step",
     "rank_sum_search",
     "rank_sum_search_batch",
+    "blocked_min_queries",
     "kernels",
     "get_simd",
     "set_simd",
@@ -60,6 +61,19 @@ PRESELECT = ("pose", "audio")
 #: The kernel's default; a synthesis steps as often in time at any frame rate
 #: (:func:`gesturedb.synth.options.default_step`).
 STEP_FRAMES = 8
+
+
+def blocked_min_queries(threads: int | None = None) -> int:
+    """Queries from which ``method="auto"`` takes the blocked path (AVX2 / AVX-512; the scalar
+    kernels never do) with ``threads`` threads (default: the CPUs this process may use).
+
+    The blocked path runs a block of queries per thread; it pays off once each block holds the
+    kernel's minimum (3 queries: at 617k frames a block of 3 costs 0.85-0.9 of their 3 single
+    passes, one of 2 as much as 2 passes; benchmarks/RESULTS.md, "Narrow panels").
+    """
+    core = _core()
+    t = threads if threads is not None and threads > 0 else core.default_threads()
+    return (core.blocked_min_queries - 1) * t + 1
 
 
 def _core():
@@ -576,8 +590,8 @@ def rank_sum_search_batch(pose, audio, seg_start, seg_len, queries: Sequence, in
     Each result equals what :func:`rank_sum_search` returns for that query
     alone (same instruction set), whatever the method.
 
-    With ``method="blocked"`` (the default for 16 or more queries on AVX2 /
-    AVX-512) blocks of up to 256 queries advance step by step together: each
+    With ``method="blocked"`` (the default from :func:`blocked_min_queries`
+    queries on AVX2 / AVX-512: 3 a thread) blocks of up to 256 queries advance step by step together: each
     candidate row of the database is read once per block and step, an
     approximate distance to every query of the block comes from one blocked
     dot product (GEMM-like), and only the candidates whose rigorous error

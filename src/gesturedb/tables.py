@@ -83,8 +83,9 @@ class PreselectBatch:
     """:func:`preselect_table` of one step for many queries at once, call after call.
 
     Row i of :meth:`tables` equals ``preselect_table(..., prev_poses[i],
-    query_windows[i], ...)`` exactly. With ``method="blocked"`` (the default
-    from 16 queries on AVX2 / AVX-512) blocks of queries share each candidate
+    query_windows[i], ...)`` exactly. With ``method="blocked"`` (the default from
+    :func:`gesturedb.search.blocked_min_queries` queries on AVX2 / AVX-512: 3 a
+    thread) blocks of queries share each candidate
     row, as in :func:`gesturedb.search.rank_sum_search_batch`. That method needs
     a pass over the database first (the audio windows' norms and the projection
     rows: about 0.4 s at 2.5M frames); this object builds it on the first call

@@ -48,6 +48,7 @@ from gesturedb.control.schedule import parse_schedule
 from gesturedb.errors import GestureDBError, ParameterError, echo
 from gesturedb.io import write_motion
 from gesturedb.io.audio import audio_duration, read_audio
+from gesturedb.search import blocked_min_queries
 from gesturedb.serve import protocol as P
 from gesturedb.serve.batcher import StepScheduler
 from gesturedb.serve.limits import Limits
@@ -185,10 +186,10 @@ class ServerState:
                 noise = np.random.default_rng(0).normal(0, 0.01, 24000).astype(np.float32)
                 if self.scheduler is not None:
                     # and the batched search's set-up: its tables, the blocked kernel's pass over the
-                    # database (16 copies of a step: the smallest batch that takes the blocked path)
+                    # database (copies of a step: the smallest batch that takes the blocked path)
                     s.feed(noise)
                     sq = s.next_step()
-                    self.scheduler.batch.search([sq] * 16)
+                    self.scheduler.batch.search([sq] * blocked_min_queries(self.scheduler.batch.threads))
                     s.complete_step(sq, *self.scheduler.batch.search([sq])[0])
                 else:
                     s.push(noise)

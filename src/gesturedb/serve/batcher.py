@@ -42,7 +42,9 @@ log = logging.getLogger("gesturedb.serve")
 MAX_BATCH = 256
 #: Seconds the worker thread waits without a step before it ends (the next step starts it again).
 IDLE_EXIT_S = 5.0
-#: Steps from which the blocked kernel serves a call ("auto"): below it each step costs a pass of its own.
+#: Steps the pre-selection ahead waits for (up to AHEAD_GATHER_S): a blocked call costs less per step the more
+#: steps it carries (617k frames, 1 thread: 11 ms a step for 3, 7 for 8, 4.8 for 16), though from
+#: :func:`gesturedb.search.blocked_min_queries` steps (3) it already beats a pass per step.
 BLOCK_MIN = 16
 #: Seconds a coming step may wait for others before its pre-selection starts: a step's speech takes
 #: 0.53 s to come, so waiting a little lets one blocked call serve many streams' coming steps.

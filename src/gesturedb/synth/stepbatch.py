@@ -53,7 +53,7 @@ class StepBatch:
         steps of streams over another searcher are searched by their own stream.
     method : {"auto", "blocked", "per_query"}
         The kernel's strategy for the shared pre-selection (results are identical;
-        ``"auto"`` blocks from 16 steps on).
+        ``"auto"`` blocks from :func:`gesturedb.search.blocked_min_queries` steps on: 3 a thread).
     threads : int, optional
         Worker threads of the kernel (default: the CPUs this process may use).
 
