@@ -15,6 +15,12 @@ permessage-deflate is declined: every 40 ms audio message and every frames messa
 was compressed and decompressed on both ends (about a sixth of the event loop's
 time at 16 clients), for PCM that barely compresses, on the loopback or a LAN
 where bytes are cheap (docs/live.md, "Compression"; benchmarks/RESULTS.md).
+
+Reading pauses only when a message comes while another still waits for the app
+(uvicorn pauses at every message and resumes at the app's every read: two epoll
+calls and their bookkeeping per 40 ms audio message, for a client in real time
+whose messages the app takes as they come). A client faster than the app is still
+held back by TCP, one message later.
 """
 from __future__ import annotations
 
@@ -38,11 +44,12 @@ if WebSocketsSansIOProtocol is not None:
     class LingeringWebSocketProtocol(WebSocketsSansIOProtocol):
         """uvicorn's websockets (Sans-I/O) protocol whose failed connections linger before closing.
 
-        Overrides two hooks of uvicorn 0.54's class: ``handle_parser_exception`` (websockets has
+        Overrides three hooks of uvicorn 0.54's class: ``handle_parser_exception`` (websockets has
         failed the connection and queued its close frame: uvicorn writes it and closes the socket
-        there) and ``data_received`` (what comes after that is dropped unparsed). Both, and the
-        attributes used here, are as they were in 0.35, which brought the class; an uvicorn
-        without it gets its default protocol (:func:`uvicorn_options`), which closes at once.
+        there), ``data_received`` (what comes after that is dropped unparsed) and
+        ``send_receive_event_to_app`` (pauses reading only with a message already queued). All
+        three, and the attributes used here, are as they were in 0.35, which brought the class; an
+        uvicorn without it gets its default protocol (:func:`uvicorn_options`), which closes at once.
         """
 
         _lingering = False
@@ -51,6 +58,18 @@ if WebSocketsSansIOProtocol is not None:
             if self._lingering:
                 return  # the rest of a refused message: read so that the close sends no reset, never kept
             super().data_received(data)
+
+        def send_receive_event_to_app(self) -> None:
+            if self.read_paused or not self.queue.empty():
+                super().send_receive_event_to_app()  # queues the message and pauses reading
+                return
+            # the app takes its messages as they come: queued without pausing (uvicorn pauses when it sees
+            # read_paused False and resumes reading in receive() only when it is True)
+            self.read_paused = True
+            try:
+                super().send_receive_event_to_app()
+            finally:
+                self.read_paused = False
 
         def handle_parser_exception(self) -> None:
             close = self.conn.close_sent
