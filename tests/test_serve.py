@@ -108,6 +108,11 @@ def test_audio_decoding_checks():
     assert np.array_equal(P.decode_audio(P.encode_audio(x, "f32"), "f32"), [0.5, -0.25, 1.0])
     with pytest.raises(ParameterError, match="whole number of pcm16 samples"):
         P.decode_audio(b"abc", "pcm16")
+    with pytest.raises(ParameterError, match="whole number of pcm16 samples"):
+        P.audio_samples(b"abc", "pcm16")
+    with pytest.raises(ParameterError, match="finite f32 samples; got 1 NaN"):
+        P.audio_samples(np.array([np.nan, 0], "<f4").tobytes(), "f32")
+    assert P.audio_samples(P.encode_audio(x, "pcm16"), "pcm16") == P.audio_samples(P.encode_audio(x, "f32"), "f32") == 3
     with pytest.raises(ParameterError, match="finite f32"):
         P.decode_audio(np.array([np.nan, 0], "<f4").tobytes(), "f32")
 
@@ -351,6 +356,33 @@ def test_message_size_and_idle_limits(db):
             assert time.monotonic() - t < 5
         with c.websocket_connect("/stream") as ws:  # silent before the start message too
             _closed_with(ws, P.CLOSE_POLICY, "idle")
+
+
+class _SlowControl(ReplayStream):
+    def set_control(self, control):
+        time.sleep(0.6)
+        super().set_control(control)
+
+
+def test_idle_limit_counts_only_the_wait_for_a_message(db):
+    """The idle limit is one timer per session (not a timeout per message): messages that come more often
+    keep the stream open however long it lasts, and a slow synthesizer call is no idleness of the client."""
+    lim = Limits(idle_s=0.3)
+    with TestClient(create_app(db, stream_factory=_SlowControl, limits=lim)) as c:
+        with c.websocket_connect("/stream") as ws:
+            _start(ws)
+            t = time.monotonic()
+            while time.monotonic() - t < 1.0:  # three times the limit, a message every 0.1 s
+                ws.send_text(json.dumps({"type": "ping"}))
+                assert ws.receive_json()["type"] == "pong"
+                time.sleep(0.1)
+            ws.send_text(json.dumps({"type": "control", "control": None}))  # 0.6 s in the synthesizer
+            assert ws.receive_json()["type"] == "control"
+            ws.send_text(json.dumps({"type": "ping"}))
+            assert ws.receive_json()["type"] == "pong"
+            t = time.monotonic()
+            m = _closed_with(ws, P.CLOSE_POLICY, "idle")
+            assert "no message for 0.3 s" in m["message"] and 0.2 < time.monotonic() - t < 5
 
 
 def test_audio_faster_than_real_time_is_slowed(db, speech):

@@ -145,6 +145,32 @@ def json_safe(value):
     return value
 
 
+def audio_samples(message: bytes, fmt: str) -> int:
+    """How many samples an audio message holds, once :func:`decode_audio` would accept it.
+
+    What a server checks per message when it keeps the bytes and decodes them later, joined:
+    the samples of joined messages are those of each message in turn, for either format.
+
+    Raises
+    ------
+    ParameterError
+        A length that is not a whole number of samples, or non-finite float samples.
+    """
+    itemsize = AUDIO_FORMATS[fmt].itemsize
+    if len(message) % itemsize:
+        raise ParameterError(f"audio: expected a whole number of {fmt} samples ({itemsize} bytes each); "
+                             f"got {len(message)} bytes")
+    if fmt != "pcm16":
+        _check_finite(np.frombuffer(message, dtype=AUDIO_FORMATS[fmt]))
+    return len(message) // itemsize
+
+
+def _check_finite(x: np.ndarray) -> None:
+    if not np.all(np.isfinite(x)):
+        raise ParameterError(f"audio: expected finite f32 samples; got {int(np.count_nonzero(~np.isfinite(x)))} "
+                             "NaN or infinite values")
+
+
 def decode_audio(message: bytes, fmt: str) -> np.ndarray:
     """Samples of an audio message as float32 in [-1, 1].
 
@@ -160,9 +186,7 @@ def decode_audio(message: bytes, fmt: str) -> np.ndarray:
     x = np.frombuffer(message, dtype=dtype)
     if fmt == "pcm16":
         return x.astype(np.float32) / np.float32(32768.0)
-    if not np.all(np.isfinite(x)):
-        raise ParameterError(f"audio: expected finite f32 samples; got {int(np.count_nonzero(~np.isfinite(x)))} "
-                             "NaN or infinite values")
+    _check_finite(x)
     # a float source a little hot is clipped, as a sound card would, rather than refused
     return np.clip(x, -1.0, 1.0).astype(np.float32)
 

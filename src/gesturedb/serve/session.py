@@ -4,9 +4,15 @@ A session owns its synthesizer and nothing else: whatever a client sends ends, a
 worst, its own stream with an error message and a close code; the other streams and
 the shared database never see it. Every blocking call into the synthesizer runs in
 a worker thread so that the event loop keeps serving the others.
+
+An audio message costs the event loop as little as it can (13 of them make a step at
+40 ms each): its size is checked and its bytes kept; they are decoded and fed to the
+stream in one piece once a step can be ready. The idle limit is one timer per session,
+not a timeout entered per message (``_IdleTimer``).
 """
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import math
@@ -36,6 +42,52 @@ class _Close(Exception):
         self.close_code, self.code_name, self.message = close_code, code_name, message
 
 
+class _IdleTimer:
+    """The idle limit of a session: its wait for a client message is cancelled once it has lasted ``idle_s``.
+
+    A timeout entered per message (``anyio.fail_after``: a cancel scope, a timer made and cancelled) was 4 %
+    of a loaded server's time (benchmarks/RESULTS.md). Here a wait costs a clock read, and one timer per
+    session wakes at most once per ``idle_s`` while messages come: when it finds the current wait younger
+    than the limit, it sleeps again until that wait's deadline. Made in the session's task (asyncio: uvicorn,
+    Starlette's TestClient), whose wait it cancels.
+    """
+
+    def __init__(self, idle_s: float):
+        self.idle_s = idle_s
+        self.loop = asyncio.get_running_loop()
+        self.task = asyncio.current_task()
+        #: when the session began waiting for the message it waits for (loop time), None when not waiting
+        self.wait_since: float | None = None
+        self._fired = False
+        self._handle = self.loop.call_at(self.loop.time() + idle_s, self._check)
+
+    def waiting(self) -> None:
+        """The session waits for a message from now (``wait_since = None`` when one came)."""
+        self.wait_since = self.loop.time()
+
+    def _check(self) -> None:
+        now = self.loop.time()
+        if self.wait_since is None:  # busy with a message: a wait begun now ends idle_s from now at the earliest
+            self._handle = self.loop.call_at(now + self.idle_s, self._check)
+        elif now < self.wait_since + self.idle_s:
+            self._handle = self.loop.call_at(self.wait_since + self.idle_s, self._check)
+        else:  # the session's task is suspended in that wait (this runs in its loop): it is cancelled there
+            self._fired = True
+            self.task.cancel()
+
+    def fired(self) -> bool:
+        """Whether the cancellation the waiting task caught is this timer's (then taken back: the task goes
+        on to close its stream); False for any other, or when another came as well."""
+        if not self._fired:
+            return False
+        self._fired = False
+        uncancel = getattr(self.task, "uncancel", None)  # Python 3.11+: cancellations are counted
+        return uncancel is None or uncancel() == 0
+
+    def stop(self) -> None:
+        self._handle.cancel()
+
+
 class StreamSession:
     """Serve one WebSocket connection (see ``docs/live.md`` for the protocol).
 
@@ -60,10 +112,13 @@ class StreamSession:
         self._roots: list[np.ndarray] = []
         self._rots: list[np.ndarray] = []
         self._steps: list[dict] = []
-        self._unfed: list[np.ndarray] = []  # audio received, not yet fed to the stream (see _push)
+        self._unfed: list[bytes] = []  # audio messages received, not yet fed to the stream (see _push)
+        self._step_at = 0  # samples in all before the stream's next step can be ready (see _push)
+        self._idle = None
 
     # -- the loop -------------------------------------------------------------
     async def run(self) -> None:
+        self._idle = _IdleTimer(self.limits.idle_s)
         try:
             await self._serve()
         except _Close as c:
@@ -75,6 +130,7 @@ class StreamSession:
             await self._close(_Close(P.CLOSE_INTERNAL, "internal", f"the synthesizer failed: {type(exc).__name__}: "
                                                                    f"{str(exc)[:300]}"))
         finally:
+            self._idle.stop()
             if self.state.scheduler is not None and self.stream is not None:
                 self.state.scheduler.forget(self.stream)
 
@@ -83,8 +139,9 @@ class StreamSession:
         await self._start(start)
         while True:
             msg = await self._receive()
-            if "bytes" in msg and msg["bytes"] is not None:
-                await self._audio(msg["bytes"])
+            data = msg.get("bytes")
+            if data is not None:
+                await self._audio(data)
                 continue
             req = await self._json(msg.get("text"))
             if req is None:
@@ -105,16 +162,25 @@ class StreamSession:
 
     async def _receive(self) -> dict:
         """The next client message, within the idle limit and the size limit."""
+        idle = self._idle
+        idle.waiting()
         try:
-            with anyio.fail_after(self.limits.idle_s):
-                msg = await self.ws.receive()
-        except TimeoutError:
+            msg = await self.ws.receive()
+        except asyncio.CancelledError:
+            if not idle.fired():
+                raise  # not ours: the server is stopping, say
             raise _Close(P.CLOSE_POLICY, "idle", f"no message for {self.limits.idle_s:g} s; the stream is closed") \
                 from None
+        finally:
+            idle.wait_since = None
         if msg["type"] == "websocket.disconnect":
             raise WebSocketDisconnect(msg.get("code", 1000))
-        data = msg.get("bytes") if msg.get("bytes") is not None else (msg.get("text") or "")
-        size = len(data) if isinstance(data, (bytes, bytearray)) else len(data.encode("utf-8", "surrogatepass"))
+        data = msg.get("bytes")
+        if data is not None:
+            size = len(data)
+        else:
+            text = msg.get("text") or ""
+            size = len(text) if text.isascii() else len(text.encode("utf-8", "surrogatepass"))
         if size > self.limits.max_message_bytes:
             raise _Close(P.CLOSE_TOO_BIG, "too_big", f"message of {size} bytes; the limit is "
                                                      f"{self.limits.max_message_bytes} bytes (send audio in chunks)")
@@ -168,6 +234,8 @@ class StreamSession:
             self.stream = await run_in_threadpool(factory, self.state.db, sample_rate=rate)
         except GestureDBError as exc:
             raise _Close(P.CLOSE_POLICY, "bad_start", str(exc)) from None
+        if self.state.scheduler is not None and hasattr(self.stream, "next_step"):
+            self._step_at = self.stream.samples_before_step()
         if control is not None:
             await self._synth(self.stream.set_control, control)
         self.control = control
@@ -188,11 +256,11 @@ class StreamSession:
         if self.stream is None:  # cannot happen: _start ran first; kept as a guard for refactors
             raise _Close(P.CLOSE_POLICY, "bad_message", "audio before the start message")
         try:
-            samples = P.decode_audio(data, self.fmt)
+            n = P.audio_samples(data, self.fmt)
         except ParameterError as exc:
             await self._reject("bad_audio", str(exc))
             return
-        self.n_samples += samples.shape[0]
+        self.n_samples += n
         if self.n_samples > self.limits.max_audio_s * self.sample_rate:
             raise _Close(P.CLOSE_POLICY, "too_long", f"the stream passed the limit of {self.limits.max_audio_s:g} s "
                                                      "of speech; start a new one")
@@ -200,28 +268,34 @@ class StreamSession:
         ahead_s = self.n_samples / self.sample_rate - (time.monotonic() - self.t_start) - self.limits.max_ahead_s
         if ahead_s > 0:
             await anyio.sleep(ahead_s)
-        if samples.shape[0]:
-            await self._send_chunk(await self._push(samples))
+        if not n:
+            return
+        if self.n_samples < self._step_at:
+            # no step can be ready yet: the bytes are fed later in one piece (the same features, fewer calls,
+            # decoded once), and this message costs no trip to a worker thread
+            self._unfed.append(data)
+            return
+        await self._send_chunk(await self._push(data))
 
-    async def _push(self, samples: np.ndarray):
-        """The stream's ``push``, with its steps searched by the server's scheduler together with the other
-        streams' waiting steps (each applied here, to this stream only), when the server batches."""
+    async def _push(self, data: bytes):
+        """The stream's ``push`` of an audio message, with its steps searched by the server's scheduler
+        together with the other streams' waiting steps (each applied here, to this stream only), when the
+        server batches."""
         sched = self.state.scheduler
         if sched is None or not hasattr(self.stream, "next_step"):
-            return await self._synth(self.stream.push, samples)
-        self._unfed.append(samples)
-        if self.n_samples < self.stream.samples_before_step():
-            return None  # no step can be ready yet: fed later in one piece (the same features, fewer calls)
+            return await self._synth(self.stream.push, P.decode_audio(data, self.fmt))
+        self._unfed.append(data)
         unfed, self._unfed = self._unfed, []
         # the feed and every step whose pre-selection is there (finished and applied) in one call in a worker
         # thread: on a loaded machine each hop to a worker thread and back waits longer than that work takes
-        sq, chunk, up = await self._synth(_advance, self.stream, sched, unfed, None)
+        sq, chunk, up = await self._synth(_advance, self.stream, sched, (unfed, self.fmt), None)
         while sq is not None:  # a step without its pre-selection (under way, stale, none): the scheduler's
             try:
                 res, relaxed = await sched.search(sq)
             except GestureDBError as exc:
                 raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
             sq, chunk, up = await self._synth(_advance, self.stream, sched, None, (sq, res, relaxed))
+        self._step_at = self.stream.samples_before_step()
         if up is not None:  # the coming step, pre-selected while its speech arrives
             sched.ahead(up)
         return chunk
@@ -260,7 +334,7 @@ class StreamSession:
     async def _end(self) -> None:
         if self._unfed:  # audio held for the next step's feed (see _push): the stream needs it all now
             unfed, self._unfed = self._unfed, []
-            await self._synth(self.stream.feed, np.concatenate(unfed))
+            await self._synth(_feed, self.stream, unfed, self.fmt)
         await self._send_chunk(await self._synth(self.stream.finish))
         token = None
         if self.n_sent:
@@ -328,15 +402,22 @@ class StreamSession:
             pass  # the client is gone already
 
 
-def _advance(stream, sched, pieces: list[np.ndarray] | None, done: tuple | None):
-    """Feed held audio (``pieces``) or apply a searched step (``done``: ``(sq, res, relaxed)``), then finish
+def _feed(stream, messages: list[bytes], fmt: str) -> None:
+    """Feed held audio messages to ``stream`` in one piece: decoded once, joined (the same samples as each
+    message decoded in turn, :func:`~gesturedb.serve.protocol.audio_samples` having checked each)."""
+    stream.feed(P.decode_audio(messages[0] if len(messages) == 1 else b"".join(messages), fmt))
+
+
+def _advance(stream, sched, held: tuple | None, done: tuple | None):
+    """Feed held audio (``held``: ``(messages, fmt)``, see :func:`_feed`) or apply a searched step (``done``:
+    ``(sq, res, relaxed)``), then finish
     and apply each ready step whose pre-selection is there (:meth:`StepScheduler.finish_ready`), all in the
     calling thread. Returns ``(step or None, chunk or None, coming step or None)``: the next ready step that
     needs the scheduler's :meth:`~StepScheduler.search`, or else the chunk of frames made final and, once a
     step was applied and the scheduler pre-selects, the coming step prepared without its speech
     (:meth:`~gesturedb.synth.matching.Stream.upcoming_step`)."""
-    if pieces is not None:
-        stream.feed(pieces[0] if len(pieces) == 1 else np.concatenate(pieces))
+    if held is not None:
+        _feed(stream, *held)
     applied = done is not None
     if applied:
         stream.complete_step(*done)
