@@ -26,8 +26,8 @@ BatchMethod resolve_method(const Kernels& kernels, int64_t Q, int threads, Batch
     // holds enough queries to share each candidate row; the scalar table has
     // no fast block kernel
     const bool scalar = std::strcmp(kernels.isa, "scalar") == 0;
-    const int64_t per_block = (Q + threads - 1) / std::max(threads, 1);
-    return (!scalar && per_block >= kBlockedMinQueries) ? BatchMethod::Blocked : BatchMethod::PerQuery;
+    return (!scalar && Q >= blocked_min_queries(std::max(threads, 1))) ? BatchMethod::Blocked
+                                                                       : BatchMethod::PerQuery;
 }
 
 // blocked: the set-up for this window when method resolves to Blocked (null:

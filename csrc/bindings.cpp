@@ -318,7 +318,12 @@ PYBIND11_MODULE(_core, m) {
     m.def(
         "set_simd", [](const std::string& isa) { set_simd(isa.c_str()); }, py::arg("isa"),
         "Switch the instruction set for subsequent searches ('scalar', 'avx2', 'avx512').");
-    m.attr("blocked_min_queries") = kBlockedMinQueries;
+    m.def(
+        "blocked_min_queries",
+        [](int threads) { return blocked_min_queries(threads > 0 ? threads : default_threads()); },
+        py::arg("threads"),
+        "Queries from which method='auto' takes the blocked path with `threads` threads (<= 0: "
+        "default_threads()).");
     m.def("default_threads", &default_threads,
           "Threads used when a call passes threads <= 0: the CPUs in this process's affinity mask, "
           "bounded by the cgroup CPU quota, at least 1.");
@@ -498,8 +503,7 @@ PYBIND11_MODULE(_core, m) {
         py::arg("x").noconvert(), py::arg("lanes").noconvert(), py::arg("isa"),
         "The batch's projection filter over rows z against lanes x; lanes = (nq, aup, bup, cup, alo, clo). "
         "Returns (dh (n, qp), umin (qp,), keep bits (n, ceil(qp / 64))); qp: the lanes padded to 8, 16, 32 "
-        "or a "
-        "multiple of 64.");
+        "or a multiple of 64.");
 
     m.def(
         "cosdots_f32",

@@ -190,6 +190,9 @@ struct BatchQuery {
 // them), of 2 as much as 2 passes, of 3 0.85-0.9 of 3 passes, of 4 0.7-0.8
 // of 4 (benchmarks/RESULTS.md, "Narrow panels").
 constexpr int64_t kBlockedMinQueries = 3;
+// Queries from which Auto takes the blocked path with `threads` threads
+// (threads > 0): enough that each thread's block holds kBlockedMinQueries.
+inline int64_t blocked_min_queries(int threads) { return (kBlockedMinQueries - 1) * int64_t(threads) + 1; }
 
 // How a batch is evaluated; every method returns exactly what rank_sum_search
 // returns for each query alone.

@@ -71,9 +71,7 @@ def blocked_min_queries(threads: int | None = None) -> int:
     kernel's minimum (3 queries: at 617k frames a block of 3 costs 0.85-0.9 of their 3 single
     passes, one of 2 as much as 2 passes; benchmarks/RESULTS.md, "Narrow panels").
     """
-    core = _core()
-    t = threads if threads is not None and threads > 0 else core.default_threads()
-    return (core.blocked_min_queries - 1) * t + 1
+    return int(_core().blocked_min_queries(threads if threads is not None else 0))
 
 
 def _core():

@@ -307,7 +307,6 @@ def hamming(a, b) -> np.ndarray:
     return _popcount32(x)
 
 
-
 def hamming_beyond_chance(a, b, *, bits: int = 32) -> np.ndarray:
     """Hamming distance between rhythm signatures with the part their numbers of set bits explain taken out.
 
@@ -337,6 +336,7 @@ def hamming_beyond_chance(a, b, *, bits: int = 32) -> np.ndarray:
     h = _popcount32(np.bitwise_xor(a, b)).astype(np.float64)
     # H - (na + nb - 2 na nb / bits) + (2 na - 2 na^2 / bits), grouped so that b = a gives 0 exactly
     return np.maximum(h + (na - nb) * (1.0 - 2.0 * na / bits), 0.0)
+
 
 def _popcount32(x: np.ndarray) -> np.ndarray:
     if hasattr(np, "bitwise_count"):  # numpy >= 2.0
