@@ -168,7 +168,10 @@ def test_json_syntax_error(tmp_path):
     ("0\t0.5\thello\n1.0\t0.7\tworld\n", r"line 2: word 1 \('world'\): end 0.7 s is before start 1.0 s"),
     ("1.0\t1.5\thello\n0.6\t0.7\tworld\n", r"line 2: word 1 \('world'\): starts at 0.6 s, before word 0"),
     ("0\t0.5\thello\ninf\t1\tworld\n", r"line 2: start: expected a finite number"),
-    ("start\tend\tword\n0\t1\thi\n", r"line 1: start: expected a number of seconds, got 'start'"),
+    ("start\tend\tword\n0\t1\thi\n", None),  # a header naming the columns (pandas, spreadsheets) is skipped
+    ("Start_s End_s text\n0 1 hi\n", None),
+    ("from\tto\tword\n0\t1\thi\n", r"line 1: start: expected a number of seconds, got 'from'"),
+    ("0\t0.5\thi\nstart\tend\tword\n", r"line 2: start: expected a number of seconds, got 'start'"),
     # issue 41: a negative time became a stretch of -58269 frames in `keywords add`
     ("0\t0.5\thello\n-1.5\t-1.2\tworld\n", r"line 2: start: expected a time >= 0 s for word 'world', got -1.5"),
     ("-0.2\t0.5\thello\n", r"line 1: start: expected a time >= 0 s for word 'hello', got -0.2"),

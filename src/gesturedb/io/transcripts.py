@@ -281,7 +281,10 @@ def _number(path, txt, where, field):
 
 
 def read_genea_tsv(path) -> Words:
-    """Read a GENEA Challenge transcript: ``start<TAB>end<TAB>word`` per line, no header.
+    """Read a GENEA Challenge transcript: ``start<TAB>end<TAB>word`` per line.
+
+    GENEA's files have no header; a first line naming the columns (``start``/``start_s``/``begin``,
+    ``end``/``end_s``/``stop``, then the word's column), as spreadsheets and pandas write, is skipped.
 
     Parameters
     ----------
@@ -299,12 +302,17 @@ def read_genea_tsv(path) -> Words:
     """
     lines = read_text_lines(path)
     rows = []
+    first = True
     for k, line in enumerate(lines, start=1):
         if not line.strip():
             continue
         parts = line.split("\t") if "\t" in line else line.split(None, 2)
         if len(parts) < 3:
             raise InputFileError(path, f"line {k}: expected start<TAB>end<TAB>word, got {line.strip()[:60]!r}")
+        if first and _is_header(parts):  # a spreadsheet's or pandas' export names its columns
+            first = False
+            continue
+        first = False
         where = f"line {k}"
         s = _number(path, parts[0].strip(), where, "start")
         e = _number(path, parts[1].strip(), where, "end")
@@ -313,6 +321,11 @@ def read_genea_tsv(path) -> Words:
 
 
 _JSON_KEYS = {"start": ("start", "start_s", "begin"), "end": ("end", "end_s", "stop"), "word": ("word", "text")}
+
+
+def _is_header(parts: list[str]) -> bool:
+    """Whether a TSV line names the columns (``start end word``, or the JSON reader's other names)."""
+    return parts[0].strip().lower() in _JSON_KEYS["start"] and parts[1].strip().lower() in _JSON_KEYS["end"]
 
 
 #: largest JSON transcript read (an hour of words is ~1 MB)
