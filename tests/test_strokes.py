@@ -215,7 +215,6 @@ def test_a_faster_speaker_keeps_strokes_and_local_seams(faster_speaker):
     assert _check_bands_and_seam_ratio(db, res) < 1.15
 
 
-
 def test_a_faster_speakers_motion_graph_does_not_choose_calm_clips(faster_speaker):
     """The motion graph on the faster speaker keeps the bands through its rhythm term beyond chance. With the
     paper's plain Hamming distance, which against sparse speech signatures prefers clips with few speed
@@ -234,6 +233,7 @@ def test_a_faster_speakers_motion_graph_does_not_choose_calm_clips(faster_speake
             < ST.band_power(res.positions, fps=db.fps, joints=arms)["2-4"])
     with pytest.raises(ParameterError, match="rhythm: expected one of chance, hamming; got 'plain'"):
         graph.synthesize(speech, rhythm="plain")
+
 
 @pytest.fixture(scope="module")
 def foreign_rig(scott_db_30fps, scott_dir, data_dir, tmp_path_factory):
