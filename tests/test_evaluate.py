@@ -361,7 +361,10 @@ def test_evaluate_inputs_without_ground_truth(mdb, scott_dir):
 
 def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
     from gesturedb.eval import metrics as M
+    from gesturedb.eval import strokes as ST
+    from gesturedb.eval.common import feature_joint_indices
     from gesturedb.eval.placement import world_metrics
+    from gesturedb.eval.rhythm import input_words, rhythm_hamming
     from gesturedb.io import read_audio
     from gesturedb.synth import Searcher
 
@@ -382,6 +385,14 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
             world_metrics(pos, fps=15, names=mdb.joint_names)["pelvis_speed_m_s"])
         assert r["average_jerk_m_s3"] == pytest.approx(
             M.average_jerk(E.metric_positions(pos, ev.root), fps=15, joints=joints))
+        # the strokes and the rhythm per start, the acceptance numbers of the strokes issue, from their own functions
+        arms = ST.band_groups(mdb.joint_names)["arms"]
+        assert r["band_arms_2-4_db"] == pytest.approx(
+            ST.band_power(pos, fps=15, joints=arms, root=ev.root)["2-4"] / ev.reference["band_power"]["arms"]["2-4"])
+        ws, we = input_words(y, sr, inp.transcript)
+        assert r["rhythm_hamming"] == pytest.approx(rhythm_hamming(
+            pos, word_start_s=ws, word_end_s=we, fps=15, joints=feature_joint_indices(mdb),
+            gap_s=float(mdb.config.get("gap_s", 0.4))))
     # two starts take two paths through the database; the main run is the default start's, seed 0's
     assert rows[0]["pelvis_speed_m_s"] != rows[1]["pelvis_speed_m_s"]
     assert inp.metrics["ranksum_pose"]["pelvis_speed_m_s"] == rows[0]["pelvis_speed_m_s"]
@@ -394,6 +405,7 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
     txt = ev.to_text()
     part = txt[txt.index("from 2 random starting poses"):]
     assert "rank-sum, pose pre-selection, random start (seed 0)" in part and "2 random starts" in part
+    assert all(h in part for h in ("BeatAlign", "rhythm Ham", "seam/inside", "arms 2-4 / DB", "hands 4-7 / DB"))
     assert "vs GT" not in part  # no ground truth for new speech: no column of NaNs
     d = json.loads(json.dumps(ev.to_dict()))
     assert [r["seed"] for r in d["inputs"][0]["starts"]["ranksum_pose"]] == [0, 1]

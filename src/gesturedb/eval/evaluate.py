@@ -176,7 +176,12 @@ STARTS_COLUMNS = (
     ("jerk_rel_arms_m_s3", "arms jerk rel", ".1f"),
     ("average_jerk_m_s3", "jerk m/s^3", ".1f"),
     ("speed_hellinger_gt", "H(speed) vs GT", ".3f"),
+    ("beat_align", "BeatAlign", ".3f"),
     ("beat_align_headline", "BeatAlign a->m", ".3f"),
+    ("rhythm_hamming", "rhythm Ham", ".2f"),
+    ("seam_ratio", "seam/inside", ".2f"),
+    # the strokes (arms and hands against the database's own motion): one start can swing them too
+    *((k, f"{h} / DB", f) for k, h, f in STROKE_COLUMNS if k.startswith(("band_arms_", "band_hands_"))),
 )
 
 
@@ -672,11 +677,12 @@ class MotionEvaluation:
         return write_motion_report(self, out_dir, render=render, video=video, video_seconds=video_seconds)
 
 
-def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, reference, opts, starts, conv_args):
+def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, reference, opts, starts, conv_args,
+                more):
     """Each rank-sum system in ``systems`` again from ``starts`` random starting poses
-    (seeds 0..starts-1): one row of :func:`system_metrics`, world metrics and the
-    published conventions per start, cut to the evaluation's length and measured
-    against the same ground truth."""
+    (seeds 0..starts-1): one row of :func:`system_metrics`, world metrics, the published
+    conventions and ``more(positions)`` (strokes, rhythm) per start, cut to the evaluation's
+    length and measured against the same ground truth."""
 
     # with the ground truth among the systems, synthesize_systems cuts every output to its length
     gt = outputs["ground_truth"].positions if "ground_truth" in outputs else None
@@ -694,7 +700,7 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
             rel = {k: metric_positions(v.positions, root) for k, v in outs.items()}
             conv = CV.convention_metrics(rel, fps=db.fps, joints=joints, **conv_args)[n]
             wm = world_metrics(outs[n].positions, fps=db.fps, names=db.joint_names)
-            rows.append({"seed": seed, **r[n], **wm, **conv})
+            rows.append({"seed": seed, **r[n], **wm, **conv, **more(outs[n].positions)})
         out[n] = rows
     return out
 
@@ -710,9 +716,18 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
         rows[n].update(world_metrics(o.positions, fps=db.fps, names=db.joint_names))
     truth = (group_band_power(outputs["ground_truth"].positions, fps=db.fps, names=db.joint_names, root=root)
              if "ground_truth" in outputs else None)
+    fj = feature_joint_indices(db)
+    ws, we = input_words(samples, sr, transcript)
+
+    def more(positions) -> dict:
+        """Strokes and the speech rhythm's agreement (eval/rhythm.py) of one motion."""
+        return {**stroke_metrics(positions, fps=db.fps, names=db.joint_names, root=root,
+                                 reference=reference["band_power"], truth=truth),
+                "rhythm_hamming": rhythm_hamming(positions, word_start_s=ws, word_end_s=we, fps=db.fps, joints=fj,
+                                                 gap_s=float(db.config.get("gap_s", 0.4)))}
+
     for n, o in outputs.items():
-        rows[n].update(stroke_metrics(o.positions, fps=db.fps, names=db.joint_names, root=root,
-                                      reference=reference["band_power"], truth=truth))
+        rows[n].update(more(o.positions))
 
     conv_args = dict(audio_beats_s=M.audio_beats(samples, sr=sr),
                      reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),
@@ -721,7 +736,7 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
     conv = CV.convention_metrics(rel, fps=db.fps, joints=joints, **conv_args)
     start_rows = (_start_rows(db, samples, sr, systems=systems, outputs=outputs, transcript=transcript,
                               joints=joints, root=root, reference=reference, opts=opts, starts=starts,
-                              conv_args=conv_args)
+                              conv_args=conv_args, more=more)
                   if starts else {})
     for n in rows:
         rows[n].update(conv[n])
@@ -734,12 +749,6 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
         rows[n]["fgd_self_db"] = frechet_distance(codes, fgd.db_codes) if ok else float("nan")
         rows[n]["fgd_self_gt"] = (frechet_distance(codes, gt_codes) if ok and gt_codes is not None
                                   and gt_codes.shape[0] >= 2 else float("nan"))
-    fj = feature_joint_indices(db)
-
-    ws, we = input_words(samples, sr, transcript)
-    for n, o in outputs.items():  # speech rhythm vs each system's motion rhythm (eval/rhythm.py)
-        rows[n]["rhythm_hamming"] = rhythm_hamming(o.positions, word_start_s=ws, word_end_s=we, fps=db.fps,
-                                                   joints=fj, gap_s=float(db.config.get("gap_s", 0.4)))
     wh = {n: control_features(o.positions, joints=fj, fps=db.fps)["left_wrist_height"].astype(np.float64)
           for n, o in outputs.items()}
     return InputEvaluation(name=name, audio=audio_path, samples=samples, sr=sr, fps=db.fps, outputs=outputs,
