@@ -406,6 +406,13 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
     part = txt[txt.index("from 2 random starting poses"):]
     assert "rank-sum, pose pre-selection, random start (seed 0)" in part and "2 random starts" in part
     assert all(h in part for h in ("BeatAlign", "rhythm Ham", "seam/inside", "arms 2-4 / DB", "hands 4-7 / DB"))
+    # the report page splits the starts' columns into tables of even widths, every column once
+    from gesturedb.eval.report import STARTS_PER_TABLE, _starts_html
+
+    page = _starts_html(ev, inp)
+    widths = [t.split("</tr>")[0].count("<th>") - 1 for t in page.split("<table>")[1:]]
+    assert sum(widths) == len(ev.starts_columns(inp)) and max(widths) - min(widths) <= 1
+    assert max(widths) <= STARTS_PER_TABLE and page.count("rhythm Ham") == 1
     assert "vs GT" not in part  # no ground truth for new speech: no column of NaNs
     d = json.loads(json.dumps(ev.to_dict()))
     assert [r["seed"] for r in d["inputs"][0]["starts"]["ranksum_pose"]] == [0, 1]

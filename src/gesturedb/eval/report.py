@@ -361,11 +361,21 @@ def _html_table(ev, rows: dict, spec=None) -> str:
     return "<table>" + head + "".join(body) + "</table>"
 
 
+#: Columns per table of the random starts: each cell holds mean +- sd and [min, max], so more would not fit a page.
+STARTS_PER_TABLE = 8
+
+
 def _starts_html(ev, inp) -> str:
-    head = "<tr><th>system</th>" + "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in ev.starts_columns(inp)) + "</tr>"
-    body = "".join(f"<tr><td>{html.escape(label)}</td>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells)
-                   + "</tr>" for label, cells in ev.starts_rows(inp))
-    return f'<p class="note">{html.escape(ev.starts_title(inp))}</p><table>{head}{body}</table>'
+    cols, rows = ev.starts_columns(inp), ev.starts_rows(inp)
+    cell = lambda c: html.escape(c).replace(" [", "<br>[")  # noqa: E731  (the range under the mean)
+    tables = []
+    per = -(-len(cols) // -(-len(cols) // STARTS_PER_TABLE)) if cols else 1  # tables of even widths
+    for a in range(0, len(cols), per):
+        head = "<tr><th>system</th>" + "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in cols[a:a + per])
+        body = "".join(f"<tr><td>{html.escape(label)}</td>" + "".join(f"<td>{cell(c)}</td>" for c in cells[a:a + per])
+                       + "</tr>" for label, cells in rows)
+        tables.append(f"<table>{head}</tr>{body}</table>")
+    return f'<p class="note">{html.escape(ev.starts_title(inp))}</p>' + "".join(tables)
 
 
 def _controls_html(report, img: str | None) -> str:
