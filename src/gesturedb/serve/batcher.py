@@ -31,6 +31,7 @@ import asyncio
 import logging
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 from starlette.concurrency import run_in_threadpool
 
@@ -49,6 +50,12 @@ BLOCK_MIN = 16
 #: Seconds a coming step may wait for others before its pre-selection starts: a step's speech takes
 #: 0.53 s to come, so waiting a little lets one blocked call serve many streams' coming steps.
 AHEAD_GATHER_S = 0.15
+#: Threads that run the sessions' step work once a step's speech has come (:meth:`StepScheduler.run_step`:
+#: the feed, the finish from the pre-selection, the apply), first come, first served. One: that work is
+#: Python holding the interpreter lock, so more threads do not run it at once but share the lock in
+#: 5 ms turns, and the steps of streams whose speech comes together (a burst) all end near the end of
+#: the burst instead of one after the other (benchmarks/RESULTS.md, "One step thread").
+STEP_THREADS = 1
 
 
 class StepScheduler:
@@ -73,8 +80,11 @@ class StepScheduler:
         Seconds the worker spent in batch calls.
     """
 
-    def __init__(self, searcher, *, max_batch: int = MAX_BATCH, threads: int = 1, ahead: bool = True):
+    def __init__(self, searcher, *, max_batch: int = MAX_BATCH, threads: int = 1, ahead: bool = True,
+                 step_threads: int = STEP_THREADS):
         self.batch = StepBatch(searcher, threads=threads)
+        self.step_threads = int(step_threads)
+        self._step_pool: ThreadPoolExecutor | None = None  # made at the first step (after a fork: its own)
         self.max_batch = max_batch
         self._waiting: list[tuple] = []  # (step, future, its event loop)
         lock = threading.RLock()
@@ -104,6 +114,15 @@ class StepScheduler:
                 "alone": self.batch.n_alone,
                 "ahead": {"used": self.n_ahead_used, "stale": self.n_ahead_stale, "calls": self.n_ahead_calls,
                           "busy_s": round(self.ahead_busy_s, 6)}}
+
+    async def run_step(self, call, *args):
+        """``call(*args)`` in the scheduler's step thread (:data:`STEP_THREADS`), after the calls submitted
+        before it; returns its result or raises its exception. The sessions' per-step work goes here instead
+        of to the event loop's thread pool, where every session's step ran in a thread of its own."""
+        with self._cond:
+            if self._step_pool is None:
+                self._step_pool = ThreadPoolExecutor(self.step_threads, thread_name_prefix="gesturedb-step")
+        return await asyncio.wrap_future(self._step_pool.submit(call, *args))
 
     # -- the coming steps, pre-selected while their speech arrives -------------------------------
     def ahead(self, up) -> None:

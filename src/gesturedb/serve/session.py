@@ -288,13 +288,13 @@ class StreamSession:
         unfed, self._unfed = self._unfed, []
         # the feed and every step whose pre-selection is there (finished and applied) in one call in a worker
         # thread: on a loaded machine each hop to a worker thread and back waits longer than that work takes
-        sq, chunk, up = await self._synth(_advance, self.stream, sched, (unfed, self.fmt), None)
+        sq, chunk, up = await self._step(_advance, self.stream, sched, (unfed, self.fmt), None)
         while sq is not None:  # a step without its pre-selection (under way, stale, none): the scheduler's
             try:
                 res, relaxed = await sched.search(sq)
             except GestureDBError as exc:
                 raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
-            sq, chunk, up = await self._synth(_advance, self.stream, sched, None, (sq, res, relaxed))
+            sq, chunk, up = await self._step(_advance, self.stream, sched, None, (sq, res, relaxed))
         self._step_at = self.stream.samples_before_step()
         if up is not None:  # the coming step, pre-selected while its speech arrives
             sched.ahead(up)
@@ -348,6 +348,14 @@ class StreamSession:
         candidate, say) end this stream with their message."""
         try:
             return await run_in_threadpool(call, *args)
+        except GestureDBError as exc:
+            raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
+
+    async def _step(self, call, *args):
+        """:meth:`_synth` in the scheduler's step thread, first come, first served
+        (:meth:`~gesturedb.serve.batcher.StepScheduler.run_step`)."""
+        try:
+            return await self.state.scheduler.run_step(call, *args)
         except GestureDBError as exc:
             raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
 
