@@ -395,3 +395,28 @@ def test_a_stream_says_what_is_wrong():
         AudioFeatureStream(SR, fps=30.0, block_frames=0)
     with pytest.raises(ParameterError, match=r"sr: expected a positive int sample rate in Hz; got 16000.0"):
         AudioFeatureStream(16000.0, fps=30.0)
+
+
+def test_stft_is_librosas_bit_for_bit(scott_dir):
+    """The stream's own STFT (the window made once) gives librosa.stft's bits (center=False) on real
+    speech, at every rate's FFT size, over lengths that end inside a frame, on one, and across
+    librosa's blocks of MAX_MEM_BLOCK bytes."""
+    import librosa
+
+    from gesturedb.features.audio import AudioFeatureStream
+    from gesturedb.io.audio import read_audio
+
+    y, sr = read_audio(scott_dir / "2_scott_0_1_1.wav")
+    rng = np.random.default_rng(3)
+    for rate in (8000, 16000, 22050, 44100):
+        st = AudioFeatureStream(rate, fps=15)
+        x = y[: 20 * sr].astype(np.float32)
+        lengths = list(range(st._n_fft, st._n_fft + 2 * st._hop + 2)) + [len(x)] + \
+            [int(v) for v in rng.integers(st._n_fft, len(x), 8)]
+        for n in lengths:
+            seg = x[int(rng.integers(0, len(x) - n + 1)):][:n]
+            got = st._stft(seg)
+            want = librosa.stft(seg, n_fft=st._n_fft, hop_length=st._hop, win_length=st._win, window="hann",
+                                center=False)
+            assert got.dtype == want.dtype and got.shape == want.shape, (rate, n)
+            assert np.ascontiguousarray(got).tobytes() == np.ascontiguousarray(want).tobytes(), (rate, n)

@@ -200,6 +200,10 @@ class AudioFeatureStream:
         fmax = min(FMAX_HZ, sr / 2.0)
         fmin = min(FMIN_HZ, fmax / 2.0)
         self._basis = librosa.filters.mel(sr=sr, n_fft=self._n_fft, n_mels=N_MELS, fmin=fmin, fmax=fmax)
+        # librosa.stft's window, made once (see _stft)
+        self._fft_window = librosa.util.pad_center(librosa.filters.get_window("hann", self._win, fftbins=True),
+                                                   size=self._n_fft)[:, None]
+        self._fft, self._max_mem_block = librosa.get_fftlib(), librosa.util.MAX_MEM_BLOCK
         # analysis frames kept: those whose centre lies before n_frames / fps
         self._n_fine = None if self.n_frames is None else self._fine_count(self.n_frames)
         # samples from absolute index _buf_at (negative: the zero padding before the speech, as
@@ -242,8 +246,7 @@ class AudioFeatureStream:
             jb = min(j1, j0 + self._block)
             # the buffer starts at the first sample of frame j0's window (see the end of the loop)
             seg = self._buf[:(jb - 1 - j0) * hop + self._n_fft]
-            spec = librosa.stft(seg, n_fft=self._n_fft, hop_length=hop, win_length=win, window="hann",
-                                center=False)
+            spec = self._stft(seg)
             # |z|^2 as re^2 + im^2: numpy's abs of a complex number (a hypot) rounds differently with
             # and without AVX2, elementwise products and sums do not
             power = spec.real * spec.real + spec.imag * spec.imag
@@ -274,6 +277,25 @@ class AudioFeatureStream:
             self._buf = self._buf[shift:]
             self._buf_at += shift
             self._j = jb
+
+    def _stft(self, seg: np.ndarray) -> np.ndarray:
+        """``librosa.stft(seg, n_fft, hop_length, win_length, window="hann", center=False)``, the same bits.
+
+        seg : ndarray [shape=(n,)], float32, n >= n_fft; returns ndarray [shape=(n_fft // 2 + 1, frames)],
+        complex64. librosa's own steps (the window, the frames as a strided view, the FFT in blocks of
+        ``librosa.util.MAX_MEM_BLOCK`` bytes of frames, into complex64), without remaking the window and
+        checking the input at every call: a live step's features spent about a third of their time there.
+        """
+        n_fft, hop = self._n_fft, self._hop
+        # librosa.util.frame: frame t is seg[t * hop : t * hop + n_fft], a column of a strided view
+        frames = np.lib.stride_tricks.sliding_window_view(seg, n_fft)[::hop].T
+        n = frames.shape[1]
+        spec = np.zeros((1 + n_fft // 2, n), dtype=np.complex64, order="F")
+        cols = max(int(self._max_mem_block // (n_fft * seg.itemsize)), 1)
+        for a in range(0, n, cols):
+            b = min(a + cols, n)
+            spec[:, a:b] = self._fft.rfft(self._fft_window * frames[:, a:b], axis=-2)
+        return spec
 
     def _available(self) -> int:
         """Analysis frames the buffer holds all the samples of (capped at the frames kept)."""
