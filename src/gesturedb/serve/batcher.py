@@ -17,8 +17,8 @@ coming steps of all streams in one call of the blocked kernel (:meth:`StepBatch.
 their speech arrives (a step's 0.53 s), waiting up to ``AHEAD_GATHER_S`` for ``BLOCK_MIN`` of them
 (at once when a waiting step's speech has come), and gathers each step's candidate audio windows into
 one block, handing each step over as soon as its block is there. When the step's speech has come,
-the session's worker thread, right after feeding the speech, checks that the step's inputs are still
-those (a control or words in between make them stale) and finishes it there
+the server's step thread (:meth:`StepScheduler.run_step`), right after feeding the speech, checks
+that the step's inputs are still those (a control or words in between make them stale) and finishes it there
 (:meth:`StepScheduler.finish_ready`): the audio distances of the pre-selected candidates from their
 gathered windows and the ranks (:meth:`StepBatch.finish`, about 1 ms at paper scale instead of a pass
 over the database), then applies it, with no hop to another thread between. A step whose
@@ -219,7 +219,7 @@ class StepScheduler:
     # -- the steps whose speech has come -----------------------------------------------------
     def finish_ready(self, sq):
         """``(res, relaxed)`` of step ``sq`` finished from its pre-selection when that is done and still fits,
-        computed in the calling thread (a session's worker thread, between its feed and its apply: no hop to
+        computed in the calling thread (the step thread, between a session's feed and its apply: no hop to
         another thread); else None, and :meth:`search` takes the step (waiting for a pre-selection under way,
         or searching it with the other waiting steps)."""
         if not self.ahead_enabled:

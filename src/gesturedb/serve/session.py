@@ -3,7 +3,9 @@
 A session owns its synthesizer and nothing else: whatever a client sends ends, at
 worst, its own stream with an error message and a close code; the other streams and
 the shared database never see it. Every blocking call into the synthesizer runs in
-a worker thread so that the event loop keeps serving the others.
+a worker thread so that the event loop keeps serving the others (a step's feed, finish and apply in
+the step scheduler's one step thread, in the order the steps' speech came:
+:meth:`gesturedb.serve.batcher.StepScheduler.run_step`).
 
 An audio message costs the event loop as little as it can (13 of them make a step at
 40 ms each): its size is checked and its bytes kept; they are decoded and fed to the
