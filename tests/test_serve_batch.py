@@ -198,3 +198,35 @@ def test_finish_ready_takes_only_a_done_and_fitting_preselection(db, scott_dir, 
         assert sched.n_ahead_stale == 1 and sched.n_ahead_used == 1 and s not in sched._ahead
 
     asyncio.run(run())
+
+
+def test_step_work_runs_in_one_thread_in_the_order_it_came(db):
+    """StepScheduler.run_step: the sessions' step work runs in one thread, first come, first served (the
+    steps of streams whose speech comes together go out one after the other, not all at the end of the
+    burst), and a call's exception reaches its own caller only."""
+    import asyncio
+    import time
+
+    from gesturedb.errors import GestureDBError
+    from gesturedb.serve.batcher import StepScheduler
+    from gesturedb.synth import Searcher
+
+    sched = StepScheduler(Searcher(db))
+    ran = []
+
+    def work(i):
+        time.sleep(0.002 * (i % 3))  # the later calls must not overtake a slower earlier one
+        ran.append((i, threading.get_ident()))
+        if i == 5:
+            raise GestureDBError("step 5 has no candidate")
+        return i * i
+
+    async def run():
+        calls = [asyncio.ensure_future(sched.run_step(work, i)) for i in range(12)]
+        return await asyncio.gather(*calls, return_exceptions=True)
+
+    got = asyncio.run(run())
+    assert [i for i, _ in ran] == list(range(12))
+    assert len({t for _, t in ran}) == 1 and ran[0][1] != threading.get_ident()
+    assert isinstance(got[5], GestureDBError) and "step 5" in str(got[5])
+    assert [g for i, g in enumerate(got) if i != 5] == [i * i for i in range(12) if i != 5]
