@@ -29,7 +29,7 @@ with gesturedb imported from --baseline-src DIR (a checkout's src/ before a chan
 recordings (`--paper-frames`), and --paper-chunked OUT2.h5 the same with chunked arrays.
 
 Usage:  python benchmarks/bench_live.py DB.h5 [--wav SPEECH.wav] [--seconds 10]
-                                        [--clients 1,2,4,8,16,32,50] [--chunk-ms 40] [--budget-ms 100]
+                                        [--clients 1,2,4,8,16,32,50] [--chunk-ms 40] [--budget-ms 100] [--stagger-ms MS]
         python benchmarks/bench_live.py DB.h5 --startup [--reps 5] [--chunked DB2.h5] [--baseline-src DIR]
         python benchmarks/bench_live.py out/scott.h5 --paper /tmp/paper.h5 --paper-chunked /tmp/paper_chunked.h5
 """
@@ -113,30 +113,34 @@ def one_client(url: str, x: np.ndarray, chunk: int, offset_s: float, out: list, 
         errors.append(f"{type(exc).__name__}: {exc}")
 
 
-def run(url: str, x: np.ndarray, n: int, chunk_ms: float, seed: int | None = None) -> tuple[list, list]:
-    """n clients as threads of this process; (step latencies in s, errors)."""
+def run(url: str, x: np.ndarray, n: int, chunk_ms: float, seed: int | None = None,
+        stagger_ms: float | None = None) -> tuple[list, list]:
+    """n clients as threads of this process, each starting at a random time within ``stagger_ms`` (default:
+    one chunk); (step latencies in s, errors)."""
     chunk = int(SR * chunk_ms / 1000)
+    spread_s = (chunk_ms if stagger_ms is None else stagger_ms) / 1000
     lat, errors = [], []
     rng = np.random.default_rng(n if seed is None else seed)
     threads = [threading.Thread(target=one_client,
-                                args=(url, x, chunk, float(rng.uniform(0, chunk_ms / 1000)), lat, errors))
+                                args=(url, x, chunk, float(rng.uniform(0, spread_s)), lat, errors))
                for _ in range(n)]
     [t.start() for t in threads]
     [t.join() for t in threads]
     return lat, errors
 
 
-def run_procs(url: str, x: np.ndarray, n: int, chunk_ms: float, procs: int) -> tuple[list, list]:
+def run_procs(url: str, x: np.ndarray, n: int, chunk_ms: float, procs: int,
+              stagger_ms: float | None = None) -> tuple[list, list]:
     """n clients spread over ``procs`` processes (threads in each), so that the clients' own Python
     does not queue on one interpreter lock and count as the server's latency."""
     procs = max(1, min(procs, n))
     if procs == 1:
-        return run(url, x, n, chunk_ms)
+        return run(url, x, n, chunk_ms, stagger_ms=stagger_ms)
     sizes = [n // procs + (i < n % procs) for i in range(procs)]
     ctx = multiprocessing.get_context("fork")
     with concurrent.futures.ProcessPoolExecutor(procs, mp_context=ctx) as pool:
         parts = list(pool.map(run, [url] * procs, [x] * procs, sizes, [chunk_ms] * procs,
-                              [1000 * n + i for i in range(procs)]))
+                              [1000 * n + i for i in range(procs)], [stagger_ms] * procs))
     return [v for lat, _ in parts for v in lat], [e for _, err in parts for e in err]
 
 
@@ -279,6 +283,10 @@ def main(argv=None) -> int:
     ap.add_argument("--clients", default="1,2,4,8,16,32,50")
     ap.add_argument("--chunk-ms", type=float, default=40.0)
     ap.add_argument("--budget-ms", type=float, default=100.0)
+    ap.add_argument("--stagger-ms", type=float, default=None,
+                    help="clients start at random times within this many ms (default: one chunk, so that every "
+                         "client's steps complete within one chunk of the others': the bursts a server must "
+                         "absorb; a step's length, 533 ms at 15 fps, spreads them as independent speakers would)")
     ap.add_argument("--modes", default="batch,alone",
                     help="servers to compare, in this order: batch (steps of all streams searched in one call, "
                          "each pre-selected by pose while its speech arrives), noahead (batch with --no-ahead: "
@@ -381,7 +389,8 @@ def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tupl
     stats = not mode.startswith("workers")
     before = health(port).get("batch") if stats else None
     cpu0, ccpu0 = cpu_s(pid), clients_cpu_s()
-    lat, errors = run_procs(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms, args.client_procs)
+    lat, errors = run_procs(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms, args.client_procs,
+                            args.stagger_ms)
     cpu, ccpu = cpu_s(pid) - cpu0, clients_cpu_s() - ccpu0
     after = health(port).get("batch") if stats else None
     ms = np.array(lat) * 1000
