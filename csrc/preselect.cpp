@@ -123,13 +123,27 @@ int64_t argmin_kept(const Kernels& kern, const Database& db, int64_t m, const Qu
     const int64_t seg0 = db.seg_start[m];
     int64_t best = -1;
     float best_dp = 0.0f;
-    for (const int32_t* it = first; it != last; ++it) {
-        float d;
-        kern.l2sq_rows_f32(db.pose.row(seg0 + *it), 1, db.pose.cols, qs.prev, &d);
-        if (best < 0 || nan_last_less(d, best_dp)) {
-            best = *it;
-            best_dp = d;
+    // the kept rows as pairs (the same bits as l2sq_rows_f32 row by row, kernels.h):
+    // l2sq_rows_f32 prefetches rows ahead of each call, which for one kept row
+    // of a few in a segment fetched another row that is mostly never read (the
+    // step prefetches the kept rows themselves, step.cpp)
+    constexpr int64_t kChunk = 64;
+    const float* rows[kChunk];
+    const float* vs[kChunk];
+    float d[kChunk];
+    for (const int32_t* c0 = first; c0 != last;) {
+        const int64_t n = std::min<int64_t>(kChunk, last - c0);
+        for (int64_t i = 0; i < n; ++i) {
+            rows[i] = db.pose.row(seg0 + c0[i]);
+            vs[i] = qs.prev;
         }
+        kern.l2sq_pairs_f32(rows, vs, n, db.pose.cols, d);
+        for (int64_t i = 0; i < n; ++i)
+            if (best < 0 || nan_last_less(d[i], best_dp)) {
+                best = c0[i];
+                best_dp = d[i];
+            }
+        c0 += n;
     }
     if (best >= 0) sel.dp[m] = best_dp;
     return best;
