@@ -292,10 +292,7 @@ class StreamSession:
         # thread: on a loaded machine each hop to a worker thread and back waits longer than that work takes
         sq, chunk, up = await self._step(_advance, self.stream, sched, (unfed, self.fmt), None)
         while sq is not None:  # a step without its pre-selection (under way, stale, none): the scheduler's
-            try:
-                res, relaxed = await sched.search(sq)
-            except GestureDBError as exc:
-                raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
+            res, relaxed = await self._closing(sched.search(sq))
             sq, chunk, up = await self._step(_advance, self.stream, sched, None, (sq, res, relaxed))
         self._step_at = self.stream.samples_before_step()
         if up is not None:  # the coming step, pre-selected while its speech arrives
@@ -345,21 +342,23 @@ class StreamSession:
                                "result": None if token is None else f"/result/{token}"})
         await self._close(_Close(P.CLOSE_NORMAL))
 
-    async def _synth(self, call, *args):
-        """A synthesizer call in a worker thread; its deliberate errors (a control that leaves a step no
-        candidate, say) end this stream with their message."""
+    @staticmethod
+    async def _closing(pending):
+        """Await a synthesizer call; its deliberate errors (a control that leaves a step no candidate, say)
+        end this stream with their message."""
         try:
-            return await run_in_threadpool(call, *args)
+            return await pending
         except GestureDBError as exc:
             raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
+
+    async def _synth(self, call, *args):
+        """A synthesizer call in a worker thread (:meth:`_closing`)."""
+        return await self._closing(run_in_threadpool(call, *args))
 
     async def _step(self, call, *args):
         """:meth:`_synth` in the scheduler's step thread, first come, first served
         (:meth:`~gesturedb.serve.batcher.StepScheduler.run_step`)."""
-        try:
-            return await self.state.scheduler.run_step(call, *args)
-        except GestureDBError as exc:
-            raise _Close(P.CLOSE_POLICY, "synthesis", str(exc)) from None
+        return await self._closing(self.state.scheduler.run_step(call, *args))
 
     # -- out ------------------------------------------------------------------
     async def _send_chunk(self, chunk) -> None:
