@@ -483,7 +483,7 @@ PYBIND11_MODULE(_core, m) {
             std::vector<float> xt(size_t(J) * qp, 0.0f), p(size_t(6) * qp, 0.0f);
             for (int64_t l = 0; l < qp; ++l) p[1 * qp + l] = p[4 * qp + l] = 1.0f;
             for (int64_t l = 0; l < nl; ++l) {
-                for (int64_t j = 0; j < J; ++j) xt[(l / W) * W * J + j * W + l % W] = xs(l, j);
+                for (int64_t j = 0; j < J; ++j) xt[panel_offset(l, J, W) + j * W] = xs(l, j);
                 for (int64_t c = 0; c < 6; ++c) p[c * qp + l] = par(c, l);
             }
             const ProjLanes L{&p[0], &p[qp], &p[2 * qp], &p[3 * qp], &p[4 * qp], &p[5 * qp]};

@@ -259,7 +259,7 @@ void BlockedBatch::load_panel(Run& r) const {
         ls.q = bq->audio.row(r.t);
         ls.n = N_;
         ls.qq = query_norm2(kern_, ls.q, N_ * Da);
-        float* panel = &r.xt[(l / W) * W * len + (l % W)];
+        float* panel = &r.xt[panel_offset(l, len, W)];
         bool filtered = true;
         if (proj_) {
             const ProjQuery pq = proj_query(db_, ls.prev);

@@ -97,6 +97,9 @@ inline int64_t padded_lanes(int64_t n) {
 }
 // Lanes per panel, and 64-bit words of a bit per lane, for qp padded lanes.
 inline int64_t panel_width(int64_t qp) { return qp < kQueryPanel ? qp : kQueryPanel; }
+// Where lane j's values start in a packed xt of len values a lane (DotsBlockFn
+// below): value p of lane j is at panel_offset(j, len, W) + p * W.
+inline int64_t panel_offset(int64_t j, int64_t len, int64_t W) { return (j / W) * W * len + j % W; }
 inline int64_t lane_words(int64_t qp) { return (qp + 63) / 64; }
 
 // out[r * qp + j] = sum_p base[r * stride + p] * x[j][p]

@@ -212,7 +212,7 @@ GDB_AVX2 inline void dots_block_avx2(const float* base, int64_t n_rows, int64_t 
     const int64_t W = panel_width(qp);
     for (int64_t j0 = 0; j0 < qp; j0 += 8 * V) {
         // 8 V lanes of the panel that holds query j0
-        const float* panel = xt + (j0 / W) * W * len + (j0 % W);
+        const float* panel = xt + panel_offset(j0, len, W);
         row_tiles_avx2<kTileRowsAvx2<V>>(n_rows, [&](int64_t r, auto nr) GDB_AVX2 {
             dots_tile_avx2<decltype(nr)::value, V>(base + r * stride, stride, len, panel, W, qp,
                                                    out + r * qp + j0);
@@ -436,7 +436,7 @@ GDB_AVX2 inline void projfilter_avx2(const float* z, int64_t n_rows, int64_t J, 
                                      float* dh, float* umin) {
     const int64_t W = panel_width(qp);
     for (int64_t j0 = 0; j0 < qp; j0 += 8 * V) {
-        const float* panel = xt + (j0 / W) * W * J + (j0 % W);
+        const float* panel = xt + panel_offset(j0, J, W);
         row_tiles_avx2<kTileRowsAvx2<V>>(n_rows, [&](int64_t r, auto nr) GDB_AVX2 {
             proj_tile_avx2<decltype(nr)::value, V>(z + r * J, J, nrow + r, rres + r, panel, W, qp, j0, L,
                                                    dh + r * qp, umin);

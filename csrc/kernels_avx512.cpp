@@ -205,7 +205,7 @@ GDB_AVX512 inline void dots_block_avx512(const float* base, int64_t n_rows, int6
                                          const float* xt, int64_t qp, float* out) {
     const int64_t W = panel_width(qp);
     for (int64_t j0 = 0; j0 < qp; j0 += 16 * V) {
-        const float* panel = xt + (j0 / W) * W * len + (j0 % W);
+        const float* panel = xt + panel_offset(j0, len, W);
         row_tiles_avx512(n_rows, [&](int64_t r, auto nr) GDB_AVX512 {
             dots_tile_avx512<decltype(nr)::value, V>(base + r * stride, stride, len, panel, W, qp,
                                                      out + r * qp + j0);
@@ -487,7 +487,7 @@ GDB_AVX512 inline void projfilter_avx512(const float* z, int64_t n_rows, int64_t
                                          float* dh, float* umin) {
     const int64_t W = panel_width(qp);
     for (int64_t j0 = 0; j0 < qp; j0 += 16 * V) {
-        const float* panel = xt + (j0 / W) * W * J + (j0 % W);
+        const float* panel = xt + panel_offset(j0, J, W);
         row_tiles_avx512(n_rows, [&](int64_t r, auto nr) GDB_AVX512 {
             proj_tile_avx512<decltype(nr)::value, V>(z + r * J, J, nrow + r, rres + r, panel, W, qp, j0, L,
                                                      dh + r * qp, umin);
