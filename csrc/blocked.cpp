@@ -20,6 +20,13 @@
 
 namespace gesturedb {
 
+namespace {
+template <class... V>
+void resize_each(size_t n, V&... v) {
+    (v.resize(n), ...);
+}
+}  // namespace
+
 struct BlockedBatch::Run {
     BatchQuery* const* block;
     int64_t nq;
@@ -96,43 +103,19 @@ struct BlockedBatch::Run {
             max_steps = std::max(max_steps, S[i]);
             any_other = any_other || block[i]->table_other;
         }
-        sel_s.resize(size_t(nq) * M);
-        sel_dp.resize(size_t(nq) * M);
-        sel_da.resize(size_t(nq) * M);
+        // the buffers by their length: per query and segment, per lane, per word of lanes, per tile
+        resize_each(size_t(nq) * M, sel_s, sel_dp, sel_da);
+        resize_each(size_t(qp_max), nx, rx, minhi, best, best_dp, best_da, lane_step, fin_a, fin_b, fin_lane,
+                    fin_g, fin_qa, fin_qq, fin_aa, fin_da);
+        resize_each(size_t(words_max), valid, inc, group, live, lane_ok);
+        resize_each(size_t(kRowTile) * qp_max, c, pair_row, pair_vec, pair_lane, pair_r, pair_d);
         xt.resize(size_t(len) * qp_max);
-        nx.resize(qp_max);
-        rx.resize(qp_max);
-        minhi.resize(qp_max);
-        c.resize(size_t(kRowTile) * qp_max);
         keep.resize(size_t(kRowTile) * words_max);
         ok.resize(std::max<int64_t>(1, b.max_seg_len()));
-        scratch_a.resize(ok.size());
-        scratch_b.resize(ok.size());
-        best.resize(qp_max);
-        best_dp.resize(qp_max);
-        best_da.resize(qp_max);
-        valid.resize(words_max);
+        resize_each(ok.size(), scratch_a, scratch_b);
         ex_bits.resize(size_t(M) * words_max);
-        inc.resize(words_max);
-        group.resize(words_max);
-        lane_step.resize(qp_max);
-        live.resize(words_max);
-        lane_ok.resize(words_max);
         lane_par.resize(size_t(6) * qp_max);
         nrow_tile.resize(kRowTile);
-        pair_row.resize(size_t(kRowTile) * qp_max);
-        pair_vec.resize(size_t(kRowTile) * qp_max);
-        pair_lane.resize(size_t(kRowTile) * qp_max);
-        pair_r.resize(size_t(kRowTile) * qp_max);
-        pair_d.resize(size_t(kRowTile) * qp_max);
-        fin_a.resize(qp_max);
-        fin_b.resize(qp_max);
-        fin_lane.resize(qp_max);
-        fin_g.resize(qp_max);
-        fin_qa.resize(qp_max);
-        fin_qq.resize(qp_max);
-        fin_aa.resize(qp_max);
-        fin_da.resize(qp_max);
     }
 
     // The step's widths for nl lanes; pl then points at the lanes' constants
