@@ -334,7 +334,7 @@ def main(argv=None) -> int:
     # machine's load falls on both
     servers = {}
     try:
-        for mode in modes:
+        for mode in dict.fromkeys(modes):  # one server per mode, however often --modes names it
             port = free_port()
             t = time.perf_counter()
             if "base" in mode and not args.baseline_src:
