@@ -364,7 +364,7 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
     from gesturedb.eval import strokes as ST
     from gesturedb.eval.common import feature_joint_indices
     from gesturedb.eval.placement import world_metrics
-    from gesturedb.eval.rhythm import input_words, rhythm_hamming
+    from gesturedb.eval.rhythm import input_words, rhythm_agreement
     from gesturedb.io import read_audio
     from gesturedb.synth import Searcher
 
@@ -390,12 +390,14 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
         assert r["band_arms_2-4_db"] == pytest.approx(
             ST.band_power(pos, fps=15, joints=arms, root=ev.root)["2-4"] / ev.reference["band_power"]["arms"]["2-4"])
         ws, we = input_words(y, sr, inp.transcript)
-        assert r["rhythm_hamming"] == pytest.approx(rhythm_hamming(
-            pos, word_start_s=ws, word_end_s=we, fps=15, joints=feature_joint_indices(mdb),
-            gap_s=float(mdb.config.get("gap_s", 0.4))))
+        rhythm = rhythm_agreement(pos, word_start_s=ws, word_end_s=we, fps=15, joints=feature_joint_indices(mdb),
+                                  gap_s=float(mdb.config.get("gap_s", 0.4)))
+        assert r["rhythm_hamming"] == pytest.approx(rhythm["rhythm_hamming"])
+        assert r["rhythm_beyond_chance"] == pytest.approx(rhythm["rhythm_beyond_chance"])
     # two starts take two paths through the database; the main run is the default start's, seed 0's
     assert rows[0]["pelvis_speed_m_s"] != rows[1]["pelvis_speed_m_s"]
     assert inp.metrics["ranksum_pose"]["pelvis_speed_m_s"] == rows[0]["pelvis_speed_m_s"]
+    assert inp.metrics["ranksum_pose"]["rhythm_beyond_chance"] == rows[0]["rhythm_beyond_chance"]
     # and the mean start (--init mean) is a third path
     mean_run = E.evaluate_inputs(mdb, [wav], systems=["ranksum_pose"], init="mean").inputs[0]
     assert mean_run.metrics["ranksum_pose"]["pelvis_speed_m_s"] not in [r["pelvis_speed_m_s"] for r in rows]
@@ -405,14 +407,15 @@ def test_random_starts_are_independent_runs_from_each_seed(mdb, scott_dir):
     txt = ev.to_text()
     part = txt[txt.index("from 2 random starting poses"):]
     assert "rank-sum, pose pre-selection, random start (seed 0)" in part and "2 random starts" in part
-    assert all(h in part for h in ("BeatAlign", "rhythm Ham", "seam/inside", "arms 2-4 / DB", "hands 4-7 / DB"))
+    assert all(h in part for h in ("BeatAlign", "rhythm Ham", "rhythm beyond", "seam/inside", "arms 2-4 / DB",
+                                   "hands 4-7 / DB"))
     # the report page splits the starts' columns into tables of even widths, every column once
     from gesturedb.eval.report import STARTS_PER_TABLE, _starts_html
 
     page = _starts_html(ev, inp)
     widths = [t.split("</tr>")[0].count("<th>") - 1 for t in page.split("<table>")[1:]]
     assert sum(widths) == len(ev.starts_columns(inp)) and max(widths) - min(widths) <= 1
-    assert max(widths) <= STARTS_PER_TABLE and page.count("rhythm Ham") == 1
+    assert max(widths) <= STARTS_PER_TABLE and page.count("rhythm Ham") == page.count("rhythm beyond") == 1
     assert "vs GT" not in part  # no ground truth for new speech: no column of NaNs
     d = json.loads(json.dumps(ev.to_dict()))
     assert [r["seed"] for r in d["inputs"][0]["starts"]["ranksum_pose"]] == [0, 1]

@@ -91,7 +91,7 @@ from gesturedb.eval.fgd import SelfFGD, frechet_distance
 from gesturedb.eval.metrics import speed_histogram
 from gesturedb.eval.placement import world_metrics
 from gesturedb.eval.report import write_motion_report
-from gesturedb.eval.rhythm import input_words, rhythm_hamming
+from gesturedb.eval.rhythm import input_words, rhythm_agreement
 from gesturedb.eval.texttable import text_table
 from gesturedb.features.audio import audio_deltas
 from gesturedb.features.controls import control_features
@@ -137,6 +137,7 @@ METRIC_COLUMNS = (
     ("inside_jerk_m_s3", "inside jerk", ".1f"),
     ("seam_ratio", "seam/inside", ".2f"),
     ("rhythm_hamming", "rhythm Ham", ".2f"),
+    ("rhythm_beyond_chance", "rhythm beyond", ".2f"),  # the same signatures, less what the bit counts explain
     ("repeats", "repeats", ".1f"),      # windows that overlap an earlier one (gesturedb.synth.repeats)
     ("max_plays", "max plays", ".1f"),  # the most often one window is played
     # Fréchet distance with an autoencoder trained on this database (gesturedb.eval.fgd): not comparable
@@ -179,6 +180,7 @@ STARTS_COLUMNS = (
     ("beat_align", "BeatAlign", ".3f"),
     ("beat_align_headline", "BeatAlign a->m", ".3f"),
     ("rhythm_hamming", "rhythm Ham", ".2f"),
+    ("rhythm_beyond_chance", "rhythm beyond", ".2f"),
     ("seam_ratio", "seam/inside", ".2f"),
     # the strokes (arms and hands against the database's own motion): one start can swing them too
     *((k, f"{h} / DB", f) for k, h, f in STROKE_COLUMNS if k.startswith(("band_arms_", "band_hands_"))),
@@ -723,8 +725,8 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
         """Strokes and the speech rhythm's agreement (eval/rhythm.py) of one motion."""
         return {**stroke_metrics(positions, fps=db.fps, names=db.joint_names, root=root,
                                  reference=reference["band_power"], truth=truth),
-                "rhythm_hamming": rhythm_hamming(positions, word_start_s=ws, word_end_s=we, fps=db.fps, joints=fj,
-                                                 gap_s=float(db.config.get("gap_s", 0.4)))}
+                **rhythm_agreement(positions, word_start_s=ws, word_end_s=we, fps=db.fps, joints=fj,
+                                   gap_s=float(db.config.get("gap_s", 0.4)))}
 
     for n, o in outputs.items():
         rows[n].update(more(o.positions))

@@ -344,6 +344,12 @@ _METRIC_DOCS = (
     ("BeatAlign", "Gaussian-weighted distance (sigma 0.3 s) from every motion beat (local minimum of wrist speed) "
      "to the nearest speech onset (BEAT, Liu et al. 2022); higher = gestures land on the speech's accents."),
     ("L1 div", "mean L1 distance between pairs of 2.27 s windows of the same output: how varied the gestures are."),
+    ("rhythm Ham / rhythm beyond", "per clip of the speech (split at its pauses), the 32 bins that hold a word onset "
+     "against the 32 that hold a prominent minimum of hand speed (GestureMaster's rhythm signatures), averaged over "
+     "the clips; lower = the motion pauses and turns where the words start. rhythm Ham is the paper's Hamming "
+     "distance, which also grows with every speed minimum that misses a word, so calmer motion scores better at "
+     "chance level; rhythm beyond takes out what the two numbers of set bits explain (random placement scores the "
+     "same whatever the number of minima)."),
     ("seam jerk / inside / seam/inside", "jerk of the stencils that straddle a window boundary vs all others; "
      "a ratio near 1 means the seams cannot be told from the inside of the windows. The ground truth is measured "
      "at the same frames."),
