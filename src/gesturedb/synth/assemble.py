@@ -67,6 +67,7 @@ from gesturedb.synth.seams import (
     adaptive_decays,
     apply_quintic_rotation_offsets,
     check_decay_s,
+    continuous_rotation_vectors,
     decay_frames,
     extend_constant_velocity,
     quintic_offsets,
@@ -535,11 +536,9 @@ def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, acc
             new_rot, new_root = np.concatenate([new_rot, new_rot]), np.concatenate([new_root, new_root])
         e_rot, e_root = extend_constant_velocity(new_rot, new_root, n - new_rot.shape[0])
         new_rot, new_root = np.concatenate([new_rot, e_rot])[:n], np.concatenate([new_root, e_root])[:n]
-    d_rot = rotation_offsets(old_rot, new_rot)
-    # rotation vectors wrap at pi: keep the three samples on one branch so their differences are small
-    ang = np.linalg.norm(d_rot, axis=-1, keepdims=True)
-    flip = ((d_rot * d_rot[:1]).sum(-1, keepdims=True) < 0) & (ang > np.pi / 2)
-    d_rot = np.where(flip, d_rot - 2 * np.pi * d_rot / np.maximum(ang, 1e-12), d_rot)
+    # rotation vectors wrap at pi: each sample on the branch nearest the one before, so that the
+    # differences are the motion's
+    d_rot = continuous_rotation_vectors(rotation_offsets(old_rot, new_rot))
     r_der, p_der = seam_derivatives(d_rot, fps), seam_derivatives(old_root - new_root, fps)
     if accel is None:
         dr, dp = decay_s, decay_s

@@ -33,8 +33,8 @@ from gesturedb import rotations as R
 from gesturedb.errors import ParameterError
 
 __all__ = ["SEAM_DECAY_S", "LEAD_FRAMES", "quintic_offsets", "adaptive_decays", "seam_derivatives", "decay_frames",
-           "check_decay_s", "extend_constant_velocity", "rotation_offsets", "apply_rotation_offsets",
-           "apply_quintic_rotation_offsets"]
+           "check_decay_s", "extend_constant_velocity", "rotation_offsets", "continuous_rotation_vectors",
+           "apply_rotation_offsets", "apply_quintic_rotation_offsets"]
 
 #: Time (s) the offset at a seam takes to reach zero: one search step of the paper
 #: (N = 8 frames at 15 fps), the time until the k-NN's next seam. Measured on the
@@ -143,6 +143,28 @@ def extend_constant_velocity(rot: np.ndarray, root: np.ndarray, n: int) -> tuple
 def rotation_offsets(old: np.ndarray, new: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) of ``old * new^-1``: what takes the new rotation onto the old one."""
     return R.to_axis_angle(R.multiply(old, R.inverse(new)))
+
+
+def continuous_rotation_vectors(d: np.ndarray) -> np.ndarray:
+    """Rotation vectors ``d`` (n, ..., 3) of a sequence, each on the branch nearest the one before it.
+
+    A rotation of angle ``a`` about ``u`` is also the rotation vector ``(a - 2 pi) u``; ``to_axis_angle``
+    always gives the first (angle in [0, pi]), so a sequence that passes through pi jumps by about
+    2 pi there. Sample ``k`` takes whichever of its two vectors is nearer sample ``k - 1``, so the
+    differences that give a seam's velocity and acceleration are those of the motion, not of the
+    branch. (Before 2026-11-28 a sample was moved to the other branch when it pointed against the
+    *first* one and turned more than pi / 2: a sequence turning fast away from a small first offset,
+    0.47, 1.26 and 2.26 rad, had its last sample moved to -4.0 rad, a velocity of 64 rad/s instead of
+    23, and the decaying offset spun the elbow by up to 179 degrees a frame for two seconds.)
+    """
+    d = np.array(d, dtype=np.float64)
+    for k in range(1, d.shape[0]):
+        ang = np.linalg.norm(d[k], axis=-1, keepdims=True)
+        other = d[k] - 2 * np.pi * d[k] / np.maximum(ang, 1e-12)
+        nearer = (np.linalg.norm(other - d[k - 1], axis=-1, keepdims=True)
+                  < np.linalg.norm(d[k] - d[k - 1], axis=-1, keepdims=True))
+        d[k] = np.where(nearer, other, d[k])
+    return d
 
 
 def apply_rotation_offsets(offsets: np.ndarray, q: np.ndarray) -> np.ndarray:
