@@ -4,8 +4,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gesturedb.eval.rhythm import rhythm_agreement, rhythm_hamming, rhythm_signatures
-from gesturedb.features.rhythm import audio_rhythm, hamming, hamming_beyond_chance, hand_speed, motion_rhythm
+from gesturedb.errors import ParameterError
+from gesturedb.eval.rhythm import rhythm_agreement, rhythm_hamming, rhythm_signatures, seam_minima
+from gesturedb.features.rhythm import (
+    audio_rhythm,
+    hamming,
+    hamming_beyond_chance,
+    hand_speed,
+    motion_rhythm,
+    speed_minima,
+)
 
 FPS = 15.0
 T = 128  # one clip (no pause between the words) of 32 bins of 4 frames
@@ -73,3 +81,28 @@ def test_motion_with_as_many_minima_as_words_scores_the_same_both_ways():
     pos = _motion([4, 8, 12, 16, 2, 6, 10, 14])  # 8 bits, 4 on words
     r = rhythm_agreement(pos, word_start_s=ws, word_end_s=we, fps=FPS, joints=JOINTS)
     assert r["rhythm_hamming"] == r["rhythm_beyond_chance"] == 8.0
+
+
+def test_pauses_at_the_seams_against_inside_the_windows():
+    """Windows of 8 frames whose cuts fall before frames 10, 18, .., 114: at 15 fps the two frames beside
+    each cut are "at the seam" (28 of the 128). A hand that slows at four cuts and three times inside
+    pauses 4 / 28 times a seam frame against 3 / 100 inside (ratio 4.8); one that slows only inside, 0."""
+    cuts = np.arange(10, 120, 8)
+    seam_frames = np.sort(np.concatenate([cuts - 1, cuts]))
+    at_cuts = [2, 10, 18, 26]  # dips at frames 4 b + 2 = 10, 42, 74, 106: a cut's first frame
+    inside = [5, 13, 21]  # frames 22, 54, 86: 3.5 frames or more from a cut
+    for dips, want_seam, want_inside in ((at_cuts + inside, 4, 3), (list(range(1, 31, 4)), 0, 8)):
+        pos = _motion(dips)
+        mins = speed_minima(hand_speed(pos, joints=JOINTS, fps=FPS), fps=FPS)
+        # the minima are where the hand slows, to a frame (the velocity is a difference of two frames)
+        assert len(mins) == len(dips) and np.abs(mins - np.sort(4 * np.array(dips) + 2)).max() <= 1
+        assert np.isin(mins, seam_frames).sum() == want_seam
+        r = seam_minima(pos, fps=FPS, joints=JOINTS, boundaries=cuts)
+        assert r["seam_rate"] == pytest.approx(want_seam / 28) and r["inside_rate"] == pytest.approx(want_inside / 100)
+        assert r["ratio"] == pytest.approx((want_seam / 28) / (want_inside / 100))
+    # at 30 fps the seam is the same time: two frames on each side of the cut
+    pos30 = np.repeat(_motion(inside), 2, axis=0)
+    r30 = seam_minima(pos30, fps=2 * FPS, joints=JOINTS, boundaries=2 * cuts)
+    assert r30["seam_rate"] == 0.0 and r30["inside_rate"] > 0
+    with pytest.raises(ParameterError, match=r"boundaries: expected frame indices in \[1, 127\] for 128 frames"):
+        seam_minima(_motion(inside), fps=FPS, joints=JOINTS, boundaries=[0, 8])

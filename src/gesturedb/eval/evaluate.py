@@ -91,7 +91,7 @@ from gesturedb.eval.fgd import SelfFGD, frechet_distance
 from gesturedb.eval.metrics import speed_histogram
 from gesturedb.eval.placement import world_metrics
 from gesturedb.eval.report import write_motion_report
-from gesturedb.eval.rhythm import input_words, rhythm_agreement
+from gesturedb.eval.rhythm import input_words, rhythm_agreement, seam_minima
 from gesturedb.eval.texttable import text_table
 from gesturedb.features.audio import audio_deltas
 from gesturedb.features.controls import control_features
@@ -136,6 +136,7 @@ METRIC_COLUMNS = (
     ("seam_jerk_m_s3", "seam jerk", ".1f"),
     ("inside_jerk_m_s3", "inside jerk", ".1f"),
     ("seam_ratio", "seam/inside", ".2f"),
+    ("seam_minima_ratio", "pauses seam/inside", ".2f"),  # hand-speed minima at the seams (eval.rhythm.seam_minima)
     ("rhythm_hamming", "rhythm Ham", ".2f"),
     ("rhythm_beyond_chance", "rhythm beyond", ".2f"),  # the same signatures, less what the bit counts explain
     ("repeats", "repeats", ".1f"),      # windows that overlap an earlier one (gesturedb.synth.repeats)
@@ -182,6 +183,7 @@ STARTS_COLUMNS = (
     ("rhythm_hamming", "rhythm Ham", ".2f"),
     ("rhythm_beyond_chance", "rhythm beyond", ".2f"),
     ("seam_ratio", "seam/inside", ".2f"),
+    ("seam_minima_ratio", "pauses seam/inside", ".2f"),
     # the strokes (arms and hands against the database's own motion): one start can swing them too
     *((k, f"{h} / DB", f) for k, h, f in STROKE_COLUMNS if k.startswith(("band_arms_", "band_hands_"))),
 )
@@ -702,7 +704,7 @@ def _start_rows(db, samples, sr, *, systems, outputs, transcript, joints, root, 
             rel = {k: metric_positions(v.positions, root) for k, v in outs.items()}
             conv = CV.convention_metrics(rel, fps=db.fps, joints=joints, **conv_args)[n]
             wm = world_metrics(outs[n].positions, fps=db.fps, names=db.joint_names)
-            rows.append({"seed": seed, **r[n], **wm, **conv, **more(outs[n].positions)})
+            rows.append({"seed": seed, **r[n], **wm, **conv, **more(outs[n].positions, outs[n].boundaries)})
         out[n] = rows
     return out
 
@@ -721,15 +723,22 @@ def _evaluate_one(db, name, samples, sr, *, audio_path, ground_truth, transcript
     fj = feature_joint_indices(db)
     ws, we = input_words(samples, sr, transcript)
 
-    def more(positions) -> dict:
-        """Strokes and the speech rhythm's agreement (eval/rhythm.py) of one motion."""
+    def more(positions, boundaries) -> dict:
+        """Strokes, the speech rhythm's agreement and the pauses at the seams (eval/rhythm.py) of one motion."""
+        b = np.asarray(boundaries)
+        b = b[(b >= 1) & (b <= positions.shape[0] - 1)]
         return {**stroke_metrics(positions, fps=db.fps, names=db.joint_names, root=root,
                                  reference=reference["band_power"], truth=truth),
                 **rhythm_agreement(positions, word_start_s=ws, word_end_s=we, fps=db.fps, joints=fj,
-                                   gap_s=float(db.config.get("gap_s", 0.4)))}
+                                   gap_s=float(db.config.get("gap_s", 0.4))),
+                "seam_minima_ratio": (seam_minima(positions, fps=db.fps, joints=fj, boundaries=b)["ratio"] if b.size
+                                      else float("nan"))}
 
+    # the ground truth has no seams: measured at the first system's, it shows what "no seam" looks like
+    seams_of_truth = next((o.boundaries for n, o in outputs.items() if n != "ground_truth" and o.boundaries.size),
+                          np.zeros(0, dtype=np.int64))
     for n, o in outputs.items():
-        rows[n].update(more(o.positions))
+        rows[n].update(more(o.positions, seams_of_truth if n == "ground_truth" else o.boundaries))
 
     conv_args = dict(audio_beats_s=M.audio_beats(samples, sr=sr),
                      reference_speed_m_s=CV.database_mean_speed(db, joints=joints, root=root),

@@ -350,6 +350,9 @@ _METRIC_DOCS = (
      "distance, which also grows with every speed minimum that misses a word, so calmer motion scores better at "
      "chance level; rhythm beyond takes out what the two numbers of set bits explain (random placement scores the "
      "same whatever the number of minima)."),
+    ("pauses seam/inside", "hand-speed minima per frame within 1/15 s of a window boundary vs elsewhere; above 1 "
+     "the hands pause at the search step's rate (every 0.53 s) rather than with the speech; the ground truth, "
+     "measured at the same frames, shows what chance looks like."),
     ("seam jerk / inside / seam/inside", "jerk of the stencils that straddle a window boundary vs all others; "
      "a ratio near 1 means the seams cannot be told from the inside of the windows. The ground truth is measured "
      "at the same frames."),

@@ -14,8 +14,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from gesturedb.errors import ParameterError
 from gesturedb.features.pauses import DEFAULT_VAD, voiced_segments
-from gesturedb.features.rhythm import audio_rhythm, hamming, hamming_beyond_chance, hand_speed, motion_rhythm
+from gesturedb.features.rhythm import (
+    audio_rhythm,
+    hamming,
+    hamming_beyond_chance,
+    hand_speed,
+    motion_rhythm,
+    speed_minima,
+)
 from gesturedb.features.segments import word_gap_clips
 from gesturedb.io.transcripts import Words, read_transcript
 
@@ -80,3 +88,48 @@ def rhythm_hamming(positions: np.ndarray, *, word_start_s, word_end_s, fps: floa
     speech, motion = rhythm_signatures(positions, word_start_s=word_start_s, word_end_s=word_end_s, fps=fps,
                                        joints=joints, gap_s=gap_s)
     return float(np.mean(hamming(speech, motion)))
+
+
+#: Seconds on each side of a window's cut that count as "at the seam" for :func:`seam_minima`: one frame
+#: at the paper's 15 fps (frames ``b - 1`` and ``b``), two at 30 fps: a quarter of a 0.53 s step either way.
+SEAM_MINIMA_S = 1.0 / 15.0
+
+
+def seam_minima(positions: np.ndarray, *, fps: float, joints, boundaries) -> dict[str, float]:
+    """How much more often the hands pause at window seams than inside the windows.
+
+    The hand-speed minima are those of the rhythm signatures (:func:`gesturedb.features.rhythm.speed_minima`
+    of :func:`~gesturedb.features.rhythm.hand_speed`). A frame is at a seam when it lies within
+    :data:`SEAM_MINIMA_S` of a cut (``b`` in ``boundaries`` is a window's first frame; the cut lies between
+    ``b - 1`` and ``b``). The ratio is 1 when the minima ignore the seams, as the ground truth's do at the
+    synthesis's boundaries; above 1 the output slows down at the step's rate, whatever the speech does.
+
+    Parameters
+    ----------
+    positions : ndarray [shape=(T, J, 3)], metres
+    fps : float
+    joints : mapping role -> joint index (wrists and body-frame roles)
+    boundaries : sequence of int
+        Frames in ``1 .. T-1`` where a new window starts.
+
+    Returns
+    -------
+    dict
+        ``seam_rate`` and ``inside_rate`` (minima per frame at and away from the seams) and ``ratio``
+        (their quotient; NaN without minima inside the windows).
+    """
+    T = positions.shape[0]
+    b = np.asarray(boundaries)
+    if b.ndim != 1 or b.size == 0 or not np.issubdtype(b.dtype, np.integer) or b.min() < 1 or b.max() > T - 1:
+        raise ParameterError(f"boundaries: expected frame indices in [1, {T - 1}] for {T} frames; got {boundaries!r}")
+    half = SEAM_MINIMA_S * float(fps)
+    # each frame's distance from the nearest cut, in frames (the cut of boundary b lies at b - 0.5)
+    near = np.abs(np.arange(T)[:, None] - (b.astype(np.float64)[None, :] - 0.5)).min(axis=1)
+    at_seam = near <= half + 1e-9
+    mins = speed_minima(hand_speed(positions, joints=joints, fps=fps), fps=fps)
+    hit = np.zeros(T, dtype=bool)
+    hit[mins] = True
+    seam_rate = float(hit[at_seam].mean()) if at_seam.any() else float("nan")
+    inside_rate = float(hit[~at_seam].mean()) if (~at_seam).any() else float("nan")
+    ratio = seam_rate / inside_rate if inside_rate > 0 else float("nan")
+    return {"seam_rate": seam_rate, "inside_rate": inside_rate, "ratio": ratio}
