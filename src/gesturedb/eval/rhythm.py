@@ -9,6 +9,9 @@ two ways, each averaged over the clips: the paper's Hamming distance (0 = every 
 which takes out what the two numbers of set bits explain, so that a motion is not scored better
 for having fewer speed minima. Every system is measured on the same clips, the random baseline
 included.
+
+The same hand-speed minima also show whether the motion pauses at its window seams rather than
+with the speech (:func:`seam_minima`).
 """
 from __future__ import annotations
 
