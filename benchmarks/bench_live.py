@@ -14,6 +14,9 @@ server's queueing, the search, the assembly and both ways over the loopback. A
 step is late when its latency is over --budget-ms. Prints, per count of clients, the
 steps measured, p50 / p99 / max step latency, the late steps and the server process's CPU
 time (all its threads) and the clients' per step measured, and the largest count with no late step.
+"server p50/p99": the server's own share of the same steps (`GET /health?last=N`, `step_latency`: from the
+arrival of the audio message that completed a step to the send of its frames, issue 39's definition),
+without the loopback and the clients' own scheduling (the clients share this machine's cores).
 
 Start-up (--startup): the time from `gesturedb.open(DB)` to the first search step, the
 first frame and the second step (the first seam, which needs the database's typical
@@ -344,7 +347,8 @@ def main(argv=None) -> int:
                                           src=args.baseline_src if "base" in mode else None), port)
             print(f"[{mode}] server up in {time.perf_counter() - t:.1f} s (warm-up included)")
         print(f"{'server':>6} {'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6} "
-              f"{'batch':>6} {'search ms/step':>15} {'load':>5} {'ahead used ms/call':>14} {'cpu ms/step':>10} {'clients cpu':>10}")
+              f"{'batch':>6} {'search ms/step':>15} {'load':>5} {'ahead used ms/call':>14} {'cpu ms/step':>10} {'clients cpu':>10} "
+              f"{'server p50/p99':>13}")
         best = {mode: 0 for mode in modes}
         live = list(modes)
         for n in counts:
@@ -363,8 +367,9 @@ def main(argv=None) -> int:
     return 0
 
 
-def health(port: int) -> dict:
-    return json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=10).read())
+def health(port: int, last: int | None = None) -> dict:
+    q = "" if last is None else f"?last={int(last)}"
+    return json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/health{q}", timeout=10).read())
 
 
 def cpu_s(pid: int) -> float:
@@ -387,12 +392,22 @@ def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tupl
     """n clients at once on the server at ``port`` (process ``pid``); prints a row; (no late step, p50 in ms)."""
     # a server of several processes answers /health from one of them: its batch counts are not the server's
     stats = not mode.startswith("workers")
-    before = health(port).get("batch") if stats else None
+    h0 = health(port)
+    before = h0.get("batch") if stats else None
+    timed0 = (h0.get("step_latency") or {}).get("steps")
     cpu0, ccpu0 = cpu_s(pid), clients_cpu_s()
     lat, errors = run_procs(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms, args.client_procs,
                             args.stagger_ms)
     cpu, ccpu = cpu_s(pid) - cpu0, clients_cpu_s() - ccpu0
-    after = health(port).get("batch") if stats else None
+    h1 = health(port)
+    after = h1.get("batch") if stats else None
+    # the server's share (from the audio message that completed a step to the send of its frames), over this
+    # count's steps; one process's own when the server has several
+    server = "-"
+    timed1 = (h1.get("step_latency") or {}).get("steps")
+    if timed0 is not None and timed1 is not None and timed1 > timed0:
+        sl = health(port, last=timed1 - timed0)["step_latency"]
+        server = f"{sl['p50_ms']:.1f}/{sl['p99_ms']:.1f}"
     ms = np.array(lat) * 1000
     late = int((ms > args.budget_ms).sum())
     p50, p99, mx = (np.percentile(ms, 50), np.percentile(ms, 99), ms.max()) if ms.size else (np.nan,) * 3
@@ -410,7 +425,7 @@ def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tupl
     cpu_step = f"{cpu * 1000 / ms.size:.1f}" if stats and ms.size else "-"
     clients_step = f"{ccpu * 1000 / ms.size:.1f}" if ms.size else "-"
     print(f"{mode:>6} {n:>8} {ms.size:>7} {p50:>8.1f} {p99:>8.1f} {mx:>8.1f} {late:>6} {batch:>6} {search:>15} "
-          f"{os.getloadavg()[0]:>5.1f} {ahead:>14} {cpu_step:>10} {clients_step:>10}"
+          f"{os.getloadavg()[0]:>5.1f} {ahead:>14} {cpu_step:>10} {clients_step:>10} {server:>13}"
           + (f"  ({len(errors)} clients failed: {errors[0]})" if errors else ""), flush=True)
     return late == 0 and not errors and ms.size > 0, float(p50)
 

@@ -124,10 +124,29 @@ def test_limits_checked():
         Limits(max_streams=1.5)
 
 
+def test_step_latency_summary_is_numpys_percentiles_of_the_latest_steps():
+    from gesturedb.serve.app import StepLatency
+
+    lat = StepLatency(keep=50)
+    assert lat.summary() == {"steps": 0, "over": 0, "p50_ms": None, "p99_ms": None, "max_ms": None}
+    x = np.linspace(0.001, 0.1, 60)
+    for v in x[:-2]:
+        lat.add(v)
+    lat.add(x[-2], steps=2)  # one chunk completing two steps: both timed from the same message
+    kept = np.append(x[:-2], [x[-2], x[-2]])[-50:]
+    got = lat.summary()
+    assert got["steps"] == 60 and got["over"] == 50 and got["max_ms"] == pytest.approx(kept.max() * 1000)
+    assert got["p99_ms"] == pytest.approx(np.percentile(kept, 99) * 1000)
+    assert lat.summary(last=10)["p50_ms"] == pytest.approx(np.percentile(kept[-10:], 50) * 1000)
+
+
 # -- HTTP -----------------------------------------------------------------------
 def test_health_skeleton_controls(client, db):
     h = client.get("/health").json()
     assert h["status"] == "ok" and h["frames"] == db.n_frames and h["stream"] is True
+    assert set(h["step_latency"]) == {"steps", "over", "p50_ms", "p99_ms", "max_ms"}
+    bad = client.get("/health", params={"last": "-3"})
+    assert bad.status_code == 400 and bad.json()["message"] == "last: expected a number of steps >= 1; got '-3'"
     sk = client.get("/skeleton").json()
     assert sk["names"] == db.skeleton.names and sk["parents"] == db.skeleton.parents.tolist()
     assert np.allclose(sk["offsets"], db.skeleton.offsets, atol=1e-6) and sk["frame_floats"] == 3 + 4 * len(sk["names"])
@@ -237,6 +256,7 @@ def test_upload_limit(db):
 def test_stream_round_trip(client, db, speech):
     x = speech[: 5 * SR]
     got = []
+    timed_before = client.get("/health").json()["step_latency"]["steps"]
     with client.websocket_connect("/stream") as ws:
         ready = _start(ws, control="left_wrist_height_high")
         assert ready["type"] == "ready" and ready["fps"] == db.fps and ready["joints"] == db.skeleton.n_joints
@@ -262,6 +282,11 @@ def test_stream_round_trip(client, db, speech):
     steps = [s for g in got for s in g[3]]
     assert [s["out_start"] for s in steps] == list(range(0, total, 8))
     assert {s["control"] for s in steps} == {"left_wrist_height_high"}
+    # the server timed every step that an audio message completed (the last ones come with the end message)
+    timed = client.get("/health").json()["step_latency"]["steps"] - timed_before
+    assert 0 < timed <= len(steps)
+    lat = client.get("/health", params={"last": timed}).json()["step_latency"]
+    assert lat["over"] == timed and 0 <= lat["p50_ms"] <= lat["p99_ms"] <= lat["max_ms"] < 60_000
     # the whole result downloads as what was streamed
     npz = np.load(io.BytesIO(client.get(done["result"], params={"format": "npz"}).content))
     assert np.array_equal(npz["rotations"], np.concatenate([g[2] for g in got]))

@@ -28,7 +28,7 @@ import tempfile
 import threading
 import time
 import wave
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -110,6 +110,31 @@ class ResultStore:
             del self._items[k]
 
 
+class StepLatency:
+    """The server's share of each streamed step's latency: seconds from the arrival of the audio message that
+    completed the step's speech to the send of its frames (issue 39's measure, "from the last audio sample of
+    a step's window to its frames being sent"; what a client measures adds the network and its own
+    scheduling). The latest ``keep`` steps are kept; every touch is on the event loop's thread."""
+
+    def __init__(self, keep: int = 100_000):
+        self._s: deque[float] = deque(maxlen=keep)
+        self.n = 0
+
+    def add(self, seconds: float, steps: int = 1) -> None:
+        self._s.extend([float(seconds)] * int(steps))
+        self.n += int(steps)
+
+    def summary(self, last: int | None = None) -> dict:
+        """``steps`` (all so far), ``over`` (the latest steps summarised: ``last``, or all kept) and their
+        ``p50_ms``, ``p99_ms``, ``max_ms`` (None before any step)."""
+        x = np.fromiter(self._s, dtype=np.float64, count=len(self._s))
+        if last is not None:
+            x = x[max(0, x.size - int(last)):]
+        q = (np.percentile(x, [50, 99]) * 1000).tolist() if x.size else [None, None]
+        return {"steps": self.n, "over": int(x.size), "p50_ms": q[0], "p99_ms": q[1],
+                "max_ms": float(x.max() * 1000) if x.size else None}
+
+
 class ServerState:
     """What every request and stream shares: the database (opened once), limits, the synthesizers."""
 
@@ -130,6 +155,7 @@ class ServerState:
         self.stream_factory, self.stream_unavailable = stream_factory, why
         self.results = ResultStore(limits.max_results, limits.result_ttl_s)
         self.streams = 0
+        self.step_latency = StepLatency()
         self.three = find_three()
         self._controls_ok: OrderedDict[str, None] = OrderedDict()
         self._control_lock = threading.Lock()
@@ -298,6 +324,9 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
         log.warning("%s", state.stream_unavailable)
 
     async def health(request: Request):
+        last = request.query_params.get("last")
+        if last is not None and not (last.isdigit() and int(last) > 0):
+            return _error(400, "bad_query", f"last: expected a number of steps >= 1; got {echo(last)}")
         return JSONResponse({
             "status": "ok", "version": __version__, "database": os.path.basename(str(db.path)),
             "fps": float(db.fps), "frames": int(db.n_frames), "joints": db.skeleton.n_joints,
@@ -305,6 +334,8 @@ def create_app(db, *, limits: Limits | None = None, stream_factory=None, batch_s
             "streams": state.streams, "pid": os.getpid(), "three_js": state.three is not None, "protocol": P.PROTOCOL_VERSION,
             "batch": None if state.scheduler is None else state.scheduler.stats(),
             "gltf_loader": state.gltf_loader is not None,
+            # the server's share of the streamed steps' latency (all steps, or the latest `?last=N`)
+            "step_latency": state.step_latency.summary(None if last is None else int(last)),
         })
 
     async def skeleton(request: Request):

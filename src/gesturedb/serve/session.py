@@ -255,6 +255,7 @@ class StreamSession:
         })
 
     async def _audio(self, data: bytes) -> None:
+        t_recv = time.monotonic()  # this message's last sample is here: a step it completes is timed from now
         if self.stream is None:  # cannot happen: _start ran first; kept as a guard for refactors
             raise _Close(P.CLOSE_POLICY, "bad_message", "audio before the start message")
         try:
@@ -277,7 +278,7 @@ class StreamSession:
             # decoded once), and this message costs no trip to a worker thread
             self._unfed.append(data)
             return
-        await self._send_chunk(await self._push(data))
+        await self._send_chunk(await self._push(data), t_recv=t_recv)
 
     async def _push(self, data: bytes):
         """The stream's ``push`` of an audio message, with its steps searched by the server's scheduler
@@ -361,7 +362,9 @@ class StreamSession:
         return await self._closing(self.state.scheduler.run_step(call, *args))
 
     # -- out ------------------------------------------------------------------
-    async def _send_chunk(self, chunk) -> None:
+    async def _send_chunk(self, chunk, *, t_recv: float | None = None) -> None:
+        """Send a chunk's frames and steps; ``t_recv``: when the audio message that completed them arrived
+        (its steps' server latency is counted from then to the send)."""
         motion = getattr(chunk, "motion", None)
         steps = list(getattr(chunk, "steps", None) or [])
         n = 0 if motion is None else int(motion.rotations.shape[0])
@@ -372,6 +375,8 @@ class StreamSession:
         rot = np.zeros((0, J, 4), np.float32) if n == 0 else np.asarray(motion.rotations, np.float32)
         start = int(getattr(chunk, "start", self.n_sent))
         await self.ws.send_bytes(P.pack_frames(start, root, rot, steps, samples=self.n_samples))
+        if t_recv is not None and steps:
+            self.state.step_latency.add(time.monotonic() - t_recv, len(steps))
         if n:  # kept as the synthesizer made them (float64): the download is its motion, not a rounded copy
             self._roots.append(np.asarray(motion.root_positions))
             self._rots.append(np.asarray(motion.rotations))
