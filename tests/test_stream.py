@@ -49,6 +49,37 @@ def test_stream_in_chunks_is_the_whole_file_synthesis_bit_for_bit(scott_db, scot
     assert any(s["control"] for s in whole.steps)
 
 
+def test_the_end_in_parts_is_the_same_end(scott_db, scott_dir):
+    """``end_speech`` and the last steps one at a time (as a server runs them, with other streams' steps), then
+    ``finish``: the frames and steps of the whole-file synthesis, the last step shorter than the others."""
+    wav = scott_dir / "inputs" / "2_scott_0_5_5.wav"
+    searcher = Searcher(scott_db)
+    whole = searcher.synthesize(wav)
+    assert whole.steps[-1]["out_end"] - whole.steps[-1]["out_start"] < 8  # the speech ends within a step
+    x, sr = read_audio(wav, sr=16000)
+    stream = searcher.stream(sample_rate=sr)
+    chunks = [stream.push(x)]
+    assert stream.upcoming_step() is not None
+    stream.end_speech()
+    assert stream.upcoming_step() is None  # no coming step to pre-select: the speech is over
+    last = []
+    while (sq := stream.next_step()) is not None:
+        last.append(sq.n)
+        stream.complete_step(sq, *stream.search_step(sq))
+    assert last and last[-1] < 8
+    chunks += [stream.take_chunk(), stream.finish()]
+    rot, root, steps = _joined(chunks)
+    assert np.array_equal(rot, whole.motion.rotations) and np.array_equal(root, whole.motion.root_positions)
+    assert steps == whole.steps
+    again = searcher.stream(sample_rate=sr)
+    again.push(x[: sr])
+    again.end_speech()
+    with pytest.raises(ParameterError, match=r"Stream.push: the stream's speech has ended \(end_speech\)"):
+        again.push(x[:10])
+    with pytest.raises(ParameterError, match="Stream.end_speech: the speech of this stream has already ended"):
+        again.end_speech()
+
+
 def test_set_control_takes_effect_from_the_next_step(scott_db, scott_dir):
     wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
     x, sr = read_audio(wav, sr=16000)

@@ -463,6 +463,7 @@ class Stream:
         self._steps_out = 0
         self._rot, self._root = [], []  # every final frame, for result()
         self._pending = []  # (rotations, root) made final since the last chunk
+        self._speech_over = False  # end_speech(): every feature is in, the last (partial) steps may run
         self._finished = False
 
     # -- what it waits for ---------------------------------------------------------
@@ -521,14 +522,34 @@ class Stream:
         ready: :meth:`next_step` gives them one at a time."""
         if self._finished:
             raise ParameterError("Stream.push: the stream is finished; start a new one")
+        if self._speech_over:
+            raise ParameterError("Stream.push: the stream's speech has ended (end_speech); finish it and start a "
+                                 "new one")
         self._add_features(self._features.push(samples))
 
     def next_step(self) -> StepQuery | None:
         """The next search step that the speech fed so far makes ready (all its audio features), prepared
-        for the search; None while it waits for more speech (or once the stream is finished)."""
-        if self._finished or self._query.shape[0] - len(self._windows) * self.step < self.step:
+        for the search; None while it waits for more speech (or once the stream is finished). After
+        :meth:`end_speech` also the last steps, the final one shorter where the speech ends within it."""
+        if self._finished:
             return None
-        return self._prepare_step(self.step)
+        left = self._query.shape[0] - len(self._windows) * self.step
+        if left >= self.step:
+            return self._prepare_step(self.step)
+        return self._prepare_step(left) if self._speech_over and left > 0 else None
+
+    def end_speech(self) -> None:
+        """The speech is over: its last features are computed, and :meth:`next_step` gives the last steps
+        (a server searches them with other streams' steps); :meth:`finish` then gives the remaining frames.
+        Calling :meth:`finish` directly does both."""
+        if self._finished or self._speech_over:
+            raise ParameterError("Stream.end_speech: the speech of this stream has already ended")
+        self._last_features()
+        check_frames(self._query.shape[0], self.fps)  # too little speech is an error here already
+
+    def _last_features(self) -> None:
+        self._speech_over = True
+        self._add_features(self._features.finish())
 
     def upcoming_step(self) -> StepQuery | None:
         """The next step as it would be prepared now, before its speech has come (``query`` without rows):
@@ -536,7 +557,7 @@ class Stream:
         server pre-selects it while the speech arrives (:meth:`gesturedb.synth.stepbatch.StepBatch.speculate`)
         and checks it against :meth:`next_step`'s with :meth:`StepQuery.same_but_audio` (a control or words
         pushed in between make it stale). None once the stream is finished or with pre-selection ``"audio"``."""
-        if self._finished or self.options.preselect != "pose":
+        if self._finished or self._speech_over or self.options.preselect != "pose":
             return None
         return self._prepare_step(self.step, with_query=False)
 
@@ -570,7 +591,8 @@ class Stream:
         """The remaining frames: the speech is over (its last step may be shorter)."""
         if self._finished:
             raise ParameterError("Stream.finish: the stream is already finished")
-        self._add_features(self._features.finish())
+        if not self._speech_over:
+            self._last_features()
         self._finished = True
         T = check_frames(self._query.shape[0], self.fps)
         while len(self._windows) * self.step < T:
