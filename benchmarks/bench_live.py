@@ -415,10 +415,10 @@ def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tupl
     h1 = health(port)
     after = h1.get("batch") if stats else None
     # the server's share (from the audio message that completed a step to the send of its frames), over this
-    # count's steps; one process's own when the server has several
+    # count's steps (not with several processes: /health answers from one of them)
     server = "-"
     timed1 = (h1.get("step_latency") or {}).get("steps")
-    if timed0 is not None and timed1 is not None and timed1 > timed0:
+    if stats and timed0 is not None and timed1 is not None and timed1 > timed0:
         sl = health(port, last=timed1 - timed0)["step_latency"]
         server = f"{sl['p50_ms']:.1f}/{sl['p99_ms']:.1f}"
     ms = np.array(lat) * 1000
