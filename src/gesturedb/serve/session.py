@@ -289,16 +289,24 @@ class StreamSession:
             return await self._synth(self.stream.push, P.decode_audio(data, self.fmt))
         self._unfed.append(data)
         unfed, self._unfed = self._unfed, []
-        # the feed and every step whose pre-selection is there (finished and applied) in one call in a worker
-        # thread: on a loaded machine each hop to a worker thread and back waits longer than that work takes
-        sq, chunk, up = await self._step(_advance, self.stream, sched, (unfed, self.fmt), None)
-        while sq is not None:  # a step without its pre-selection (under way, stale, none): the scheduler's
-            res, relaxed = await self._closing(sched.search(sq))
-            sq, chunk, up = await self._step(_advance, self.stream, sched, None, (sq, res, relaxed))
+        chunk, up = await self._ready_steps((unfed, self.fmt))
         self._step_at = self.stream.samples_before_step()
         if up is not None:  # the coming step, pre-selected while its speech arrives
             sched.ahead(up)
         return chunk
+
+    async def _ready_steps(self, held: tuple | None):
+        """Feed ``held`` audio (see :func:`_advance`) and apply every step it made ready: ``(chunk, coming step
+        or None)``. The feed and every step whose pre-selection is there (finished and applied) run in one call
+        in the step thread, since on a loaded machine each hop to a thread and back waits longer than that
+        work takes; a step without its pre-selection (under way, stale, none, a stream's last) is searched by
+        the scheduler with the other streams' waiting steps."""
+        sched = self.state.scheduler
+        sq, chunk, up = await self._step(_advance, self.stream, sched, held, None)
+        while sq is not None:
+            res, relaxed = await self._closing(sched.search(sq))
+            sq, chunk, up = await self._step(_advance, self.stream, sched, None, (sq, res, relaxed))
+        return chunk, up
 
     async def _ahead(self) -> None:
         """Have the stream's coming step pre-selected now (its inputs changed: the start, a control)."""
@@ -343,11 +351,7 @@ class StreamSession:
             # tail of the spread benchmark: benchmarks/RESULTS.md, "While streaming")
             sched.forget(self.stream)  # its coming full step, pre-selected for speech that will not come
             await self._synth(self.stream.end_speech)
-            sq, chunk, _ = await self._step(_advance, self.stream, sched, None, None)
-            while sq is not None:
-                res, relaxed = await self._closing(sched.search(sq))
-                sq, chunk, _ = await self._step(_advance, self.stream, sched, None, (sq, res, relaxed))
-            await self._send_chunk(chunk)
+            await self._send_chunk((await self._ready_steps(None))[0])
         await self._send_chunk(await self._synth(self.stream.finish))
         token = None
         if self.n_sent:
