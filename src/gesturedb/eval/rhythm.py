@@ -126,8 +126,11 @@ def seam_minima(positions: np.ndarray, *, fps: float, joints, boundaries) -> dic
     if b.ndim != 1 or b.size == 0 or not np.issubdtype(b.dtype, np.integer) or b.min() < 1 or b.max() > T - 1:
         raise ParameterError(f"boundaries: expected frame indices in [1, {T - 1}] for {T} frames; got {boundaries!r}")
     half = SEAM_MINIMA_S * float(fps)
-    # each frame's distance from the nearest cut, in frames (the cut of boundary b lies at b - 0.5)
-    near = np.abs(np.arange(T)[:, None] - (b.astype(np.float64)[None, :] - 0.5)).min(axis=1)
+    # each frame's distance from the nearest cut, in frames (the cut of boundary b lies at b - 0.5): the cuts
+    # on either side of it, by a sorted search (a frames x boundaries matrix is gigabytes for an hour of speech)
+    frames, cut = np.arange(T), np.sort(b).astype(np.float64) - 0.5
+    i = np.searchsorted(cut, frames)
+    near = np.minimum(np.abs(frames - cut[np.maximum(i - 1, 0)]), np.abs(frames - cut[np.minimum(i, cut.size - 1)]))
     at_seam = near <= half + 1e-9
     mins = speed_minima(hand_speed(positions, joints=joints, fps=fps), fps=fps)
     hit = np.zeros(T, dtype=bool)
