@@ -509,8 +509,7 @@ class Stream:
     def push(self, samples) -> StreamChunk:
         """Add speech samples (float32 mono in [-1, 1], any length); the frames that became final."""
         self.feed(samples)
-        while (sq := self.next_step()) is not None:
-            self._apply_step(sq, *self._search_step(sq))
+        self._run_ready_steps()
         return self._chunk()
 
     # -- a step in three parts, for a server that searches many streams' steps at once ---------------
@@ -531,8 +530,9 @@ class Stream:
         """The next search step that the speech fed so far makes ready (all its audio features), prepared
         for the search; None while it waits for more speech (or once the stream is finished). After
         :meth:`end_speech` also the last steps, the final one shorter where the speech ends within it."""
-        if self._finished:
-            return None
+        return None if self._finished else self._next_ready()
+
+    def _next_ready(self) -> StepQuery | None:
         left = self._query.shape[0] - len(self._windows) * self.step
         if left >= self.step:
             return self._prepare_step(self.step)
@@ -594,9 +594,8 @@ class Stream:
         if not self._speech_over:
             self._last_features()
         self._finished = True
-        T = check_frames(self._query.shape[0], self.fps)
-        while len(self._windows) * self.step < T:
-            self._run_step(min(self.step, T - len(self._windows) * self.step))
+        check_frames(self._query.shape[0], self.fps)
+        self._run_ready_steps()  # the last steps, the final one shorter (a server has run them already)
         if self._held:
             for piece, (frames, t, _) in zip(window_pieces(self.db, self._held, seam_decay_s=self.seam_decay_s),
                                              self._held):
@@ -637,9 +636,10 @@ class Stream:
         label = (ctl, kwd) if (ctl is not None or kwd is not None) else None
         return row, label, kw_row
 
-    def _run_step(self, n: int) -> None:
-        sq = self._prepare_step(n)
-        self._apply_step(sq, *self._search_step(sq))
+    def _run_ready_steps(self) -> None:
+        """Search and apply every step the speech so far makes ready (:meth:`next_step`), each alone."""
+        while (sq := self._next_ready()) is not None:
+            self._apply_step(sq, *self._search_step(sq))
 
     def _prepare_step(self, n: int, *, with_query: bool = True) -> StepQuery:
         """Step ``len(windows)`` of ``n`` frames: its query rows (none without ``with_query``), previous
