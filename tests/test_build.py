@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import shutil
@@ -275,12 +276,15 @@ def test_narrow_frame_arrays_are_not_cut_into_tiny_chunks(scott_db_path):
 
 def test_streamed_build_equals_the_whole_arrays(scott_dir, tmp_path):
     """The real recording cut into three takes, mirrored (six recordings of different lengths):
-    the streamed file's audio, deltas, controls, recording index and percentile masks are those
-    computed by numpy on every recording's arrays concatenated, bit for bit."""
+    the streamed file's audio, deltas, controls, recording index, percentile masks and pose
+    features are those computed by numpy on every recording's arrays concatenated, bit for bit
+    (the pose features with the stride of the whole database's motion timescale, computed from
+    each recording's positions by the recording's own pass given that stride)."""
     from gesturedb import control
     from gesturedb.db.build import process_recording
     from gesturedb.db.takes import RecordingSource
     from gesturedb.features.audio import audio_deltas
+    from gesturedb.features.pose import motion_timescale, timescale_pose_stride
 
     files = [str(scott_dir / f"{STEM}{ext}") for ext in (".npz", ".wav", ".TextGrid")]
     sources = [RecordingSource(name, *files, span_s=span)
@@ -299,12 +303,18 @@ def test_streamed_build_equals_the_whole_arrays(scott_dir, tmp_path):
         "frames/audio_deltas": np.concatenate(
             [audio_deltas(((r.audio_raw.astype(np.float64) - mean) / std).astype(np.float32)) for r in recs]),
         "frames/recording": np.concatenate([np.full(r.n_frames, i, np.int32) for i, r in enumerate(recs)]),
-        "frames/pose_features": np.concatenate([r.pose for r in recs]),
     }
+    timescale = motion_timescale(sum(r.velocity_lags for r in recs), 15.0)
+    stride = timescale_pose_stride(timescale, 15.0)
+    assert stride == 2 and all(r.pose is None for r in recs)
+    given = [r for s in sources for r in process_recording(s, BuildConfig.from_kwargs(**config, pose_stride=stride))]
+    want["frames/pose_features"] = np.concatenate([r.pose for r in given])
     want.update({f"controls/{k}": v for k, v in controls.items()})
     want.update({f"masks/{k}": m.words for k, m in control.percentile_masks(controls).items()})
     with h5py.File(tmp_path / "db.h5", "r") as h5:
         assert [s.decode() for s in h5["recordings/name"][()]] == [r.name for r in recs]
+        assert json.loads(h5.attrs["config"])["pose_stride"] == stride
+        assert h5.attrs["motion_timescale_s"] == timescale
         assert sorted(k for k in h5["masks"] if k.endswith(("_high", "_low"))) == sorted(k[6:] for k in want if k.startswith("masks/"))
         for path, arr in want.items():
             got = h5[path][()]

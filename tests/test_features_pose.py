@@ -8,9 +8,13 @@ from gesturedb.errors import ParameterError
 from gesturedb.features.pose import (
     FEATURE_ROLES,
     POSE_STRIDE_S,
+    TIMESCALE_MAX_S,
     default_pose_stride,
+    motion_timescale,
     pose_feature_size,
     pose_features,
+    timescale_pose_stride,
+    velocity_lag_products,
 )
 
 try:
@@ -175,3 +179,65 @@ def test_real_motion(scott_dir):
     # hands move: the past and future blocks differ from the current one
     assert np.abs(feat[:, :24] - feat[:, 48:72]).mean() > 0.01
     assert np.abs(feat[:, 96:] - feat[:, 48:72]).mean() > 0.01
+
+
+def _swinging(freq_hz, fps, seconds=20.0, amplitude_m=0.1):
+    """A standing speaker whose feature joints all swing left and right at ``freq_hz``."""
+    pos = gesturing(int(seconds * fps), fps=fps)
+    pos[:] = pos[:1]  # still, then only the swing
+    swing = amplitude_m * np.sin(2 * np.pi * freq_hz * np.arange(len(pos)) / fps)
+    for role in FEATURE_ROLES:
+        pos[:, J[role], 0] += swing
+    return pos
+
+
+@pytest.mark.parametrize("fps", [15.0, 30.0, 60.0])
+@pytest.mark.parametrize("freq", [0.8, 1.5])
+def test_the_timescale_of_a_swing_is_a_sixth_of_its_period(fps, freq):
+    """A sinusoid's velocity autocorrelation is cos(2 pi f lag): one half at lag 1 / (6 f), at any frame
+    rate (linear between frames: within 5 % of it down to 10 frames a period), wherever the speaker
+    stands and faces."""
+    pos = _swinging(freq, fps)
+    lags = velocity_lag_products(pos, joints=J, fps=fps)
+    assert lags.shape == (int(np.ceil(TIMESCALE_MAX_S * fps)) + 1,) and lags.dtype == np.float64
+    assert motion_timescale(lags, fps) == pytest.approx(1 / (6 * freq), rel=0.05)
+    moved = rigid(pos, 2.0, [-1.0, 0.0, 2.5])
+    np.testing.assert_allclose(velocity_lag_products(moved, joints=J, fps=fps), lags, rtol=1e-9, atol=1e-9)
+    # recordings add up: two halves give the whole but for the products across the cut
+    half = len(pos) // 2
+    parts = velocity_lag_products(pos[:half], joints=J, fps=fps) + velocity_lag_products(pos[half:], joints=J, fps=fps)
+    assert motion_timescale(parts, fps) == pytest.approx(motion_timescale(lags, fps), rel=0.02)
+
+
+def test_the_stride_follows_the_timescale():
+    # the BEAT2 speaker's 0.151 s gives the paper's 2/15 s at 15 and 30 fps; 1.25x faster, 3 frames at 30 fps
+    assert [timescale_pose_stride(0.151, f) for f in (15, 30, 60)] == [2, 4, 8]
+    assert timescale_pose_stride(0.151 / 1.25, 30) == 3
+    assert timescale_pose_stride(0.097, 15) == 1 and timescale_pose_stride(0.001, 60) == 1  # at least 1
+    assert timescale_pose_stride(None, 30) == default_pose_stride(30) == 4  # unknown: 2/15 s
+    with pytest.raises(ParameterError, match=r"^timescale_s: expected a positive number of seconds or None"):
+        timescale_pose_stride(-0.1, 15)
+    # a still speaker has no timescale; one who drifts slowly has the longest measured
+    still = gesturing(60, fps=15.0)
+    still[:] = still[:1]
+    assert motion_timescale(velocity_lag_products(still, joints=J, fps=15.0), 15.0) is None
+    assert motion_timescale(velocity_lag_products(_swinging(0.05, 15.0), joints=J, fps=15.0), 15.0) == TIMESCALE_MAX_S
+    assert motion_timescale(velocity_lag_products(still[:1], joints=J, fps=15.0), 15.0) is None  # one frame
+
+
+def test_the_real_speakers_timescale_at_two_frame_rates(scott_dir):
+    """The BEAT2 speaker at the capture's 30 fps and every second frame (15 fps): the same timescale in
+    seconds (within 3 %), so the same stride in seconds; told that the frames come 1.25x faster, 1.25x
+    shorter."""
+    from gesturedb.io.smplx import read_smplx
+
+    motion = read_smplx(scott_dir / "2_scott_0_1_1.npz")
+    assert motion.fps == 30
+    pos = motion.positions
+    t30 = motion_timescale(velocity_lag_products(pos, joints=J, fps=30.0), 30.0)
+    t15 = motion_timescale(velocity_lag_products(pos[::2], joints=J, fps=15.0), 15.0)
+    assert 0.13 < t30 < 0.17 and t15 == pytest.approx(t30, rel=0.03)
+    assert (timescale_pose_stride(t30, 30.0), timescale_pose_stride(t15, 15.0)) == (4, 2)
+    faster = motion_timescale(velocity_lag_products(pos, joints=J, fps=37.5), 37.5)
+    assert faster == pytest.approx(t30 / 1.25, rel=0.01)  # the facing smoothing is in seconds
+    assert timescale_pose_stride(faster, 30.0) == 3

@@ -29,15 +29,31 @@ def _recording(rng, n, *, constant_column=False):
         rotations=rng.standard_normal((n, J, 4)).astype(np.float32),
         root=rng.standard_normal((n, 3)).astype(np.float32),
         audio_raw=audio,
+        velocity_lags=rng.uniform(0, 1e3, 16),
         controls={k: rng.standard_normal(n).astype(np.float32) for k in CONTROL_NAMES},
     )
 
 
+def _pose_of(positions):
+    # any function of one recording's positions alone: it sees them as the file stores them
+    return (positions.reshape(positions.shape[0], -1) ** 2 - positions[:, :1, :1].reshape(-1, 1)).astype(np.float32)
+
+
 @pytest.mark.parametrize("lengths", [[1], [7, 1, 300, 2], [64] * 9, [2500, 13]])
 @pytest.mark.parametrize("constant_column", [False, True])
-def test_streamed_build_arrays_equal_whole_array_numpy(tmp_path, lengths, constant_column):
+@pytest.mark.parametrize("pose_later", [False, True])
+def test_streamed_build_arrays_equal_whole_array_numpy(tmp_path, lengths, constant_column, pose_later):
+    """Every per-frame array against numpy on the concatenated recordings; ``pose_later``: the pose
+    features come from add_pose, a recording at a time from the stored positions, after the last
+    recording (a build whose stride depends on every recording's motion)."""
     rng = np.random.default_rng(len(lengths) * 1000 + sum(lengths))
     recs = [_recording(rng, n, constant_column=constant_column) for n in lengths]
+    if pose_later:
+        for r in recs:
+            r.pose = _pose_of(r.positions.astype(np.float64))
+    lags = recs[0].velocity_lags.copy()
+    for r in recs[1:]:
+        lags = lags + r.velocity_lags
     # what the build computed on the concatenated recordings before it streamed them
     raw = np.concatenate([r.audio_raw for r in recs]).astype(np.float64)
     mean = raw.mean(axis=0)
@@ -58,8 +74,16 @@ def test_streamed_build_arrays_equal_whole_array_numpy(tmp_path, lengths, consta
     with h5py.File(tmp_path / "f.h5", "w") as h5:
         w = FrameWriter(h5)
         for r in recs:
+            if pose_later:
+                r.pose = None
             w.add(r)
             assert r.pose is None and r.audio_raw is None and r.controls is None  # the client drops them
+        assert w.velocity_lags.tobytes() == lags.tobytes()
+        if pose_later:
+            assert "frames/pose_features" not in h5
+            w.add_pose(_pose_of)
+            with pytest.raises(ValueError, match="written already"):
+                w.add_pose(_pose_of)
         got_mean, got_std = w.close(dims)
         assert got_mean.tobytes() == mean.tobytes() and got_std.tobytes() == std.tobytes()
         for path, arr in want.items():

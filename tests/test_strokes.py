@@ -1,6 +1,8 @@
 """Stroke metrics (gesturedb/eval/strokes.py) and the strokes issue's goals at another frame rate."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -105,8 +107,10 @@ def test_a_30_fps_database_keeps_strokes_and_local_seams(scott_db_30fps, speech)
     s = Searcher(db)
     res = s.synthesize(speech)
     assert res.options["step"] == 16  # 8/15 s
-    # the chunks and the pose feature's stride are the paper's 15 fps lengths in seconds
+    # the chunks and the pose feature's stride are the paper's 15 fps lengths in seconds (the stride from the
+    # speaker's own timescale, the same in seconds at either rate)
     assert db.config["chunk_frames"] == 128 and db.config["pose_stride"] == 4
+    assert 0.13 < db.h5.attrs["motion_timescale_s"] < 0.17
     placed = s.synthesize(speech, seam_decay_s=0)
     assert np.array_equal(res.source_frames, placed.source_frames)
     nd = decay_frames(SEAM_DECAY_S, db.fps)
@@ -269,6 +273,25 @@ def test_a_faster_speaker_keeps_strokes_and_local_seams(faster_speaker):
     assert db.fps == 15.0 and db.recordings[0].n_frames == 763  # 63.5 s / 1.25 at 15 fps
     res = Searcher(db).synthesize(speech)
     assert _check_bands_and_seam_ratio(db, res) < 1.15
+
+
+def test_a_faster_speakers_pose_feature_spans_the_same_part_of_a_movement(faster_speaker, scott_db, tmp_path):
+    """The pose stride comes from the database's own motion timescale: 1.25x shorter for the faster speaker,
+    so that at 30 fps its feature stacks frames 3 apart instead of 4 (at 15 fps both round to 2). Measured
+    on the four inputs 1.25x faster at 30 fps, rank-sum x 3 starts: band values outside the goal 3 -> 0 of
+    72, the arms' 2-4 Hz power 0.83 -> 0.93, seam/inside jerk 1.07 -> 1.04 (docs/evaluation.md). A stride
+    given to the build is kept."""
+    import gesturedb
+
+    db, _ = faster_speaker
+    rec = Path(db.recordings[0].motion_path).parent
+    ratio = db.h5.attrs["motion_timescale_s"] / scott_db.h5.attrs["motion_timescale_s"]
+    assert ratio == pytest.approx(1 / 1.25, rel=0.02) and db.config["pose_stride"] == 2
+    with gesturedb.build([rec], tmp_path / "f30.h5", fps=30.0, graph=False) as f30:
+        assert f30.config["pose_stride"] == 3 and f30.pose_features.shape[1] == 150
+        derived = f30.pose_features[:]
+    with gesturedb.build([rec], tmp_path / "given.h5", fps=30.0, graph=False, pose_stride=4) as given:
+        assert given.config["pose_stride"] == 4 and not np.array_equal(given.pose_features[:], derived)
 
 
 def test_a_faster_speakers_motion_graph_does_not_choose_calm_clips(faster_speaker):

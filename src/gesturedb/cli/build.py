@@ -42,7 +42,8 @@ def add_parser(sub) -> None:
     p.add_argument("--pose-window", type=int, default=POSE_WINDOW,
                    help="pose feature frames on each side of a frame, itself included (default: %(default)s)")
     p.add_argument("--pose-stride", type=int, default=None,
-                   help="frames between the pose feature's frames (default: 2/15 s in frames: 2 at 15 fps, 4 at 30 fps)")
+                   help="frames between the pose feature's frames (default: chosen from the recordings' own motion "
+                        "timescale: 2 at 15 fps and 4 at 30 fps for the BEAT2 speaker, fewer for a faster one)")
     p.add_argument("--mirror", action="store_true", help="add left/right mirrored copies")
     p.add_argument("--speaker", default=None,
                    help="speaker name of every recording (default: a --pairs speaker column, BEAT's "

@@ -39,7 +39,8 @@ def summary(db) -> dict:
         "words": len(db.words),
         "skeleton": {"joints": len(db.joint_names), "root": db.joint_names[0]},
         "feature_joints": db.feature_joints,
-        "features": {"pose": db.frame_shape("pose_features")[1], "audio": db.frame_shape("audio_features")[1]},
+        "features": {"pose": db.frame_shape("pose_features")[1], "audio": db.frame_shape("audio_features")[1],
+                     "pose_stride": db.config.get("pose_stride"), "motion_timescale_s": db.motion_timescale_s},
         "controls": {k: db.control_units[k] for k in db.controls},
         "masks": db.mask_definitions,
         "keywords": {w: {"occurrences": len(sd), "seconds": round(sd.n_frames / db.fps, 3)}
@@ -74,7 +75,10 @@ def run(args) -> int:
     print(f"  chunks       {s['chunks']['count']} x {s['chunks']['frames']} frames")
     print(f"  clips        {s['clips']['count']} word-gap clips, mean {s['clips']['mean_s']:.2f} s;  {s['words']} words")
     print(f"  skeleton     {s['skeleton']['joints']} joints, root {s['skeleton']['root']}")
-    print(f"  features     pose {s['features']['pose']} values/frame, audio {s['features']['audio']} values/frame")
+    f = s["features"]
+    stride = "" if f["pose_stride"] is None else f" (frames {f['pose_stride']} apart" + (
+        "" if f["motion_timescale_s"] is None else f"; the motion's timescale {f['motion_timescale_s']:.3f} s") + ")"
+    print(f"  features     pose {f['pose']} values/frame{stride}, audio {f['audio']} values/frame")
     print("  feature joints " + ", ".join(f"{k}={v}" for k, v in s["feature_joints"].items()))
     if s["controls"]:
         print("  controls     " + ", ".join(f"{k} [{u}]" for k, u in s["controls"].items()))

@@ -84,8 +84,10 @@ class BuildConfig:
         Pose feature = feature joints at frames f + k * stride for k = -(window-1) .. window-1
         (:func:`gesturedb.features.pose.pose_features`).
     pose_stride : int or None
-        Frames between them; None (default): 2/15 s in frames
-        (:func:`gesturedb.features.pose.default_pose_stride`: 2 at 15 fps, 4 at 30 fps).
+        Frames between them; None (default): from the recordings' own motion, once they are all
+        in (:func:`gesturedb.features.pose.timescale_pose_stride` of the whole database's
+        :func:`gesturedb.features.pose.motion_timescale`: 2 at 15 fps and 4 at 30 fps for the
+        BEAT2 speaker, fewer for one who moves faster). The file's ``config`` records the number.
     sample_rate : int
         Analysis rate for speech (Hz).
     n_mfcc : int
@@ -135,10 +137,10 @@ class BuildConfig:
         # lengths in frames that the paper gives at 15 fps: kept in seconds at any frame rate
         if self.chunk_frames is None:
             object.__setattr__(self, "chunk_frames", fseg.default_chunk_frames(self.fps))
-        if self.pose_stride is None:
-            object.__setattr__(self, "pose_stride", fpose.default_pose_stride(self.fps))
         for name in ("chunk_frames", "pose_window", "pose_stride", "sample_rate", "n_mfcc"):
             v = getattr(self, name)
+            if name == "pose_stride" and v is None:
+                continue  # chosen from the data once every recording is in (build)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
                 bad(name, "a positive integer")
         if self.gap_s != "auto" and not (isinstance(self.gap_s, (int, float)) and self.gap_s > 0):
@@ -288,7 +290,8 @@ class RecordingData:
     n_frames: int
     skeleton: object
     feature_joints: dict
-    pose: np.ndarray            # (n, Dp) float32
+    pose: np.ndarray | None     # (n, Dp) float32; None: computed once the stride is known (build)
+    velocity_lags: np.ndarray   # (L + 1,) float64: features.pose.velocity_lag_products
     audio_raw: np.ndarray       # (n, Da) float32, before standardisation
     positions: np.ndarray       # (n, J, 3)
     rotations: np.ndarray       # (n, J, 4)
@@ -319,8 +322,10 @@ def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingS
     # features from the positions exactly as stored (float32), so that recomputing them from the file
     # (`gesturedb upgrade`, tests) gives the same bits
     positions32 = positions.astype(np.float32).astype(np.float64)
-    pose = fpose.pose_features(positions32, joints=joints, fps=cfg.fps, window=cfg.pose_window,
-                               stride=cfg.pose_stride, stance=ankle_joints(motion.skeleton.names))
+    pose = None if cfg.pose_stride is None else fpose.pose_features(
+        positions32, joints=joints, fps=cfg.fps, window=cfg.pose_window, stride=cfg.pose_stride,
+        stance=ankle_joints(motion.skeleton.names))
+    lags = fpose.velocity_lag_products(positions32, joints=joints, fps=cfg.fps)
     controls = fcontrols.control_features(positions32, joints=joints, fps=cfg.fps)
 
     c_start, c_len = fseg.fixed_chunks(n, length=cfg.chunk_frames)
@@ -346,6 +351,7 @@ def _features_for(motion, audio_raw, words, cfg: BuildConfig, source: RecordingS
         skeleton=motion.skeleton,
         feature_joints={r: motion.skeleton.names[i] for r, i in joints.items()},
         pose=pose,
+        velocity_lags=lags,
         audio_raw=audio_raw,
         positions=positions.astype(np.float32),
         rotations=motion.rotations.astype(np.float32),
@@ -622,6 +628,7 @@ def build(
     recs: list[RecordingData] = []
 
     def fill(h5):
+        nonlocal cfg  # its pose stride, when chosen from the data
         # each recording's per-frame arrays go into the file as it arrives and are dropped;
         # the rest (clips, chunks, words) is written once all are in
         frames = FrameWriter(h5)
@@ -636,6 +643,13 @@ def build(
             frames.add(r)
             recs.append(r)
             check_writes(h5)  # a full disk stops the build here, not after every recording
+        timescale = fpose.motion_timescale(frames.velocity_lags, cfg.fps)
+        if cfg.pose_stride is None:
+            # the stride in the speaker's own time: known only now that every recording is in
+            cfg = dataclasses.replace(cfg, pose_stride=fpose.timescale_pose_stride(timescale, cfg.fps))
+            frames.add_pose(_pose_of(recs[0], cfg))
+        if timescale is not None:
+            store.set_attrs(h5, "", {"motion_timescale_s": timescale})
         _write(h5, recs, cfg, progress, frames, scheduler)
 
     # one cluster for the recordings and the motion graphs ("local:N" starts it here)
@@ -648,6 +662,16 @@ def build(
     db = Database(out_path)
     db.pairing = pairing
     return db
+
+
+def _pose_of(rec: RecordingData, cfg: BuildConfig):
+    """The pose features of a recording's positions with ``cfg`` and ``rec``'s skeleton (that of
+    every recording of a build): a function of ``(n, J, 3)`` positions, for FrameWriter.add_pose."""
+    names = list(rec.skeleton.names)
+    joints = {role: names.index(name) for role, name in rec.feature_joints.items()}
+    stance = ankle_joints(names)
+    return lambda positions: fpose.pose_features(positions, joints=joints, fps=cfg.fps, window=cfg.pose_window,
+                                                 stride=cfg.pose_stride, stance=stance)
 
 
 def report_notes(recs: list[RecordingData]) -> list[str]:

@@ -270,6 +270,13 @@ class Database:
         return schema.read_json_attr(self._h5, "config", {})
 
     @functools.cached_property
+    def motion_timescale_s(self) -> float | None:
+        """The hands' and arms' motion timescale (s) the build measured
+        (:func:`gesturedb.features.pose.motion_timescale`); None in a file written before it did."""
+        value = self._h5.attrs.get("motion_timescale_s")
+        return None if value is None else float(value)
+
+    @functools.cached_property
     def feature_joints(self) -> dict:
         """role -> joint name used for the features."""
         return schema.read_json_attr(self._h5, "feature_joints", {})

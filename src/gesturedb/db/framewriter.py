@@ -47,7 +47,10 @@ class FrameWriter:
 
     ``add(r)`` writes recording ``r``'s rows after those of the recordings before it
     and sets its per-frame attributes to None; ``close(dims)`` standardises the audio
-    and returns its ``(mean, std)``, each of shape (Da,) float64.
+    and returns its ``(mean, std)``, each of shape (Da,) float64. Recordings that come
+    without pose features (their stride is chosen from the whole database's motion, whose
+    velocity sums :attr:`velocity_lags` adds up) get them from :meth:`add_pose` before
+    ``close``.
     """
 
     FIELDS = ((schema.POSE_FEATURES, "pose"), (schema.JOINT_POSITIONS, "positions"),
@@ -56,18 +59,24 @@ class FrameWriter:
     def __init__(self, h5):
         self.h5 = h5
         self.rows: list[schema.RowWriter] = []
+        self.fields: list[str] = []  # the RecordingData attribute each of ``rows`` writes
         self.controls: dict[str, object] = {}
         self.lengths: list[int] = []
         self.audio_sum: np.ndarray | None = None
+        #: (L + 1,) float64: the recordings' features.pose.velocity_lag_products, added in input order
+        self.velocity_lags: np.ndarray | None = None
 
     def _open(self, r) -> None:
         def rows(row_shape) -> int:
             return chunk_rows(r.n_frames, 4 * int(np.prod(row_shape, dtype=np.int64)))
 
-        self.rows = []
+        self.rows, self.fields = [], []
         for path, attr in self.FIELDS:
+            if getattr(r, attr) is None:  # the pose features, written by add_pose
+                continue
             shape = getattr(r, attr).shape[1:]
             self.rows.append(schema.RowWriter(self.h5, path, shape, chunk_rows=rows(shape)))
+            self.fields.append(attr)
         self.recording = schema.RowWriter(self.h5, schema.FRAME_RECORDING, (), chunk_rows=rows(()))
         da = r.audio_raw.shape[1:]
         self.audio = schema.RowWriter(self.h5, schema.AUDIO_FEATURES, da, chunk_rows=rows(da))
@@ -82,9 +91,11 @@ class FrameWriter:
         """Append recording ``r`` (a :class:`gesturedb.db.build.RecordingData`)."""
         if not self.rows:
             self._open(r)
-        for rows, (_, attr) in zip(self.rows, self.FIELDS):
+        for rows, attr in zip(self.rows, self.fields):
             rows.write(getattr(r, attr))
             setattr(r, attr, None)
+        lags = np.asarray(r.velocity_lags, dtype=np.float64)
+        self.velocity_lags = lags.copy() if self.velocity_lags is None else self.velocity_lags + lags
         self.recording.write(np.full(r.n_frames, len(self.lengths), np.int32))
         self.audio.write(r.audio_raw)
         self.audio_sum = schema.add_rows(self.audio_sum, r.audio_raw)
@@ -99,6 +110,27 @@ class FrameWriter:
         for n in self.lengths:
             yield start, start + n
             start += n
+
+    def add_pose(self, pose_of) -> None:
+        """The pose features of every recording added, from its joint positions as stored.
+
+        ``pose_of(positions)`` takes one recording's ``(n, J, 3)`` float64 positions (metres; the
+        float32 values the file holds, which is what a recording's own features are computed
+        from) and returns its ``(n, Dp)`` float32 pose features. One recording at a time, so
+        memory stays that of the longest recording.
+        """
+        if schema.POSE_FEATURES in self.h5:
+            raise ValueError("add_pose: the pose features are written already")
+        positions = self.rows[self.fields.index("positions")].ds
+        rows = None
+        for a, b in self._recordings():
+            pose = pose_of(positions[a:b].astype(np.float64))
+            if rows is None:
+                rows = schema.RowWriter(self.h5, schema.POSE_FEATURES, pose.shape[1:],
+                                        chunk_rows=chunk_rows(b - a, 4 * int(np.prod(pose.shape[1:]))))
+            rows.write(pose)
+        self.rows.append(rows)
+        self.fields.append("pose")
 
     def close(self, dims: dict) -> tuple[np.ndarray, np.ndarray]:
         """After the last recording: rows checked against ``dims``, the audio standardised in

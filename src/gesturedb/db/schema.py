@@ -263,6 +263,8 @@ ROOT_ATTRS = {
     "n_frames": "int: F",
     "config": "JSON: the complete build configuration",
     "feature_joints": "JSON: role -> joint name used for the features",
+    "motion_timescale_s": "float: the hands' and arms' motion timescale (s), what a build without a given "
+                          "pose_stride chose it from (features.pose.motion_timescale); absent before 2026-11-28",
     SHARDS_ATTR: "JSON (index files only): the shard files holding the per-frame arrays, in frame order",
     SHARD_OF_ATTR: "JSON (shard files only): which part of which index the file is",
     f"{SKELETON}/{LENGTH_UNIT_ATTR}": "float (attribute of the skeleton group): metres per length unit of the source files",

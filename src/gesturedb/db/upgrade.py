@@ -4,8 +4,9 @@ What each version lacks, and what the upgrade recomputes from what the file keep
 
 * before 4: the pose features stacked the past only (frames f, f-2, f-4, f-6); they are
   recomputed, centred on each frame (:func:`gesturedb.features.pose.pose_features`), from the
-  stored joint positions with the file's frame rate, and the ``config`` records the new
-  ``pose_window`` and ``pose_stride``. At a frame rate other than 15 fps the control
+  stored joint positions with the file's frame rate and the stride a build chooses from the
+  motion's timescale (:func:`gesturedb.features.pose.timescale_pose_stride`), and the ``config``
+  records the new ``pose_window`` and ``pose_stride``. At a frame rate other than 15 fps the control
   features are recomputed too (their facing smoothing is now in seconds), with the default
   masks; saved masks keep their frames.
 * before 5: the pose features had no stance; they are recomputed with the ankles
@@ -31,7 +32,13 @@ from gesturedb.db.edit import add_control_features
 from gesturedb.db.graph import write_graph
 from gesturedb.errors import InputFileError, SchemaError
 from gesturedb.features.body import BODY_ROLES
-from gesturedb.features.pose import POSE_WINDOW, default_pose_stride, pose_features
+from gesturedb.features.pose import (
+    POSE_WINDOW,
+    motion_timescale,
+    pose_features,
+    timescale_pose_stride,
+    velocity_lag_products,
+)
 from gesturedb.io.joints import ankle_joints, find_joints
 from gesturedb.roles import FEATURE_ROLES
 
@@ -106,13 +113,18 @@ def _recompute_pose_features(h5, name: str) -> None:
     starts = schema.read(h5, schema.RECORDING_START_FRAME)
     counts = schema.read(h5, schema.RECORDING_N_FRAMES)
     positions = store.array(h5, schema.JOINT_POSITIONS)
-    stride = default_pose_stride(fps)
+    spans = list(zip(starts.tolist(), counts.tolist()))
+
+    def recording(a, n):
+        return np.asarray(positions[a:a + n], dtype=np.float32).astype(np.float64)
+
+    # the stride a build of this version chooses: from the whole database's motion
+    lags = sum(velocity_lag_products(recording(a, n), joints=joints, fps=fps) for a, n in spans)
+    timescale = motion_timescale(lags, fps) if spans else None
+    stride = timescale_pose_stride(timescale, fps)
     ankles = ankle_joints(names)
-    parts = []
-    for a, n in zip(starts.tolist(), counts.tolist()):
-        pos = np.asarray(positions[a:a + n], dtype=np.float32).astype(np.float64)
-        parts.append(pose_features(pos, joints=joints, fps=fps, window=POSE_WINDOW, stride=stride,
-                                   stance=ankles))
+    parts = [pose_features(recording(a, n), joints=joints, fps=fps, window=POSE_WINDOW, stride=stride,
+                           stance=ankles) for a, n in spans]
     pose = np.concatenate(parts) if parts else np.zeros((0, 0), np.float32)
     if pose.shape[0] != positions.shape[0]:
         raise SchemaError(name, f"recordings: expected them to cover the {positions.shape[0]} frames of "
@@ -120,3 +132,5 @@ def _recompute_pose_features(h5, name: str) -> None:
     store.delete(h5, schema.POSE_FEATURES)
     schema.write(h5, schema.POSE_FEATURES, pose, {})
     schema.write_json_attr(h5, "config", {**config, "pose_window": POSE_WINDOW, "pose_stride": stride})
+    if timescale is not None:
+        store.set_attrs(h5, "", {"motion_timescale_s": timescale})

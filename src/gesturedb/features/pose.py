@@ -3,7 +3,8 @@
 The pose feature of a frame describes where the hands and arms are, where they came from
 and where they are going: the 8 feature joints (wrists, elbows, index- and little-finger
 roots of both hands) in the body frame of that frame, stacked over a short window centred
-on it (frames ``f - 2s, f - s, f, f + s, f + 2s`` with the defaults, ``s`` = 2/15 s), and
+on it (frames ``f - 2s, f - s, f, f + s, f + 2s`` with the defaults, ``s`` = 2/15 s for the
+BEAT2 speaker: see "The stride" below), and
 the same of the two ankles (the stance), where the rig has legs. The
 search compares the feature of a candidate window's entry frame, whose future half is the
 candidate's own first frames, with the feature of the last output frame, whose future half
@@ -30,6 +31,15 @@ frames, in metres, unweighted like the rest) the search prefers windows whose fe
 move as the output's do: on the held-out BEAT2 stretch the mean foot speed went from 1.50x
 the capture's to 0.78x (seed 0; 1.12x -> 0.67x over four starts), the pelvis from 1.40x to
 0.90x (``docs/evaluation.md``, "Feet").
+
+The stride in the speaker's own time (2026-11-28): a build spaces the stacked frames
+:data:`POSE_STRIDE_PER_TIMESCALE` of the motion's timescale apart (:func:`motion_timescale`, the
+lag at which the hands' and arms' velocity decorrelates to one half), which is the paper's 2/15 s
+for the BEAT2 speaker at 15 and 30 fps. With a fixed 2/15 s a speaker whose strokes are faster is
+matched over more of each movement, and a lively entry frame is then far from most previous poses:
+the rank sum chained calm windows (the speaker 1.25x faster at 30 fps kept 0.83x the database's
+2-4 Hz arm power, strokes 2x larger and 1.25x faster at 15 fps 0.77x, with 3 and 6 of 72 band
+values below the goal; in its own time 0.93x and 0.86x, none below; ``docs/evaluation.md``).
 """
 from __future__ import annotations
 
@@ -45,14 +55,24 @@ from gesturedb.features.body import (
     check_fps,
     check_joints,
     check_positions,
+    to_body_frame,
 )
 from gesturedb.roles import FEATURE_ROLES
 
-__all__ = ["FEATURE_ROLES", "POSE_STRIDE_S", "POSE_WINDOW", "default_pose_stride",
-           "pose_features", "pose_feature_size"]
+__all__ = ["FEATURE_ROLES", "POSE_STRIDE_PER_TIMESCALE", "POSE_STRIDE_S", "POSE_WINDOW", "TIMESCALE_MAX_S",
+           "default_pose_stride", "motion_timescale", "pose_features", "pose_feature_size", "timescale_pose_stride",
+           "velocity_lag_products"]
 
-#: Time between stacked frames, s: every second frame of the paper's 15 fps database.
+#: Time between stacked frames, s, where the motion's timescale is unknown: every second frame of the
+#: paper's 15 fps database.
 POSE_STRIDE_S = 2 / 15
+#: Time between stacked frames as a fraction of the motion's own timescale (:func:`motion_timescale`):
+#: the paper's 2/15 s at the BEAT2 speaker's 0.151 s, so that a speaker who moves faster (or slower) is
+#: matched over the same part of a movement, not over the same number of milliseconds.
+POSE_STRIDE_PER_TIMESCALE = 0.88
+#: Longest lag of the velocity autocorrelation (s): a motion whose velocity stays correlated for longer
+#: has this timescale.
+TIMESCALE_MAX_S = 1.0
 #: Stacked frames on each side of the current one, the current one included (5 frames in all).
 POSE_WINDOW = 3
 
@@ -65,6 +85,83 @@ def default_pose_stride(fps: float) -> int:
     """Frames between stacked frames at ``fps``: :data:`POSE_STRIDE_S` rounded, at least 1
     (2 at 15 fps, 4 at 30 fps)."""
     return max(1, int(round(check_fps(fps) * POSE_STRIDE_S)))
+
+
+def velocity_lag_products(
+    positions: np.ndarray,
+    *,
+    joints: Mapping[str, int],
+    fps: float,
+    facing_smooth_s: float = FACING_SMOOTH_S,
+) -> np.ndarray:
+    """Sums of the feature joints' velocity dot products at lags 0 .. L over one recording.
+
+    The velocity is that of the :data:`FEATURE_ROLES` joints (hands and arms) in the body frame
+    (:func:`gesturedb.features.body.body_frame`), in m/s, between adjacent frames. Sums of
+    recordings add up, so a build accumulates them a recording at a time and
+    :func:`motion_timescale` reads the whole database's timescale from the total.
+
+    Parameters
+    ----------
+    positions : ndarray [shape=(F, J, 3)], metres
+        World joint positions of one recording, y up.
+    joints : mapping of str to int, keyword-only
+        Joint index of every role in :data:`FEATURE_ROLES` and in :data:`BODY_ROLES`.
+    fps : float, keyword-only
+        Frame rate (Hz).
+
+    Returns
+    -------
+    ndarray [shape=(L + 1,)], float64, m²/s²
+        Entry ``k`` is the sum over frames ``t`` and joints of ``v(t) . v(t + k)``, with
+        ``L = ceil(TIMESCALE_MAX_S * fps)``; zeros where the recording is too short.
+    """
+    positions = check_positions(positions)
+    fps = check_fps(fps)
+    idx = check_joints(joints, FEATURE_ROLES + BODY_ROLES, n_joints=positions.shape[1])
+    max_lag = int(np.ceil(TIMESCALE_MAX_S * fps))
+    out = np.zeros(max_lag + 1)
+    if positions.shape[0] < 2:
+        return out
+    origin, rotation = body_frame(positions, joints=idx, smooth_frames=facing_smooth_s * fps)
+    local = to_body_frame(positions[:, [idx[r] for r in FEATURE_ROLES], :], origin, rotation)
+    v = (np.diff(local, axis=0) * fps).reshape(positions.shape[0] - 1, -1)
+    for k in range(min(max_lag + 1, v.shape[0])):
+        out[k] = np.einsum("ij,ij->", v[:v.shape[0] - k], v[k:])
+    return out
+
+
+def motion_timescale(lag_products: np.ndarray, fps: float) -> float | None:
+    """The motion's timescale (s): the lag at which the velocity's autocorrelation falls to one half.
+
+    Linear between frames. From the sums of :func:`velocity_lag_products` (of one recording or of
+    many, added up). About 0.15 s for the BEAT2 speaker at any frame rate, 0.12 s for the same
+    recording played 1.25x faster; a pure sinusoid of frequency ``f`` gives ``1 / (6 f)``. None where
+    the motion does not move (no velocity); :data:`TIMESCALE_MAX_S` where its autocorrelation stays
+    above one half that long.
+    """
+    fps = check_fps(fps)
+    sums = np.asarray(lag_products, dtype=np.float64).reshape(-1)
+    if sums.size < 2 or not np.isfinite(sums).all() or not sums[0] > 0:
+        return None
+    ac = sums / sums[0]
+    below = np.flatnonzero(ac < 0.5)
+    if below.size == 0:
+        return float(TIMESCALE_MAX_S)
+    k = int(below[0])
+    lag = k - 1 + (ac[k - 1] - 0.5) / (ac[k - 1] - ac[k])
+    return float(min(lag / fps, TIMESCALE_MAX_S))
+
+
+def timescale_pose_stride(timescale_s: float | None, fps: float) -> int:
+    """Frames between stacked frames for a motion of this timescale: :data:`POSE_STRIDE_PER_TIMESCALE`
+    of it, rounded, at least 1 (2 at 15 fps and 4 at 30 fps for the BEAT2 speaker, 3 at 30 fps when
+    it moves 1.25x faster); :func:`default_pose_stride` where the timescale is unknown (None)."""
+    if timescale_s is None:
+        return default_pose_stride(fps)
+    if not (np.isfinite(timescale_s) and timescale_s > 0):
+        raise ParameterError(f"timescale_s: expected a positive number of seconds or None; got {timescale_s!r}")
+    return max(1, int(round(check_fps(fps) * POSE_STRIDE_PER_TIMESCALE * timescale_s)))
 
 
 def pose_feature_size(*, window: int = POSE_WINDOW, stance: bool = False) -> int:
