@@ -25,12 +25,12 @@ def test_build_info_export_synth(scott_dir, tmp_path, capsys):
 
     code, out, err = run(capsys, "info", db)
     assert code == 0 and "953 frames at 15 fps" in out and "scott" in out and "chunks       15 x 64" in out
-    assert "pose 150 values/frame (frames 2 apart; the motion's timescale 0.15" in out
+    assert "pose 150 values/frame (frames 2 apart; the motion's timescale 0.16" in out
     code, out, _ = run(capsys, "info", db, "--json")
     info = json.loads(out)
     timescale = info["features"].pop("motion_timescale_s")
     assert info["frames"] == 953 and info["features"] == {"pose": 150, "audio": 14, "pose_stride": 2}
-    assert 0.13 < timescale < 0.17
+    assert 0.15 < timescale < 0.18
 
     bvh = tmp_path / "stretch.bvh"
     code, out, err = run(capsys, "export", db, "--recording", "2_scott_0_1_1", "--start", 10, "--end", 12, "-o", bvh)

@@ -110,7 +110,7 @@ def test_a_30_fps_database_keeps_strokes_and_local_seams(scott_db_30fps, speech)
     # the chunks and the pose feature's stride are the paper's 15 fps lengths in seconds (the stride from the
     # speaker's own timescale, the same in seconds at either rate)
     assert db.config["chunk_frames"] == 128 and db.config["pose_stride"] == 4
-    assert 0.13 < db.h5.attrs["motion_timescale_s"] < 0.17
+    assert 0.15 < db.h5.attrs["motion_timescale_s"] < 0.18
     placed = s.synthesize(speech, seam_decay_s=0)
     assert np.array_equal(res.source_frames, placed.source_frames)
     nd = decay_frames(SEAM_DECAY_S, db.fps)
@@ -233,8 +233,10 @@ def test_a_livelier_speaker_keeps_its_strokes(livelier_speaker, scott_db, speech
     """The bands are measured against the database's own motion, so a speaker who gestures more keeps more:
     the search is not drawn to calm windows that the speaker has fewer of. The four inputs (rank-sum, seed 0):
     arms 0.73-1.29, hands 0.76-1.22, seam/inside jerk 0.93-1.02; the motion graph 0.92-1.64 (2_scott_0_3_3's
-    arms at 4-7 Hz above the goal). Strokes 2x larger and 1.25x faster, at 15 fps, go below it: rank-sum
-    2-4 Hz 0.64-0.67 on two of the four (docs/evaluation.md, "A livelier speaker")."""
+    arms at 4-7 Hz above the goal). Strokes 2x larger and 1.25x faster, at 15 fps, went below it with the
+    pose stride fixed at 2/15 s (rank-sum 2-4 Hz 0.64-0.67 on two of the four); with the stride in the
+    speaker's own time (1 frame there) arms 0.70-1.11 and hands 0.68-1.10 (docs/evaluation.md, "A livelier
+    speaker")."""
     from gesturedb.synth import Searcher
 
     db = livelier_speaker
@@ -286,7 +288,7 @@ def test_a_faster_speakers_pose_feature_spans_the_same_part_of_a_movement(faster
     db, _ = faster_speaker
     rec = Path(db.recordings[0].motion_path).parent
     ratio = db.h5.attrs["motion_timescale_s"] / scott_db.h5.attrs["motion_timescale_s"]
-    assert ratio == pytest.approx(1 / 1.25, rel=0.02) and db.config["pose_stride"] == 2
+    assert 0.78 < ratio < 0.86 and db.config["pose_stride"] == 2  # 1/1.25, but for the smoothing in seconds
     with gesturedb.build([rec], tmp_path / "f30.h5", fps=30.0, graph=False) as f30:
         assert f30.config["pose_stride"] == 3 and f30.pose_features.shape[1] == 150
         derived = f30.pose_features[:]

@@ -51,10 +51,12 @@ from gesturedb.errors import ParameterError
 from gesturedb.features.body import (
     BODY_ROLES,
     FACING_SMOOTH_S,
+    SPEED_SMOOTH_S,
     body_frame,
     check_fps,
     check_joints,
     check_positions,
+    gaussian_smooth,
     to_body_frame,
 )
 from gesturedb.roles import FEATURE_ROLES
@@ -67,9 +69,9 @@ __all__ = ["FEATURE_ROLES", "POSE_STRIDE_PER_TIMESCALE", "POSE_STRIDE_S", "POSE_
 #: paper's 15 fps database.
 POSE_STRIDE_S = 2 / 15
 #: Time between stacked frames as a fraction of the motion's own timescale (:func:`motion_timescale`):
-#: the paper's 2/15 s at the BEAT2 speaker's 0.151 s, so that a speaker who moves faster (or slower) is
+#: the paper's 2/15 s at the BEAT2 speaker's 0.165 s, so that a speaker who moves faster (or slower) is
 #: matched over the same part of a movement, not over the same number of milliseconds.
-POSE_STRIDE_PER_TIMESCALE = 0.88
+POSE_STRIDE_PER_TIMESCALE = 0.81
 #: Longest lag of the velocity autocorrelation (s): a motion whose velocity stays correlated for longer
 #: has this timescale.
 TIMESCALE_MAX_S = 1.0
@@ -97,7 +99,8 @@ def velocity_lag_products(
     """Sums of the feature joints' velocity dot products at lags 0 .. L over one recording.
 
     The velocity is that of the :data:`FEATURE_ROLES` joints (hands and arms) in the body frame
-    (:func:`gesturedb.features.body.body_frame`), in m/s, between adjacent frames. Sums of
+    (:func:`gesturedb.features.body.body_frame`), in m/s, between adjacent frames, after a Gaussian
+    of :data:`gesturedb.features.body.SPEED_SMOOTH_S` (as every speed of the features). Sums of
     recordings add up, so a build accumulates them a recording at a time and
     :func:`motion_timescale` reads the whole database's timescale from the total.
 
@@ -125,6 +128,9 @@ def velocity_lag_products(
         return out
     origin, rotation = body_frame(positions, joints=idx, smooth_frames=facing_smooth_s * fps)
     local = to_body_frame(positions[:, [idx[r] for r in FEATURE_ROLES], :], origin, rotation)
+    # smoothed as for every speed (SPEED_SMOOTH_S): the capture's frame-to-frame jitter decorrelates the
+    # velocity within a frame, and 5 mm of it at 30 fps would read as a timescale of 0.03 s
+    local = gaussian_smooth(local, sigma=SPEED_SMOOTH_S * fps, mode="odd")
     v = (np.diff(local, axis=0) * fps).reshape(positions.shape[0] - 1, -1)
     for k in range(min(max_lag + 1, v.shape[0])):
         out[k] = np.einsum("ij,ij->", v[:v.shape[0] - k], v[k:])
@@ -135,7 +141,7 @@ def motion_timescale(lag_products: np.ndarray, fps: float) -> float | None:
     """The motion's timescale (s): the lag at which the velocity's autocorrelation falls to one half.
 
     Linear between frames. From the sums of :func:`velocity_lag_products` (of one recording or of
-    many, added up). About 0.15 s for the BEAT2 speaker at any frame rate, 0.12 s for the same
+    many, added up). About 0.165 s for the BEAT2 speaker at any frame rate, 0.137 s for the same
     recording played 1.25x faster; a pure sinusoid of frequency ``f`` gives ``1 / (6 f)``. None where
     the motion does not move (no velocity); :data:`TIMESCALE_MAX_S` where its autocorrelation stays
     above one half that long.
