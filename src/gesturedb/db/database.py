@@ -271,8 +271,7 @@ class Database:
 
     @functools.cached_property
     def motion_timescale_s(self) -> float | None:
-        """The hands' and arms' motion timescale (s) the build measured
-        (:func:`gesturedb.features.pose.motion_timescale`); None in a file written before it did."""
+        """The arms' motion timescale (s) the build measured (features.pose.motion_timescale); None before it did."""
         value = self._h5.attrs.get("motion_timescale_s")
         return None if value is None else float(value)
 
@@ -613,7 +612,6 @@ class Database:
     @functools.cached_property
     def skeleton(self):
         """The :class:`gesturedb.motion.Skeleton` of every recording in the database."""
-
         end_joints = self._read(schema.SKELETON_END_SITE_JOINTS)
         end_offsets = self._read(schema.SKELETON_END_SITE_OFFSETS)
         return Skeleton(
@@ -732,7 +730,6 @@ class Database:
 
     def motion_from_frames(self, frames: np.ndarray):
         """A :class:`Motion` made of arbitrary database frames (e.g. a synthesis result)."""
-
         frames = np.asarray(frames, dtype=np.int64)
         return Motion(
             skeleton=self.skeleton,

@@ -44,8 +44,7 @@ from gesturedb.errors import ParameterError, SchemaError
 
 #: 2: adds graph/ and style_model/ (GestureMaster motion graph)
 #: 3: graph/ is the upper-body graph (it was over the whole body), graph_lower/ the lower-body one (Sec. 4.1)
-#: 4: frames/pose_features stack frames centred on each frame (past and future) instead of its past
-#:    only; config pose_stride is 2/15 s in frames
+#: 4: frames/pose_features stack frames centred on each frame instead of its past only, config pose_stride apart
 #: 5: frames/pose_features carry the ankles (the stance) after the 8 feature joints, where the rig has legs
 #: `gesturedb upgrade DB.h5` (:mod:`gesturedb.db.upgrade`) brings any of them to SCHEMA_VERSION
 SCHEMA_VERSION = 5
@@ -263,8 +262,7 @@ ROOT_ATTRS = {
     "n_frames": "int: F",
     "config": "JSON: the complete build configuration",
     "feature_joints": "JSON: role -> joint name used for the features",
-    "motion_timescale_s": "float: the hands' and arms' motion timescale (s), what a build without a given "
-                          "pose_stride chose it from (features.pose.motion_timescale); absent before 2026-11-28",
+    "motion_timescale_s": "float: the arms' motion timescale (s), whence the pose stride (features.pose)",
     SHARDS_ATTR: "JSON (index files only): the shard files holding the per-frame arrays, in frame order",
     SHARD_OF_ATTR: "JSON (shard files only): which part of which index the file is",
     f"{SKELETON}/{LENGTH_UNIT_ATTR}": "float (attribute of the skeleton group): metres per length unit of the source files",
