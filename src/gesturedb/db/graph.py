@@ -50,6 +50,9 @@ from gesturedb.io.joints import leg_joints
 
 L1 = 0.7
 L2 = 0.3
+#: frames of each clip's transition window, in frames at any rate, not seconds: at 30 fps, 4 frames
+#: (2/15 s, the 15 fps window's time) took the graph's arms to 1.4-2.2x the database's 4-7 Hz power
+#: on the four BEAT2 inputs, where 2 keep 0.97-1.07 (``docs/evaluation.md``, "Motion graph")
 TRANSITION_FRAMES = 2
 #: ridge strengths the style predictor chooses from by cross-validation (fit_style_model)
 RIDGE_ALPHAS = (0.1, 1.0, 10.0, 100.0, 1e3, 1e4, 1e6)
