@@ -257,6 +257,9 @@ def test_holdout_has_every_system_and_the_ground_truth(holdout, scott_dir):
     inp = ev.inputs[0]
     assert list(inp.metrics) == list(E.SYSTEMS)
     assert ev.settings["holdout"]["training_frames"] == 2 * 720  # 48 s at 15 fps, mirrored
+    # the training database's pose stride, from its own motion (the whole recording's 2 frames)
+    assert ev.settings["pose_stride"] == 2 and 0.15 < ev.settings["motion_timescale_s"] < 0.18
+    assert f"pose frames 2 apart (motion timescale {ev.settings['motion_timescale_s']:.3f} s)" in ev.to_text()
     # ground truth = the held-out stretch of the motion capture, independently resampled
     m = read_motion(scott_dir / "2_scott_0_1_1.npz")
     gt = m[int(48 * m.fps):].resample(15.0).positions

@@ -636,7 +636,9 @@ class MotionEvaluation:
         s = self.settings
         out = [
             f"Objective metrics ({self.mode}): database {os.path.basename(self.database)}, "
-            f"step {s['step']} frames, seam decay {s['seam_decay_s']:.2f} s, seed {s['seed']}",
+            f"step {s['step']} frames, seam decay {s['seam_decay_s']:.2f} s, seed {s['seed']}"
+            + ("" if s.get("pose_stride") is None else f", pose frames {s['pose_stride']} apart"
+               + ("" if s.get("motion_timescale_s") is None else f" (motion timescale {s['motion_timescale_s']:.3f} s)")),
             "positions: root's horizontal position removed; joints: upper body "
             f"({len(s['joints'])} joints); BeatAlign: wrist speed minima vs speech onsets (sigma 0.3 s); "
             "H(speed): Hellinger distance of joint-speed histograms; FGD*: Frechet distance of 32-frame windows "
@@ -804,10 +806,13 @@ def _options(options, segments, refiner, changes) -> dict:
     return dict(options=eval_options(options, **changes), segments=segments, refiner=refiner)
 
 
-def _settings(opts, joints, names, **more):
-    """The report's ``settings``: every search option, the segments and the refiner's file."""
+def _settings(opts, joints, db, **more):
+    """The report's ``settings``: every search option, the segments, the refiner's file and the database's
+    pose stride (frames) with the motion timescale (s) it was chosen from."""
     flat = dict(opts["options"].as_dict(), segments=opts["segments"], refiner=getattr(opts["refiner"], "path", None))
-    return dict(flat, joints=[int(j) for j in joints], joint_names=[names[j] for j in joints], **more)
+    names = db.joint_names
+    return dict(flat, joints=[int(j) for j in joints], joint_names=[names[j] for j in joints],
+                pose_stride=db.config.get("pose_stride"), motion_timescale_s=db.motion_timescale_s, **more)
 
 
 def evaluate_inputs(
@@ -877,7 +882,7 @@ def evaluate_inputs(
                                     reference=reference, opts=opts, starts=starts))
     if ctl is not None:
         ctl.audio = audio[0]
-    return MotionEvaluation(mode="inputs", database=db.path, settings=_settings(opts, joints, db.joint_names, starts=starts),
+    return MotionEvaluation(mode="inputs", database=db.path, settings=_settings(opts, joints, db, starts=starts),
                             inputs=inputs, reference=reference, thresholds=thresholds,
                             joint_names=list(db.joint_names), parents=np.asarray(db.skeleton.parents), root=root,
                             controls=ctl)
@@ -1017,7 +1022,7 @@ def evaluate_holdout(
                                 reference=reference, opts=opts, starts=starts)
             if ctl is not None:
                 ctl.audio = f"{held.audio} [{holdout_start_s:g}-{end_s:g} s]"
-            settings = _settings(opts, joints, db.joint_names, starts=starts, holdout=dict(
+            settings = _settings(opts, joints, db, starts=starts, holdout=dict(
                 recording=held.name, start_s=float(holdout_start_s), end_s=end_s,
                 training=[dict(name=r.name, span_s=list(r.span_s) if r.span_s else None) for r in train],
                 mirror=bool(mirror), training_frames=db.n_frames))
