@@ -569,6 +569,7 @@ def test_export_real(db_copy, tmp_path):
         n = len(sub)
         assert len(ex.recordings) == n and ex.n_frames == int(sub.length.sum())
         assert ex.fps == src.fps and ex.config == src.config and ex.feature_joints == src.feature_joints
+        assert ex.motion_timescale_s == src.motion_timescale_s is not None
         frames = np.concatenate([np.arange(a, a + L) for a, L in zip(sub.start, sub.length)])
         for name in ("pose_features", "audio_features", "audio_deltas", "joint_positions", "local_rotations",
                      "root_positions"):

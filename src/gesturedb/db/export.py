@@ -34,7 +34,7 @@ def export_keyword(db_path, word: str, out_path, *, chunk_frames: int | None = N
     * per-frame arrays, controls and the recording columns are copied from the
       source frames (pose features keep their source history, so the frames are
       the same numbers as in the source);
-    * the skeleton, audio mean/std, ``config`` and ``feature_joints`` are copied;
+    * the skeleton, audio mean/std, ``config``, ``feature_joints`` and the motion timescale are copied;
     * words: those whose start lies in a stretch, times made relative to it and
       their end clipped to it;
     * chunks: one per stretch (``chunk_frames=None``) or fixed chunks of
@@ -177,6 +177,8 @@ def _write_export(h5, db, sub: SubDatabase, p: _ExportPlan) -> None:
 
     store.set_attrs(h5, "", {"schema_version": schema.SCHEMA_VERSION, "gesturedb_version": __version__,
                              "fps": float(db.fps), "n_frames": F})
+    if db.motion_timescale_s is not None:  # what the copied pose features' stride came from
+        store.set_attrs(h5, "", {"motion_timescale_s": db.motion_timescale_s})
     schema.write_json_attr(h5, "config", db.config)
     schema.write_json_attr(h5, "feature_joints", db.feature_joints)
 
