@@ -647,7 +647,7 @@ def build(
         if cfg.pose_stride is None:
             # the stride in the speaker's own time: known only now that every recording is in
             cfg = dataclasses.replace(cfg, pose_stride=fpose.timescale_pose_stride(timescale, cfg.fps))
-            frames.add_pose(_pose_of(recs[0], cfg))
+            frames.add_pose(_pose_of(recs[0], cfg), progress=bool(progress))
         if timescale is not None:
             store.set_attrs(h5, "", {"motion_timescale_s": timescale})
         _write(h5, recs, cfg, progress, frames, scheduler)
