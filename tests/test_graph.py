@@ -480,6 +480,8 @@ def test_old_file_is_a_clear_error_and_upgrade_brings_it_to_what_a_build_writes(
         want = {f"{g}/{k}": h5[f"{g}/{k}"][()] for g in ("graph", "graph_lower") for k in ("indptr", "indices", "cost")}
         want["frames/pose_features"] = h5["frames/pose_features"][()]
         want_config = json.loads(h5.attrs["config"])
+        want_timescale = float(h5.attrs["motion_timescale_s"])
+        del h5.attrs["motion_timescale_s"]  # an old file has none
         if version < 3:
             del h5["graph_lower"]
         if version == 1:
@@ -506,6 +508,7 @@ def test_old_file_is_a_clear_error_and_upgrade_brings_it_to_what_a_build_writes(
         for k, v in want.items():
             np.testing.assert_array_equal(h5[k][()], v)  # the same features and graphs as the build made
         assert json.loads(h5.attrs["config"]) == want_config
+        assert db.motion_timescale_s == want_timescale  # the stride chosen as a build chooses it
         GraphSynthesizer(db)
     assert main(["upgrade", str(old)]) == 0
     assert "nothing to do" in capsys.readouterr().out
