@@ -632,13 +632,22 @@ class MotionEvaluation:
         head = ["system"] + [h for _, h, _ in self.starts_columns(inp)]
         return _text_table(head, [[label] + c for label, c in self.starts_rows(inp)])
 
+    def pose_stride_note(self) -> str:
+        """``"pose frames S apart (motion timescale T s)"`` from the settings, as far as the database knows
+        them ("" for one that records no stride), for the text and the HTML report alike."""
+        s = self.settings
+        if s.get("pose_stride") is None:
+            return ""
+        t = s.get("motion_timescale_s")
+        return f"pose frames {s['pose_stride']} apart" + ("" if t is None else f" (motion timescale {t:.3f} s)")
+
     def to_text(self) -> str:
         s = self.settings
+        note = self.pose_stride_note()
         out = [
             f"Objective metrics ({self.mode}): database {os.path.basename(self.database)}, "
             f"step {s['step']} frames, seam decay {s['seam_decay_s']:.2f} s, seed {s['seed']}"
-            + ("" if s.get("pose_stride") is None else f", pose frames {s['pose_stride']} apart"
-               + ("" if s.get("motion_timescale_s") is None else f" (motion timescale {s['motion_timescale_s']:.3f} s)")),
+            + (f", {note}" if note else ""),
             "positions: root's horizontal position removed; joints: upper body "
             f"({len(s['joints'])} joints); BeatAlign: wrist speed minima vs speech onsets (sigma 0.3 s); "
             "H(speed): Hellinger distance of joint-speed histograms; FGD*: Frechet distance of 32-frame windows "

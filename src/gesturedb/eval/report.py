@@ -435,10 +435,7 @@ def _write_html(path: Path, ev, files: dict) -> Path:
            "the reference is the database's own motion.")
         + f" Every system chooses one database window every {s['step']} frames and is assembled the same way "
         f"(seams inertialized over {s['seam_decay_s']:.2f} s); random seed {s['seed']}."
-        + ("" if s.get("pose_stride") is None else f" The pose feature stacks frames {s['pose_stride']} apart"
-           + ("" if s.get("motion_timescale_s") is None
-              else f", from the database's motion timescale of {s['motion_timescale_s']:.3f} s") + ".")
-        + "</p>",
+        + (f" Pose feature: {html.escape(ev.pose_stride_note())}." if ev.pose_stride_note() else "") + "</p>",
         "<p class='note'>Systems: <b>random</b> windows (real motion, mismatched audio); <b>pose-only</b> "
         "(nearest entry pose, audio ignored); <b>audio-only</b> (nearest audio by cosine, pose ignored); "
         "<b>rank-sum</b> (Habibie et al. 2022: rank by pose and by audio, pick the smallest rank sum) with pose or "

@@ -79,18 +79,10 @@ def rhythm_agreement(positions: np.ndarray, *, word_start_s, word_end_s, fps: fl
 
 
 def rhythm_hamming(positions: np.ndarray, *, word_start_s, word_end_s, fps: float, joints, gap_s: float = 0.4) -> float:
-    """Mean Hamming distance (bits of 32) between speech and motion rhythm signatures over the input clips.
-
-    Parameters
-    ----------
-    positions : ndarray [shape=(T, J, 3)], metres
-    word_start_s, word_end_s : ndarray [shape=(W,)], seconds
-    joints : mapping role -> joint index (wrists and body-frame roles)
-    """
-
-    speech, motion = rhythm_signatures(positions, word_start_s=word_start_s, word_end_s=word_end_s, fps=fps,
-                                       joints=joints, gap_s=gap_s)
-    return float(np.mean(hamming(speech, motion)))
+    """Mean Hamming distance (bits of 32) between speech and motion rhythm signatures over the input clips:
+    :func:`rhythm_agreement`'s ``rhythm_hamming`` (arguments as there)."""
+    return rhythm_agreement(positions, word_start_s=word_start_s, word_end_s=word_end_s, fps=fps, joints=joints,
+                            gap_s=gap_s)["rhythm_hamming"]
 
 
 #: Seconds on each side of a window's cut that count as "at the seam" for :func:`seam_minima`: one frame
