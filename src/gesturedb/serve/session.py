@@ -344,7 +344,7 @@ class StreamSession:
             unfed, self._unfed = self._unfed, []
             await self._synth(_feed, self.stream, unfed, self.fmt)
         sched = self.state.scheduler
-        if sched is not None and hasattr(self.stream, "end_speech"):
+        if sched is not None:  # a scheduler only serves gesturedb's own Stream (ServerState), which has end_speech
             # the last steps (the speech's tail, the final one shorter) go through the scheduler like any step:
             # searched with the other streams' waiting steps, so that streams ending together share passes
             # over the database instead of one each (the ends of 50 streams within half a second were the
