@@ -21,6 +21,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "assembly.h"
 #include "fk.h"
 #include "ik.h"
 #include "kernels.h"
@@ -682,6 +683,127 @@ PYBIND11_MODULE(_core, m) {
         py::arg("decay").noconvert(), py::arg("t").noconvert(), py::arg("rot").noconvert(),
         "exp(quintic offsets at t) * rot, (n, J, 4) (use "
         "gesturedb.synth.seams.apply_quintic_rotation_offsets, which validates).");
+
+    m.def(
+        "add_quintic_offsets",
+        [](const F64& x0, const F64& v0, const F64& a0, double decay, const F64& t, const F64& base) {
+            // (k,) x3, (n,), (n, k): checked here too, a wrong shape would read out of bounds
+            require_ndim(base, 2, "base");
+            const int64_t n = base.shape(0), k = base.shape(1);
+            for (const auto& [name, a] :
+                 {std::pair<const char*, const F64*>{"x0", &x0}, {"v0", &v0}, {"a0", &a0}})
+                if (a->ndim() != 1 || a->shape(0) != k)
+                    throw std::invalid_argument(std::string(name) + ": expected (" + std::to_string(k) +
+                                                ",); got " + shape_str(*a));
+            if (t.ndim() != 1 || t.shape(0) != n)
+                throw std::invalid_argument("t: expected (" + std::to_string(n) + ",); got " + shape_str(t));
+            py::array_t<double> out({n, k});
+            add_quintic_offsets(x0.data(), v0.data(), a0.data(), decay, t.data(), n, k, base.data(),
+                                out.mutable_data());
+            return out;
+        },
+        py::arg("x0").noconvert(), py::arg("v0").noconvert(), py::arg("a0").noconvert(), py::arg("decay"),
+        py::arg("t").noconvert(), py::arg("base").noconvert(),
+        "base + the quintic offsets at t, (n, k) (a seam's root: gesturedb.synth.assemble._Offset.apply).");
+
+    // these run microseconds on a few frames: the GIL stays held (releasing it would cost as much)
+    m.def(
+        "place_frames",
+        [](const F64& q, const F64& rot, const F64& root, const F64& src, std::optional<F64> dst,
+           bool zero_y) {
+            // (n or 1, 4), (n, J, 4), (n, 3), (n or 1, 3), (3,) or None: checked here too, a wrong shape
+            // would read out of bounds
+            require_ndim(rot, 3, "rot");
+            const int64_t n = rot.shape(0), J = rot.shape(1);
+            if (rot.shape(2) != 4 || J < 1)
+                throw std::invalid_argument("rot: expected (n, J >= 1, 4); got " + shape_str(rot));
+            if (q.ndim() != 2 || (q.shape(0) != n && q.shape(0) != 1) || q.shape(1) != 4)
+                throw std::invalid_argument("q: expected (" + std::to_string(n) + " or 1, 4); got " +
+                                            shape_str(q));
+            if (root.ndim() != 2 || root.shape(0) != n || root.shape(1) != 3)
+                throw std::invalid_argument("root: expected (" + std::to_string(n) + ", 3); got " +
+                                            shape_str(root));
+            if (src.ndim() != 2 || (src.shape(0) != n && src.shape(0) != 1) || src.shape(1) != 3)
+                throw std::invalid_argument("src: expected (" + std::to_string(n) + " or 1, 3); got " +
+                                            shape_str(src));
+            if (dst && (dst->ndim() != 1 || dst->shape(0) != 3))
+                throw std::invalid_argument("dst: expected (3,); got " + shape_str(*dst));
+            py::array_t<double> out_rot({n, J, int64_t(4)}), out_root({n, int64_t(3)});
+            place_frames(q.data(), q.shape(0) == n && n != 1, rot.data(), n, J, root.data(), src.data(),
+                         src.shape(0) == n && n != 1, zero_y, dst ? dst->data() : nullptr,
+                         out_rot.mutable_data(), out_root.mutable_data());
+            return py::make_tuple(out_rot, out_root);
+        },
+        py::arg("q").noconvert(), py::arg("rot").noconvert(), py::arg("root").noconvert(),
+        py::arg("src").noconvert(), py::arg("dst").noconvert(), py::arg("zero_y"),
+        "Frames (n, J, 4), (n, 3) turned by q about their source origin (use "
+        "gesturedb.synth.assemble._place).");
+
+    m.def(
+        "pull_root",
+        [](const F64& yaw, const F64& dyaw, const F64& dx, int64_t first, double kh, double kp, double h_prev,
+           double y_prev0, double y_prev1) {
+            // (T,), (T - first,), (T - first, 2): checked here too, a wrong shape would read out of bounds
+            require_ndim(yaw, 1, "yaw");
+            const int64_t T = yaw.shape(0);
+            if (first != 0 && first != 1)
+                throw std::invalid_argument("first: expected 0 or 1; got " + std::to_string(first));
+            if (dyaw.ndim() != 1 || dyaw.shape(0) != T - first)
+                throw std::invalid_argument("dyaw: expected (" + std::to_string(T - first) + ",); got " +
+                                            shape_str(dyaw));
+            if (dx.ndim() != 2 || dx.shape(0) != T - first || dx.shape(1) != 2)
+                throw std::invalid_argument("dx: expected (" + std::to_string(T - first) + ", 2); got " +
+                                            shape_str(dx));
+            py::array_t<double> h({T}), y({T, int64_t(2)});
+            double *ph = h.mutable_data(), *py_ = y.mutable_data();
+            if (first == 1 && T > 0) {
+                ph[0] = h_prev;
+                py_[0] = y_prev0;
+                py_[1] = y_prev1;
+            }
+            pull_root(yaw.data(), dyaw.data(), dx.data(), T, first, kh, kp, h_prev, y_prev0, y_prev1, ph,
+                      py_);
+            return py::make_tuple(h, y);
+        },
+        py::arg("yaw").noconvert(), py::arg("dyaw").noconvert(), py::arg("dx").noconvert(), py::arg("first"),
+        py::arg("kh"), py::arg("kp"), py::arg("h_prev"), py::arg("y_prev0"), py::arg("y_prev1"),
+        "Pulled heading (T,) and horizontal root (T, 2) (use gesturedb.synth.assemble._Pull).");
+
+    m.def(
+        "seam_offset",
+        [](const F64& old_rot, const F64& new_rot, const F64& old_root, const F64& new_root, double fps,
+           std::optional<F64> accel_rot, double accel_root, double decay_s, double max_decay_s) {
+            // (3, J, 4) x2, (3, 3) x2, (J,) or None: checked here too, a wrong shape would read out of bounds
+            require_ndim(old_rot, 3, "old_rot");
+            const int64_t J = old_rot.shape(1);
+            if (old_rot.shape(0) != 3 || old_rot.shape(2) != 4)
+                throw std::invalid_argument("old_rot: expected (3, J, 4); got " + shape_str(old_rot));
+            if (new_rot.ndim() != 3 || new_rot.shape(0) != 3 || new_rot.shape(1) != J ||
+                new_rot.shape(2) != 4)
+                throw std::invalid_argument("new_rot: expected (3, " + std::to_string(J) + ", 4); got " +
+                                            shape_str(new_rot));
+            for (const auto& [name, a] :
+                 {std::pair<const char*, const F64*>{"old_root", &old_root}, {"new_root", &new_root}})
+                if (a->ndim() != 2 || a->shape(0) != 3 || a->shape(1) != 3)
+                    throw std::invalid_argument(std::string(name) + ": expected (3, 3); got " +
+                                                shape_str(*a));
+            if (accel_rot && (accel_rot->ndim() != 1 || accel_rot->shape(0) != J))
+                throw std::invalid_argument("accel_rot: expected (" + std::to_string(J) + ",); got " +
+                                            shape_str(*accel_rot));
+            py::array_t<double> rot_der({int64_t(3), J, int64_t(3)}), root_der({int64_t(3), int64_t(3)}),
+                decay_rot({J});
+            double decay_root = 0.0;
+            seam_offset(old_rot.data(), new_rot.data(), old_root.data(), new_root.data(), J, fps,
+                        accel_rot.has_value(), accel_rot ? accel_rot->data() : nullptr, accel_root, decay_s,
+                        max_decay_s, rot_der.mutable_data(), root_der.mutable_data(),
+                        decay_rot.mutable_data(), &decay_root);
+            return py::make_tuple(rot_der, root_der, decay_rot, decay_root);
+        },
+        py::arg("old_rot").noconvert(), py::arg("new_rot").noconvert(), py::arg("old_root").noconvert(),
+        py::arg("new_root").noconvert(), py::arg("fps"), py::arg("accel_rot").noconvert(),
+        py::arg("accel_root"), py::arg("decay_s"), py::arg("max_decay_s"),
+        "A seam's offsets (x0, v0, a0) of the joints (3, J, 3) and the root (3, 3) and their decays (J,), s "
+        "(use gesturedb.synth.assemble._seam_offset).");
 
     m.def(
         "two_bone_ik",

@@ -54,4 +54,21 @@ void apply_quintic_rotation_offsets(const double* x0, const double* v0, const do
     }
 }
 
+void add_quintic_offsets(const double* x0, const double* v0, const double* a0, double decay, const double* t,
+                         int64_t n, int64_t k, const double* base, double* out) {
+    const double D = decay;
+    for (int64_t i = 0; i < n; ++i) {
+        const double ti = t[i];
+        for (int64_t c = 0; c < k; ++c) {
+            const double x = x0[c], v = v0[c], a = a0[c];
+            // quintic_offsets' A, B, C and Horner's scheme, operation for operation
+            const double A = -(a * D * D + 6 * v * D + 12 * x) / (2 * std::pow(D, 5));
+            const double B = (3 * a * D * D + 16 * v * D + 30 * x) / (2 * std::pow(D, 4));
+            const double C = -(3 * a * D * D + 12 * v * D + 20 * x) / (2 * std::pow(D, 3));
+            const double off = ti < D ? ((((A * ti + B) * ti + C) * ti + 0.5 * a) * ti + v) * ti + x : 0.0;
+            out[i * k + c] = base[i * k + c] + off;
+        }
+    }
+}
+
 }  // namespace gesturedb

@@ -19,4 +19,10 @@ namespace gesturedb {
 void apply_quintic_rotation_offsets(const double* x0, const double* v0, const double* a0, const double* decay,
                                     const double* t, int64_t n, int64_t J, const double* rot, double* out);
 
+// base (n, k) + the quintic from (x0, v0, a0) (k,) at 0 to rest at decay (one
+// decay for all k), at times t (n,): gesturedb.synth.seams.quintic_offsets added to
+// a seam's root positions, the same operations in the same order.
+void add_quintic_offsets(const double* x0, const double* v0, const double* a0, double decay, const double* t,
+                         int64_t n, int64_t k, const double* base, double* out);
+
 }  // namespace gesturedb

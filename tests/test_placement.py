@@ -471,6 +471,110 @@ def test_seam_offsets_in_cpp_equal_the_numpy_composition(scott_db):
         apply_quintic_rotation_offsets(x0, v0, a0, 0.5, t[1:], q)
 
 
+def _random_quats(rng, shape):
+    return R.normalize(rng.normal(size=shape + (4,)))
+
+
+def test_the_assembly_kernels_in_cpp_give_numpy_s_bits(scott_db):
+    """csrc/assembly.cpp's placement and pulls, and the helpers that replaced numpy calls on a live step's path,
+    against the numpy they replaced: the same bits (their operations in their order), zeros and identities
+    included (the sign of a zero decides an angle of pi)."""
+
+    import gesturedb._core as _core
+    from gesturedb.motion import forward_kinematics
+    from gesturedb.synth import assemble as A
+    from gesturedb.synth.contacts import _planar_distance
+
+    rng = np.random.default_rng(5)
+    J = scott_db.skeleton.n_joints
+    q = _random_quats(rng, (40,))
+    q[:3] = [[1, 0, 0, 0], [0, 0, 1, 0], [-1, 0, 0, 0]]  # identity, half a turn about y, -identity
+    fwd = R.apply(q, np.broadcast_to(np.array([0.0, 0.0, 1.0]), (40, 3)))
+    assert np.array_equal(A._yaw_of(q), np.arctan2(fwd[:, 0], fwd[:, 2]))
+    a = rng.normal(size=(500, 3)) * rng.uniform(1e-3, 1e3, size=(500, 1))
+    assert np.array_equal(R.norm3(a), np.linalg.norm(a, axis=-1, keepdims=True))
+    assert all(_planar_distance(u, v) == np.linalg.norm((u - v)[[0, 2]]) for u, v in zip(a[:250], a[250:]))
+    # placement: a piece turned and moved onto the output (_place) and recordings put at the origin (placed_frames)
+    rot, root = _random_quats(rng, (9, J)), rng.normal(size=(9, 3))
+    rot[0, 0] = [1, 0, 0, 0]
+    for theta in (0.0, 0.7, -np.pi, np.pi):
+        yq = A._yaw_quat(theta)
+        src, dst = rng.normal(size=3), rng.normal(size=3)
+        want_rot = rot.copy()
+        want_rot[:, 0] = R.multiply(np.broadcast_to(yq, (9, 4)), rot[:, 0])
+        d = root - src
+        d[:, 1] = 0.0
+        want_root = R.apply(np.broadcast_to(yq, (9, 4)), d) + dst
+        want_root[:, 1] = root[:, 1]
+        got_rot, got_root = A._place(rot, root, (theta, src, dst))
+        assert np.array_equal(got_rot, want_rot) and np.array_equal(got_root, want_root)
+    yq, centre = A._yaw_quat(rng.uniform(-np.pi, np.pi, size=9)), rng.normal(size=(9, 3))
+    want_root = R.apply(yq, root - centre)
+    want_root[:, 1] = root[:, 1]
+    want_rot = rot.copy()
+    want_rot[:, 0] = R.multiply(yq, rot[:, 0])
+    got_rot, got_root = _core.place_frames(yq, rot, root, centre, None, False)
+    assert np.array_equal(got_rot, want_rot) and np.array_equal(got_root, want_root)
+    # the pulls' loop over frames
+    yaw, xz = rng.uniform(-4, 4, size=12), rng.normal(size=(12, 2))
+    for first, h_prev, y_prev in ((1, yaw[0], xz[0]), (0, 3.1, np.array([0.2, -0.4]))):
+        dyaw = A._wrap(np.diff(yaw) if first else np.diff(np.concatenate([[2.9], yaw])))
+        dx = np.diff(xz, axis=0) if first else np.diff(np.concatenate([[[0.1, 0.1]], xz]), axis=0)
+        h, y = np.empty(12), np.empty((12, 2))
+        h[0], y[0] = yaw[0], xz[0]
+        hp, yp = h_prev, y_prev
+        for t in range(first, 12):  # the numpy loop _Pull.run ran until 2026-11-28
+            i = t - 1 + (1 - first)
+            h[t] = hp + dyaw[i] - 0.03 * A._wrap(hp)
+            c, s = np.cos(h[t] - yaw[t]), np.sin(h[t] - yaw[t])
+            y[t] = yp + np.array([c * dx[i, 0] + s * dx[i, 1], -s * dx[i, 0] + c * dx[i, 1]]) - 0.01 * yp
+            hp, yp = h[t], y[t]
+        gh, gy = _core.pull_root(yaw, np.ascontiguousarray(dyaw), dx, first, 0.03, 0.01, float(h_prev),
+                                 float(y_prev[0]), float(y_prev[1]))
+        assert np.array_equal(gh[first:], h[first:]) and np.array_equal(gy[first:], y[first:])
+    # forward kinematics without a Motion: a Motion's, rotations renormalised alike
+    drift = rot * (1 + 1e-9)
+    m = Motion(skeleton=scott_db.skeleton, fps=15.0, rotations=drift, root_positions=root)
+    for got, want in zip(forward_kinematics(scott_db.skeleton, drift, root), m.forward_kinematics()):
+        assert np.array_equal(got, want)
+
+
+def test_a_seams_offset_in_cpp_equals_the_numpy_reference(scott_db):
+    """csrc/assembly.cpp's seam offset against _seam_arithmetic_numpy: equal to rounding (atan2 is libm's there,
+    numpy's rounds differently in the last bit for some values), with the samples' branches through pi, with
+    and without the adaptive decays, and the root's quintic in C++ against root + quintic_offsets."""
+    import gesturedb._core as _core
+    from gesturedb.synth import assemble as A
+    from gesturedb.synth.seams import quintic_offsets
+
+    rng = np.random.default_rng(6)
+    J = scott_db.skeleton.n_joints
+    new = _random_quats(rng, (3, J))
+    turn = rng.normal(size=(J, 3))
+    turn /= np.linalg.norm(turn, axis=-1, keepdims=True)
+    ang = rng.uniform(0, np.pi, size=(J, 1))
+    ang[:4] = np.pi - 0.02  # offsets that pass through pi over the three samples
+    old = np.stack([R.multiply(R.from_axis_angle(turn * (ang + 0.02 * k)), new[k]) for k in range(3)])
+    old_root, new_root = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+    accel = (rng.uniform(1, 400, size=J), 3.0)
+    for acc in (accel, None):
+        got = _core.seam_offset(old, new, old_root, new_root, 15.0, None if acc is None else acc[0],
+                                0.0 if acc is None else acc[1], 8 / 15, 3 * 8 / 15)
+        want = A._seam_arithmetic_numpy(old, new, old_root, new_root, fps=15.0, decay_s=8 / 15, accel=acc)
+        np.testing.assert_allclose(got[0], np.stack(want[0]), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(got[1], np.stack(want[1]), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(got[2], want[2], rtol=1e-12)
+        assert got[3] == pytest.approx(want[3], rel=1e-12)
+    assert np.abs(got[0][1][:4]).max() < 2  # through pi: the velocity of 0.02 rad a frame, not a 2 pi jump
+    x0, v0, a0 = rng.normal(size=(3, 3))
+    t, base = np.arange(12) / 15.0, rng.normal(size=(12, 3))
+    np.testing.assert_allclose(_core.add_quintic_offsets(x0, v0, a0, 0.5, t, base),
+                               base + quintic_offsets(x0, v0, a0, 0.5, t), rtol=0, atol=1e-14)
+    assert np.array_equal(_core.add_quintic_offsets(x0, v0, a0, 0.5, t, base)[t >= 0.5], base[t >= 0.5])
+    with pytest.raises(ValueError, match=r"new_rot: expected \(3, \d+, 4\); got \(2, "):
+        _core.seam_offset(old, new[:2], old_root, new_root, 15.0, None, 0.0, 0.5, 1.5)
+
+
 @pytest.mark.slow
 def test_no_heading_drift_over_five_minutes(scott_db, scott_dir):
     """The four input WAVs (and the first again) end to end: 5 minutes keep facing forward, near the origin."""

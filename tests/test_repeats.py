@@ -129,8 +129,11 @@ def test_guard_on_the_real_database(scott_db, scott_dir):
     # the same whole search, one kernel call per step with nothing to guard
     tiny = s.synthesize(wav, repeat_guard_s=0.01)
     np.testing.assert_array_equal(tiny.source_frames, off.source_frames)
-    # the provenance agrees with the statistics
+    # the provenance agrees with the statistics, and the stream's overlap per step (from the windows it keeps
+    # as an array, grown past its first 64 rows here) with repeat_of over the whole synthesis
     rep = [st["repeat_of"] for st in on.steps]
+    assert len(rep) > 64
+    assert rep == repeat_of([st["db_frame"] for st in on.steps], [st["out_end"] - st["out_start"] for st in on.steps])
     assert sum(r is not None for r in rep) == on.repeats["repeats"]
     for i, j in enumerate(rep):
         if j is not None:

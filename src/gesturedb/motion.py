@@ -20,7 +20,7 @@ import numpy as np
 from gesturedb import rotations as rot
 from gesturedb.errors import ParameterError
 
-__all__ = ["Motion", "Skeleton", "mirror_permutation", "resampled_length"]
+__all__ = ["Motion", "Skeleton", "forward_kinematics", "mirror_permutation", "resampled_length"]
 
 # Quaternions further than this from unit norm are rejected rather than silently
 # renormalised: they come from a bug (an unnormalised blend), not from rounding.
@@ -282,6 +282,33 @@ def resampled_length(n_frames: int, fps_src: float, fps: float) -> int:
     return int(math.floor((n_frames - 1) * fps / fps_src + 1e-9)) + 1
 
 
+def _renormalised(q: np.ndarray, norm: np.ndarray) -> np.ndarray:
+    """``q`` (..., 4) with the quaternions whose ``norm`` (...) rounding moved off 1 renormalised: unit
+    input (a slice, a mirror of a mirror) keeps its exact bits and is not copied."""
+    drift = np.abs(norm - 1.0) > 1e-12
+    return np.where(drift[..., None], q / norm[..., None], q) if drift.any() else q
+
+
+def forward_kinematics(skeleton: Skeleton, rotations: np.ndarray, root: np.ndarray, *, want_rotations: bool = True):
+    """:meth:`Motion.forward_kinematics` of arrays a Motion would hold (rotations (F, J, 4), root (F, 3) m),
+    without its checks; ``(positions (F, J, 3), global rotations (F, J, 4) or None without
+    ``want_rotations``)``: the assembly's feet take the kinematics of every piece of a
+    live step, where making a Motion cost more than the kinematics (the same bits: the rotations are
+    renormalised as a Motion renormalises them)."""
+    # local on purpose, as in gesturedb.search: the compiled core is no stage of the layers
+    import gesturedb._core as _core
+
+    q = np.asarray(rotations, dtype=np.float64)
+    q = _renormalised(q, rot._norm4(q)[..., 0])
+    # quaternions to matrices, the chain and back in C++ (csrc/fk.cpp), frame by frame: the numpy
+    # loop over joints cost a live step 1.3 ms per 8-frame piece in call overhead, and numpy's
+    # to_matrix and from_matrix about 1 ms more; the conversions are numpy's to the bit
+    # (tests/test_motion.py checks both against numpy)
+    return _core.forward_kinematics_quat(np.ascontiguousarray(q), np.ascontiguousarray(root, dtype=np.float64),
+                                         np.ascontiguousarray(skeleton.parents, dtype=np.int64),
+                                         np.ascontiguousarray(skeleton.offsets, dtype=np.float64), want_rotations)
+
+
 @dataclass(eq=False)
 class Motion:
     """Motion of a skeleton: local joint rotations and the root trajectory.
@@ -339,10 +366,7 @@ class Motion:
             f, jj = np.argwhere(off)[0]
             raise ParameterError(f"Motion.rotations: joint {names[jj]} at frame {f} is not a unit quaternion "
                                  f"(norm {norm[f, jj]:.6g})")
-        # renormalise only what rounding moved, so unit input (a slice, a mirror of a
-        # mirror) keeps its exact bits and is not copied
-        drift = np.abs(norm - 1.0) > 1e-12
-        self.rotations = np.where(drift[..., None], q / norm[..., None], q) if drift.any() else q
+        self.rotations = _renormalised(q, norm)
         self.root_positions = root
 
     @property
@@ -359,20 +383,7 @@ class Motion:
         return self.n_frames
 
     def _fk(self, want_rotations: bool):
-        sk = self.skeleton
-        # local on purpose, as in gesturedb.search: the compiled core is no stage of the layers
-        import gesturedb._core as _core
-
-        offsets = np.ascontiguousarray(sk.offsets, dtype=np.float64)
-        parents = np.ascontiguousarray(sk.parents, dtype=np.int64)
-        # quaternions to matrices, the chain and back in C++ (csrc/fk.cpp), frame by frame: the numpy
-        # loop over joints cost a live step 1.3 ms per 8-frame piece in call overhead, and numpy's
-        # to_matrix and from_matrix about 1 ms more; the conversions are numpy's to the bit
-        # (tests/test_motion.py checks both against numpy)
-        pos, grot = _core.forward_kinematics_quat(np.ascontiguousarray(self.rotations, dtype=np.float64),
-                                                  np.ascontiguousarray(self.root_positions, dtype=np.float64),
-                                                  parents, offsets, want_rotations)
-        return pos, grot
+        return forward_kinematics(self.skeleton, self.rotations, self.root_positions, want_rotations=want_rotations)
 
     def forward_kinematics(self) -> tuple[np.ndarray, np.ndarray]:
         """World positions and rotations of every joint in every frame.

@@ -440,7 +440,7 @@ class Database:
             file, from its shard files).
         """
         frames = np.asarray(frames)
-        if frames.ndim != 1 or not (frames.size == 0 or np.issubdtype(frames.dtype, np.integer)):
+        if frames.ndim != 1 or not (frames.size == 0 or frames.dtype.kind in "iu"):  # integers (not bool)
             raise ParameterError(f"frames: expected a 1-D array of frame indices, got shape {frames.shape} "
                                  f"dtype {frames.dtype}")
         frames = frames.astype(np.int64, copy=False)

@@ -58,19 +58,18 @@ from typing import NamedTuple
 
 import numpy as np
 
+import gesturedb._core as _core  # the compiled core: placement, seams and pulls of a live step
 from gesturedb import rotations as R
-from gesturedb.motion import Motion
+from gesturedb.motion import Motion, forward_kinematics
 from gesturedb.synth.contacts import FootPlanter, foot_contacts, foot_joints
 from gesturedb.synth.seams import (
     LEAD_FRAMES,
     SEAM_DECAY_S,
     adaptive_decays,
-    apply_quintic_rotation_offsets,
     check_decay_s,
     continuous_rotation_vectors,
     decay_frames,
     extend_constant_velocity,
-    quintic_offsets,
     rotation_offsets,
     seam_derivatives,
 )
@@ -122,13 +121,25 @@ class Piece:
 
 def _yaw_of(q: np.ndarray) -> np.ndarray:
     """Heading angle (rad, about +y) of the root's forward axis (+z) under rotations q (..., 4)."""
-    fwd = R.apply(q, np.broadcast_to(np.array([0.0, 0.0, 1.0]), q.shape[:-1] + (3,)))
-    return np.arctan2(fwd[..., 0], fwd[..., 2])
+    # R.apply(q, (0, 0, 1)) written out for that vector, every product and sum of it kept in its order (the
+    # zeros too: they decide the sign of a zero), so the same bits without its broadcasting and checks,
+    # which cost more than the arithmetic on a live step's few frames (called five times a step)
+    q = np.asarray(q, dtype=np.float64)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    t0 = 2.0 * (y * 1.0 - z * 0.0)
+    t1 = 2.0 * (z * 0.0 - x * 1.0)
+    t2 = 2.0 * (x * 0.0 - y * 0.0)
+    fx = 0.0 + w * t0 + (y * t2 - z * t1)
+    fz = 1.0 + w * t2 + (x * t1 - y * t0)
+    return np.arctan2(fx, fz)
 
 
 def _yaw_quat(angle: np.ndarray | float) -> np.ndarray:
     a = np.asarray(angle, dtype=np.float64) / 2
-    return np.stack([np.cos(a), np.zeros_like(a), np.sin(a), np.zeros_like(a)], axis=-1)
+    out = np.zeros(a.shape + (4,))
+    out[..., 0] = np.cos(a)
+    out[..., 2] = np.sin(a)
+    return out
 
 
 # One placement per recording of an open database, computed when a piece first needs it (a first
@@ -180,15 +191,17 @@ def placed_frames(db, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Local rotations (n, J, 4) and root positions (n, 3) of database frames, normalised per recording."""
     frames = np.asarray(frames, dtype=np.int64)
     rec = db.rows("frame_recording", frames)
-    recs, rec = np.unique(rec, return_inverse=True)  # only the recordings of these frames are placed
+    if rec.size and (rec == rec[0]).all():  # a window: one recording (np.unique's answer, at a third of its cost)
+        recs, rec = rec[:1], np.zeros(rec.size, dtype=np.intp)
+    else:
+        recs, rec = np.unique(rec, return_inverse=True)  # only the recordings of these frames are placed
     mean_yaw, centre = recording_placement(db, recs)
     rot = np.asarray(db.rows("local_rotations", frames), dtype=np.float64)
     root0 = np.asarray(db.rows("root_positions", frames), dtype=np.float64)
-    q = _yaw_quat(-mean_yaw[rec])
-    root = R.apply(q, root0 - centre[rec])
-    root[:, 1] = root0[:, 1]
-    rot[:, 0] = R.multiply(q, rot[:, 0])
-    return rot, root
+    # the turn and the root's rotation in C++ (csrc/assembly.cpp): rotations.multiply and rotations.apply's
+    # operations, the same bits, without a dozen numpy calls on a live step's few frames
+    return _core.place_frames(_yaw_quat(-mean_yaw[rec]), np.ascontiguousarray(rot), root0,
+                              np.ascontiguousarray(centre[rec]), None, False)
 
 
 def continuation(db, last_frame: int, n: int) -> np.ndarray:
@@ -221,14 +234,12 @@ def _wrap(a):
 def _place(rot: np.ndarray, root: np.ndarray, tf) -> tuple[np.ndarray, np.ndarray]:
     """Apply a placement ``(yaw rad, source origin (3,), output origin (3,))`` to rotations and root."""
     theta, src, dst = tf
-    q = _yaw_quat(theta)
-    rot = rot.copy()
-    rot[:, 0] = R.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
-    d = root - src
-    d[:, 1] = 0.0
-    out = R.apply(np.broadcast_to(q, d.shape[:-1] + (4,)), d) + dst
-    out[:, 1] = root[:, 1]
-    return rot, out
+    # in C++ (csrc/assembly.cpp): rot[:, 0] = R.multiply(q, rot[:, 0]) and, with d = root - src with its y
+    # zeroed, R.apply(q, d) + dst with the y of root, their operations in their order: the same bits
+    return _core.place_frames(_yaw_quat(theta)[None], np.ascontiguousarray(rot, dtype=np.float64),
+                              np.ascontiguousarray(root, dtype=np.float64),
+                              np.ascontiguousarray(src, dtype=np.float64).reshape(1, 3),
+                              np.ascontiguousarray(dst, dtype=np.float64), True)
 
 
 class _Pull:
@@ -246,26 +257,18 @@ class _Pull:
             return rot, root
         yaw = _yaw_of(rot[:, 0])
         xz = root[:, [0, 2]]
-        h = np.empty(T)
-        y = np.empty((T, 2))
         if self.last is None:
             h_prev, y_prev = yaw[0], xz[0]
-            h[0], y[0] = h_prev, y_prev
             dyaw, dx, first = _wrap(np.diff(yaw)), np.diff(xz, axis=0), 1
         else:
             yaw0, xz0, h_prev, y_prev = self.last
             dyaw = _wrap(np.diff(np.concatenate([[yaw0], yaw])))
             dx, first = np.diff(np.concatenate([xz0[None], xz]), axis=0), 0
-        kh, kp = self.kh, self.kp
-        for t in range(first, T):
-            i = t - 1 + (1 - first)  # index of frame t's difference
-            h[t] = h_prev + dyaw[i] - kh * _wrap(h_prev)
-            delta = h[t] - yaw[t]
-            c, s = np.cos(delta), np.sin(delta)
-            # rotation about +y by delta maps (x, z) -> (x cos + z sin, -x sin + z cos)
-            v = np.array([c * dx[i, 0] + s * dx[i, 1], -s * dx[i, 0] + c * dx[i, 1]])
-            y[t] = y_prev + v - kp * y_prev
-            h_prev, y_prev = h[t], y[t]
+        # the loop over frames in C++ (csrc/assembly.cpp, the same operations: tests/test_placement.py checks it
+        # against this loop in numpy to the bit), where it cost a live step about ten numpy calls a frame
+        h, y = _core.pull_root(np.ascontiguousarray(yaw, dtype=np.float64), np.ascontiguousarray(dyaw),
+                               np.ascontiguousarray(dx, dtype=np.float64), first, self.kh, self.kp, float(h_prev),
+                               float(y_prev[0]), float(y_prev[1]))
         self.last = (yaw[-1], xz[-1], h[-1], y[-1])
         delta = h - yaw
         rot = rot.copy()
@@ -426,8 +429,7 @@ class PieceAssembler:
                     contacts[:] = np.asarray(given[: b - a], dtype=bool)
                 else:
                     # contacts need only heights and speeds, which placement keeps: the piece's own poses
-                    pos = Motion(skeleton=self.skeleton, fps=fps, rotations=p_rot[: b - a],
-                                 root_positions=p_root[: b - a]).positions
+                    pos, _ = forward_kinematics(self.skeleton, p_rot[: b - a], p_root[: b - a], want_rotations=False)
                     contacts[:] = foot_contacts(pos, fps=fps, feet=self.feet, floor_y=self.floor_y)
             if lead is not None:
                 lead = _place(np.asarray(lead[0], dtype=np.float64), np.asarray(lead[1], dtype=np.float64), tf_prev)
@@ -536,18 +538,29 @@ def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, acc
             new_rot, new_root = np.concatenate([new_rot, new_rot]), np.concatenate([new_root, new_root])
         e_rot, e_root = extend_constant_velocity(new_rot, new_root, n - new_rot.shape[0])
         new_rot, new_root = np.concatenate([new_rot, e_rot])[:n], np.concatenate([new_root, e_root])[:n]
+    # in C++ (csrc/assembly.cpp): the arithmetic below in numpy (_seam_arithmetic_numpy, the reference
+    # tests/test_placement.py holds it to) ran some forty small array operations per seam
+    r_der, p_der, dr, dp = _core.seam_offset(
+        *(np.ascontiguousarray(x, dtype=np.float64) for x in (old_rot, new_rot, old_root, new_root)), float(fps),
+        None if accel is None else np.ascontiguousarray(accel[0], dtype=np.float64),
+        0.0 if accel is None else float(accel[1]), float(decay_s), MAX_DECAY_FACTOR * decay_s)
+    n = decay_frames(float(np.max(dr)), fps)
+    return _Offset(a, tuple(r_der), tuple(p_der), dr, dp, max(n, decay_frames(float(dp), fps)))
+
+
+def _seam_arithmetic_numpy(old_rot, new_rot, old_root, new_root, *, fps, decay_s, accel=None):
+    """What :func:`_seam_offset` computes in C++, in numpy: ``(r_der, p_der, dr, dp)``, the joints' and the
+    root's ``(x0, v0, a0)`` ((J, 3) each, (3,) each) and their decays ((J,) s, a float)."""
     # rotation vectors wrap at pi: each sample on the branch nearest the one before, so that the
     # differences are the motion's
     d_rot = continuous_rotation_vectors(rotation_offsets(old_rot, new_rot))
     r_der, p_der = seam_derivatives(d_rot, fps), seam_derivatives(old_root - new_root, fps)
     if accel is None:
-        dr, dp = decay_s, decay_s
-    else:
-        # no longer than a few times the base decay: a seam between opposite poses still ends
-        dr = np.minimum(adaptive_decays(r_der[0], r_der[1], accel[0], decay_s), MAX_DECAY_FACTOR * decay_s)
-        dp = float(np.minimum(adaptive_decays(p_der[0], p_der[1], accel[1], decay_s), MAX_DECAY_FACTOR * decay_s)[0])
-    n = decay_frames(float(np.max(dr)), fps)
-    return _Offset(a, r_der, p_der, dr, dp, max(n, decay_frames(float(dp), fps)))
+        return r_der, p_der, np.full(old_rot.shape[1], float(decay_s)), float(decay_s)
+    # no longer than a few times the base decay: a seam between opposite poses still ends
+    dr = np.minimum(adaptive_decays(r_der[0], r_der[1], accel[0], decay_s), MAX_DECAY_FACTOR * decay_s)
+    dp = float(np.minimum(adaptive_decays(p_der[0], p_der[1], accel[1], decay_s), MAX_DECAY_FACTOR * decay_s)[0])
+    return r_der, p_der, dr[:, 0], dp
 
 
 class _Offset(NamedTuple):
@@ -563,10 +576,15 @@ class _Offset(NamedTuple):
 
     def apply(self, rot: np.ndarray, root: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rotations (n, J, 4) and root (n, 3) with the offset at times ``t`` (s after the seam) added."""
-        # the rotations in C++ (seams.apply_quintic_rotation_offsets): per frame, so a stream's and the
-        # offline synthesis's frames stay the same bits
-        return (apply_quintic_rotation_offsets(*self.rot, self.decay_rot, t, rot),
-                root + quintic_offsets(*self.root, self.decay_root, t))
+        # in C++ (csrc/seams.cpp), per frame, so a stream's and the offline synthesis's frames stay the same
+        # bits: the rotations as seams.apply_quintic_rotation_offsets, the root as root + seams.quintic_offsets
+        # (the same operations). Called without that function's checks: the offsets come from _core.seam_offset
+        # as contiguous float64 of the right shapes, and the core checks them again
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        return (_core.apply_quintic_rotation_offsets(*self.rot, self.decay_rot, t,
+                                                     np.ascontiguousarray(rot, dtype=np.float64)),
+                _core.add_quintic_offsets(*self.root, self.decay_root, t,
+                                          np.ascontiguousarray(root, dtype=np.float64)))
 
 
 #: The longest decay of an adaptive seam, in base decays (``seam_decay_s``).

@@ -9,12 +9,14 @@ world orientation so the sole stays flat. The root is not moved.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from gesturedb import rotations as R
 from gesturedb.errors import ParameterError
 from gesturedb.io.joints import ankle_joints, body_keys
-from gesturedb.motion import Motion
+from gesturedb.motion import forward_kinematics
 
 __all__ = ["CONTACT_HEIGHT_M", "CONTACT_SPEED_M_S", "MAX_FILL_GAP_S", "FootPlanter", "fill_non_steps", "foot_contacts",
            "foot_joints", "leg_joints", "plant_feet", "smoothstep", "two_bone_ik"]
@@ -202,6 +204,14 @@ def _two_bone_ik_numpy(rotations: np.ndarray, global_rot: np.ndarray, positions:
     return out
 
 
+def _planar_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Horizontal (x, z) distance of two points (3,): ``np.linalg.norm((a - b)[[0, 2]])`` bit for bit (its
+    own ``dot`` and a correctly rounded square root), without the wrapper's checks, taken per frame and
+    side in a live step's foot planting."""
+    d = (a - b)[[0, 2]]
+    return math.sqrt(d.dot(d))
+
+
 def smoothstep(x):
     """``3x^2 - 2x^3`` on [0, 1] (clipped): zero slope at both ends."""
     x = np.clip(x, 0.0, 1.0)
@@ -241,7 +251,7 @@ class _Fill:
                 e += 1
             if e < T and planted[e - base]:  # the gap ended at e
                 fill = (self.anchor is not None
-                        and np.linalg.norm((free[e - base] - self.anchor)[[0, 2]]) < self.min_step_m)
+                        and _planar_distance(free[e - base], self.anchor) < self.min_step_m)
                 out[g0 - base:e - base] = fill
                 if not fill:
                     self.anchor = None
@@ -311,7 +321,7 @@ class _Targets:
                     # planted again after a step that ended in the air: the new contact starts where the ankle
                     # is now (going back to the old anchor would be a jump)
                     anchor = target[i - 1].copy()
-                if np.linalg.norm((free[i] - anchor)[[0, 2]]) > self.max_drift_m:
+                if _planar_distance(free[i], anchor) > self.max_drift_m:
                     # a step: from the anchor to where the motion has the foot at the step's end
                     if not final and t + self.step_frames >= T:
                         break  # its end has not come yet: the state stays as it was before frame t
@@ -366,7 +376,7 @@ class _Targets:
             land = last = min(i + self.step_frames - 1, n - 1)
         # no faster than a step: a foot far from its anchor (the motion swept it 0.64 m away on a BEAT2 input)
         # takes longer; the frames after ``land`` are not read, so this waits for nothing
-        dist = float(np.linalg.norm((free[land] - self.anchor)[[0, 2]]))
+        dist = _planar_distance(free[land], self.anchor)
         last = max(last, i + int(np.ceil(dist * self.step_frames / self.max_drift_m)) - 1)
         self.glide = (t, last + (t - i), free[land].copy(), bool(ahead.size))
         return True
@@ -387,7 +397,7 @@ class _Targets:
         # lift shows in the middle only: the glide ends at the height where the foot lands (ending where the
         # motion had the foot just before, still coming down, held a foot 6 cm up for seconds)
         u = (t - g0 + 1) / (g1 - g0 + 1)
-        lift = self.step_height_m * min(1.0, float(np.linalg.norm((to - self.anchor)[[0, 2]])) / self.max_drift_m)
+        lift = self.step_height_m * min(1.0, _planar_distance(to, self.anchor) / self.max_drift_m)
         arc = (1 - w) * self.anchor[1] + w * to[1] + lift * np.sin(np.pi * u)
         motion = wy * self.anchor[1] + (1 - wy) * free[i, 1]
         target[i, 1] = arc + max(0.0, motion - arc) * np.sin(np.pi * u)
@@ -472,8 +482,7 @@ class FootPlanter:
         ``(k, J, 4)`` of the frames that became final (frames ``n_out - k .. n_out - 1``)."""
         n = rotations.shape[0]
         if n:
-            pos, grot = Motion(skeleton=self.skeleton, fps=self.fps, rotations=rotations,
-                               root_positions=root).forward_kinematics()
+            pos, grot = forward_kinematics(self.skeleton, rotations, root)
             self._rot = np.concatenate([self._rot, rotations])
             self._contacts = np.concatenate([self._contacts, np.asarray(contacts, dtype=bool)])
             self._pos, self._grot = np.concatenate([self._pos, pos]), np.concatenate([self._grot, grot])

@@ -456,6 +456,7 @@ class Stream:
         self._whole = _whole
         self._held: list[tuple] = []  # _whole: the windows (frames, output frame, previous frame), read at finish
         self._windows: list[tuple[int, int, int]] = []  # (output frame, first database frame, length) per step
+        self._spans = np.empty((64, 2), dtype=np.int64)  # rows < len(_windows): each window's database frames [a, b)
         self._steps: list[dict] = []
         self._relaxed: list[bool] = []
         self._source: list[np.ndarray] = []
@@ -693,11 +694,15 @@ class Stream:
         self._source.append(frames)
         # the segment's recording is its frames' (a segment never spans two): no read of the file per step
         rec = db.recordings[int(self.searcher.seg_recording[int(res.segments[0])])]
-        # the latest earlier window this one overlaps (repeats.repeat_of for the last window only)
-        starts = np.fromiter((w[1] for w in self._windows[:-1]), dtype=np.int64, count=i)
-        ends = starts + np.fromiter((w[2] for w in self._windows[:-1]), dtype=np.int64, count=i)
-        hit = np.flatnonzero((starts < g + n) & (ends > g))
+        # the latest earlier window this one overlaps (repeats.repeat_of for the last window only), from the
+        # database spans kept as an array: rebuilt from the list each step, it cost a step more the longer the
+        # stream (about 0.1 ms after ten minutes)
+        if i >= self._spans.shape[0]:
+            self._spans = np.concatenate([self._spans, np.empty_like(self._spans)])
+        before = self._spans[:i]
+        hit = np.flatnonzero((before[:, 0] < g + n) & (before[:, 1] > g))
         rep = int(hit[-1]) if hit.size else None
+        self._spans[i] = (g, g + n)
         self._steps.append({
             "step": i,
             "out_start": t,

@@ -101,12 +101,11 @@ def adaptive_decays(x0: np.ndarray, v0: np.ndarray, accel_ref: np.ndarray, decay
     within ``accel_ref``, so a seam between two very different windows is spread over as long as
     the speaker would take to make that change, and a small one stays short.
 
-    x0, v0 : ndarray [shape=(..., k)] or (...), norms are taken over the last axis when ``k == 3``
-        (a rotation vector or a position: the offset's size, not its components).
+    x0, v0 : ndarray [shape=(..., 3)]
+        Rotation vectors or positions: their norms (the offset's size, not its components) decide.
     accel_ref : ndarray broadcastable to the norms, same unit per s^2
     """
-    x = np.linalg.norm(x0, axis=-1, keepdims=True)
-    v = np.linalg.norm(v0, axis=-1, keepdims=True)
+    x, v = R.norm3(x0), R.norm3(v0)
     a = np.maximum(np.asarray(accel_ref, dtype=np.float64), 1e-12)[..., None]
     d = np.maximum.reduce([np.full_like(x, float(decay_s)), np.sqrt(10 / np.sqrt(3) * x / a), 15 / 8 * v / a])
     return d
@@ -159,10 +158,9 @@ def continuous_rotation_vectors(d: np.ndarray) -> np.ndarray:
     """
     d = np.array(d, dtype=np.float64)
     for k in range(1, d.shape[0]):
-        ang = np.linalg.norm(d[k], axis=-1, keepdims=True)
+        ang = R.norm3(d[k])
         other = d[k] - 2 * np.pi * d[k] / np.maximum(ang, 1e-12)
-        nearer = (np.linalg.norm(other - d[k - 1], axis=-1, keepdims=True)
-                  < np.linalg.norm(d[k] - d[k - 1], axis=-1, keepdims=True))
+        nearer = R.norm3(other - d[k - 1]) < R.norm3(d[k] - d[k - 1])
         d[k] = np.where(nearer, other, d[k])
     return d
 
