@@ -11,6 +11,7 @@ from gesturedb.control import full_mask, unpack_bits
 from gesturedb.errors import ParameterError, SearchError
 from gesturedb.synth import Searcher
 from gesturedb.synth.repeats import (
+    Overlaps,
     clear_frames,
     guarded_search,
     repeat_of,
@@ -32,6 +33,15 @@ def test_clear_frames_matches_a_bool_reference():
             want[a:b] = False
         got = clear_frames(pack_bits(base), ranges)
         np.testing.assert_array_equal(unpack_bits(got, F), want)
+
+
+def test_overlaps_one_window_at_a_time_are_repeat_of():
+    """What a live stream keeps per window (Overlaps, its array grown past 64 rows) gives repeat_of's answer."""
+    rng = np.random.default_rng(4)
+    frames, lengths = rng.integers(0, 400, size=300), rng.integers(1, 12, size=300)
+    ov = Overlaps()
+    assert [ov.add(f, n) for f, n in zip(frames, lengths)] == repeat_of(frames, lengths)
+    assert ov.n == 300 and any(r is not None for r in repeat_of(frames, lengths))
 
 
 def test_repeat_statistics_by_hand():

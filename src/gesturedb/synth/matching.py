@@ -14,8 +14,8 @@ experiments" (Sec. 4) and as the refiner's training paths start; ``init="mean"``
 Window boundaries, placement and foot contacts are the shared assembly's
 (:mod:`gesturedb.synth.assemble`): each window continues the output's root from
 where it is, and the step in position, velocity and acceleration at each seam is
-inertialized (an offset that decays to zero over ``seam_decay_s``, 0.4 s by
-default; :mod:`gesturedb.synth.seams`); ``seam_decay_s=0`` copies the windows
+inertialized (an offset that decays to zero over ``seam_decay_s``, one step's
+0.53 s by default; :mod:`gesturedb.synth.seams`); ``seam_decay_s=0`` copies the windows
 back to back as in the paper.
 
 :class:`Stream` is the same search as the speech arrives (``Searcher.stream``, also named
@@ -61,7 +61,7 @@ from gesturedb.synth.options import (  # noqa: F401  (re-exported from their old
     default_step,
 )
 from gesturedb.synth.protocol import EvalSystem, Method
-from gesturedb.synth.repeats import check_guard_s, clear_frames, repeat_stats
+from gesturedb.synth.repeats import Overlaps, check_guard_s, clear_frames, repeat_stats
 from gesturedb.synth.result import SynthResult
 from gesturedb.synth.seams import SEAM_DECAY_S, check_decay_s
 from gesturedb.synth.stepquery import StepQuery  # noqa: F401  (re-exported from its old home)
@@ -438,7 +438,10 @@ class Stream:
         self.sample_rate = int(sample_rate)
         self.fps = float(db.fps)
         self._features = AudioFeatureStream(self.sample_rate, fps=db.fps, n_mfcc=int(db.config.get("n_mfcc", 13)))
-        self._query = np.zeros((0, db.audio_mean.shape[0]), dtype=np.float32)
+        # the standardised features so far: rows [0, _n_query) of a buffer that doubles when full (a new
+        # array at each feed copied all of them: a megabyte a step after 20 minutes)
+        self._query_buf = np.zeros((256, db.audio_mean.shape[0]), dtype=np.float32)
+        self._n_query = 0
         self._search = self.searcher._step_search(step=self.step, k=opts.k, preselect=opts.preselect,
                                                   exclude=opts.exclude, speaker=opts.speaker)
         self._excl = self._search.exclude
@@ -456,7 +459,7 @@ class Stream:
         self._whole = _whole
         self._held: list[tuple] = []  # _whole: the windows (frames, output frame, previous frame), read at finish
         self._windows: list[tuple[int, int, int]] = []  # (output frame, first database frame, length) per step
-        self._spans = np.empty((64, 2), dtype=np.int64)  # rows < len(_windows): each window's database frames [a, b)
+        self._overlaps = Overlaps()
         self._steps: list[dict] = []
         self._relaxed: list[bool] = []
         self._source: list[np.ndarray] = []
@@ -534,7 +537,7 @@ class Stream:
         return None if self._finished else self._next_ready()
 
     def _next_ready(self) -> StepQuery | None:
-        left = self._query.shape[0] - len(self._windows) * self.step
+        left = self._n_query - len(self._windows) * self.step
         if left >= self.step:
             return self._prepare_step(self.step)
         return self._prepare_step(left) if self._speech_over and left > 0 else None
@@ -546,7 +549,7 @@ class Stream:
         if self._finished or self._speech_over:
             raise ParameterError("Stream.end_speech: the speech of this stream has already ended")
         self._last_features()
-        check_frames(self._query.shape[0], self.fps)  # too little speech is an error here already
+        check_frames(self._n_query, self.fps)  # too little speech is an error here already
 
     def _last_features(self) -> None:
         self._speech_over = True
@@ -595,7 +598,7 @@ class Stream:
         if not self._speech_over:
             self._last_features()
         self._finished = True
-        check_frames(self._query.shape[0], self.fps)
+        check_frames(self._n_query, self.fps)
         self._run_ready_steps()  # the last steps, the final one shorter (a server has run them already)
         if self._held:
             for piece, (frames, t, _) in zip(window_pieces(self.db, self._held, seam_decay_s=self.seam_decay_s),
@@ -607,7 +610,13 @@ class Stream:
         if raw.shape[0]:
             db = self.db
             q = ((raw.astype(np.float64) - db.audio_mean) / db.audio_std).astype(np.float32)
-            self._query = np.concatenate([self._query, q])
+            n = self._n_query + q.shape[0]
+            if n > self._query_buf.shape[0]:
+                grown = np.zeros((2 * n, q.shape[1]), dtype=np.float32)
+                grown[:self._n_query] = self.query
+                self._query_buf = grown
+            self._query_buf[self._n_query:n] = q
+            self._n_query = n
 
     # -- one step ------------------------------------------------------------------
     def _step_rows(self, i: int, t: int, n: int):
@@ -657,7 +666,7 @@ class Stream:
                 break
             recent.append((g, g + m))
         recent.reverse()
-        query = self._query[t:t + n] if with_query else self._query[:0]
+        query = self.query[t:t + n] if with_query else self.query[:0]
         return StepQuery(stream=self, i=i, t=t, n=n, query=query, prev=self._prev,
                          row=None if row is None else allowed, allowed=allowed, recent=recent,
                          guarded=clear_frames(allowed, recent) if recent else None, label=label, kw_row=kw_row)
@@ -694,15 +703,7 @@ class Stream:
         self._source.append(frames)
         # the segment's recording is its frames' (a segment never spans two): no read of the file per step
         rec = db.recordings[int(self.searcher.seg_recording[int(res.segments[0])])]
-        # the latest earlier window this one overlaps (repeats.repeat_of for the last window only), from the
-        # database spans kept as an array: rebuilt from the list each step, it cost a step more the longer the
-        # stream (about 0.1 ms after ten minutes)
-        if i >= self._spans.shape[0]:
-            self._spans = np.concatenate([self._spans, np.empty_like(self._spans)])
-        before = self._spans[:i]
-        hit = np.flatnonzero((before[:, 0] < g + n) & (before[:, 1] > g))
-        rep = int(hit[-1]) if hit.size else None
-        self._spans[i] = (g, g + n)
+        rep = self._overlaps.add(g, n)  # the latest earlier window this one overlaps (repeats.repeat_of)
         self._steps.append({
             "step": i,
             "out_start": t,
@@ -760,7 +761,7 @@ class Stream:
     @property
     def query(self) -> np.ndarray:
         """The standardised audio features of the speech so far, (T, Da) float32."""
-        return self._query
+        return self._query_buf[:self._n_query]
 
     def result(self, *, audio_path: str | None = None, options: dict | None = None) -> SynthResult:
         """Everything the finished stream made, as a :class:`SynthResult` (what ``synthesize`` returns)."""

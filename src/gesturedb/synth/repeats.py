@@ -155,6 +155,27 @@ def repeat_of(frames, lengths) -> list[int | None]:
     return out
 
 
+class Overlaps:
+    """:func:`repeat_of` one window at a time, as a live stream adds its windows: the windows' database
+    frames are kept in an array that doubles when full (rebuilt from a list at each step, they cost a
+    step more the longer the stream: about 0.1 ms after ten minutes)."""
+
+    def __init__(self):
+        self._spans = np.zeros((64, 2), dtype=np.int64)  # rows < n: each window's database frames [a, b)
+        self.n = 0
+
+    def add(self, frame: int, length: int) -> int | None:
+        """Add a window; the latest earlier window it overlaps (None if none), as :func:`repeat_of`."""
+        a, b = int(frame), int(frame) + int(length)
+        before = self._spans[:self.n]
+        hit = np.flatnonzero((before[:, 0] < b) & (before[:, 1] > a))
+        if self.n == self._spans.shape[0]:
+            self._spans = np.concatenate([self._spans, np.zeros_like(self._spans)])
+        self._spans[self.n] = (a, b)
+        self.n += 1
+        return int(hit[-1]) if hit.size else None
+
+
 def repeat_stats(frames, lengths, *, out_frames=None, fps: float | None = None) -> dict:
     """How often a synthesis plays the same database windows.
 
