@@ -238,14 +238,13 @@ class AudioFeatureStream:
     # -- analysis frames
     def _compute(self, j1: int) -> None:
         """Analysis frames ``_j .. j1 - 1`` from the buffer, in blocks."""
-        import librosa
-
-        hop, _half, win = self._hop, self._half, self._win
+        hop, n_fft, win, n_mfcc = self._hop, self._n_fft, self._win, self.n_mfcc
         while self._j < j1:
             j0 = self._j
             jb = min(j1, j0 + self._block)
+            nf = jb - j0
             # the buffer starts at the first sample of frame j0's window (see the end of the loop)
-            seg = self._buf[:(jb - 1 - j0) * hop + self._n_fft]
+            seg = self._buf[:(nf - 1) * hop + n_fft]
             spec = self._stft(seg)
             # |z|^2 as re^2 + im^2: numpy's abs of a complex number (a hypot) rounds differently with
             # and without AVX2, elementwise products and sums do not
@@ -255,24 +254,43 @@ class AudioFeatureStream:
             # are per process while builds run recordings in threads (Dask) or processes; a database
             # must not depend on how it was built (a 1-worker and a 2-worker build differed by 3e-5)
             mel = np.einsum("mf,ft->mt", self._basis, power, optimize=False)
-            # librosa.power_to_db(mel, ref=1.0, amin=_FLOOR, top_db=None), with a logarithm that does
-            # not depend on the CPU (see _log), rounded to float32 once
-            log_mel = (_log(np.maximum(mel, _FLOOR)) * (10.0 / math.log(10.0))).astype(np.float32)
-            mfcc = librosa.feature.mfcc(S=log_mel, n_mfcc=self.n_mfcc, dct_type=2, norm="ortho")
 
             # Rectangular 25 ms energy centred at each analysis frame, from a running sum of squares
-            # carried across blocks exactly as one cumulative sum over the file adds it
-            seg64 = seg.astype(np.float64)
-            csum = np.cumsum(np.concatenate([[self._csum], seg64 * seg64]))
-            starts = np.arange(jb - j0, dtype=np.int64) * hop + (self._n_fft - win) // 2
-            energy = (csum[starts + win] - csum[starts]) / win
-            log_energy = _log(np.maximum(energy, _FLOOR))
+            # carried across blocks exactly as one cumulative sum over the file adds it. In place and
+            # by slices rather than concatenations and index arrays (0.03 -> 0.01 ms a live step)
+            csum = np.empty(len(seg) + 1)
+            csum[0] = self._csum
+            np.multiply(seg, seg, out=csum[1:], dtype=np.float64)  # in float64, as seg64 * seg64
+            np.cumsum(csum, out=csum)
+            first = (n_fft - win) // 2
+            stop = first + (nf - 1) * hop + 1
 
-            rows = np.concatenate([mfcc.T.astype(np.float64), log_energy[:, None]], axis=1)
-            self._rows = np.concatenate([self._rows, rows])
+            # The logarithms of the mel power (librosa.power_to_db(mel, ref=1.0, amin=_FLOOR,
+            # top_db=None), with a logarithm that does not depend on the CPU, see _log) and of the
+            # energy in one call: elementwise, so the same bits as two, for half the calls' overhead
+            n_mel = mel.size
+            logs = np.empty(n_mel + nf)
+            np.maximum(mel, _FLOOR, out=logs[:n_mel].reshape(mel.shape))  # in float32 (mel's), as before
+            np.subtract(csum[first + win:stop + win:hop], csum[first:stop:hop], out=logs[n_mel:])
+            logs[n_mel:] /= win
+            np.maximum(logs[n_mel:], _FLOOR, out=logs[n_mel:])
+            logs = _log(logs)
+            # power_to_db's dB, rounded to float32 once
+            log_mel = (logs[:n_mel].reshape(mel.shape) * (10.0 / math.log(10.0))).astype(np.float32)
+            # librosa.feature.mfcc(S=log_mel, n_mfcc, dct_type=2, norm="ortho") is this call and a slice;
+            # called directly it skips librosa's wrapper (2 us a live step)
+            mfcc = self._fft.dct(log_mel, axis=-2, type=2, norm="ortho")[:n_mfcc]
+
+            # appended to the rows kept in one copy instead of two concatenations
+            k = len(self._rows)
+            rows = np.empty((k + nf, n_mfcc + 1))
+            rows[:k] = self._rows
+            rows[k:, :n_mfcc] = mfcc.T
+            rows[k:, n_mfcc] = logs[n_mel:]
+            self._rows = rows
             self._own = np.concatenate([self._own, self._owners(j0, jb)])
-            # the next block's first window starts (jb - j0) hops later: drop the samples before it
-            shift = (jb - j0) * hop
+            # the next block's first window starts nf hops later: drop the samples before it
+            shift = nf * hop
             self._csum = float(csum[shift])
             self._buf = self._buf[shift:]
             self._buf_at += shift
