@@ -420,3 +420,17 @@ def test_stft_is_librosas_bit_for_bit(scott_dir):
                                 center=False)
             assert got.dtype == want.dtype and got.shape == want.shape, (rate, n)
             assert np.ascontiguousarray(got).tobytes() == np.ascontiguousarray(want).tobytes(), (rate, n)
+
+
+def test_one_value_maps_are_the_array_maps():
+    """The emit's one-value maps (Python floats) give the same integers as the array maps, at every
+    rate and at frame rates that make float products land near integers, and clipped alike."""
+    from gesturedb.features.audio import AudioFeatureStream
+
+    js = list(range(0, 3000)) + list(range(3000, 400_000, 997))
+    i_s = list(range(0, 1000)) + list(range(1000, 100_000, 331))
+    for rate in (8000, 16000, 22050, 48000):
+        for fps in (15, 29.97, 30, 59.94, 120, 1000 / 7):
+            st = AudioFeatureStream(rate, fps=fps, n_frames=500 if fps == 30 else None)
+            assert [st._owner(j) for j in js] == st._owners(0, 400_000)[js].tolist(), (rate, fps)
+            assert [st._nearest_one(i) for i in i_s] == st._nearest(0, 100_000)[i_s].tolist(), (rate, fps)

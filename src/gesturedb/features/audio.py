@@ -228,12 +228,22 @@ class AudioFeatureStream:
         centres_s = np.arange(j0, j1, dtype=np.float64) * self._hop / self.sr
         return np.floor(centres_s * self.fps + 1e-9).astype(np.int64)
 
+    def _owner(self, j: int) -> int:
+        """``_owners(j, j + 1)[0]`` in Python floats, the same IEEE operations in the same order, without
+        numpy's overhead on one value (called at every emit)."""
+        return math.floor(float(j) * self._hop / self.sr * self.fps + 1e-9)
+
     def _nearest(self, i0: int, i1: int) -> np.ndarray:
         """The analysis frame each of motion frames ``i0 .. i1 - 1`` takes if it has none of its own
         (fps above 100): the one nearest its middle."""
         mid_s = (np.arange(i0, i1, dtype=np.int64) + 0.5) / self.fps
         j = np.rint(mid_s * self.sr / self._hop).astype(np.int64)
         return np.clip(j, 0, None if self._n_fine is None else self._n_fine - 1)
+
+    def _nearest_one(self, i: int) -> int:
+        """``_nearest(i, i + 1)[0]`` in Python floats (``round`` rounds halves to even as ``np.rint``)."""
+        j = max(round((i + 0.5) / self.fps * self.sr / self._hop), 0)
+        return j if self._n_fine is None else min(j, self._n_fine - 1)
 
     # -- analysis frames
     def _compute(self, j1: int) -> None:
@@ -334,16 +344,19 @@ class AudioFeatureStream:
         lo, i0 = self._rows_at, self._i
         done = self._n_fine is not None and self._j >= self._n_fine
         # frames before the owner of the next analysis frame have all theirs (owners never decrease)
-        i1 = self.n_frames if done else int(self._owners(self._j, self._j + 1)[0])
+        i1 = self.n_frames if done else self._owner(self._j)
         if self.n_frames is not None:
             i1 = min(i1, self.n_frames)
         if i1 <= i0:
             return np.zeros((0, n_out), dtype=np.float32)
         n = i1 - i0
-        take = np.flatnonzero((self._own >= i0) & (self._own < i1))
+        # owners never decrease, so the rows of frames i0 .. i1 - 1 are a slice t0:t1 (cheaper to find
+        # than by masks and index arrays)
+        own = self._own
+        t0, t1 = (int(t) for t in own.searchsorted((i0, i1)))
         if self._n_fine is not None:
-            take = take[take < self._n_fine - lo]  # live speech: frames past the end finish() set
-        owner = self._own[take] - i0
+            t1 = min(t1, max(t0, self._n_fine - lo))  # live speech: frames past the end finish() set
+        owner = own[t0:t1] - i0
         counts = np.bincount(owner, minlength=n).astype(np.float64)
         has = counts > 0
         if not has.all():
@@ -355,22 +368,25 @@ class AudioFeatureStream:
                 if n == 0:
                     return np.zeros((0, n_out), dtype=np.float32)
                 i1 = i0 + n
-                keep = owner < n
-                take, owner, counts, has = take[keep], owner[keep], counts[:n], has[:n]
-        sums = np.zeros((n, n_out))
-        for c in range(n_out):
-            sums[:, c] = np.bincount(owner, weights=self._rows[take, c], minlength=n)
-        out = np.empty((n, n_out))
-        out[has] = sums[has] / counts[has, None]
-        if not has.all():
+                t1 = t0 + int(owner.searchsorted(n))
+                owner, counts, has = owner[:t1 - t0], counts[:n], has[:n]
+        # All columns' sums in one bincount over (frame, column) cells instead of one per column: each
+        # cell still adds its rows in order to 0.0, the same bits (0.04 -> 0.01 ms a live step)
+        cells = (owner[:, None] * n_out + np.arange(n_out)).ravel()
+        sums = np.bincount(cells, weights=self._rows[t0:t1].ravel(), minlength=n * n_out).reshape(n, n_out)
+        if has.all():
+            out = sums / counts[:, None]
+        else:
+            out = np.empty((n, n_out))
+            out[has] = sums[has] / counts[has, None]
             empty = np.flatnonzero(~has)
             out[empty] = self._rows[self._nearest(i0, i1)[empty] - lo]
         self._i = i1
         # keep the rows later motion frames may still need: their own, or the one nearest them
-        later = np.flatnonzero(self._own >= i1)
-        keep = min(lo + int(later[0]) if len(later) else self._j, int(self._nearest(i1, i1 + 1)[0]))
+        later = int(own.searchsorted(i1))
+        keep = min(lo + later if later < len(own) else self._j, self._nearest_one(i1))
         if keep > lo:
-            self._rows, self._own = self._rows[keep - lo:], self._own[keep - lo:]
+            self._rows, self._own = self._rows[keep - lo:], own[keep - lo:]
             self._rows_at = keep
         return np.ascontiguousarray(out, dtype=np.float32)
 
