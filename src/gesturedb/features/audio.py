@@ -68,6 +68,8 @@ def _log(x: np.ndarray) -> np.ndarray:
     division, which every machine rounds alike.
     """
     x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 0:  # frexp would give scalars, which the in-place steps below cannot write
+        return _log(x.reshape(1))[0]
     if x.size > _LOG_CHUNK:
         # a chunk's thirty temporaries stay in the cache and are reused; over a whole mel
         # spectrogram each would be fresh memory to fault in (3.5x slower)
@@ -76,16 +78,31 @@ def _log(x: np.ndarray) -> np.ndarray:
         for i in range(0, flat.size, _LOG_CHUNK):
             out[i:i + _LOG_CHUNK] = _log(flat[i:i + _LOG_CHUNK])
         return out.reshape(x.shape)
+    # The same operations in the same order as the formula at the end, but in place: a live step's
+    # 2,200 values spent a third of the time allocating temporaries (0.061 -> 0.041 ms)
     m, e = np.frexp(x)  # x = m 2^e, m in [0.5, 1)
     low = m < 0.7071067811865476
-    m = np.where(low, m * 2.0, m)  # now in [sqrt(1/2), sqrt(2)); exact
-    e = (e - low).astype(np.float64)
-    s = (m - 1.0) / (m + 1.0)  # m - 1 is exact (Sterbenz)
+    np.multiply(m, 2.0, out=m, where=low)  # now in [sqrt(1/2), sqrt(2)); exact
+    e = e.astype(np.float64)
+    e -= low
+    s = m - 1.0  # exact (Sterbenz)
+    m += 1.0
+    s /= m  # s = (m - 1) / (m + 1)
     z = s * s
-    p = np.full_like(z, _ATANH[-1])
-    for c in _ATANH[-2::-1]:
-        p = p * z + c
-    return e * _LN2_HI + ((2.0 * s) * (z * p) + (e * _LN2_LO + 2.0 * s))
+    p = z * _ATANH[-1]  # Horner's scheme from p = _ATANH[-1]: p = p * z + c for the others
+    p += _ATANH[-2]
+    for c in _ATANH[-3::-1]:
+        p *= z
+        p += c
+    z *= p
+    s += s  # 2 s, exact
+    z *= s
+    p = e * _LN2_LO
+    p += s
+    z += p
+    e *= _LN2_HI
+    e += z
+    return e  # e * _LN2_HI + ((2.0 * s) * (z * p) + (e * _LN2_LO + 2.0 * s))
 
 
 def n_frames_for_duration(duration_s: float, fps: float) -> int:
