@@ -1,6 +1,6 @@
 // The per-step arithmetic of the assembly that a live stream runs on a few frames at a
-// time (gesturedb.synth.assemble): the pulls of the root towards the origin and +z,
-// and the offset a seam starts. In numpy each was some forty array operations on
+// time (gesturedb.synth.assemble): the placement of a piece, the pulls of the root
+// towards the origin and +z, and the offset a seam starts. In numpy each was some forty array operations on
 // arrays of a few elements per step, where the interpreter cost far more than the
 // arithmetic; here they are plain scalar float64 loops, per frame and per joint, so
 // the bits do not depend on how frames are split into calls (a live stream's and
@@ -49,8 +49,8 @@ void place_frames(const double* q, bool q_per_frame, const double* rot, int64_t 
 // typical acceleration), capped at max_decay_s; without, decay_s.
 // Writes rot_der (3, J, 3): x0, v0, a0; root_der (3, 3); decay_rot (J,);
 // *decay_root. atan2 here is libm's: numpy's float64 arctan2 rounds differently
-// in the last bit for about 7 % of values on AVX-512 machines (and differently
-// again without it); tests/test_placement.py holds the two to rounding.
+// in the last bit for about 7 % of values (measured on an AVX-512 machine);
+// tests/test_placement.py holds the two to rounding.
 void seam_offset(const double* old_rot, const double* new_rot, const double* old_root, const double* new_root,
                  int64_t J, double fps, bool have_accel, const double* accel_rot, double accel_root,
                  double decay_s, double max_decay_s, double* rot_der, double* root_der, double* decay_rot,

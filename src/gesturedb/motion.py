@@ -290,11 +290,12 @@ def _renormalised(q: np.ndarray, norm: np.ndarray) -> np.ndarray:
 
 
 def forward_kinematics(skeleton: Skeleton, rotations: np.ndarray, root: np.ndarray, *, want_rotations: bool = True):
-    """:meth:`Motion.forward_kinematics` of arrays a Motion would hold (rotations (F, J, 4), root (F, 3) m),
-    without its checks; ``(positions (F, J, 3), global rotations (F, J, 4) or None without
-    ``want_rotations``)``: the assembly's feet take the kinematics of every piece of a
-    live step, where making a Motion cost more than the kinematics (the same bits: the rotations are
-    renormalised as a Motion renormalises them)."""
+    """:meth:`Motion.forward_kinematics` of the arrays a Motion would hold, without making one.
+
+    rotations (F, J, 4) and root (F, 3) m in; positions (F, J, 3) m and global rotations (F, J, 4) out (None
+    without ``want_rotations``). The same bits as a Motion's: the rotations are renormalised as a Motion
+    renormalises them. The assembly's feet take the kinematics of every piece of a live step, where making
+    (and checking) a Motion cost more than the kinematics."""
     # local on purpose, as in gesturedb.search: the compiled core is no stage of the layers
     import gesturedb._core as _core
 
