@@ -18,7 +18,12 @@ the batched search is timed twice, alternating: one call for every stream (each 
 control's bitset: the kernel's per-query bitsets) and one call per control (what StepBatch did
 before the kernel took a bitset per query: a pass over the database per control).
 
+``--long MIN``: instead, one stream fed MIN minutes of the speech (tiled) in one-step pieces, searched
+alone; prints the median milliseconds of a piece's feed, search and apply in the first minute and in
+the last one (a stream's step should cost no more after twenty minutes than after one).
+
 Usage:  python benchmarks/bench_live_steps.py DB.h5 [--streams 50] [--seconds 12] [--threads 1] [--controls 1]
+        python benchmarks/bench_live_steps.py DB.h5 --long 12
 """
 from __future__ import annotations
 
@@ -45,6 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="threads of the batched search (the server: 1); the search alone takes every CPU, as a stream does")
     ap.add_argument("--controls", type=int, default=1, help=f"streams steer with this many different controls "
                                                             f"(1 to {len(CONTROLS)}; 1: none)")
+    ap.add_argument("--long", type=float, default=None, metavar="MIN",
+                    help="one stream fed MIN minutes of speech: its step's cost at the start and at the end")
     args = ap.parse_args(argv)
     if not 1 <= args.controls <= len(CONTROLS):
         ap.error(f"--controls: expected 1 to {len(CONTROLS)}")
@@ -58,6 +65,8 @@ def main(argv=None) -> int:
     x, sr = read_audio(args.wav, sr=16000)
     db = gesturedb.open(args.db)
     searcher = Searcher(db)
+    if args.long is not None:
+        return long_stream(searcher, x, sr, args.long)
     t = time.perf_counter()
     searcher.pose_projection()
     print(f"{db.n_frames} frames; pose projection {time.perf_counter() - t:.1f} s; {args.streams} streams, "
@@ -160,6 +169,28 @@ def main(argv=None) -> int:
     print(f"  {'finished from the pre-selection':<32} {t_finish * 1000 / max(n_finished, 1):8.2f}  "
           f"({n_finished} steps; pre-selection {t_ahead * 1000 / max(n_ahead_calls, 1):.1f} ms per call)")
     print(f"load average {os.getloadavg()[0]:.1f} at the end")
+    return 0
+
+
+def long_stream(searcher, x, sr: int, minutes: float) -> int:
+    """One stream fed ``minutes`` of ``x`` tiled, a step's samples at a time: ms per piece, start and end."""
+    from gesturedb.synth import SearchOptions
+
+    x = np.tile(x, int(np.ceil(minutes * 60 * sr / x.shape[0])))[:int(minutes * 60 * sr)]
+    st = searcher.stream(SearchOptions(seed=1), sample_rate=sr)
+    piece = int(round(st.step / st.fps * sr))
+    took = []
+    for a in range(0, x.shape[0], piece):
+        t0 = time.perf_counter()
+        st.feed(x[a:a + piece])
+        while (sq := st.next_step()) is not None:
+            st.complete_step(sq, *st.search_step(sq))
+        st.take_chunk()
+        took.append(time.perf_counter() - t0)
+    ms = np.array(took) * 1000
+    per_min = int(60 * sr / piece)
+    print(f"{len(ms)} pieces of {piece} samples; median ms per piece (feed, search, apply): "
+          f"first minute {np.median(ms[:per_min]):.2f}, last minute {np.median(ms[-per_min:]):.2f}")
     return 0
 
 
