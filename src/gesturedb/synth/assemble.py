@@ -58,9 +58,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-import gesturedb._core as _core  # the compiled core: placement, seams and pulls of a live step
 from gesturedb import rotations as R
 from gesturedb.motion import Motion, forward_kinematics
+from gesturedb.search import _core  # the compiled core, or its build hint where it is missing
 from gesturedb.synth.contacts import FootPlanter, foot_contacts, foot_joints
 from gesturedb.synth.seams import (
     LEAD_FRAMES,
@@ -200,7 +200,7 @@ def placed_frames(db, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     root0 = np.asarray(db.rows("root_positions", frames), dtype=np.float64)
     # the turn and the root's rotation in C++ (csrc/assembly.cpp): rotations.multiply and rotations.apply's
     # operations, the same bits, without a dozen numpy calls on a live step's few frames
-    return _core.place_frames(_yaw_quat(-mean_yaw[rec]), np.ascontiguousarray(rot), root0,
+    return _core().place_frames(_yaw_quat(-mean_yaw[rec]), np.ascontiguousarray(rot), root0,
                               np.ascontiguousarray(centre[rec]), None, False)
 
 
@@ -236,7 +236,7 @@ def _place(rot: np.ndarray, root: np.ndarray, tf) -> tuple[np.ndarray, np.ndarra
     theta, src, dst = tf
     # in C++ (csrc/assembly.cpp): rot[:, 0] = R.multiply(q, rot[:, 0]) and, with d = root - src with its y
     # zeroed, R.apply(q, d) + dst with the y of root, their operations in their order: the same bits
-    return _core.place_frames(_yaw_quat(theta)[None], np.ascontiguousarray(rot, dtype=np.float64),
+    return _core().place_frames(_yaw_quat(theta)[None], np.ascontiguousarray(rot, dtype=np.float64),
                               np.ascontiguousarray(root, dtype=np.float64),
                               np.ascontiguousarray(src, dtype=np.float64).reshape(1, 3),
                               np.ascontiguousarray(dst, dtype=np.float64), True)
@@ -266,7 +266,7 @@ class _Pull:
             dx, first = np.diff(np.concatenate([xz0[None], xz]), axis=0), 0
         # the loop over frames in C++ (csrc/assembly.cpp, the same operations: tests/test_placement.py checks it
         # against this loop in numpy to the bit), where it cost a live step about ten numpy calls a frame
-        h, y = _core.pull_root(np.ascontiguousarray(yaw, dtype=np.float64), np.ascontiguousarray(dyaw),
+        h, y = _core().pull_root(np.ascontiguousarray(yaw, dtype=np.float64), np.ascontiguousarray(dyaw),
                                np.ascontiguousarray(dx, dtype=np.float64), first, self.kh, self.kp, float(h_prev),
                                float(y_prev[0]), float(y_prev[1]))
         self.last = (yaw[-1], xz[-1], h[-1], y[-1])
@@ -540,7 +540,7 @@ def _seam_offset(rot, root, a, lead, p_rot, p_root, active, *, fps, decay_s, acc
         new_rot, new_root = np.concatenate([new_rot, e_rot])[:n], np.concatenate([new_root, e_root])[:n]
     # in C++ (csrc/assembly.cpp): the arithmetic below in numpy (_seam_arithmetic_numpy, the reference
     # tests/test_placement.py holds it to) ran some forty small array operations per seam
-    r_der, p_der, dr, dp = _core.seam_offset(
+    r_der, p_der, dr, dp = _core().seam_offset(
         *(np.ascontiguousarray(x, dtype=np.float64) for x in (old_rot, new_rot, old_root, new_root)), float(fps),
         None if accel is None else np.ascontiguousarray(accel[0], dtype=np.float64),
         0.0 if accel is None else float(accel[1]), float(decay_s), MAX_DECAY_FACTOR * decay_s)
@@ -581,9 +581,9 @@ class _Offset(NamedTuple):
         # (the same operations). Called without that function's checks: the offsets come from _core.seam_offset
         # as contiguous float64 of the right shapes, and the core checks them again
         t = np.ascontiguousarray(t, dtype=np.float64)
-        return (_core.apply_quintic_rotation_offsets(*self.rot, self.decay_rot, t,
+        return (_core().apply_quintic_rotation_offsets(*self.rot, self.decay_rot, t,
                                                      np.ascontiguousarray(rot, dtype=np.float64)),
-                _core.add_quintic_offsets(*self.root, self.decay_root, t,
+                _core().add_quintic_offsets(*self.root, self.decay_root, t,
                                           np.ascontiguousarray(root, dtype=np.float64)))
 
 
