@@ -475,7 +475,7 @@ def _random_quats(rng, shape):
     return R.normalize(rng.normal(size=shape + (4,)))
 
 
-def test_the_assembly_kernels_in_cpp_give_numpy_s_bits(scott_db):
+def test_the_assembly_kernels_in_cpp_give_the_bits_of_numpy(scott_db):
     """csrc/assembly.cpp's placement and pulls, and the helpers that replaced numpy calls on a live step's path,
     against the numpy they replaced: the same bits (their operations in their order), zeros and identities
     included (the sign of a zero decides an angle of pi)."""
