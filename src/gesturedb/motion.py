@@ -296,16 +296,21 @@ def forward_kinematics(skeleton: Skeleton, rotations: np.ndarray, root: np.ndarr
     without ``want_rotations``). The same bits as a Motion's: the rotations are renormalised as a Motion
     renormalises them. The assembly's feet take the kinematics of every piece of a live step, where making
     (and checking) a Motion cost more than the kinematics."""
+    q = np.asarray(rotations, dtype=np.float64)
+    return _unit_forward_kinematics(skeleton, _renormalised(q, rot._norm4(q)[..., 0]), root, want_rotations)
+
+
+def _unit_forward_kinematics(skeleton: Skeleton, q: np.ndarray, root: np.ndarray, want_rotations: bool):
+    """:func:`forward_kinematics` of rotations renormalised already (a Motion's own)."""
     # local on purpose, as in gesturedb.search: the compiled core is no stage of the layers
     import gesturedb._core as _core
 
-    q = np.asarray(rotations, dtype=np.float64)
-    q = _renormalised(q, rot._norm4(q)[..., 0])
     # quaternions to matrices, the chain and back in C++ (csrc/fk.cpp), frame by frame: the numpy
     # loop over joints cost a live step 1.3 ms per 8-frame piece in call overhead, and numpy's
     # to_matrix and from_matrix about 1 ms more; the conversions are numpy's to the bit
     # (tests/test_motion.py checks both against numpy)
-    return _core.forward_kinematics_quat(np.ascontiguousarray(q), np.ascontiguousarray(root, dtype=np.float64),
+    return _core.forward_kinematics_quat(np.ascontiguousarray(q, dtype=np.float64),
+                                         np.ascontiguousarray(root, dtype=np.float64),
                                          np.ascontiguousarray(skeleton.parents, dtype=np.int64),
                                          np.ascontiguousarray(skeleton.offsets, dtype=np.float64), want_rotations)
 
@@ -384,7 +389,8 @@ class Motion:
         return self.n_frames
 
     def _fk(self, want_rotations: bool):
-        return forward_kinematics(self.skeleton, self.rotations, self.root_positions, want_rotations=want_rotations)
+        # the rotations were renormalised when the Motion was made: not a second pass over them
+        return _unit_forward_kinematics(self.skeleton, self.rotations, self.root_positions, want_rotations)
 
     def forward_kinematics(self) -> tuple[np.ndarray, np.ndarray]:
         """World positions and rotations of every joint in every frame.

@@ -487,9 +487,9 @@ class PieceAssembler:
         rot, root, fps = self._rot, self._root, self.fps
         floor_y = self.floor_y
         if self._src_pos:
-            # the pieces' own (unplaced) poses, by one forward kinematics over all of them
-            pos = Motion(skeleton=self.skeleton, fps=fps, rotations=np.concatenate([q[2] for q in self._src_pos]),
-                         root_positions=np.concatenate([q[3] for q in self._src_pos])).positions
+            # the pieces' own (unplaced) poses, by one forward kinematics over all of them (as add's, per piece)
+            pos, _ = forward_kinematics(self.skeleton, np.concatenate([q[2] for q in self._src_pos]),
+                                        np.concatenate([q[3] for q in self._src_pos]), want_rotations=False)
             cuts = np.cumsum([q[1] - q[0] for q in self._src_pos])[:-1]
             pieces_pos = np.split(pos, cuts)
             if floor_y is None:
