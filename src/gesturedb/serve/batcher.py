@@ -47,7 +47,7 @@ IDLE_EXIT_S = 5.0
 #: steps it carries (617k frames, 1 thread: 11 ms a step for 3, 7 for 8, 4.8 for 16, 3-3.5 for 32 to 50),
 #: though from :func:`gesturedb.search.blocked_min_queries` steps (3) it already beats a pass per step.
 #: 32 and 0.25 s rather than 16 and 0.15 s (until 2026-11-28): the server's CPU per step 5 % lower, and
-#: p99 lower at 16-50 real-time clients (benchmarks/RESULTS.md, "One step thread").
+#: p99 lower at 16-50 real-time clients (docs/live-measurements.md, "One step thread").
 BLOCK_MIN = 32
 #: Seconds a coming step may wait for others before its pre-selection starts: a step's speech takes
 #: 0.53 s to come, and a call of 32-50 steps 0.1-0.15 s at paper scale, so waiting lets one blocked call
@@ -57,7 +57,7 @@ AHEAD_GATHER_S = 0.25
 #: the feed, the finish from the pre-selection, the apply), first come, first served. One: that work is
 #: Python holding the interpreter lock, so more threads do not run it at once but share the lock in
 #: 5 ms turns, and the steps of streams whose speech comes together (a burst) all end near the end of
-#: the burst instead of one after the other (benchmarks/RESULTS.md, "One step thread").
+#: the burst instead of one after the other (docs/live-measurements.md, "One step thread").
 STEP_THREADS = 1
 
 

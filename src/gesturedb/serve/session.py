@@ -48,10 +48,10 @@ class _IdleTimer:
     """The idle limit of a session: its wait for a client message is cancelled once it has lasted ``idle_s``.
 
     A timeout entered per message (``anyio.fail_after``: a cancel scope, a timer made and cancelled) was 4 %
-    of a loaded server's time (benchmarks/RESULTS.md). Here a wait costs a clock read, and one timer per
-    session wakes at most once per ``idle_s`` while messages come: when it finds the current wait younger
-    than the limit, it sleeps again until that wait's deadline. Made in the session's task (asyncio: uvicorn,
-    Starlette's TestClient), whose wait it cancels.
+    of a loaded server's time (docs/live-measurements.md, "The event loop's per-message work"). Here a wait
+    costs a clock read, and one timer per session wakes at most once per ``idle_s`` while messages come: when
+    it finds the current wait younger than the limit, it sleeps again until that wait's deadline. Made in the
+    session's task (asyncio: uvicorn, Starlette's TestClient), whose wait it cancels.
     """
 
     def __init__(self, idle_s: float):
@@ -348,7 +348,7 @@ class StreamSession:
             # the last steps (the speech's tail, the final one shorter) go through the scheduler like any step:
             # searched with the other streams' waiting steps, so that streams ending together share passes
             # over the database instead of one each (the ends of 50 streams within half a second were the
-            # tail of the spread benchmark: benchmarks/RESULTS.md, "While streaming")
+            # tail of the spread benchmark: docs/live-measurements.md, "While streaming")
             sched.forget(self.stream)  # its coming full step, pre-selected for speech that will not come
             await self._synth(self.stream.end_speech)
             await self._send_chunk((await self._ready_steps(None))[0])

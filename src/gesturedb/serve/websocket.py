@@ -14,7 +14,7 @@ closes, for at most :data:`LINGER_S`, and only then closes the socket.
 permessage-deflate is declined: every 40 ms audio message and every frames message
 was compressed and decompressed on both ends (about a sixth of the event loop's
 time at 16 clients), for PCM that barely compresses, on the loopback or a LAN
-where bytes are cheap (docs/live.md, "Compression"; benchmarks/RESULTS.md).
+where bytes are cheap (docs/live.md, "Compression"; docs/live-measurements.md).
 
 Reading pauses only when a message comes while another still waits for the app
 (uvicorn pauses at every message and resumes at the app's every read: two epoll
