@@ -22,8 +22,14 @@ before the kernel took a bitset per query: a pass over the database per control)
 alone; prints the median milliseconds of a piece's feed, search and apply in the first minute and in
 the last one (a stream's step should cost no more after twenty minutes than after one).
 
+``--pause S[,S...]``: instead, one stream fed a step's speech at a time, each piece after a pause of S
+seconds (sleeping), and again back to back (the baseline, in the same run): the median milliseconds of a
+piece's feed and of its apply, and their ratio to the baseline. A server with one client runs a step every
+0.53 s; on a machine where code that has not run for a while runs slower at first, its steps pay that.
+
 Usage:  python benchmarks/bench_live_steps.py DB.h5 [--streams 50] [--seconds 12] [--threads 1] [--controls 1]
         python benchmarks/bench_live_steps.py DB.h5 --long 12
+        python benchmarks/bench_live_steps.py DB.h5 --pause 0.02,0.2,0.5
 """
 from __future__ import annotations
 
@@ -52,9 +58,17 @@ def main(argv=None) -> int:
                                                             f"(1 to {len(CONTROLS)}; 1: none)")
     ap.add_argument("--long", type=float, default=None, metavar="MIN",
                     help="one stream fed MIN minutes of speech: its step's cost at the start and at the end")
+    ap.add_argument("--pause", default=None, metavar="S[,S...]",
+                    help="one stream fed a step at a time after each of these pauses (s), against none")
     args = ap.parse_args(argv)
     if not 1 <= args.controls <= len(CONTROLS):
         ap.error(f"--controls: expected 1 to {len(CONTROLS)}")
+    try:
+        pauses = None if args.pause is None else [float(v) for v in args.pause.split(",")]
+    except ValueError:
+        ap.error(f"--pause: expected seconds separated by commas; got {args.pause!r}")
+    if pauses is not None and not all(0 < v <= 10 for v in pauses):
+        ap.error(f"--pause: expected seconds in (0, 10]; got {args.pause!r}")
 
     import gesturedb
     from gesturedb.io import read_audio
@@ -67,6 +81,8 @@ def main(argv=None) -> int:
     searcher = Searcher(db)
     if args.long is not None:
         return long_stream(searcher, x, sr, args.long)
+    if pauses is not None:
+        return paused_stream(searcher, x, sr, pauses)
     t = time.perf_counter()
     searcher.pose_projection()
     print(f"{db.n_frames} frames; pose projection {time.perf_counter() - t:.1f} s; {args.streams} streams, "
@@ -191,6 +207,40 @@ def long_stream(searcher, x, sr: int, minutes: float) -> int:
     per_min = int(60 * sr / piece)
     print(f"{len(ms)} pieces of {piece} samples; median ms per piece (feed, search, apply): "
           f"first minute {np.median(ms[:per_min]):.2f}, last minute {np.median(ms[-per_min:]):.2f}")
+    return 0
+
+
+def paused_stream(searcher, x, sr: int, pauses: list, pieces: int = 24, skip: int = 4) -> int:
+    """One stream per pause fed ``pieces`` steps of ``x``, each after that pause (and one without, the baseline,
+    first): the median ms of a piece's feed and of its apply (the first ``skip`` pieces left out)."""
+    from gesturedb.synth import SearchOptions
+
+    base = None
+    for pause in [0.0] + list(pauses):
+        st = searcher.stream(SearchOptions(seed=1), sample_rate=sr)
+        piece = int(round(st.step / st.fps * sr))
+        feed, apply = [], []
+        for k in range(pieces):
+            if pause:
+                time.sleep(pause)
+            a = (k * piece) % max(1, x.shape[0] - piece)
+            t0 = time.perf_counter()
+            st.feed(x[a:a + piece])
+            t1 = time.perf_counter()
+            t_apply = 0.0
+            while (sq := st.next_step()) is not None:
+                got = st.search_step(sq)
+                t2 = time.perf_counter()
+                st.complete_step(sq, *got)
+                t_apply += time.perf_counter() - t2
+            st.take_chunk()
+            if k >= skip:
+                feed.append(t1 - t0)
+                apply.append(t_apply)
+        f, ap_ = 1000 * float(np.median(feed)), 1000 * float(np.median(apply))
+        base = base or (f, ap_)
+        print(f"pause {pause:5.3f} s: median ms a step, feed {f:6.2f} ({f / base[0]:5.1f}x), "
+              f"apply {ap_:6.2f} ({ap_ / base[1]:5.1f}x)")
     return 0
 
 
