@@ -188,22 +188,34 @@ def main(argv=None) -> int:
     return 0
 
 
-def long_stream(searcher, x, sr: int, minutes: float) -> int:
-    """One stream fed ``minutes`` of ``x`` tiled, a step's samples at a time: ms per piece, start and end."""
+def _one_stream(searcher, x, sr: int, seconds: float):
+    """A stream, the samples of one of its steps, and ``x`` tiled to ``seconds``."""
     from gesturedb.synth import SearchOptions
 
-    x = np.tile(x, int(np.ceil(minutes * 60 * sr / x.shape[0])))[:int(minutes * 60 * sr)]
     st = searcher.stream(SearchOptions(seed=1), sample_rate=sr)
-    piece = int(round(st.step / st.fps * sr))
-    took = []
-    for a in range(0, x.shape[0], piece):
-        t0 = time.perf_counter()
-        st.feed(x[a:a + piece])
-        while (sq := st.next_step()) is not None:
-            st.complete_step(sq, *st.search_step(sq))
-        st.take_chunk()
-        took.append(time.perf_counter() - t0)
-    ms = np.array(took) * 1000
+    n = int(seconds * sr)
+    return st, int(round(st.step / st.fps * sr)), np.tile(x, int(np.ceil(n / x.shape[0])))[:n]
+
+
+def _fed_piece(st, piece) -> tuple[float, float, float]:
+    """Feed ``piece``, search and apply every step it made ready: seconds of (the feed, the applies, all)."""
+    t0 = time.perf_counter()
+    st.feed(piece)
+    t1 = time.perf_counter()
+    t_apply = 0.0
+    while (sq := st.next_step()) is not None:
+        got = st.search_step(sq)
+        t2 = time.perf_counter()
+        st.complete_step(sq, *got)
+        t_apply += time.perf_counter() - t2
+    st.take_chunk()
+    return t1 - t0, t_apply, time.perf_counter() - t0
+
+
+def long_stream(searcher, x, sr: int, minutes: float) -> int:
+    """One stream fed ``minutes`` of ``x`` tiled, a step's samples at a time: ms per piece, start and end."""
+    st, piece, x = _one_stream(searcher, x, sr, minutes * 60)
+    ms = np.array([_fed_piece(st, x[a:a + piece])[2] for a in range(0, x.shape[0], piece)]) * 1000
     per_min = int(60 * sr / piece)
     print(f"{len(ms)} pieces of {piece} samples; median ms per piece (feed, search, apply): "
           f"first minute {np.median(ms[:per_min]):.2f}, last minute {np.median(ms[-per_min:]):.2f}")
@@ -213,29 +225,16 @@ def long_stream(searcher, x, sr: int, minutes: float) -> int:
 def paused_stream(searcher, x, sr: int, pauses: list, pieces: int = 24, skip: int = 4) -> int:
     """One stream per pause fed ``pieces`` steps of ``x``, each after that pause (and one without, the baseline,
     first): the median ms of a piece's feed and of its apply (the first ``skip`` pieces left out)."""
-    from gesturedb.synth import SearchOptions
-
     base = None
     for pause in [0.0] + list(pauses):
-        st = searcher.stream(SearchOptions(seed=1), sample_rate=sr)
-        piece = int(round(st.step / st.fps * sr))
+        st, piece, xs = _one_stream(searcher, x, sr, pieces * 0.6)
         feed, apply = [], []
         for k in range(pieces):
             if pause:
                 time.sleep(pause)
-            a = (k * piece) % max(1, x.shape[0] - piece)
-            t0 = time.perf_counter()
-            st.feed(x[a:a + piece])
-            t1 = time.perf_counter()
-            t_apply = 0.0
-            while (sq := st.next_step()) is not None:
-                got = st.search_step(sq)
-                t2 = time.perf_counter()
-                st.complete_step(sq, *got)
-                t_apply += time.perf_counter() - t2
-            st.take_chunk()
+            t_feed, t_apply, _ = _fed_piece(st, xs[k * piece:(k + 1) * piece])
             if k >= skip:
-                feed.append(t1 - t0)
+                feed.append(t_feed)
                 apply.append(t_apply)
         f, ap_ = 1000 * float(np.median(feed)), 1000 * float(np.median(apply))
         base = base or (f, ap_)
