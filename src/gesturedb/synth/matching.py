@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -62,7 +61,7 @@ from gesturedb.synth.options import (  # noqa: F401  (re-exported from their old
 )
 from gesturedb.synth.protocol import EvalSystem, Method
 from gesturedb.synth.repeats import Overlaps, check_guard_s, clear_frames, repeat_stats
-from gesturedb.synth.result import SynthResult
+from gesturedb.synth.result import StreamChunk, SynthResult, chunk_motion
 from gesturedb.synth.seams import SEAM_DECAY_S, check_decay_s
 from gesturedb.synth.stepquery import StepQuery  # noqa: F401  (re-exported from its old home)
 
@@ -370,39 +369,6 @@ class Searcher:
 
 
 # ==================================================================== the live search
-@dataclass
-class StreamChunk:
-    """What one :meth:`Stream.push` (or :meth:`Stream.finish`) made final.
-
-    Attributes
-    ----------
-    start : int
-        Output frame index of the chunk's first frame.
-    motion : gesturedb.motion.Motion
-        The new final frames at the database fps (``motion.n_frames`` may be 0).
-    steps : list of dict
-        Provenance of the search steps whose frames all became final, keys as
-        :attr:`gesturedb.synth.result.SynthResult.steps` of the k-NN.
-    """
-
-    start: int
-    motion: Motion
-    steps: list = field(default_factory=list)
-
-    @property
-    def n_frames(self) -> int:
-        return int(self.motion.rotations.shape[0])
-
-
-def _motion(skeleton, fps, rot, root) -> Motion:
-    if rot.shape[0]:
-        return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
-    # Motion checks F >= 1 for what users build; a chunk may have no frame yet
-    m = object.__new__(Motion)
-    m.skeleton, m.fps, m.rotations, m.root_positions = skeleton, float(fps), rot, root
-    return m
-
-
 class Stream:
     """The k-NN synthesis of speech that arrives in chunks.
 
@@ -745,7 +711,7 @@ class Stream:
             self._root.append(root)
         done = [s for s in self._steps[self._steps_out:] if s["out_end"] <= self._n_out]
         self._steps_out += len(done)
-        return StreamChunk(start=start, motion=_motion(self.db.skeleton, self.fps, rot, root), steps=done)
+        return StreamChunk(start=start, motion=chunk_motion(self.db.skeleton, self.fps, rot, root), steps=done)
 
     # -- the whole result ------------------------------------------------------------
     @property

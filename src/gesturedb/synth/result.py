@@ -9,6 +9,7 @@ import numpy as np
 
 from gesturedb.errors import InputFileError
 from gesturedb.io.atomic import write_text
+from gesturedb.motion import Motion
 
 
 @dataclass
@@ -66,3 +67,37 @@ class SynthResult:
             raise InputFileError(path, f"provenance: expected finite numbers ({exc}); the database's features "
                                        "are not finite") from None
         write_text(path, text)
+
+
+@dataclass
+class StreamChunk:
+    """What one :meth:`gesturedb.synth.stream.Stream.push` (or ``finish``) made final: the frames of a live synthesis.
+
+    Attributes
+    ----------
+    start : int
+        Output frame index of the chunk's first frame.
+    motion : gesturedb.motion.Motion
+        The new final frames at the database fps (``motion.n_frames`` may be 0).
+    steps : list of dict
+        Provenance of the search steps whose frames all became final, keys as
+        :attr:`gesturedb.synth.result.SynthResult.steps` of the k-NN.
+    """
+
+    start: int
+    motion: Motion
+    steps: list = field(default_factory=list)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.motion.rotations.shape[0])
+
+
+def chunk_motion(skeleton, fps, rot, root) -> Motion:
+    """A chunk's :class:`Motion` of ``rot`` (F, J, 4) and ``root`` (F, 3), F >= 0."""
+    if rot.shape[0]:
+        return Motion(skeleton=skeleton, fps=fps, rotations=rot, root_positions=root)
+    # Motion checks F >= 1 for what users build; a chunk may have no frame yet
+    m = object.__new__(Motion)
+    m.skeleton, m.fps, m.rotations, m.root_positions = skeleton, float(fps), rot, root
+    return m
