@@ -16,8 +16,10 @@ steps measured, p50 / p99 / max step latency, the late steps and the server proc
 time (all its threads) and the clients' per step measured, and the largest count with no late step.
 "p99 streaming": p99 over the steps whose audio was sent before the first client of the count ended its
 stream (and how many): the clients all stream the same speech, so with --stagger-ms their ends come within
-one spread, each a last partial step searched and finished at once, which a server of independent speakers
-rarely sees. "server p50/p99": the server's own share of the same steps (`GET /health?last=N`, `step_latency`: from the
+one spread, which a server of independent speakers rarely sees. Each client's start message says its
+speech's length (`total_samples`, what a client streaming a file does), so its last, shorter step is
+pre-selected like the others; `--lengths untold` (a microphone's stream: the last step takes a pass over the
+database when the end comes) or `told,untold` (both, alternating count by count). "server p50/p99": the server's own share of the same steps (`GET /health?last=N`, `step_latency`: from the
 arrival of the audio message that completed a step to the send of its frames, issue 39's definition),
 without the loopback and the clients' own scheduling (the clients share this machine's cores).
 
@@ -36,6 +38,7 @@ recordings (`--paper-frames`), and --paper-chunked OUT2.h5 the same with chunked
 
 Usage:  python benchmarks/bench_live.py DB.h5 [--wav SPEECH.wav] [--seconds 10]
                                         [--clients 1,2,4,8,16,32,50] [--chunk-ms 40] [--budget-ms 100] [--stagger-ms MS]
+                                        [--lengths told,untold]
         python benchmarks/bench_live.py DB.h5 --startup [--reps 5] [--chunked DB2.h5] [--baseline-src DIR]
         python benchmarks/bench_live.py out/scott.h5 --paper /tmp/paper.h5 --paper-chunked /tmp/paper_chunked.h5
 """
@@ -91,14 +94,16 @@ def start_server(db: str, port: int, batch: bool = True, workers: int = 1, ahead
     raise SystemExit("gesturedb serve did not answer within 300 s")
 
 
-def one_client(url: str, x: np.ndarray, chunk: int, offset_s: float, out: list, ends: list, errors: list) -> None:
+def one_client(url: str, x: np.ndarray, chunk: int, offset_s: float, out: list, ends: list, errors: list,
+               told: bool = True) -> None:
     from gesturedb.serve.client import LiveClient
 
     try:
         time.sleep(offset_s)
         sent = {}  # samples sent so far -> when the message that brought the count there left
         arrived = []  # (samples the server had, steps completed, time received)
-        with LiveClient(url, sample_rate=SR) as live:
+        # told: the start message says the speech's length (a file; its last step is pre-selected too)
+        with LiveClient(url, sample_rate=SR, total_samples=x.shape[0] if told else None) as live:
             t0 = time.monotonic()
             for a in range(0, x.shape[0], chunk):
                 # wait for the next chunk's time by waiting for frames: each is stamped as it arrives
@@ -124,7 +129,7 @@ def one_client(url: str, x: np.ndarray, chunk: int, offset_s: float, out: list, 
 
 
 def run(url: str, x: np.ndarray, n: int, chunk_ms: float, seed: int | None = None,
-        stagger_ms: float | None = None) -> tuple[list, list]:
+        stagger_ms: float | None = None, told: bool = True) -> tuple[list, list]:
     """n clients as threads of this process, each starting at a random time within ``stagger_ms`` (default:
     one chunk); (per step (when its last audio left, its latency), in s of time.monotonic, which every process
     of the machine shares; when each client sent its end; errors)."""
@@ -133,7 +138,7 @@ def run(url: str, x: np.ndarray, n: int, chunk_ms: float, seed: int | None = Non
     lat, ends, errors = [], [], []
     rng = np.random.default_rng(n if seed is None else seed)
     threads = [threading.Thread(target=one_client,
-                                args=(url, x, chunk, float(rng.uniform(0, spread_s)), lat, ends, errors))
+                                args=(url, x, chunk, float(rng.uniform(0, spread_s)), lat, ends, errors, told))
                for _ in range(n)]
     [t.start() for t in threads]
     [t.join() for t in threads]
@@ -141,17 +146,17 @@ def run(url: str, x: np.ndarray, n: int, chunk_ms: float, seed: int | None = Non
 
 
 def run_procs(url: str, x: np.ndarray, n: int, chunk_ms: float, procs: int,
-              stagger_ms: float | None = None) -> tuple[list, list]:
+              stagger_ms: float | None = None, told: bool = True) -> tuple[list, list]:
     """n clients spread over ``procs`` processes (threads in each), so that the clients' own Python
     does not queue on one interpreter lock and count as the server's latency."""
     procs = max(1, min(procs, n))
     if procs == 1:
-        return run(url, x, n, chunk_ms, stagger_ms=stagger_ms)
+        return run(url, x, n, chunk_ms, stagger_ms=stagger_ms, told=told)
     sizes = [n // procs + (i < n % procs) for i in range(procs)]
     ctx = multiprocessing.get_context("fork")
     with concurrent.futures.ProcessPoolExecutor(procs, mp_context=ctx) as pool:
         parts = list(pool.map(run, [url] * procs, [x] * procs, sizes, [chunk_ms] * procs,
-                              [1000 * n + i for i in range(procs)], [stagger_ms] * procs))
+                              [1000 * n + i for i in range(procs)], [stagger_ms] * procs, [told] * procs))
     return ([v for lat, _, _ in parts for v in lat], [t for _, ends, _ in parts for t in ends],
             [e for _, _, err in parts for e in err])
 
@@ -306,6 +311,10 @@ def main(argv=None) -> int:
                          "searches its own), workers and workers-noahead (batch and noahead from --workers "
                          "processes), base and workers-base (the default server, one process or --workers, with "
                          "gesturedb imported from --baseline-src: the code before a change)")
+    ap.add_argument("--lengths", default="told",
+                    help="told: each client's start message says its speech's length (total_samples: a file; the "
+                         "last step is pre-selected like the others); untold: it does not (a microphone); "
+                         "told,untold: both, alternating count by count")
     ap.add_argument("--workers", type=int, default=2,
                     help="processes of the 'workers' mode's server (gesturedb serve --workers; batched in each)")
     ap.add_argument("--client-procs", type=int, default=4,
@@ -337,6 +346,9 @@ def main(argv=None) -> int:
     x = x[: int(args.seconds * SR)]
     counts = [int(c) for c in args.clients.split(",")]
     modes = args.modes.split(",")
+    lengths = [{"told": True, "untold": False}.get(v) for v in args.lengths.split(",")]
+    if None in lengths:
+        raise SystemExit(f"--lengths: expected told, untold or both; got {args.lengths!r}")
     for mode in modes:
         if mode not in MODES:
             raise SystemExit(f"--modes: expected some of {', '.join(MODES)}; got {mode!r}")
@@ -358,21 +370,22 @@ def main(argv=None) -> int:
         print(f"{'server':>6} {'clients':>8} {'steps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'late':>6} "
               f"{'batch':>6} {'search ms/step':>15} {'load':>5} {'ahead used ms/call':>14} {'cpu ms/step':>10} {'clients cpu':>10} "
               f"{'server p50/p99':>13} {'p99 streaming':>16}")
-        best = {mode: 0 for mode in modes}
-        live = list(modes)
+        runs = [(mode, told) for mode in modes for told in lengths]
+        best = {r: 0 for r in runs}
+        live = list(runs)
         for n in counts:
-            for mode in list(live):
-                ok, p50 = measure(args, x, n, mode, servers[mode][1], servers[mode][0].pid)
+            for mode, told in list(live):
+                ok, p50 = measure(args, x, n, mode, servers[mode][1], servers[mode][0].pid, told)
                 if ok:
-                    best[mode] = n
+                    best[mode, told] = n
                 if not p50 <= args.give_up_ms:
-                    live.remove(mode)
+                    live.remove((mode, told))
     finally:
         for server, _ in servers.values():
             server.terminate()
             server.wait(30)
-    for mode, n in best.items():
-        print(f"{mode}: real-time clients with no late step: {n}")
+    for (mode, told), n in best.items():
+        print(f"{_label(mode, told)}: real-time clients with no late step: {n}")
     return 0
 
 
@@ -397,7 +410,11 @@ def clients_cpu_s() -> float:
                                                                          resource.RUSAGE_CHILDREN)))
 
 
-def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tuple[bool, float]:
+def _label(mode: str, told: bool) -> str:
+    return mode if told else f"{mode}/untold"
+
+
+def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int, told: bool = True) -> tuple[bool, float]:
     """n clients at once on the server at ``port`` (process ``pid``); prints a row; (no late step, p50 in ms)."""
     # a server of several processes answers /health from one of them: its batch counts are not the server's
     stats = not mode.startswith("workers")
@@ -406,7 +423,7 @@ def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tupl
     timed0 = (h0.get("step_latency") or {}).get("steps")
     cpu0, ccpu0 = cpu_s(pid), clients_cpu_s()
     timed, ends, errors = run_procs(f"ws://127.0.0.1:{port}/stream", x, n, args.chunk_ms, args.client_procs,
-                                    args.stagger_ms)
+                                    args.stagger_ms, told)
     lat = [v for _, v in timed]
     # while streaming: the steps whose audio left before the first stream of the count ended
     first_end = min(ends) if ends else np.inf
@@ -438,7 +455,7 @@ def measure(args, x: np.ndarray, n: int, mode: str, port: int, pid: int) -> tupl
     # the server's CPU per step, all its threads (one process: the workers' children are not in it)
     cpu_step = f"{cpu * 1000 / ms.size:.1f}" if stats and ms.size else "-"
     clients_step = f"{ccpu * 1000 / ms.size:.1f}" if ms.size else "-"
-    print(f"{mode:>6} {n:>8} {ms.size:>7} {p50:>8.1f} {p99:>8.1f} {mx:>8.1f} {late:>6} {batch:>6} {search:>15} "
+    print(f"{_label(mode, told):>6} {n:>8} {ms.size:>7} {p50:>8.1f} {p99:>8.1f} {mx:>8.1f} {late:>6} {batch:>6} {search:>15} "
           f"{os.getloadavg()[0]:>5.1f} {ahead:>14} {cpu_step:>10} {clients_step:>10} {server:>13} {streaming:>16}"
           + (f"  ({len(errors)} clients failed: {errors[0]})" if errors else ""), flush=True)
     return late == 0 and not errors and ms.size > 0, float(p50)

@@ -298,7 +298,7 @@ def test_stream_round_trip(client, db, speech):
 
 def test_control_switches_from_the_next_step(client, speech):
     with client.websocket_connect("/stream") as ws:
-        _start(ws)
+        _start(ws, total_samples=4 * SR)  # a factory without n_samples: the length told is not passed on
         ws.send_bytes(P.encode_audio(speech[: 2 * SR]))
         first = P.unpack_frames(ws.receive_bytes())
         ws.send_text(json.dumps({"type": "control", "control": "right_wrist_speed_low"}))
@@ -329,6 +329,10 @@ def test_control_schedules_are_checked_item_by_item(client):
     (json.dumps({"type": "start", "sample_rate": 16000, "format": "mp3"}), P.CLOSE_POLICY, "bad_format"),
     (json.dumps({"type": "start", "sample_rate": 16000, "control": "no_such_mask"}), P.CLOSE_POLICY, "bad_control"),
     (json.dumps({"type": "start", "sample_rate": 16000, "protocol": 99}), P.CLOSE_POLICY, "bad_protocol"),
+    (json.dumps({"type": "start", "sample_rate": 16000, "total_samples": -1}), P.CLOSE_POLICY, "bad_start"),
+    (json.dumps({"type": "start", "sample_rate": 16000, "total_samples": "16000"}), P.CLOSE_POLICY, "bad_start"),
+    (json.dumps({"type": "start", "sample_rate": 16000, "total_samples": True}), P.CLOSE_POLICY, "bad_start"),
+    (json.dumps({"type": "start", "sample_rate": 16000, "total_samples": 10**12}), P.CLOSE_POLICY, "bad_start"),
 ])
 def test_bad_start_is_an_error_message_then_a_close(client, first, code, error):
     with client.websocket_connect("/stream") as ws:

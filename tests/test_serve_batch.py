@@ -59,10 +59,10 @@ def _fmt(j: int) -> str:
     return "f32" if j % 2 == 0 else "pcm16"
 
 
-def _client(url, x, control, out, j):
+def _client(url, x, control, out, j, total_samples=None):
     try:
         frames = []
-        with LiveClient(url, sample_rate=SR, format=_fmt(j), control=control) as live:
+        with LiveClient(url, sample_rate=SR, format=_fmt(j), control=control, total_samples=total_samples) as live:
             for a in range(0, x.shape[0], CHUNK):
                 live.send_audio(x[a:a + CHUNK])
                 frames += live.poll()
@@ -106,6 +106,27 @@ def test_concurrent_streams_through_the_batcher_are_each_alone_bit_for_bit(db, s
         assert sched.n_ahead_stale == 0  # controls by schedule are known ahead
     else:
         assert n_used == 0 and sched.n_calls - calls0 < n_steps
+
+
+def test_a_client_that_tells_its_length_has_its_last_step_preselected_too(db, scott_dir):
+    """``total_samples`` in the start message: the stream's last, shorter step is pre-selected while its speech
+    arrives like every other step, so none takes a pass over the database; without it the last step does. The
+    frames are the stream's alone either way (one client at a time: the counts are its own)."""
+    x = _speech(scott_dir, 1, 6.0)  # 90 frames: 11 full steps and a last one of 2 frames
+    lim = Limits()
+    app = create_app(db, limits=lim)
+    sched = app.state.gesturedb.scheduler
+    want = _alone(db, P.decode_audio(P.encode_audio(x, "pcm16"), "pcm16"), None)
+    assert len(want[2]) == 12 and want[2][-1]["out_end"] - want[2][-1]["out_start"] == 2
+    with LiveServer(app, lim) as srv:
+        for told, usual in ((x.shape[0], 0), (None, 1)):
+            steps0, used0 = sched.n_steps, sched.n_ahead_used
+            out = [None, None]
+            _client(srv.ws, x, None, out, 1, total_samples=told)
+            out = out[1:]
+            assert not isinstance(out[0], BaseException), out[0]
+            assert np.array_equal(out[0][1], want[1]) and np.array_equal(out[0][0], want[0]) and out[0][2] == want[2]
+            assert (sched.n_steps - steps0, sched.n_ahead_used - used0) == (usual, 12 - usual), told
 
 
 def test_a_failing_stream_does_not_disturb_the_batch(db, scott_dir):

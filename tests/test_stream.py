@@ -80,6 +80,36 @@ def test_the_end_in_parts_is_the_same_end(scott_db, scott_dir):
         again.end_speech()
 
 
+def test_a_stream_told_its_length_knows_its_last_step_ahead(scott_db, scott_dir):
+    """With ``n_samples`` the coming step that the speech's end makes shorter is known before the end
+    (``upcoming_step``: what a server pre-selects), the same step ``next_step`` gives after ``end_speech``;
+    the frames are those of the whole file whatever length was told (a wrong one only gives full coming steps)."""
+    wav = scott_dir / "inputs" / "2_scott_0_5_5.wav"
+    searcher = Searcher(scott_db)
+    whole = searcher.synthesize(wav)
+    last_n = whole.steps[-1]["out_end"] - whole.steps[-1]["out_start"]
+    assert last_n < 8
+    x, sr = read_audio(wav, sr=16000)
+    for told, coming in ((len(x), last_n), (len(x) // 2, 8), (len(x) + 5 * sr, 8), (None, 8)):
+        stream = searcher.stream(sample_rate=sr, n_samples=told)
+        chunks = [stream.push(x)]
+        up = stream.upcoming_step()
+        assert stream.n_steps == len(whole.steps) - 1  # what follows is the last step
+        assert up.n == coming, told
+        stream.end_speech()
+        sq = stream.next_step()
+        assert sq.n == last_n and up.same_but_audio(sq) == (coming == last_n), told
+        stream.complete_step(sq, *stream.search_step(sq))
+        chunks.append(stream.finish())
+        rot, root, steps = _joined(chunks)
+        assert np.array_equal(rot, whole.motion.rotations) and np.array_equal(root, whole.motion.root_positions)
+        assert steps == whole.steps
+    assert searcher.stream(sample_rate=sr, n_samples=len(x)).n_steps == 0
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ParameterError, match="n_samples: expected the speech's length as an int >= 0 or None"):
+            Stream(scott_db, sample_rate=sr, n_samples=bad)
+
+
 def test_set_control_takes_effect_from_the_next_step(scott_db, scott_dir):
     wav = scott_dir / "inputs" / "2_scott_0_2_2.wav"
     x, sr = read_audio(wav, sr=16000)

@@ -150,8 +150,8 @@ class ServerState:
             if stream_factory is not None and "searcher" in inspect.signature(stream_factory).parameters:
                 cls = stream_factory
                 # one Searcher (segments, pose projection) serves every stream instead of one each
-                stream_factory = lambda d, *, sample_rate: cls(d, sample_rate=sample_rate,  # noqa: E731
-                                                              searcher=self.searcher())
+                stream_factory = lambda d, *, sample_rate, n_samples=None: cls(  # noqa: E731
+                    d, sample_rate=sample_rate, n_samples=n_samples, searcher=self.searcher())
         self.stream_factory, self.stream_unavailable = stream_factory, why
         self.results = ResultStore(limits.max_results, limits.result_ttl_s)
         self.streams = 0
@@ -192,6 +192,14 @@ class ServerState:
             while len(self._controls_ok) > 256:
                 self._controls_ok.popitem(last=False)
         return control
+
+    def new_stream(self, sample_rate: int, n_samples: int | None = None):
+        """A client's stream; ``n_samples``, its speech's length when the client told it, goes to factories that
+        take it (gesturedb's own Stream: its last step pre-selected ahead like the others)."""
+        f = self.stream_factory
+        if n_samples is not None and "n_samples" in inspect.signature(f).parameters:
+            return f(self.db, sample_rate=sample_rate, n_samples=n_samples)
+        return f(self.db, sample_rate=sample_rate)
 
     def searcher(self):
         """The k-NN Searcher every stream and upload shares (built once: its segments and pose projection)."""

@@ -93,12 +93,16 @@ class LiveClient:
         A mask expression or saved mask name in force from the first step.
     words : list of (start_s, end_s, text), optional
         Word timings known in advance (for keyword sub-databases).
+    total_samples : int, optional
+        The speech's whole length in samples, when you know it before sending it all (a file or a
+        line of dialogue): the server then prepares the last step ahead like the others, and it
+        costs it a millisecond instead of a pass over the database. The frames are the same either way.
     timeout_s : float
         How long to wait for the server to answer the start, and in :meth:`end`.
     """
 
     def __init__(self, url: str = "ws://127.0.0.1:8765/stream", *, sample_rate: int = 16000, format: str = "pcm16",
-                 control: str | None = None, words=None, timeout_s: float = 30.0):
+                 control: str | None = None, words=None, total_samples: int | None = None, timeout_s: float = 30.0):
         if format not in P.AUDIO_FORMATS:
             raise ParameterError(f"format: expected one of {', '.join(P.AUDIO_FORMATS)}; got {format!r}")
         self.url, self.sample_rate, self.format = url, int(sample_rate), format
@@ -110,6 +114,8 @@ class LiveClient:
         self._ws = None
         self._start = {"type": "start", "protocol": P.PROTOCOL_VERSION, "sample_rate": self.sample_rate,
                        "format": format, "control": control}
+        if total_samples is not None:
+            self._start["total_samples"] = int(total_samples)
         if words is not None:
             self._start["words"] = [[float(a), float(b), str(t)] for a, b, t in words]
         self.ready: dict | None = None

@@ -108,6 +108,7 @@ class StreamSession:
         self.fmt = None
         self.sample_rate = None
         self.n_samples = 0
+        self.total_samples = None  # what the start message said the speech's length is (None: not said)
         self.errors = 0
         self.n_sent = 0
         self.control = None
@@ -227,13 +228,19 @@ class StreamSession:
             control = self.state.check_control(control)
         except ParameterError as exc:
             raise _Close(P.CLOSE_POLICY, "bad_control", str(exc)) from None
-        factory = self.state.stream_factory
-        if factory is None:
+        total = req.get("total_samples")  # the speech's length when the client knows it (a file): a hint
+        if total is not None and (isinstance(total, bool) or not isinstance(total, int)
+                                  or not 0 <= total <= self.limits.max_audio_s * rate):
+            raise _Close(P.CLOSE_POLICY, "bad_start", f"total_samples: expected an integer from 0 to "
+                                                      f"{int(self.limits.max_audio_s * rate)} (the limit of "
+                                                      f"{self.limits.max_audio_s:g} s at {rate} Hz) or null; "
+                                                      f"got {echo(total)}")
+        if self.state.stream_factory is None:
             raise _Close(P.CLOSE_INTERNAL, "unavailable", self.state.stream_unavailable)
-        self.fmt, self.sample_rate = fmt, rate
+        self.fmt, self.sample_rate, self.total_samples = fmt, rate, total
         self.t_start = time.monotonic()
         try:
-            self.stream = await run_in_threadpool(factory, self.state.db, sample_rate=rate)
+            self.stream = await run_in_threadpool(self.state.new_stream, rate, total)
         except GestureDBError as exc:
             raise _Close(P.CLOSE_POLICY, "bad_start", str(exc)) from None
         if self.state.scheduler is not None and hasattr(self.stream, "next_step"):
@@ -349,7 +356,10 @@ class StreamSession:
             # searched with the other streams' waiting steps, so that streams ending together share passes
             # over the database instead of one each (the ends of 50 streams within half a second were the
             # tail of the spread benchmark: docs/live-measurements.md, "While streaming")
-            sched.forget(self.stream)  # its coming full step, pre-selected for speech that will not come
+            if self.n_samples != self.total_samples:
+                # its coming step was pre-selected as a full one, for speech that will not come (a stream told
+                # its length had its last, shorter step pre-selected: kept)
+                sched.forget(self.stream)
             await self._synth(self.stream.end_speech)
             await self._send_chunk((await self._ready_steps(None))[0])
         await self._send_chunk(await self._synth(self.stream.finish))

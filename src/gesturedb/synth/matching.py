@@ -34,7 +34,7 @@ from gesturedb.control.schedule import _schedule_items
 from gesturedb.db import keywords as kw
 from gesturedb.db.shards import ShardedSearch
 from gesturedb.errors import ParameterError, SearchError
-from gesturedb.features.audio import AUDIO_WINDOW_S, AudioFeatureStream, audio_deltas
+from gesturedb.features.audio import AUDIO_WINDOW_S, AudioFeatureStream, audio_deltas, n_frames_for_duration
 from gesturedb.io.transcripts import Words, normalize_word
 from gesturedb.motion import Motion
 from gesturedb.search import HalfPose, PoseProjection, _no_candidate_error, rank_sum_search
@@ -265,9 +265,9 @@ class Searcher:
             res.motion = refiner.refine(res.motion, np.concatenate([query, audio_deltas(query)], axis=1))
         return res
 
-    def stream(self, options: SearchOptions | None = None, *, sample_rate: int) -> Stream:
+    def stream(self, options: SearchOptions | None = None, *, sample_rate: int, n_samples: int | None = None) -> Stream:
         """A live synthesis over this searcher (:class:`gesturedb.synth.stream.Stream`)."""
-        return Stream(self.db, options, sample_rate=sample_rate, searcher=self)
+        return Stream(self.db, options, sample_rate=sample_rate, searcher=self, n_samples=n_samples)
 
     # -- the pieces a synthesis is made of ---------------------------------------
     def _check_options(self, opts: SearchOptions) -> tuple[int, float, float]:
@@ -388,10 +388,15 @@ class Stream:
     searcher : gesturedb.synth.Searcher, optional
         The searcher to use (its segments, projection or Dask client); default ``Searcher(db)``.
         One searcher can serve many streams.
+    n_samples : int >= 0, optional
+        The speech's whole length in samples, when it is known before all of it has come (a file
+        streamed): the last step, shorter where the speech ends within it, is then known ahead
+        (:meth:`upcoming_step`) and a server pre-selects it like the others. Only that: the frames
+        do not depend on it, and speech of another length ends as without it.
     """
 
     def __init__(self, db, options: SearchOptions | None = None, *, sample_rate: int, searcher=None,
-                 _whole: bool = False):
+                 n_samples: int | None = None, _whole: bool = False):
         self.db = db
         self.searcher = searcher if searcher is not None else Searcher(db)
         self.options = opts = SearchOptions.of(options)
@@ -403,6 +408,11 @@ class Stream:
             raise ParameterError(f"sample_rate: expected a positive int (Hz), got {sample_rate!r}")
         self.sample_rate = int(sample_rate)
         self.fps = float(db.fps)
+        if n_samples is not None and (isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer))
+                                      or n_samples < 0):
+            raise ParameterError(f"n_samples: expected the speech's length as an int >= 0 or None, got {n_samples!r}")
+        # the output frames of that much speech (as finish() will count them), None: unknown
+        self._n_expected = None if n_samples is None else n_frames_for_duration(n_samples / self.sample_rate, self.fps)
         self._features = AudioFeatureStream(self.sample_rate, fps=db.fps, n_mfcc=int(db.config.get("n_mfcc", 13)))
         # the standardised features so far: rows [0, _n_query) of a buffer that doubles when full (a new
         # array at each feed copied all of them: a megabyte a step after 20 minutes)
@@ -526,10 +536,15 @@ class Stream:
         with pre-selection ``"pose"`` its table but for the audio distances depends on nothing else, so a
         server pre-selects it while the speech arrives (:meth:`gesturedb.synth.stepbatch.StepBatch.speculate`)
         and checks it against :meth:`next_step`'s with :meth:`StepQuery.same_but_audio` (a control or words
-        pushed in between make it stale). None once the stream is finished or with pre-selection ``"audio"``."""
+        pushed in between make it stale). None once the stream is finished or with pre-selection ``"audio"``.
+        A full step, but for the last one of a stream told its length (``n_samples``)."""
         if self._finished or self._speech_over or self.options.preselect != "pose":
             return None
-        return self._prepare_step(self.step, with_query=False)
+        n = self.step
+        if self._n_expected is not None:
+            left = self._n_expected - len(self._windows) * self.step
+            n = left if 0 < left < n else n  # past the length told (more speech came): full steps again
+        return self._prepare_step(n, with_query=False)
 
     def search_step(self, sq: StepQuery):
         """``(res, relaxed)``: step ``sq`` searched alone, as :meth:`push` searches it (with the repeat
