@@ -19,9 +19,10 @@ stream (and how many): the clients all stream the same speech, so with --stagger
 one spread, which a server of independent speakers rarely sees. Each client's start message says its
 speech's length (`total_samples`, what a client streaming a file does), so its last, shorter step is
 pre-selected like the others; `--lengths untold` (a microphone's stream: the last step takes a pass over the
-database when the end comes) or `told,untold` (both, alternating count by count). "server p50/p99": the server's own share of the same steps (`GET /health?last=N`, `step_latency`: from the
-arrival of the audio message that completed a step to the send of its frames, issue 39's definition),
-without the loopback and the clients' own scheduling (the clients share this machine's cores).
+database when the end comes) or `told,untold` (both, alternating count by count). "server p50/p99": the
+server's own share of the same steps (`GET /health?last=N`, `step_latency`: from the arrival of the audio
+message that completed a step to the send of its frames, issue 39's definition), without the loopback and
+the clients' own scheduling (the clients share this machine's cores).
 
 Start-up (--startup): the time from `gesturedb.open(DB)` to the first search step, the
 first frame and the second step (the first seam, which needs the database's typical
