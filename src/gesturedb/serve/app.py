@@ -153,6 +153,8 @@ class ServerState:
                 stream_factory = lambda d, *, sample_rate, n_samples=None: cls(  # noqa: E731
                     d, sample_rate=sample_rate, n_samples=n_samples, searcher=self.searcher())
         self.stream_factory, self.stream_unavailable = stream_factory, why
+        # whether the factory takes the speech's length a client may tell (gesturedb's own Stream does)
+        self._takes_length = stream_factory is not None and "n_samples" in inspect.signature(stream_factory).parameters
         self.results = ResultStore(limits.max_results, limits.result_ttl_s)
         self.streams = 0
         self.step_latency = StepLatency()
@@ -196,10 +198,9 @@ class ServerState:
     def new_stream(self, sample_rate: int, n_samples: int | None = None):
         """A client's stream; ``n_samples``, its speech's length when the client told it, goes to factories that
         take it (gesturedb's own Stream: its last step pre-selected ahead like the others)."""
-        f = self.stream_factory
-        if n_samples is not None and "n_samples" in inspect.signature(f).parameters:
-            return f(self.db, sample_rate=sample_rate, n_samples=n_samples)
-        return f(self.db, sample_rate=sample_rate)
+        if n_samples is not None and self._takes_length:
+            return self.stream_factory(self.db, sample_rate=sample_rate, n_samples=n_samples)
+        return self.stream_factory(self.db, sample_rate=sample_rate)
 
     def searcher(self):
         """The k-NN Searcher every stream and upload shares (built once: its segments and pose projection)."""
